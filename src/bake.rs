@@ -1,0 +1,194 @@
+//! One bake: resolved parameters → kernel → quantised horizon layers, with progress and cancel.
+//!
+//! This is the only place that knows which kernel a method means and which precisions the
+//! requested output formats need. The kernel's rows are streamed band by band straight into the
+//! 8-bit, 16-bit or f32 layer buffers that were asked for, so the f32 working set is one band per
+//! thread (SPEC §3, issue "fast kernels": an 8192² bake never holds eight f32 planes).
+
+use crate::error::Result;
+use crate::heightmap::HeightMap;
+use crate::kernels::{self, Band, Grid, HorizonRows};
+use crate::params::{BakeParams, Encoding, Method, Radius};
+use crate::progress::{Progress, Stage};
+use serde::Serialize;
+use std::sync::Mutex;
+
+/// Which sample precisions of the horizon layers to produce.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Precisions {
+    pub u8: bool,
+    pub u16: bool,
+    pub f32: bool,
+}
+
+impl Precisions {
+    /// Only 8-bit layers (the default `png8` output).
+    pub const U8: Precisions = Precisions { u8: true, u16: false, f32: false };
+    /// Every precision.
+    pub const ALL: Precisions = Precisions { u8: true, u16: true, f32: true };
+}
+
+/// The two RGBA horizon layers (layer 0 = channels 0..3, layer 1 = channels 4..7), each
+/// `height · width · 4` samples row-major from the top row, in every precision asked for.
+/// Values are s, or √s with `encoding=sqrt`.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct HorizonLayers {
+    pub width: usize,
+    pub height: usize,
+    pub u8: Option<[Vec<u8>; 2]>,
+    pub u16: Option<[Vec<u16>; 2]>,
+    pub f32: Option<[Vec<f32>; 2]>,
+}
+
+/// How the radius was resolved (reported with the bake).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ResolvedRadius {
+    /// The radius in texels the kernel used.
+    pub texels: u32,
+    /// Why (for `auto` and `unlimited`).
+    pub reason: String,
+}
+
+/// Resolves `radius` for a map: `auto` from the height range and `min_elevation_deg` (SPEC §3.6),
+/// `unlimited` to max(W, H).
+pub fn resolve_radius(
+    params: &BakeParams,
+    width: usize,
+    height: usize,
+    heights: &[f32],
+) -> ResolvedRadius {
+    let cap = width.max(height).max(1) as u32;
+    match params.radius {
+        Radius::Texels(r) => ResolvedRadius { texels: r, reason: "as requested".into() },
+        Radius::Unlimited => {
+            ResolvedRadius { texels: cap, reason: format!("unlimited: max(W, H) = {cap} texels") }
+        }
+        Radius::Auto => {
+            let g = Grid::new(width, height, heights, params.edge, params.y_axis);
+            let (lo, hi) = g.range();
+            let dh = (hi - lo) as f64;
+            let tan = params.min_elevation_deg.to_radians().tan();
+            let raw = (dh / tan).ceil();
+            let texels =
+                if raw.is_finite() { (raw as u64).clamp(1, cap as u64) as u32 } else { cap };
+            ResolvedRadius {
+                texels,
+                reason: format!(
+                    "auto: height range {dh:.4} texels / tan({}°) = {:.2}, capped at {cap}",
+                    params.min_elevation_deg,
+                    dh / tan
+                ),
+            }
+        }
+    }
+}
+
+/// Builds the kernel a method and resolved radius mean.
+pub fn make_kernel<'a>(
+    params: &BakeParams,
+    grid: Grid<'a>,
+    radius: u32,
+) -> Box<dyn HorizonRows + 'a> {
+    match params.method {
+        Method::Lengyel | Method::Exact => {
+            Box::new(kernels::lengyel::LengyelNaive::new(grid, radius, params.bins))
+        }
+    }
+}
+
+/// Runs the horizon kernel over `map` and quantises straight into the requested precisions.
+///
+/// # Errors
+/// [`crate::Error::Canceled`] when `progress` is canceled.
+pub fn bake_horizon(
+    map: &HeightMap,
+    params: &BakeParams,
+    precisions: Precisions,
+    progress: &Progress,
+) -> Result<(HorizonLayers, ResolvedRadius)> {
+    let heights = map.scaled(params.height_scale);
+    let radius = resolve_radius(params, map.width, map.height, &heights);
+    let grid = Grid::new(map.width, map.height, &heights, params.edge, params.y_axis);
+    let kernel = make_kernel(params, grid, radius.texels);
+    progress.start(Stage::Bake, map.height as u64);
+    let layers = run_into_layers(kernel.as_ref(), params.encoding, precisions, progress)?;
+    Ok((layers, radius))
+}
+
+/// Splits `buf` (two layers of `h·w·4`) into per-band chunks, one lock each (never contended:
+/// each band index is written once).
+fn split<T>(buf: &mut [T], per_band: usize) -> Vec<Mutex<&mut [T]>> {
+    buf.chunks_mut(per_band.max(1)).map(Mutex::new).collect()
+}
+
+/// Streams `kernel` band by band into layer buffers.
+///
+/// # Errors
+/// [`crate::Error::Canceled`].
+pub fn run_into_layers<K: HorizonRows + ?Sized>(
+    kernel: &K,
+    encoding: Encoding,
+    precisions: Precisions,
+    progress: &Progress,
+) -> Result<HorizonLayers> {
+    let (w, h) = (kernel.width(), kernel.height());
+    let n = w * h * 4;
+    let mut u8s = precisions.u8.then(|| [vec![0u8; n], vec![0u8; n]]);
+    let mut u16s = precisions.u16.then(|| [vec![0u16; n], vec![0u16; n]]);
+    let mut f32s = precisions.f32.then(|| [vec![0f32; n], vec![0f32; n]]);
+    let band = kernels::band_rows(w, h);
+    let per_band = band * w * 4;
+    {
+        let b8 = u8s.as_mut().map(|[a, b]| [split(a, per_band), split(b, per_band)]);
+        let b16 = u16s.as_mut().map(|[a, b]| [split(a, per_band), split(b, per_band)]);
+        let b32 = f32s.as_mut().map(|[a, b]| [split(a, per_band), split(b, per_band)]);
+        let sqrt = encoding == Encoding::Sqrt;
+        kernels::run_bands(kernel, band, false, progress, |bi, band: Band<'_>| {
+            for layer in 0..2 {
+                let vals = || {
+                    band.channels.chunks_exact(8).flat_map(move |t| {
+                        t[layer * 4..layer * 4 + 4].iter().map(move |&s| {
+                            if sqrt {
+                                s.max(0.0).sqrt()
+                            } else {
+                                s
+                            }
+                        })
+                    })
+                };
+                if let Some(b) = &b8 {
+                    if let Ok(mut dst) = b[layer][bi].lock() {
+                        for (d, v) in dst.iter_mut().zip(vals()) {
+                            *d = crate::encode::quantize8(v);
+                        }
+                    }
+                }
+                if let Some(b) = &b16 {
+                    if let Ok(mut dst) = b[layer][bi].lock() {
+                        for (d, v) in dst.iter_mut().zip(vals()) {
+                            *d = crate::encode::quantize16(v);
+                        }
+                    }
+                }
+                if let Some(b) = &b32 {
+                    if let Ok(mut dst) = b[layer][bi].lock() {
+                        for (d, v) in dst.iter_mut().zip(vals()) {
+                            *d = v;
+                        }
+                    }
+                }
+            }
+        })?;
+    }
+    Ok(HorizonLayers { width: w, height: h, u8: u8s, u16: u16s, f32: f32s })
+}
+
+/// Interleaves two RGBA f32 layers back into `H·W·8` channel order (golden-file layout).
+pub fn layers_to_channels(layers: &[Vec<f32>; 2]) -> Vec<f32> {
+    let mut out = Vec::with_capacity(layers[0].len() * 2);
+    for (a, b) in layers[0].chunks_exact(4).zip(layers[1].chunks_exact(4)) {
+        out.extend_from_slice(a);
+        out.extend_from_slice(b);
+    }
+    out
+}

@@ -1,0 +1,49 @@
+//! The command-line interface: clap definitions and one module per subcommand (SPEC §6).
+//!
+//! Each subcommand parses its flags into library types and calls the library; none of them does
+//! arithmetic on pixels. Errors come back as [`crate::Error`] and `main` prints them on one line.
+
+pub mod bake;
+pub mod cubemap;
+pub mod eval;
+pub mod preview;
+pub mod serve;
+
+use clap::{Parser, Subcommand};
+
+/// Bakes horizon maps for self-shadowing of normal-mapped surfaces.
+#[derive(Debug, Parser)]
+#[command(name = "horizon-bake", version, about)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// The subcommands.
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Run the HTTP bake service.
+    Serve(serve::ServeArgs),
+    /// Bake one height map into horizon layers (and Fourier coefficients) in a directory.
+    Bake(bake::BakeArgs),
+    /// Write the channel-factor cube map.
+    Cubemap(cubemap::CubemapArgs),
+    /// Render a CPU preview of the shading.
+    Preview(preview::PreviewArgs),
+    /// Measure accuracy against the exact ground truth, beside the time (SPEC §4).
+    Eval(eval::EvalArgs),
+}
+
+/// Runs a parsed command line.
+///
+/// # Errors
+/// Whatever the subcommand fails with.
+pub fn run(cli: Cli) -> crate::Result<()> {
+    match cli.command {
+        Command::Serve(a) => serve::run(a),
+        Command::Bake(a) => bake::run(a),
+        Command::Cubemap(a) => cubemap::run(a),
+        Command::Preview(a) => preview::run(a),
+        Command::Eval(a) => eval::run(a),
+    }
+}

@@ -1,0 +1,103 @@
+//! The library's one error type.
+//!
+//! Every fallible function in the crate returns [`Error`]. Its variants say whose fault a failure
+//! is (the input's, a parameter's, a limit's, the machine's), because that is what decides the
+//! HTTP status and the CLI's message: the service maps each variant to a problem+json answer with
+//! a stable `code` (see `service::problem`), the CLI prints the `Display` text on one line.
+
+use std::fmt;
+
+/// Result alias used throughout the library.
+pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+/// What went wrong, and whose fault it is.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// The bytes are an image format we read, but they are broken (truncated, corrupt).
+    #[error("cannot decode the height map: {0}")]
+    Decode(String),
+    /// Not an image, or an image format / pixel layout we do not read (e.g. JPEG).
+    #[error("unsupported input: {0}")]
+    Unsupported(String),
+    /// The image decodes but its content is unusable (NaN heights, 0×0, ...).
+    #[error("invalid height map: {0}")]
+    InvalidInput(String),
+    /// A parameter is out of range or malformed; `field` names it as the API spells it.
+    #[error("invalid parameter `{field}`: {message}")]
+    Param { field: String, message: String },
+    /// The input exceeds a configured limit (dimensions, pixels, bytes).
+    #[error("limit exceeded: {0}")]
+    Limits(LimitError),
+    /// The bake was canceled by its owner.
+    #[error("canceled")]
+    Canceled,
+    /// File-system or other I/O failure on our side.
+    #[error("I/O error: {0}")]
+    Io(#[from] std::io::Error),
+    /// A bug or an unexpected internal failure (a caught panic, an encoder that refused).
+    #[error("internal error: {0}")]
+    Internal(String),
+}
+
+/// Which limit an input broke, with the numbers, so the message can say by how much.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum LimitError {
+    /// Width or height over the configured maximum.
+    Dimensions { width: u64, height: u64, max_dim: u32 },
+    /// Width × height over the configured maximum texel count.
+    Texels { texels: u64, max_texels: u64 },
+    /// Encoded input larger than allowed.
+    Bytes { bytes: u64, max_bytes: u64 },
+}
+
+impl fmt::Display for LimitError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            LimitError::Dimensions { width, height, max_dim } => {
+                write!(f, "image is {width}×{height}, each side must be at most {max_dim} texels")
+            }
+            LimitError::Texels { texels, max_texels } => {
+                write!(f, "image has {texels} texels, at most {max_texels} are allowed")
+            }
+            LimitError::Bytes { bytes, max_bytes } => {
+                write!(f, "input is {bytes} bytes, at most {max_bytes} are allowed")
+            }
+        }
+    }
+}
+
+impl Error {
+    /// A parameter error naming `field`.
+    pub fn param(field: impl Into<String>, message: impl Into<String>) -> Self {
+        Error::Param { field: field.into(), message: message.into() }
+    }
+
+    /// Process exit code for the CLI: 2 for the caller's mistakes (input, parameters, limits),
+    /// 130 for a cancel, 1 for our own failures.
+    pub fn exit_code(&self) -> u8 {
+        match self {
+            Error::Decode(_)
+            | Error::Unsupported(_)
+            | Error::InvalidInput(_)
+            | Error::Param { .. }
+            | Error::Limits(_) => 2,
+            Error::Canceled => 130,
+            Error::Io(_) | Error::Internal(_) => 1,
+        }
+    }
+
+    /// A stable, machine-readable code for this error (used as problem+json `code`).
+    pub fn code(&self) -> &'static str {
+        match self {
+            Error::Decode(_) => "decode_failed",
+            Error::Unsupported(_) => "unsupported_media_type",
+            Error::InvalidInput(_) => "invalid_input",
+            Error::Param { .. } => "invalid_parameter",
+            Error::Limits(LimitError::Bytes { .. }) => "payload_too_large",
+            Error::Limits(_) => "dimensions_too_large",
+            Error::Canceled => "canceled",
+            Error::Io(_) => "io_error",
+            Error::Internal(_) => "internal",
+        }
+    }
+}

@@ -1,0 +1,26 @@
+//! horizon-bake: horizon maps for self-shadowing of normal-mapped surfaces.
+//!
+//! # Layout
+//! Data flows one way: decode → bake → encode → store → serve.
+//!
+//! - [`heightmap`]: decode and validate an input image into heights (limits checked before any
+//!   pixel buffer is allocated).
+//! - [`params`]: every bake parameter, parsed the same way from JSON, query strings and flags.
+//! - [`kernels`]: pure numeric code over slices: the Lengyel horizon map (plain oracle and fast
+//!   version), the exact line-of-sight horizon, the channel-factor cube map, Fourier encoding and
+//!   the shading used by previews.
+//! - [`encode`]: PNG 8/16, OpenEXR, KTX2 and DDS writers.
+//! - [`bake`]: one bake = parameters → kernels → encoded outputs, with progress and cancellation.
+//! - [`cli`]: the `horizon-bake` subcommands, thin wrappers over the above.
+//! - [`error`]: the one error type, whose variants say whose fault a failure is.
+
+pub mod bake;
+pub mod cli;
+pub mod encode;
+pub mod error;
+pub mod heightmap;
+pub mod kernels;
+pub mod params;
+pub mod progress;
+
+pub use error::{Error, Result};

@@ -1,0 +1,517 @@
+//! Bake parameters: parsing, validation and defaults (SPEC §2, §3, §5).
+//!
+//! Parameters arrive three ways: as a JSON object (multipart `params` part), as a query string
+//! (raw-body upload) and as CLI flags. All three go through one string-keyed setter,
+//! [`BakeParams::set`], so a value means the same thing and fails with the same message whichever
+//! way it came in, and every error names the field as the API spells it.
+
+use crate::error::{Error, Result};
+use serde::{Deserialize, Serialize};
+use std::fmt;
+
+/// Which channel of an RGB(A) image holds the height (gray images ignore it).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Hash)]
+#[serde(rename_all = "lowercase")]
+pub enum Channel {
+    R,
+    G,
+    B,
+    A,
+    /// 0.2126 R + 0.7152 G + 0.0722 B on the normalised stored values.
+    Luma,
+}
+
+/// What lies beyond the map's border.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Hash)]
+#[serde(rename_all = "lowercase")]
+pub enum Edge {
+    /// The map tiles.
+    Wrap,
+    /// Nothing outside the map occludes.
+    None,
+}
+
+/// Orientation of tangent-space +y relative to the image rows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Hash)]
+#[serde(rename_all = "lowercase")]
+pub enum YAxis {
+    /// +y toward the top of the image (OpenGL, "Y+").
+    Up,
+    /// +y toward the bottom of the image (DirectX, "Y−").
+    Down,
+}
+
+/// Which horizon kernel computes the bake.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Hash)]
+#[serde(rename_all = "lowercase")]
+pub enum Method {
+    /// Lengyel/Max 32-bin splat with 5-bin averaging (SPEC §3.1).
+    Lengyel,
+    /// Exact line-of-sight horizon on the bilinear surface (SPEC §3.2).
+    Exact,
+}
+
+/// How far occluders are searched.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Radius {
+    /// A fixed radius in texels.
+    Texels(u32),
+    /// To the edge of the map (or max(W, H) texels when wrapping).
+    Unlimited,
+    /// Derived from the map's height range and `min_elevation_deg` (SPEC §3.6).
+    Auto,
+}
+
+impl fmt::Display for Radius {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Radius::Texels(r) => write!(f, "{r}"),
+            Radius::Unlimited => f.write_str("unlimited"),
+            Radius::Auto => f.write_str("auto"),
+        }
+    }
+}
+
+impl Serialize for Radius {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        match self {
+            Radius::Texels(r) => s.serialize_u32(*r),
+            other => s.serialize_str(&other.to_string()),
+        }
+    }
+}
+
+/// How the `bins` azimuth samples of `method=exact` are reduced to 8 channels.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Hash)]
+#[serde(rename_all = "lowercase")]
+pub enum Reduce {
+    /// Mean over the B/8+1 bins centred on each channel, as Lengyel's kernel does.
+    Average,
+    /// The bin at the channel's azimuth.
+    Point,
+}
+
+/// How a horizon value s is stored.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Hash)]
+#[serde(rename_all = "lowercase")]
+pub enum Encoding {
+    /// s itself.
+    Linear,
+    /// √s (decode with v²): more precision near grazing angles.
+    Sqrt,
+}
+
+/// Range mapping of the companded Fourier coefficients (SPEC §3.4).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Hash)]
+#[serde(rename_all = "lowercase")]
+pub enum FourierRange {
+    Standard,
+    /// Uses the ±2/π coefficient bound to spread the stored range.
+    Expanded,
+}
+
+/// Which results a bake computes. Only what is asked for is computed and encoded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Hash)]
+pub struct Outputs {
+    pub horizon: bool,
+    pub fourier: bool,
+}
+
+impl Default for Outputs {
+    fn default() -> Self {
+        Outputs { horizon: true, fourier: false }
+    }
+}
+
+impl fmt::Display for Outputs {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let mut parts = Vec::new();
+        if self.horizon {
+            parts.push("horizon");
+        }
+        if self.fourier {
+            parts.push("fourier");
+        }
+        f.write_str(&parts.join(","))
+    }
+}
+
+/// Upper bounds that keep a single bake's cost finite; each is documented in the README.
+pub const MAX_BINS: u32 = 256;
+/// Largest fixed radius accepted (the Lengyel splat costs O(R²) per texel).
+pub const MAX_RADIUS: u32 = 4096;
+/// Largest absolute `height_scale` accepted.
+pub const MAX_HEIGHT_SCALE: f64 = 1e9;
+
+/// Every parameter of a bake (SPEC §5), with its default.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct BakeParams {
+    /// Height in texels = normalised value × `height_scale`.
+    pub height_scale: f64,
+    pub channel: Channel,
+    pub edge: Edge,
+    pub y_axis: YAxis,
+    pub method: Method,
+    pub radius: Radius,
+    pub bins: u32,
+    pub reduce: Reduce,
+    /// Lowest light elevation the scene uses, in degrees; drives `radius=auto`.
+    pub min_elevation_deg: f64,
+    pub encoding: Encoding,
+    pub outputs: Outputs,
+    pub fourier_terms: u32,
+    pub fourier_range: FourierRange,
+}
+
+impl Default for BakeParams {
+    fn default() -> Self {
+        BakeParams {
+            height_scale: 8.0,
+            channel: Channel::Luma,
+            edge: Edge::Wrap,
+            y_axis: YAxis::Up,
+            method: Method::Lengyel,
+            radius: Radius::Texels(16),
+            bins: 32,
+            reduce: Reduce::Average,
+            min_elevation_deg: 5.0,
+            encoding: Encoding::Linear,
+            outputs: Outputs::default(),
+            fourier_terms: 5,
+            fourier_range: FourierRange::Standard,
+        }
+    }
+}
+
+/// The names `set` accepts, in SPEC order.
+pub const PARAM_NAMES: &[&str] = &[
+    "height_scale",
+    "channel",
+    "edge",
+    "y_axis",
+    "method",
+    "radius",
+    "bins",
+    "reduce",
+    "min_elevation_deg",
+    "encoding",
+    "outputs",
+    "fourier_terms",
+    "fourier_range",
+];
+
+fn parse_enum<T: Copy>(field: &str, value: &str, options: &[(&str, T)]) -> Result<T> {
+    let v = value.trim().to_ascii_lowercase();
+    options.iter().find(|(name, _)| *name == v).map(|(_, t)| *t).ok_or_else(|| {
+        let names: Vec<&str> = options.iter().map(|(n, _)| *n).collect();
+        Error::param(field, format!("`{value}` is not one of {}", names.join(", ")))
+    })
+}
+
+fn parse_f64(field: &str, value: &str) -> Result<f64> {
+    let v: f64 = value
+        .trim()
+        .parse()
+        .map_err(|_| Error::param(field, format!("`{value}` is not a number")))?;
+    if !v.is_finite() {
+        return Err(Error::param(field, "must be a finite number"));
+    }
+    Ok(v)
+}
+
+fn parse_u32(field: &str, value: &str) -> Result<u32> {
+    let t = value.trim();
+    // Accept "16.0" from JSON clients that only have doubles, but not "16.5".
+    if let Ok(v) = t.parse::<u32>() {
+        return Ok(v);
+    }
+    match t.parse::<f64>() {
+        Ok(f) if f.fract() == 0.0 && (0.0..=u32::MAX as f64).contains(&f) => Ok(f as u32),
+        _ => Err(Error::param(field, format!("`{value}` is not a non-negative whole number"))),
+    }
+}
+
+impl BakeParams {
+    /// Sets one parameter from its textual value, validating it.
+    ///
+    /// # Errors
+    /// [`Error::Param`] naming `key` when the key is unknown or the value is invalid.
+    pub fn set(&mut self, key: &str, value: &str) -> Result<()> {
+        match key {
+            "height_scale" => {
+                let v = parse_f64(key, value)?;
+                if v < 0.0 {
+                    return Err(Error::param(key, "must not be negative"));
+                }
+                if v > MAX_HEIGHT_SCALE {
+                    return Err(Error::param(key, format!("must be at most {MAX_HEIGHT_SCALE:e}")));
+                }
+                self.height_scale = v;
+            }
+            "channel" => {
+                self.channel = parse_enum(
+                    key,
+                    value,
+                    &[
+                        ("r", Channel::R),
+                        ("g", Channel::G),
+                        ("b", Channel::B),
+                        ("a", Channel::A),
+                        ("luma", Channel::Luma),
+                    ],
+                )?
+            }
+            "edge" => {
+                self.edge = parse_enum(key, value, &[("wrap", Edge::Wrap), ("none", Edge::None)])?
+            }
+            "y_axis" => {
+                self.y_axis = parse_enum(key, value, &[("up", YAxis::Up), ("down", YAxis::Down)])?
+            }
+            "method" => {
+                self.method = parse_enum(
+                    key,
+                    value,
+                    &[("lengyel", Method::Lengyel), ("exact", Method::Exact)],
+                )?
+            }
+            "radius" => {
+                self.radius = match value.trim().to_ascii_lowercase().as_str() {
+                    "unlimited" => Radius::Unlimited,
+                    "auto" => Radius::Auto,
+                    _ => {
+                        let r = parse_u32(key, value).map_err(|_| {
+                            Error::param(
+                                key,
+                                format!(
+                                    "`{value}` is not a positive whole number, `unlimited` or `auto`"
+                                ),
+                            )
+                        })?;
+                        if r == 0 {
+                            return Err(Error::param(key, "must be at least 1 texel"));
+                        }
+                        if r > MAX_RADIUS {
+                            return Err(Error::param(
+                                key,
+                                format!("must be at most {MAX_RADIUS} (use `unlimited`)"),
+                            ));
+                        }
+                        Radius::Texels(r)
+                    }
+                }
+            }
+            "bins" => {
+                let b = parse_u32(key, value)?;
+                if b < 16 || b % 16 != 0 || b > MAX_BINS {
+                    return Err(Error::param(
+                        key,
+                        format!("must be a multiple of 16 between 16 and {MAX_BINS}, got {b}"),
+                    ));
+                }
+                self.bins = b;
+            }
+            "reduce" => {
+                self.reduce = parse_enum(
+                    key,
+                    value,
+                    &[("average", Reduce::Average), ("point", Reduce::Point)],
+                )?
+            }
+            "min_elevation_deg" => {
+                let v = parse_f64(key, value)?;
+                if !(v > 0.0 && v < 90.0) {
+                    return Err(Error::param(key, "must be strictly between 0 and 90 degrees"));
+                }
+                self.min_elevation_deg = v;
+            }
+            "encoding" => {
+                self.encoding = parse_enum(
+                    key,
+                    value,
+                    &[("linear", Encoding::Linear), ("sqrt", Encoding::Sqrt)],
+                )?
+            }
+            "outputs" => {
+                let mut o = Outputs { horizon: false, fourier: false };
+                for part in value.split(',').map(str::trim).filter(|p| !p.is_empty()) {
+                    match part.to_ascii_lowercase().as_str() {
+                        "horizon" => o.horizon = true,
+                        "fourier" => o.fourier = true,
+                        _ => {
+                            return Err(Error::param(
+                                key,
+                                format!("`{part}` is not one of horizon, fourier"),
+                            ))
+                        }
+                    }
+                }
+                if !o.horizon && !o.fourier {
+                    return Err(Error::param(key, "must name at least one of horizon, fourier"));
+                }
+                self.outputs = o;
+            }
+            "fourier_terms" => {
+                let t = parse_u32(key, value)?;
+                if ![3, 5, 7, 9].contains(&t) {
+                    return Err(Error::param(key, format!("must be 3, 5, 7 or 9, got {t}")));
+                }
+                self.fourier_terms = t;
+            }
+            "fourier_range" => {
+                self.fourier_range = parse_enum(
+                    key,
+                    value,
+                    &[("standard", FourierRange::Standard), ("expanded", FourierRange::Expanded)],
+                )?
+            }
+            _ => {
+                return Err(Error::param(
+                    key,
+                    format!("unknown parameter; known ones are {}", PARAM_NAMES.join(", ")),
+                ))
+            }
+        }
+        Ok(())
+    }
+
+    /// Builds parameters from key/value pairs (a query string, CLI flags), defaults elsewhere.
+    ///
+    /// # Errors
+    /// The first invalid or unknown pair, as [`Error::Param`].
+    pub fn from_pairs<'a, I>(pairs: I) -> Result<Self>
+    where
+        I: IntoIterator<Item = (&'a str, &'a str)>,
+    {
+        let mut p = BakeParams::default();
+        for (k, v) in pairs {
+            p.set(k, v)?;
+        }
+        Ok(p)
+    }
+
+    /// Builds parameters from a JSON object. Numbers, strings and (for `outputs`) arrays of
+    /// strings are accepted; `null` means "the default".
+    ///
+    /// # Errors
+    /// [`Error::Param`] naming the field; `params` itself when the value is not an object.
+    pub fn from_json(value: &serde_json::Value) -> Result<Self> {
+        let obj =
+            value.as_object().ok_or_else(|| Error::param("params", "must be a JSON object"))?;
+        let mut p = BakeParams::default();
+        for (k, v) in obj {
+            let text = match v {
+                serde_json::Value::Null => continue,
+                serde_json::Value::String(s) => s.clone(),
+                serde_json::Value::Number(n) => n.to_string(),
+                serde_json::Value::Bool(_) | serde_json::Value::Object(_) => {
+                    return Err(Error::param(k.as_str(), "must be a number or a string"))
+                }
+                serde_json::Value::Array(items) => {
+                    let mut parts = Vec::new();
+                    for it in items {
+                        match it {
+                            serde_json::Value::String(s) => parts.push(s.clone()),
+                            _ => {
+                                return Err(Error::param(k.as_str(), "array items must be strings"))
+                            }
+                        }
+                    }
+                    parts.join(",")
+                }
+            };
+            p.set(k, &text)?;
+        }
+        Ok(p)
+    }
+
+    /// The parameters as textual key/value pairs, the inverse of [`BakeParams::from_pairs`].
+    pub fn to_pairs(&self) -> Vec<(&'static str, String)> {
+        fn name<T: Serialize>(t: &T) -> String {
+            serde_json::to_value(t)
+                .ok()
+                .and_then(|v| v.as_str().map(str::to_owned))
+                .unwrap_or_default()
+        }
+        vec![
+            ("height_scale", self.height_scale.to_string()),
+            ("channel", name(&self.channel)),
+            ("edge", name(&self.edge)),
+            ("y_axis", name(&self.y_axis)),
+            ("method", name(&self.method)),
+            ("radius", self.radius.to_string()),
+            ("bins", self.bins.to_string()),
+            ("reduce", name(&self.reduce)),
+            ("min_elevation_deg", self.min_elevation_deg.to_string()),
+            ("encoding", name(&self.encoding)),
+            ("outputs", self.outputs.to_string()),
+            ("fourier_terms", self.fourier_terms.to_string()),
+            ("fourier_range", name(&self.fourier_range)),
+        ]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_match_spec() {
+        let p = BakeParams::default();
+        assert_eq!(p.radius, Radius::Texels(16));
+        assert_eq!(p.bins, 32);
+        assert_eq!(p.edge, Edge::Wrap);
+        assert_eq!(p.y_axis, YAxis::Up);
+        assert_eq!(p.method, Method::Lengyel);
+        assert_eq!(p.fourier_terms, 5);
+    }
+
+    #[test]
+    fn errors_name_the_field() {
+        let cases = [
+            ("height_scale", "-1"),
+            ("bins", "24"),
+            ("bins", "0"),
+            ("radius", "0"),
+            ("radius", "abc"),
+            ("edge", "clamp"),
+            ("fourier_terms", "4"),
+            ("min_elevation_deg", "90"),
+            ("height_scale", "NaN"),
+            ("outputs", "normals"),
+            ("bogus", "1"),
+        ];
+        for (k, v) in cases {
+            match BakeParams::from_pairs([(k, v)]) {
+                Err(Error::Param { field, .. }) => assert_eq!(field, k, "{k}={v}"),
+                other => panic!("{k}={v}: expected a parameter error, got {other:?}"),
+            }
+        }
+    }
+
+    #[test]
+    fn pairs_round_trip() {
+        let p = BakeParams::from_pairs([
+            ("radius", "unlimited"),
+            ("bins", "64"),
+            ("outputs", "horizon,fourier"),
+            ("encoding", "sqrt"),
+            ("y_axis", "down"),
+        ])
+        .unwrap();
+        let pairs = p.to_pairs();
+        let q = BakeParams::from_pairs(pairs.iter().map(|(k, v)| (*k, v.as_str()))).unwrap();
+        assert_eq!(p, q);
+    }
+
+    #[test]
+    fn json_accepts_numbers_strings_and_arrays() {
+        let v =
+            serde_json::json!({"radius": 8, "bins": "48", "outputs": ["fourier"], "edge": null});
+        let p = BakeParams::from_json(&v).unwrap();
+        assert_eq!(p.radius, Radius::Texels(8));
+        assert_eq!(p.bins, 48);
+        assert!(p.outputs.fourier && !p.outputs.horizon);
+        assert!(BakeParams::from_json(&serde_json::json!({"bins": true})).is_err());
+        assert!(BakeParams::from_json(&serde_json::json!([1])).is_err());
+    }
+}

@@ -1,0 +1,42 @@
+//! Helpers shared by the integration tests.
+#![allow(dead_code)]
+
+use std::path::PathBuf;
+
+/// ../shared/golden beside the checkout (CI has it there), or `HORIZON_GOLDEN_DIR`.
+pub fn golden_dir() -> PathBuf {
+    if let Ok(d) = std::env::var("HORIZON_GOLDEN_DIR") {
+        return PathBuf::from(d);
+    }
+    let d = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/golden");
+    assert!(
+        d.join("cases.json").exists(),
+        "golden files not found at {} (set HORIZON_GOLDEN_DIR)",
+        d.display()
+    );
+    d
+}
+
+/// Little-endian f32 file.
+pub fn read_f32(path: &std::path::Path) -> Vec<f32> {
+    let b = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    b.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
+}
+
+/// A tiny deterministic RNG (SplitMix64) so property tests need no extra crates to reproduce.
+pub struct Rng(pub u64);
+impl Rng {
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+    pub fn f32(&mut self) -> f32 {
+        (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32
+    }
+    pub fn range(&mut self, lo: usize, hi: usize) -> usize {
+        lo + (self.next_u64() % (hi - lo + 1) as u64) as usize
+    }
+}
