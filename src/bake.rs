@@ -90,9 +90,10 @@ pub fn make_kernel<'a>(
     radius: u32,
 ) -> Box<dyn HorizonRows + 'a> {
     match params.method {
-        Method::Lengyel | Method::Exact => {
-            Box::new(kernels::lengyel::LengyelNaive::new(grid, radius, params.bins))
+        Method::Lengyel => {
+            Box::new(kernels::lengyel_fast::LengyelFast::new(grid, radius, params.bins))
         }
+        Method::Exact => Box::new(kernels::lengyel::LengyelNaive::new(grid, radius, params.bins)),
     }
 }
 

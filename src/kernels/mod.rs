@@ -13,6 +13,7 @@
 
 pub mod cubemap;
 pub mod lengyel;
+pub mod lengyel_fast;
 
 use crate::error::{Error, Result};
 use crate::params::{Edge, YAxis};
