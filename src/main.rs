@@ -5,7 +5,23 @@ use clap::Parser;
 use std::process::ExitCode;
 
 fn main() -> ExitCode {
-    let cli = horizon_bake::cli::Cli::parse();
+    let cli = match horizon_bake::cli::Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) => {
+            use clap::error::ErrorKind;
+            if matches!(e.kind(), ErrorKind::DisplayHelp | ErrorKind::DisplayVersion)
+                || e.kind() == ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand
+            {
+                e.exit();
+            }
+            // SPEC §6: one clear line on stderr. clap's first line says what was wrong; its
+            // usage and tips follow on later lines and are dropped.
+            let text = e.render().to_string();
+            let first = text.lines().next().unwrap_or("invalid command line");
+            eprintln!("horizon-bake: {}", first.trim_start_matches("error: "));
+            return ExitCode::from(2);
+        }
+    };
     match horizon_bake::cli::run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
