@@ -14,11 +14,17 @@ fn main() -> ExitCode {
             {
                 e.exit();
             }
-            // SPEC §6: one clear line on stderr. clap's first line says what was wrong; its
-            // usage and tips follow on later lines and are dropped.
+            // SPEC §6: one clear line on stderr. clap's first paragraph says what was wrong
+            // (sometimes over two lines, e.g. the missing flags); tips and usage follow after a
+            // blank line and are dropped.
             let text = e.render().to_string();
-            let first = text.lines().next().unwrap_or("invalid command line");
-            eprintln!("horizon-bake: {}", first.trim_start_matches("error: "));
+            let first: Vec<&str> = text
+                .lines()
+                .map(str::trim)
+                .take_while(|l| !l.is_empty() && !l.starts_with("Usage:"))
+                .collect();
+            let line = first.join(" ");
+            eprintln!("horizon-bake: {}", line.trim_start_matches("error: "));
             return ExitCode::from(2);
         }
     };
