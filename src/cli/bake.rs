@@ -33,6 +33,21 @@ pub struct BakeArgs {
     /// Sample type of horizon.ktx2 / horizon.dds: unorm8 (default), unorm16, float32.
     #[arg(long, default_value = "unorm8")]
     pub texture_precision: String,
+    /// The bake parameters (SPEC §5). Boxed: thirteen strings would make this the one huge
+    /// variant of the subcommand enum.
+    #[command(flatten)]
+    pub params: Box<ParamFlags>,
+    /// Largest accepted width or height of the input, in texels.
+    #[arg(long, default_value_t = Limits::default().max_dim)]
+    pub max_dim: u32,
+    /// Largest accepted width × height of the input.
+    #[arg(long, default_value_t = Limits::default().max_texels)]
+    pub max_texels: u64,
+}
+
+/// Every SPEC §5 parameter as a `--kebab-case` flag, as text.
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct ParamFlags {
     /// Height in texels of a normalised height of 1 (default 8).
     #[arg(long, allow_hyphen_values = true)]
     pub height_scale: Option<String>,
@@ -72,12 +87,6 @@ pub struct BakeArgs {
     /// standard (default) or expanded.
     #[arg(long)]
     pub fourier_range: Option<String>,
-    /// Largest accepted width or height of the input, in texels.
-    #[arg(long, default_value_t = Limits::default().max_dim)]
-    pub max_dim: u32,
-    /// Largest accepted width × height of the input.
-    #[arg(long, default_value_t = Limits::default().max_texels)]
-    pub max_texels: u64,
 }
 
 impl BakeArgs {
@@ -86,20 +95,21 @@ impl BakeArgs {
     /// # Errors
     /// [`Error::Param`] naming the first invalid field.
     pub fn params(&self) -> Result<BakeParams> {
+        let f = &self.params;
         let pairs = [
-            ("height_scale", &self.height_scale),
-            ("channel", &self.channel),
-            ("edge", &self.edge),
-            ("y_axis", &self.y_axis),
-            ("method", &self.method),
-            ("radius", &self.radius),
-            ("bins", &self.bins),
-            ("reduce", &self.reduce),
-            ("min_elevation_deg", &self.min_elevation_deg),
-            ("encoding", &self.encoding),
-            ("outputs", &self.outputs),
-            ("fourier_terms", &self.fourier_terms),
-            ("fourier_range", &self.fourier_range),
+            ("height_scale", &f.height_scale),
+            ("channel", &f.channel),
+            ("edge", &f.edge),
+            ("y_axis", &f.y_axis),
+            ("method", &f.method),
+            ("radius", &f.radius),
+            ("bins", &f.bins),
+            ("reduce", &f.reduce),
+            ("min_elevation_deg", &f.min_elevation_deg),
+            ("encoding", &f.encoding),
+            ("outputs", &f.outputs),
+            ("fourier_terms", &f.fourier_terms),
+            ("fourier_range", &f.fourier_range),
         ];
         BakeParams::from_pairs(pairs.iter().filter_map(|(k, v)| v.as_deref().map(|v| (*k, v))))
     }
@@ -157,15 +167,16 @@ pub fn run(args: BakeArgs) -> Result<()> {
     let decode_ms = ms(t.elapsed());
 
     let t = Instant::now();
-    let (layers, radius) = with_progress_bar(&progress, map.width * map.height, || {
-        if params.outputs.horizon {
-            bake::bake_horizon(&map, &params, formats.precisions(), &progress).map(Some)
-        } else {
-            Ok(None)
-        }
-    })?
-    .map(|(l, r)| (Some(l), Some(r)))
-    .unwrap_or((None, None));
+    let (layers, radius) =
+        with_progress_bar(&progress, format!("{}×{}", map.width, map.height), || {
+            if params.outputs.horizon {
+                bake::bake_horizon(&map, &params, formats.precisions(), &progress).map(Some)
+            } else {
+                Ok(None)
+            }
+        })?
+        .map(|(l, r)| (Some(l), Some(r)))
+        .unwrap_or((None, None));
     let bake_ms = ms(t.elapsed());
 
     let t = Instant::now();
@@ -241,7 +252,7 @@ impl BakeReport<'_> {
 /// a terminal, so piped output and logs stay clean.
 fn with_progress_bar<T>(
     progress: &Progress,
-    texels: usize,
+    label: String,
     work: impl FnOnce() -> Result<T>,
 ) -> Result<T> {
     if !std::io::stderr().is_terminal() {
@@ -252,11 +263,11 @@ fn with_progress_bar<T>(
         s.spawn(|| {
             let bar = indicatif::ProgressBar::new(1000);
             if let Ok(style) = indicatif::ProgressStyle::with_template(
-                "{msg:>8} [{elapsed_precise}] {wide_bar} {percent:>3}% eta {eta}",
+                "bake {msg} [{elapsed_precise}] {wide_bar} {percent:>3}% eta {eta}",
             ) {
                 bar.set_style(style);
             }
-            bar.set_message(format!("{:.1} Mtexel", texels as f64 / 1e6));
+            bar.set_message(label);
             while !done.load(std::sync::atomic::Ordering::Relaxed) {
                 if progress.stage() == Stage::Bake {
                     bar.set_position((progress.fraction() * 1000.0) as u64);
