@@ -152,7 +152,8 @@ pub fn run(args: BakeArgs) -> Result<()> {
     let precision = TexturePrecision::parse(&args.texture_precision)?;
     let formats = Formats::parse(&args.format, precision)?;
     if params.outputs.fourier {
-        // Fail before decoding or baking anything.
+        // Fail before decoding or baking anything. When the Fourier encoder lands, remove this
+        // early return and fill in `fourier_files`, which the encode step below already calls.
         return Err(Error::param("outputs", FOURIER_UNAVAILABLE));
     }
     check_out_dir(&args.out)?;
