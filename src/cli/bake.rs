@@ -180,8 +180,11 @@ pub fn run(args: BakeArgs) -> Result<()> {
         .unwrap_or((None, None));
     let bake_ms = ms(t.elapsed());
 
+    // Encoding includes writing the files (to the staging directory): both are the cost of
+    // producing the outputs. `total` ends before bake.json itself and the final renames.
     let t = Instant::now();
     progress.start(Stage::Encode, 1);
+    let mut staging = Staging::new(&args.out)?;
     let mut files = match &layers {
         Some(l) => encode::horizon_files(l, &formats)?,
         None => Vec::new(),
@@ -189,6 +192,7 @@ pub fn run(args: BakeArgs) -> Result<()> {
     if params.outputs.fourier {
         files.extend(fourier_files(&map, &params, &progress)?);
     }
+    staging.write(&files)?;
     let encode_ms = ms(t.elapsed());
     let report = BakeReport {
         params: &params,
@@ -200,9 +204,8 @@ pub fn run(args: BakeArgs) -> Result<()> {
         timings: [decode_ms, bake_ms, encode_ms, ms(total.elapsed())],
         layers: layers.as_ref(),
     };
-    files.push(OutFile { name: "bake.json", bytes: report.to_json()? });
-    write_dir_atomically(&args.out, &files)?;
-    Ok(())
+    staging.write(&[OutFile { name: "bake.json", bytes: report.to_json()? }])?;
+    staging.commit()
 }
 
 /// Everything `bake.json` reports.
@@ -312,29 +315,65 @@ fn staging_parent(dir: &Path) -> PathBuf {
     p
 }
 
-/// Writes `files` into `dir` all or nothing: each into a temporary directory beside `dir` first,
-/// then (only when every write succeeded) `dir` is created if missing and each file renamed into
-/// it. The temporary directory is removed in every case.
+/// Files being written into a temporary directory beside DIR (same file system), moved into DIR
+/// by [`Staging::commit`] only once every write succeeded. Dropping it without committing removes
+/// the temporary directory and leaves DIR as it was.
+pub struct Staging {
+    dir: PathBuf,
+    tmp: tempfile::TempDir,
+    names: Vec<&'static str>,
+}
+
+impl Staging {
+    /// Starts staging files for `dir`.
+    ///
+    /// # Errors
+    /// [`Error::Param`] naming `out` when `dir` is a file; [`Error::Io`].
+    pub fn new(dir: &Path) -> Result<Self> {
+        check_out_dir(dir)?;
+        let tmp = tempfile::Builder::new()
+            .prefix(".horizon-bake-tmp-")
+            .tempdir_in(staging_parent(dir))?;
+        Ok(Staging { dir: dir.to_path_buf(), tmp, names: Vec::new() })
+    }
+
+    /// Writes `files` into the temporary directory and flushes them to disk.
+    ///
+    /// # Errors
+    /// [`Error::Io`]; nothing in DIR has changed.
+    pub fn write(&mut self, files: &[OutFile]) -> Result<()> {
+        for f in files {
+            let mut file = std::fs::File::create(self.tmp.path().join(f.name))?;
+            std::io::Write::write_all(&mut file, &f.bytes)?;
+            // Durable before it becomes visible under its final name.
+            file.sync_all()?;
+            self.names.push(f.name);
+        }
+        Ok(())
+    }
+
+    /// Creates DIR if missing and renames every staged file into it, then removes the
+    /// temporary directory.
+    ///
+    /// # Errors
+    /// [`Error::Io`].
+    pub fn commit(self) -> Result<()> {
+        std::fs::create_dir_all(&self.dir)?;
+        for name in &self.names {
+            std::fs::rename(self.tmp.path().join(name), self.dir.join(name))?;
+        }
+        self.tmp.close()?;
+        Ok(())
+    }
+}
+
+/// Writes `files` into `dir` all or nothing (see [`Staging`]).
 ///
 /// # Errors
 /// [`Error::Io`] (or [`Error::Param`] naming `out` when `dir` is a file). Before the renames
 /// begin nothing in `dir` has changed.
 pub fn write_dir_atomically(dir: &Path, files: &[OutFile]) -> Result<()> {
-    check_out_dir(dir)?;
-    let staging =
-        tempfile::Builder::new().prefix(".horizon-bake-tmp-").tempdir_in(staging_parent(dir))?;
-    for f in files {
-        let path = staging.path().join(f.name);
-        std::fs::write(&path, &f.bytes)?;
-    }
-    // Make the files durable before they become visible under their final names.
-    for f in files {
-        std::fs::File::open(staging.path().join(f.name))?.sync_all()?;
-    }
-    std::fs::create_dir_all(dir)?;
-    for f in files {
-        std::fs::rename(staging.path().join(f.name), dir.join(f.name))?;
-    }
-    staging.close()?;
-    Ok(())
+    let mut staging = Staging::new(dir)?;
+    staging.write(files)?;
+    staging.commit()
 }
