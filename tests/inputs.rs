@@ -419,3 +419,21 @@ fn huge_tiff_header_is_rejected_before_decoding() {
     let e = decode(&tiff_header(4, 4), Channel::Luma, &lim).unwrap_err();
     assert!(matches!(e, Error::Decode(_)), "{e:?}");
 }
+
+#[test]
+fn huge_exr_header_is_rejected_before_decoding() {
+    use exr::prelude::FlatSamples;
+    let mut bytes = exr_bytes(2, 2, vec![("Y", FlatSamples::F32(vec![0.0; 4]))]);
+    // Patch the data window (box2i: xMin, yMin, xMax, yMax) to 100000 × 100000.
+    let key = b"dataWindow\0box2i\0";
+    let at = bytes.windows(key.len()).position(|w| w == key).unwrap() + key.len() + 4;
+    bytes[at + 8..at + 12].copy_from_slice(&99_999i32.to_le_bytes());
+    bytes[at + 12..at + 16].copy_from_slice(&99_999i32.to_le_bytes());
+    let t = std::time::Instant::now();
+    let e = decode(&bytes, Channel::Luma, &Limits::default()).unwrap_err();
+    assert!(t.elapsed().as_millis() < 50, "took {:?}", t.elapsed());
+    assert!(
+        matches!(e, Error::Limits(LimitError::Dimensions { width: 100_000, height: 100_000, .. })),
+        "{e:?}"
+    );
+}
