@@ -12,7 +12,10 @@
 //! of a kernel is 8 consecutive f32 (channel 0..7), texel-major.
 
 pub mod cubemap;
+pub mod fourier;
 pub mod lengyel;
+pub mod parallax;
+pub mod shade;
 
 use crate::error::{Error, Result};
 use crate::params::{Edge, YAxis};
