@@ -704,9 +704,11 @@ pub fn tile_label(azimuth: f64) -> String {
 
 fn sheet(scene: &Scene<'_>, params: &PreviewParams) -> Image {
     let n = params.contact_sheet as usize;
-    let l = params.light_dir();
-    let base_az = l[1].atan2(l[0]).to_degrees();
-    let elev = l[2].clamp(-1.0, 1.0).asin().to_degrees();
+    let base_az = params.light_azimuth();
+    let elev = match params.light {
+        Some(l) => l[2].clamp(-1.0, 1.0).asin().to_degrees(),
+        None => params.elevation,
+    };
     let azs = sheet_azimuths(base_az, params.sheet_spread, n);
     let tiles: Vec<Image> = azs.iter().map(|&a| scene.render(from_angles(a, elev))).collect();
     let (tw, th) = (tiles[0].width, tiles[0].height);

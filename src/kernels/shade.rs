@@ -410,7 +410,8 @@ mod tests {
     fn cube_zero_offset_is_reproduced() {
         // Light along +x: channel 0 only, slot 0 = +1 → 255; the other slots store 0 → 128,
         // which decodes to +1/255 and so picks up 1/255 of layer 0's value in those slots.
-        let cube = CubeMap::new(16);
+        // An odd face size puts a texel centre exactly on +x, so no filtering is involved.
+        let cube = CubeMap::new(15);
         let f = cube.factors([1.0, 0.0, 0.0]);
         assert!((f[0] - 1.0).abs() < 1e-6, "{f:?}");
         for v in &f[1..] {
@@ -418,6 +419,10 @@ mod tests {
         }
         let s = horizon_s(f, [0.0, 1.0, 0.0, 0.0], [0.0; 4]);
         assert!((s - 1.0 / 255.0).abs() < 1e-6);
+        // With an even size +x falls between four texels and bilinear filtering blends in the
+        // neighbouring channels' factors (channel 7 negated in slot 3), as a GPU does.
+        let f = CubeMap::new(16).factors([1.0, 0.0, 0.0]);
+        assert!(f[0] > 0.9 && f[1] > 0.0 && f[3] < 0.0, "{f:?}");
     }
 
     #[test]
