@@ -154,7 +154,10 @@ fn num(field: &str, value: &str) -> Result<f64> {
 fn whole(field: &str, value: &str, lo: u32, hi: u32) -> Result<u32> {
     let t = value.trim();
     let v = t.parse::<u32>().ok().or_else(|| {
-        t.parse::<f64>().ok().filter(|f| f.fract() == 0.0 && *f >= 0.0 && *f <= u32::MAX as f64).map(|f| f as u32)
+        t.parse::<f64>()
+            .ok()
+            .filter(|f| f.fract() == 0.0 && *f >= 0.0 && *f <= u32::MAX as f64)
+            .map(|f| f as u32)
     });
     match v {
         Some(v) if (lo..=hi).contains(&v) => Ok(v),
@@ -377,7 +380,12 @@ impl Image {
     /// # Errors
     /// [`Error::Internal`] if the encoder fails.
     pub fn to_png(&self) -> Result<Vec<u8>> {
-        crate::encode::png::encode8(self.width, self.height, crate::encode::png::PngColor::Rgba, &self.rgba)
+        crate::encode::png::encode8(
+            self.width,
+            self.height,
+            crate::encode::png::PngColor::Rgba,
+            &self.rgba,
+        )
     }
 
     /// The pixel at (`x`, `y`) as RGB.
@@ -444,7 +452,8 @@ pub struct Scene<'a> {
     y_axis: crate::params::YAxis,
     encoding: Encoding,
     horizon: Option<[Texture<'a>; 2]>,
-    fourier: Option<(Texture<'a>, Texture<'a>, Option<Texture<'a>>, usize, crate::params::FourierRange)>,
+    fourier:
+        Option<(Texture<'a>, Texture<'a>, Option<Texture<'a>>, usize, crate::params::FourierRange)>,
     cube: CubeMap,
     params: PreviewParams,
 }
@@ -455,7 +464,12 @@ impl<'a> Scene<'a> {
     /// # Errors
     /// [`Error::Param`] (`shading`, `precision`) when the layers that `shading` decodes are
     /// missing or of another size than the map.
-    pub fn new(map: &HeightMap, bake: &BakeParams, params: &PreviewParams, baked: Baked<'a>) -> Result<Self> {
+    pub fn new(
+        map: &HeightMap,
+        bake: &BakeParams,
+        params: &PreviewParams,
+        baked: Baked<'a>,
+    ) -> Result<Self> {
         let heights = map.scaled(bake.height_scale);
         let grid = Grid::new(map.width, map.height, &heights, bake.edge, bake.y_axis);
         let normals = shade::normals(&grid);
@@ -463,18 +477,33 @@ impl<'a> Scene<'a> {
         let wrap = bake.edge == Edge::Wrap;
         let needs_horizon = matches!(params.shading, Shading::Horizon | Shading::Difference);
         let horizon = if needs_horizon {
-            let l = baked.horizon.ok_or_else(|| Error::param("shading", "the horizon layers were not baked"))?;
+            let l = baked
+                .horizon
+                .ok_or_else(|| Error::param("shading", "the horizon layers were not baked"))?;
             if l.width != map.width || l.height != map.height {
-                return Err(Error::param("shading", "the horizon layers do not match the height map's size"));
+                return Err(Error::param(
+                    "shading",
+                    "the horizon layers do not match the height map's size",
+                ));
             }
-            let tex = |s: Samples<'a>| Texture { width: l.width, height: l.height, channels: 4, samples: s, wrap };
+            let tex = |s: Samples<'a>| Texture {
+                width: l.width,
+                height: l.height,
+                channels: 4,
+                samples: s,
+                wrap,
+            };
             Some(match params.precision {
                 16 => {
-                    let [a, b] = l.u16.as_ref().ok_or_else(|| Error::param("precision", "no 16-bit horizon layers were baked"))?;
+                    let [a, b] = l.u16.as_ref().ok_or_else(|| {
+                        Error::param("precision", "no 16-bit horizon layers were baked")
+                    })?;
                     [tex(Samples::U16(a)), tex(Samples::U16(b))]
                 }
                 _ => {
-                    let [a, b] = l.u8.as_ref().ok_or_else(|| Error::param("precision", "no 8-bit horizon layers were baked"))?;
+                    let [a, b] = l.u8.as_ref().ok_or_else(|| {
+                        Error::param("precision", "no 8-bit horizon layers were baked")
+                    })?;
                     [tex(Samples::U8(a)), tex(Samples::U8(b))]
                 }
             })
@@ -482,9 +511,14 @@ impl<'a> Scene<'a> {
             None
         };
         let fourier = if params.shading == Shading::Fourier {
-            let f = baked.fourier.ok_or_else(|| Error::param("shading", "the Fourier layers were not baked"))?;
+            let f = baked
+                .fourier
+                .ok_or_else(|| Error::param("shading", "the Fourier layers were not baked"))?;
             if f.width != map.width || f.height != map.height {
-                return Err(Error::param("shading", "the Fourier layers do not match the height map's size"));
+                return Err(Error::param(
+                    "shading",
+                    "the Fourier layers do not match the height map's size",
+                ));
             }
             let tex = |data: &'a [u8], channels: usize| Texture {
                 width: f.width,
@@ -493,7 +527,13 @@ impl<'a> Scene<'a> {
                 samples: Samples::U8(data),
                 wrap,
             };
-            Some((tex(&f.bands, 4), tex(&f.constant, 1), f.high.as_deref().map(|h| tex(h, 4)), f.terms, f.range))
+            Some((
+                tex(&f.bands, 4),
+                tex(&f.constant, 1),
+                f.high.as_deref().map(|h| tex(h, 4)),
+                f.terms,
+                f.range,
+            ))
         } else {
             None
         };
@@ -609,15 +649,20 @@ impl<'a> Scene<'a> {
                 );
                 let n = self.normal(x, r);
                 let ndl = dot(n, l).max(0.0);
-                let spec = if ndl > 0.0 { SPECULAR * dot(n, half).max(0.0).powi(SHININESS) } else { 0.0 };
+                let spec =
+                    if ndl > 0.0 { SPECULAR * dot(n, half).max(0.0).powi(SHININESS) } else { 0.0 };
                 let nv = dot(n, v);
                 let refl_z = 2.0 * nv * n[2] - v[2];
                 let ho = (1.0 + p.horizon_occlusion * refl_z).clamp(0.0, 1.0);
                 let lit = |f: f64| ALBEDO * (AMBIENT + f * ndl) + f * spec * ho;
                 let rgb = match p.shading {
                     Shading::None => [lit(1.0); 3],
-                    Shading::Horizon => [lit(shade::illumination(l[2], self.horizon_s(x, r, factors), k)); 3],
-                    Shading::Fourier => [lit(shade::illumination(l[2], self.fourier_s(x, r, cs), k)); 3],
+                    Shading::Horizon => {
+                        [lit(shade::illumination(l[2], self.horizon_s(x, r, factors), k)); 3]
+                    }
+                    Shading::Fourier => {
+                        [lit(shade::illumination(l[2], self.fourier_s(x, r, cs), k)); 3]
+                    }
                     Shading::Raytraced => {
                         let s = surface.horizon_sin_for_light(x, r, l, k);
                         [lit(shade::illumination(l[2], s, k)); 3]
@@ -647,7 +692,12 @@ impl<'a> Scene<'a> {
 ///
 /// # Errors
 /// [`Error::Param`] when the layers `shading` needs are missing (see [`Scene::new`]).
-pub fn render(map: &HeightMap, bake: &BakeParams, params: &PreviewParams, baked: Baked<'_>) -> Result<Image> {
+pub fn render(
+    map: &HeightMap,
+    bake: &BakeParams,
+    params: &PreviewParams,
+    baked: Baked<'_>,
+) -> Result<Image> {
     let scene = Scene::new(map, bake, params, baked)?;
     if params.contact_sheet > 0 {
         return Ok(sheet(&scene, params));
@@ -660,7 +710,12 @@ pub fn render(map: &HeightMap, bake: &BakeParams, params: &PreviewParams, baked:
 ///
 /// # Errors
 /// [`Error::Canceled`] from the bake; parameter errors as [`render`].
-pub fn render_baking(map: &HeightMap, bake: &BakeParams, params: &PreviewParams, progress: &Progress) -> Result<Image> {
+pub fn render_baking(
+    map: &HeightMap,
+    bake: &BakeParams,
+    params: &PreviewParams,
+    progress: &Progress,
+) -> Result<Image> {
     let horizon = match params.shading {
         Shading::Horizon | Shading::Difference => {
             let prec = if params.precision == 16 {
@@ -774,7 +829,15 @@ pub mod font {
 
     /// Draws `text` at (`x0`, `y0`) in `color`, clipped to `max_w` pixels and the image; unknown
     /// characters are blank.
-    pub fn draw(img: &mut Image, x0: usize, y0: usize, max_w: usize, text: &str, scale: usize, color: [u8; 3]) {
+    pub fn draw(
+        img: &mut Image,
+        x0: usize,
+        y0: usize,
+        max_w: usize,
+        text: &str,
+        scale: usize,
+        color: [u8; 3],
+    ) {
         for (i, c) in text.chars().enumerate() {
             let Some(g) = glyph(c) else { continue };
             for (gy, bits) in g.iter().enumerate() {
@@ -834,7 +897,11 @@ mod tests {
     fn light_from_angles_and_vector() {
         let p = PreviewParams::from_pairs([("azimuth", "90"), ("elevation", "30")]).unwrap();
         let l = p.light_dir();
-        assert!(l[0].abs() < 1e-12 && (l[1] - 0.75f64.sqrt()).abs() < 1e-12 && (l[2] - 0.5).abs() < 1e-12);
+        assert!(
+            l[0].abs() < 1e-12
+                && (l[1] - 0.75f64.sqrt()).abs() < 1e-12
+                && (l[2] - 0.5).abs() < 1e-12
+        );
         let p = PreviewParams::from_pairs([("light", "3,0,4")]).unwrap();
         assert_eq!(p.light_dir(), [0.6, 0.0, 0.8]);
     }
@@ -844,7 +911,10 @@ mod tests {
         assert_eq!(output_size(64, 32, None), (64, 32));
         assert_eq!(output_size(64, 32, Some(128)), (128, 64));
         assert_eq!(output_size(1, 300, Some(30)), (1, 30));
-        assert_eq!(sheet_azimuths(90.0, 60.0, 9), vec![30.0, 45.0, 60.0, 75.0, 90.0, 105.0, 120.0, 135.0, 150.0]);
+        assert_eq!(
+            sheet_azimuths(90.0, 60.0, 9),
+            vec![30.0, 45.0, 60.0, 75.0, 90.0, 105.0, 120.0, 135.0, 150.0]
+        );
         assert_eq!(tile_label(-15.2), "AZ -15°");
         assert_eq!(tile_label(350.0), "AZ -10°");
         assert_eq!(tile_label(-0.3), "AZ 0°");

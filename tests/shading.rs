@@ -26,7 +26,16 @@ use std::path::PathBuf;
 /// the true maximum by at most |c|·δ²/8 with |c| ≤ max|h00 − h10 − h01 + h11|/2).
 /// Positive: shadowed.
 #[allow(clippy::too_many_arguments)]
-fn oracle_margin(w: usize, h: usize, hs: &[f32], edge: Edge, y: YAxis, col: usize, row: usize, l: [f64; 3]) -> f64 {
+fn oracle_margin(
+    w: usize,
+    h: usize,
+    hs: &[f32],
+    edge: Edge,
+    y: YAxis,
+    col: usize,
+    row: usize,
+    l: [f64; 3],
+) -> f64 {
     let at = |c: i64, r: i64| -> f64 {
         let (c, r) = match edge {
             Edge::Wrap => (c.rem_euclid(w as i64), r.rem_euclid(h as i64)),
@@ -205,24 +214,44 @@ fn bump_shadow_falls_away_from_the_light_and_grows_as_it_drops() {
             // Light from +x: the shadow lies at columns < c, on rows around the bump.
             let mut counts = Vec::new();
             for el in ["45", "30", "15"] {
-                let none = render(&map, &bake, &[("shading", "none"), ("azimuth", "0"), ("elevation", el)]);
-                let img = render(&map, &bake, &[("shading", shading), ("azimuth", "0"), ("elevation", el)]);
+                let none = render(
+                    &map,
+                    &bake,
+                    &[("shading", "none"), ("azimuth", "0"), ("elevation", el)],
+                );
+                let img = render(
+                    &map,
+                    &bake,
+                    &[("shading", shading), ("azimuth", "0"), ("elevation", el)],
+                );
                 let dark = darker(&img, &none, 12);
                 // The exact shadow never reaches the lit half; Lengyel's splat (each neighbour
                 // spread over its angular extent, 5 bins averaged: ±45° around the light) darkens
                 // the sideways-facing flanks on the centre column too.
                 let reach = if shading == "raytraced" { c - 1 } else { c + 1 };
                 for &(x, y) in &dark {
-                    assert!(x <= reach, "{shading} {y_axis} el {el}: shadow pixel ({x},{y}) on the lit side");
-                    assert!((y as i64 - c as i64).abs() <= 9, "{shading} {y_axis} el {el}: ({x},{y})");
+                    assert!(
+                        x <= reach,
+                        "{shading} {y_axis} el {el}: shadow pixel ({x},{y}) on the lit side"
+                    );
+                    assert!(
+                        (y as i64 - c as i64).abs() <= 9,
+                        "{shading} {y_axis} el {el}: ({x},{y})"
+                    );
                 }
                 if !dark.is_empty() {
                     let mean_x = dark.iter().map(|p| p.0 as f64).sum::<f64>() / dark.len() as f64;
-                    assert!(mean_x < c as f64 - 3.0, "{shading} {y_axis} el {el}: centroid {mean_x}");
+                    assert!(
+                        mean_x < c as f64 - 3.0,
+                        "{shading} {y_axis} el {el}: centroid {mean_x}"
+                    );
                 }
                 counts.push(dark.len());
             }
-            assert!(counts[0] < counts[1] && counts[1] < counts[2], "{shading} {y_axis}: {counts:?}");
+            assert!(
+                counts[0] < counts[1] && counts[1] < counts[2],
+                "{shading} {y_axis}: {counts:?}"
+            );
             assert!(counts[0] > 0, "{shading} {y_axis}: no shadow at 45°");
             // At the zenith nothing is shadowed: identical to plain normal mapping.
             let none = render(&map, &bake, &[("shading", "none"), ("elevation", "90")]);
@@ -231,13 +260,19 @@ fn bump_shadow_falls_away_from_the_light_and_grows_as_it_drops() {
 
             // Light from +y: with y up the shadow falls toward the bottom rows, with y down
             // toward the top rows.
-            let none = render(&map, &bake, &[("shading", "none"), ("azimuth", "90"), ("elevation", "30")]);
-            let img = render(&map, &bake, &[("shading", shading), ("azimuth", "90"), ("elevation", "30")]);
+            let none =
+                render(&map, &bake, &[("shading", "none"), ("azimuth", "90"), ("elevation", "30")]);
+            let img = render(
+                &map,
+                &bake,
+                &[("shading", shading), ("azimuth", "90"), ("elevation", "30")],
+            );
             let dark = darker(&img, &none, 12);
             assert!(!dark.is_empty());
             let slack = if shading == "raytraced" { 0 } else { 2 };
             let mean_y = dark.iter().map(|p| p.1 as f64).sum::<f64>() / dark.len() as f64;
-            let far = if y_axis == "up" { mean_y > c as f64 + 3.0 } else { mean_y < c as f64 - 3.0 };
+            let far =
+                if y_axis == "up" { mean_y > c as f64 + 3.0 } else { mean_y < c as f64 - 3.0 };
             assert!(far, "{shading} y_axis={y_axis} light +y: centroid row {mean_y}");
             for &(x, y) in &dark {
                 let ok = if y_axis == "up" { y + slack > c } else { y < c + slack };
@@ -252,7 +287,8 @@ fn bump_shadow_falls_away_from_the_light_and_grows_as_it_drops() {
 fn horizon_map_agrees_with_ground_truth_on_the_bump() {
     let map = bump_map(48);
     let bake = bake_params(&[("height_scale", "8")]);
-    let img = render(&map, &bake, &[("shading", "difference"), ("azimuth", "200"), ("elevation", "25")]);
+    let img =
+        render(&map, &bake, &[("shading", "difference"), ("azimuth", "200"), ("elevation", "25")]);
     let coloured: Vec<(usize, usize)> = (0..img.height)
         .flat_map(|y| (0..img.width).map(move |x| (x, y)))
         .filter(|&(x, y)| {
@@ -264,10 +300,15 @@ fn horizon_map_agrees_with_ground_truth_on_the_bump() {
     let heights = map.scaled(8.0);
     let surface = Surface::new(Grid::new(48, 48, &heights, Edge::Wrap, YAxis::Up));
     let l = preview::from_angles(200.0, 25.0);
-    let truth = |x: i64, y: i64| surface.shadowed(x.rem_euclid(48) as f64, y.rem_euclid(48) as f64, l);
+    let truth =
+        |x: i64, y: i64| surface.shadowed(x.rem_euclid(48) as f64, y.rem_euclid(48) as f64, l);
     let shadow = (0..48 * 48).filter(|k| truth(k % 48, k / 48)).count();
     assert!(shadow > 40, "{shadow}");
-    assert!(coloured.len() < shadow, "{} disagreeing pixels for a {shadow}-pixel shadow", coloured.len());
+    assert!(
+        coloured.len() < shadow,
+        "{} disagreeing pixels for a {shadow}-pixel shadow",
+        coloured.len()
+    );
     // Lengyel's angular spread and 5-bin average move the edge by a texel or two, and its finite
     // radius (16) shortens the tip: every disagreement lies within 2 texels of the true edge.
     for &(x, y) in &coloured {
@@ -312,7 +353,8 @@ fn flat_map_is_uniform_at_every_awkward_direction() {
     let map = HeightMap::from_values(13, 11, vec![0.5; 13 * 11]).unwrap();
     for edge in ["wrap", "none"] {
         let bake = bake_params(&[("edge", edge), ("outputs", "horizon,fourier")]);
-        let (horizon, _) = bake::bake_horizon(&map, &bake, Precisions::ALL, &Progress::new()).unwrap();
+        let (horizon, _) =
+            bake::bake_horizon(&map, &bake, Precisions::ALL, &Progress::new()).unwrap();
         let (fourier, _) = bake::bake_fourier(&map, &bake, &Progress::new()).unwrap();
         let baked = Baked { horizon: Some(&horizon), fourier: Some(&fourier) };
         for (name, l) in awkward_lights() {
@@ -320,12 +362,16 @@ fn flat_map_is_uniform_at_every_awkward_direction() {
             let none = preview::render(
                 &map,
                 &bake,
-                &PreviewParams::from_pairs([("shading", "none"), ("light", light.as_str())]).unwrap(),
+                &PreviewParams::from_pairs([("shading", "none"), ("light", light.as_str())])
+                    .unwrap(),
                 baked,
             )
             .unwrap();
             let first = none.rgb(0, 0);
-            assert!(none.rgba.chunks_exact(4).all(|p| p[..3] == first), "{name}: `none` not uniform");
+            assert!(
+                none.rgba.chunks_exact(4).all(|p| p[..3] == first),
+                "{name}: `none` not uniform"
+            );
             // Lit flat ground: brighter than the ambient-only floor (no black pixels).
             assert!(first[0] > 80, "{name}: {first:?}");
             for shading in ["horizon", "fourier", "raytraced", "difference"] {
@@ -342,7 +388,10 @@ fn flat_map_is_uniform_at_every_awkward_direction() {
                         assert!(g[0] == g[1] && g[1] == g[2], "{name}: flat map disagrees");
                         assert!(img.rgba.chunks_exact(4).all(|q| q[..3] == g), "{name} {shading}");
                     } else {
-                        assert_eq!(img, none, "{name}: {shading} ({precision}-bit) differs from `none`");
+                        assert_eq!(
+                            img, none,
+                            "{name}: {shading} ({precision}-bit) differs from `none`"
+                        );
                     }
                 }
             }
@@ -352,10 +401,18 @@ fn flat_map_is_uniform_at_every_awkward_direction() {
 
 /// F-images of `shading` for light `l` and its slight perturbations; every pixel at `l` must lie
 /// within the range of its perturbed values (± `tol`): no speckles, no NaN (which would be 0).
-fn assert_no_speckles(map: &HeightMap, bake: &BakeParams, baked: Baked<'_>, shading: &str, name: &str, l: [f64; 3]) {
+fn assert_no_speckles(
+    map: &HeightMap,
+    bake: &BakeParams,
+    baked: Baked<'_>,
+    shading: &str,
+    name: &str,
+    l: [f64; 3],
+) {
     let render_at = |l: [f64; 3]| {
         let light = format!("{},{},{}", l[0], l[1], l[2]);
-        let p = PreviewParams::from_pairs([("shading", shading), ("light", light.as_str())]).unwrap();
+        let p =
+            PreviewParams::from_pairs([("shading", shading), ("light", light.as_str())]).unwrap();
         preview::render(map, bake, &p, baked).unwrap()
     };
     let az = l[1].atan2(l[0]).to_degrees();
@@ -424,11 +481,18 @@ fn check_golden(name: &str, img: &Image) {
     let want = image::open(&path)
         .unwrap_or_else(|e| panic!("{}: {e} (regenerate with HORIZON_BLESS=1)", path.display()))
         .to_rgba8();
-    assert_eq!((want.width() as usize, want.height() as usize), (img.width, img.height), "{name}: size");
+    assert_eq!(
+        (want.width() as usize, want.height() as usize),
+        (img.width, img.height),
+        "{name}: size"
+    );
     let mut off = 0usize;
     for (k, (&g, &w)) in img.rgba.iter().zip(want.as_raw()).enumerate() {
         let d = (g as i32 - w as i32).abs();
-        assert!(d <= 2, "{name}: sample {k} is {g}, golden {w} (bless with HORIZON_BLESS=1 if intended)");
+        assert!(
+            d <= 2,
+            "{name}: sample {k} is {g}, golden {w} (bless with HORIZON_BLESS=1 if intended)"
+        );
         off += (d > 0) as usize;
     }
     assert!(off * 200 <= img.rgba.len(), "{name}: {off} samples differ");
@@ -456,7 +520,15 @@ fn golden_previews() {
                 ("size", "80"),
             ],
         ),
-        ("bump_sheet", &[("shading", "horizon"), ("azimuth", "90"), ("elevation", "25"), ("contact_sheet", "9")]),
+        (
+            "bump_sheet",
+            &[
+                ("shading", "horizon"),
+                ("azimuth", "90"),
+                ("elevation", "25"),
+                ("contact_sheet", "9"),
+            ],
+        ),
     ];
     for (name, pairs) in cases {
         let img = render(&map, &bake, pairs);
@@ -468,7 +540,8 @@ fn golden_previews() {
 fn contact_sheet_layout() {
     let map = bump_map(40);
     let bake = bake_params(&[("height_scale", "6")]);
-    let sheet = render(&map, &bake, &[("azimuth", "90"), ("contact_sheet", "9"), ("shading", "raytraced")]);
+    let sheet =
+        render(&map, &bake, &[("azimuth", "90"), ("contact_sheet", "9"), ("shading", "raytraced")]);
     // 3×3 tiles of 40×40, each with a 7-pixel label strip + gaps (see preview::sheet).
     assert_eq!(sheet.width, 4 + 3 * (40 + 4));
     assert_eq!(sheet.height, 4 + 3 * (40 + 7 + 8 + 4));
@@ -483,7 +556,9 @@ fn contact_sheet_layout() {
     // Its label "AZ 90°" is drawn in white below it: as many lit pixels as the glyphs have bits.
     let bits: usize = "AZ 90°"
         .chars()
-        .map(|c| preview::font::glyph(c).unwrap().iter().map(|r| r.count_ones() as usize).sum::<usize>())
+        .map(|c| {
+            preview::font::glyph(c).unwrap().iter().map(|r| r.count_ones() as usize).sum::<usize>()
+        })
         .sum();
     let mut lit = 0;
     for y in y0 + 40..y0 + 59 {

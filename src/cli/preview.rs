@@ -167,8 +167,9 @@ impl PreviewArgs {
 /// Decoding, parameter, limit and I/O errors, each with a one-line message.
 pub fn run(args: PreviewArgs) -> Result<()> {
     let (bake, params) = args.params()?;
-    let bytes = std::fs::read(&args.input)
-        .map_err(|e| Error::Io(std::io::Error::new(e.kind(), format!("{}: {e}", args.input.display()))))?;
+    let bytes = std::fs::read(&args.input).map_err(|e| {
+        Error::Io(std::io::Error::new(e.kind(), format!("{}: {e}", args.input.display())))
+    })?;
     let (map, _info) = heightmap::decode(&bytes, bake.channel, &Limits::default())?;
     let image = preview::render_baking(&map, &bake, &params, &Progress::new())?;
     let png = image.to_png()?;
@@ -183,8 +184,9 @@ fn write_atomically(path: &std::path::Path, data: &[u8]) -> Result<()> {
     let mut tmp = tempfile::NamedTempFile::new_in(&dir)
         .map_err(|e| Error::Io(std::io::Error::new(e.kind(), format!("{}: {e}", dir.display()))))?;
     tmp.write_all(data)?;
-    tmp.persist(path)
-        .map_err(|e| Error::Io(std::io::Error::new(e.error.kind(), format!("{}: {}", path.display(), e.error))))?;
+    tmp.persist(path).map_err(|e| {
+        Error::Io(std::io::Error::new(e.error.kind(), format!("{}: {}", path.display(), e.error)))
+    })?;
     Ok(())
 }
 
@@ -202,8 +204,20 @@ mod tests {
     #[test]
     fn flags_reach_both_parameter_sets() {
         let t = T::try_parse_from([
-            "x", "in.png", "-o", "out.png", "--azimuth", "-30", "--edge", "none", "--shading", "raytraced",
-            "--contact-sheet", "9", "--y-axis", "down",
+            "x",
+            "in.png",
+            "-o",
+            "out.png",
+            "--azimuth",
+            "-30",
+            "--edge",
+            "none",
+            "--shading",
+            "raytraced",
+            "--contact-sheet",
+            "9",
+            "--y-axis",
+            "down",
         ])
         .unwrap();
         let (b, p) = t.a.params().unwrap();

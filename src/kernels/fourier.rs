@@ -63,7 +63,17 @@ pub fn basis(x: f64, y: f64) -> [f64; MAX_TERMS] {
     let (x2, y2) = (x * x, y * y);
     let xy = x * y;
     let c2 = x2 - y2;
-    [1.0, x, y, 2.0 * xy, y2 - x2, x * (x2 - 3.0 * y2), y * (3.0 * x2 - y2), 4.0 * xy * c2, c2 * c2 - 4.0 * x2 * y2]
+    [
+        1.0,
+        x,
+        y,
+        2.0 * xy,
+        y2 - x2,
+        x * (x2 - 3.0 * y2),
+        y * (3.0 * x2 - y2),
+        4.0 * xy * c2,
+        c2 * c2 - 4.0 * x2 * y2,
+    ]
 }
 
 /// Projects per-bin horizon samples onto the first `terms` basis functions.

@@ -138,7 +138,13 @@ mod tests {
     #[test]
     fn straight_down_view_never_moves() {
         let h = |x: f64, r: f64| (x * 0.3).sin() + (r * 0.2).cos();
-        for m in [Parallax::Offset, Parallax::OffsetLimited, Parallax::Steep, Parallax::Interpolated, Parallax::Relief] {
+        for m in [
+            Parallax::Offset,
+            Parallax::OffsetLimited,
+            Parallax::Steep,
+            Parallax::Interpolated,
+            Parallax::Relief,
+        ] {
             let q = displace(h, -2.0, 2.0, (3.25, 7.5), [0.0, 0.0, 1.0], &settings(m));
             assert_eq!(q, (3.25, 7.5), "{m:?}");
         }
@@ -163,7 +169,11 @@ mod tests {
         let h = |x: f64, _: f64| if x > 100.0 { 4.0 } else { 2.0 };
         let v = [0.6, 0.0, 0.8];
         let want = -2.0 * 0.6 / 0.8;
-        for (m, tol) in [(Parallax::Steep, 4.0 / 64.0 * 0.75 + 1e-9), (Parallax::Interpolated, 1e-9), (Parallax::Relief, 1e-4)] {
+        for (m, tol) in [
+            (Parallax::Steep, 4.0 / 64.0 * 0.75 + 1e-9),
+            (Parallax::Interpolated, 1e-9),
+            (Parallax::Relief, 1e-4),
+        ] {
             let q = displace(h, 0.0, 4.0, (0.0, 0.0), v, &settings(m));
             assert!((q.0 - want).abs() <= tol, "{m:?}: {} vs {want}", q.0);
         }

@@ -428,7 +428,8 @@ mod tests {
     #[test]
     fn texture_bilinear_and_edges() {
         let data = [0u8, 255, 51, 102]; // 2×2 gray
-        let wrap = Texture { width: 2, height: 2, channels: 1, samples: Samples::U8(&data), wrap: true };
+        let wrap =
+            Texture { width: 2, height: 2, channels: 1, samples: Samples::U8(&data), wrap: true };
         let clamp = Texture { wrap: false, ..wrap };
         let mut o = [0.0f32; 4];
         wrap.sample(0.5, 0.0, &mut o);
