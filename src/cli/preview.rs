@@ -21,7 +21,14 @@ pub struct PreviewArgs {
     /// The PNG to write.
     #[arg(short, long)]
     pub output: PathBuf,
+    /// Every parameter flag (boxed: `Command` stays small, clippy's `large_enum_variant`).
+    #[command(flatten)]
+    pub flags: Box<PreviewFlags>,
+}
 
+/// The parameter flags of `horizon-bake preview`, each passed as text to the library's setters.
+#[derive(Debug, clap::Args)]
+pub struct PreviewFlags {
     // Preview parameters (SPEC §3.5).
     /// horizon | fourier | raytraced | none | difference.
     #[arg(long)]
@@ -105,7 +112,7 @@ pub struct PreviewArgs {
     pub fourier_range: Option<String>,
 }
 
-impl PreviewArgs {
+impl PreviewFlags {
     /// The bake and preview parameters the flags name.
     ///
     /// # Errors
@@ -166,7 +173,7 @@ impl PreviewArgs {
 /// # Errors
 /// Decoding, parameter, limit and I/O errors, each with a one-line message.
 pub fn run(args: PreviewArgs) -> Result<()> {
-    let (bake, params) = args.params()?;
+    let (bake, params) = args.flags.params()?;
     let bytes = std::fs::read(&args.input).map_err(|e| {
         Error::Io(std::io::Error::new(e.kind(), format!("{}: {e}", args.input.display())))
     })?;
@@ -220,14 +227,14 @@ mod tests {
             "down",
         ])
         .unwrap();
-        let (b, p) = t.a.params().unwrap();
+        let (b, p) = t.a.flags.params().unwrap();
         assert_eq!(b.edge, crate::params::Edge::None);
         assert_eq!(b.y_axis, crate::params::YAxis::Down);
         assert_eq!(p.azimuth, -30.0);
         assert_eq!(p.contact_sheet, 9);
         assert_eq!(p.shading, preview::Shading::Raytraced);
         let t = T::try_parse_from(["x", "in.png", "-o", "o.png", "--bins", "20"]).unwrap();
-        match t.a.params() {
+        match t.a.flags.params() {
             Err(Error::Param { field, .. }) => assert_eq!(field, "bins"),
             other => panic!("{other:?}"),
         }

@@ -61,7 +61,10 @@ pub fn displace<H: Fn(f64, f64) -> f64>(
     s: &ParallaxSettings,
 ) -> (f64, f64) {
     let strength = s.strength;
-    if s.method == Parallax::None || strength == 0.0 || !(hmax > hmin) {
+    if s.method == Parallax::None
+        || strength == 0.0
+        || hmax.partial_cmp(&hmin) != Some(std::cmp::Ordering::Greater)
+    {
         return p;
     }
     let vz = v[2].max(1e-3);

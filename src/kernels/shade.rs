@@ -370,7 +370,7 @@ impl<'a> Surface<'a> {
     pub fn horizon_sin_for_light(&self, px: f64, pr: f64, l: [f64; 3], hardness: f64) -> f64 {
         let lz = l[2];
         let hl = (l[0] * l[0] + l[1] * l[1]).sqrt();
-        if !(lz > 0.0) || hl == 0.0 {
+        if lz.is_nan() || lz <= 0.0 || hl == 0.0 {
             return lz.max(0.0);
         }
         let sin_to_tan = |s: f64| {
