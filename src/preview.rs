@@ -50,7 +50,9 @@ pub enum Shading {
 }
 
 /// Largest output side in pixels.
-pub const MAX_SIZE: u32 = 8192;
+pub const MAX_SIZE: u32 = 4096;
+/// Most output pixels of one preview or contact sheet (all tiles together): 64 Mpixel, 256 MB.
+pub const MAX_PIXELS: u64 = 1 << 26;
 /// Most tiles on a contact sheet.
 pub const MAX_TILES: u32 = 64;
 /// Most parallax layers / bisections.
@@ -691,13 +693,22 @@ impl<'a> Scene<'a> {
 /// Renders one preview (or, with `contact_sheet` > 0, the contact sheet) from baked layers.
 ///
 /// # Errors
-/// [`Error::Param`] when the layers `shading` needs are missing (see [`Scene::new`]).
+/// [`Error::Param`] when the layers `shading` needs are missing (see [`Scene::new`]), or
+/// (`size`) when the output would exceed [`MAX_PIXELS`].
 pub fn render(
     map: &HeightMap,
     bake: &BakeParams,
     params: &PreviewParams,
     baked: Baked<'_>,
 ) -> Result<Image> {
+    let (ow, oh) = output_size(map.width, map.height, params.size);
+    let pixels = ow as u64 * oh as u64 * params.contact_sheet.max(1) as u64;
+    if pixels > MAX_PIXELS {
+        return Err(Error::param(
+            "size",
+            format!("the preview would have {pixels} pixels, at most {MAX_PIXELS} are allowed"),
+        ));
+    }
     let scene = Scene::new(map, bake, params, baked)?;
     if params.contact_sheet > 0 {
         return Ok(sheet(&scene, params));

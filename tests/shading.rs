@@ -607,3 +607,81 @@ fn scaled_preview_and_parallax_are_consistent() {
     let big = render(&map, &bake, &[("shading", "raytraced"), ("size", "48")]);
     assert_eq!((big.width, big.height), (48, 48));
 }
+
+#[test]
+fn tiny_maps_render_with_every_shading() {
+    // 1×1 is flat: every shading equals plain normal mapping.
+    let one = HeightMap::from_values(1, 1, vec![0.3]).unwrap();
+    for edge in ["wrap", "none"] {
+        let bake = bake_params(&[("edge", edge)]);
+        let none = render(&one, &bake, &[("shading", "none"), ("view_elevation", "40")]);
+        assert_eq!((none.width, none.height), (1, 1));
+        for shading in ["horizon", "fourier", "raytraced", "difference"] {
+            for parallax in ["none", "steep", "relief"] {
+                let img = render(
+                    &one,
+                    &bake,
+                    &[("shading", shading), ("parallax", parallax), ("view_elevation", "40")],
+                );
+                if shading == "difference" {
+                    let p = img.rgb(0, 0);
+                    assert!(p[0] == p[1] && p[1] == p[2], "{edge} {parallax}: {p:?}");
+                } else {
+                    assert_eq!(img.rgb(0, 0), none.rgb(0, 0), "{edge} {shading} {parallax}");
+                }
+            }
+        }
+    }
+    // 1×N and N×1 strips: raytraced pixels are darkened only where the ground truth shadows them.
+    for (w, h) in [(1usize, 9usize), (9, 1)] {
+        let v: Vec<f32> =
+            (0..w * h).map(|k| if k == 4 { 1.0 } else { 0.1 * k as f32 / 9.0 }).collect();
+        let map = HeightMap::from_values(w, h, v).unwrap();
+        for edge in ["wrap", "none"] {
+            let bake = bake_params(&[("edge", edge), ("height_scale", "4")]);
+            let az = if w == 1 { "90" } else { "0" };
+            let l = preview::from_angles(az.parse().unwrap(), 20.0);
+            let none =
+                render(&map, &bake, &[("shading", "none"), ("azimuth", az), ("elevation", "20")]);
+            let rt = render(
+                &map,
+                &bake,
+                &[("shading", "raytraced"), ("azimuth", az), ("elevation", "20")],
+            );
+            let heights = map.scaled(4.0);
+            let e = if edge == "wrap" { Edge::Wrap } else { Edge::None };
+            let s = Surface::new(Grid::new(w, h, &heights, e, YAxis::Up));
+            // F < 1 exactly when s > L_z, i.e. when the hard ground truth shadows the texel;
+            // a shadowed texel facing away from the light (N·L = 0) looks the same either way.
+            let mut dark_count = 0;
+            for y in 0..h {
+                for x in 0..w {
+                    let shadowed = s.shadowed(x as f64, y as f64, l);
+                    let dark = rt.rgb(x, y)[0] < none.rgb(x, y)[0];
+                    dark_count += dark as usize;
+                    assert!(!dark || shadowed, "{w}×{h} {edge} ({x},{y}) dark but lit");
+                }
+            }
+            assert!(dark_count > 0, "{w}×{h} {edge}: the spike casts no visible shadow");
+        }
+    }
+}
+
+#[test]
+fn oversized_previews_are_refused() {
+    let map = bump_map(8);
+    let bake = bake_params(&[]);
+    let p =
+        PreviewParams::from_pairs([("size", "4096"), ("contact_sheet", "9"), ("shading", "none")])
+            .unwrap();
+    match preview::render(&map, &bake, &p, Baked::default()) {
+        Err(horizon_bake::Error::Param { field, .. }) => assert_eq!(field, "size"),
+        other => panic!("{other:?}"),
+    }
+    // Missing layers are a parameter error naming `shading`, not a panic.
+    let p = PreviewParams::from_pairs([("shading", "fourier")]).unwrap();
+    match preview::render(&map, &bake, &p, Baked::default()) {
+        Err(horizon_bake::Error::Param { field, .. }) => assert_eq!(field, "shading"),
+        other => panic!("{other:?}"),
+    }
+}

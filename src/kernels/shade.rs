@@ -269,6 +269,10 @@ impl<'a> Surface<'a> {
     /// Stops early once the answer exceeds `ceiling` (then it is only known to be > `ceiling`).
     /// Exact per cell (see the module doc); `floor` ≥ 0 lets it stop early.
     pub fn horizon_tan(&self, px: f64, pr: f64, dx: f64, dr: f64, floor: f64, ceiling: f64) -> f64 {
+        // Directions built from degrees carry ~1e-16 residues (cos 90°); snapping them keeps a
+        // ray along a 1-texel-wide strip on the strip instead of leaving it at once.
+        let snap = |d: f64| if d.abs() < 1e-12 { 0.0 } else { d };
+        let (dx, dr) = (snap(dx), snap(dr));
         let (px, pr) = self.canonical(px, pr);
         let limit = self.ray_limit(px, pr, dx, dr);
         let z0 = self.height(px, pr);
