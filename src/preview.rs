@@ -14,9 +14,11 @@
 //!    ([`crate::kernels::parallax`]);
 //! 3. the normal is the bilinear sample of the per-texel central-difference normals,
 //!    renormalised;
-//! 4. colour = albedo·(ambient + F·max(N·L, 0)) + F·ks·(N·H)^n·HO, with H the Blinn half vector,
-//!    HO = saturate(1 + fade·R.z) the horizon occlusion of the reflection R = reflect(−V, N)
-//!    against the geometric normal (0, 0, 1), and F from `shading`:
+//! 4. colour = albedo·(ambient + F·max(N·L, 0)) + (F·ks·(N·H)^n + env)·HO, with H the Blinn half
+//!    vector, env a uniform environment seen in the mirror direction, HO = saturate(1 +
+//!    fade·R.z) the horizon occlusion of the reflection R = reflect(−V, N) against the geometric
+//!    normal (0, 0, 1) (it darkens the reflection where a bent normal sends R below the surface),
+//!    and F from `shading`:
 //!    - `horizon`: the baked 8- or 16-bit layers decoded through the UNORM8 cube map exactly as
 //!      in [`crate::kernels::shade`] (the zero offset included), F of SPEC §3.3;
 //!    - `fourier`: the Fourier layers decoded as in [`crate::kernels::fourier`], F likewise;
@@ -416,6 +418,9 @@ const ALBEDO: f64 = 0.8;
 const AMBIENT: f64 = 0.12;
 const SPECULAR: f64 = 0.3;
 const SHININESS: i32 = 24;
+/// A uniform environment seen in the mirror direction (both hemispheres, as a cube-map lookup
+/// would return): the reflection horizon occlusion exists to fade where R dips below the surface.
+const ENV_REFLECTION: f64 = 0.06;
 const FALSE_SHADOW: [f64; 3] = [0.9, 0.12, 0.08];
 const MISSED_SHADOW: [f64; 3] = [0.08, 0.3, 0.95];
 
@@ -656,7 +661,7 @@ impl<'a> Scene<'a> {
                 let nv = dot(n, v);
                 let refl_z = 2.0 * nv * n[2] - v[2];
                 let ho = (1.0 + p.horizon_occlusion * refl_z).clamp(0.0, 1.0);
-                let lit = |f: f64| ALBEDO * (AMBIENT + f * ndl) + f * spec * ho;
+                let lit = |f: f64| ALBEDO * (AMBIENT + f * ndl) + (f * spec + ENV_REFLECTION) * ho;
                 let rgb = match p.shading {
                     Shading::None => [lit(1.0); 3],
                     Shading::Horizon => {

@@ -685,3 +685,36 @@ fn oversized_previews_are_refused() {
         other => panic!("{other:?}"),
     }
 }
+
+#[test]
+fn horizon_occlusion_darkens_reflections_that_dip_below_the_surface() {
+    // Top-down view: R = reflect(−V, N) has R.z = 2·n_z² − 1, below the surface where the slope
+    // exceeds 45°. Only those pixels may change, and only darker.
+    let map = bump_map(32);
+    let bake = bake_params(&[("height_scale", "8")]);
+    let args = |fade: &'static str| {
+        vec![("shading", "none"), ("elevation", "60"), ("horizon_occlusion", fade)]
+    };
+    let off = render(&map, &bake, &args("0"));
+    let on = render(&map, &bake, &args("4"));
+    let heights = map.scaled(8.0);
+    let normals =
+        horizon_bake::kernels::shade::normals(&Grid::new(32, 32, &heights, Edge::Wrap, YAxis::Up));
+    let mut darker_count = 0;
+    for y in 0..32 {
+        for x in 0..32 {
+            let nz = normals[(y * 32 + x) * 3 + 2] as f64;
+            let (a, b) = (off.rgb(x, y)[0], on.rgb(x, y)[0]);
+            if 2.0 * nz * nz - 1.0 >= 0.0 {
+                assert_eq!(
+                    a, b,
+                    "({x},{y}) n_z {nz}: reflection above the surface must not change"
+                );
+            } else {
+                assert!(b <= a, "({x},{y}): occlusion brightened");
+                darker_count += (b < a) as usize;
+            }
+        }
+    }
+    assert!(darker_count > 10, "{darker_count}");
+}
