@@ -131,15 +131,32 @@ fn ground_truth_matches_brute_force_march() {
     let mut total = 0usize;
     let mut disagree = 0usize;
     let mut shadowed = 0usize;
-    for (w, h) in [(23usize, 17usize), (16, 16), (1, 9), (9, 1), (1, 1), (31, 5)] {
+    // The larger maps span several of the ray's 8×8 skip blocks (and partial ones); there only
+    // every 17th texel is checked to keep the oracle affordable, and they are sparse spikes on
+    // flat ground, so most blocks are skipped and the skips decide the answer.
+    for (w, h) in
+        [(23usize, 17usize), (16, 16), (1, 9), (9, 1), (1, 1), (31, 5), (70, 45), (37, 66)]
+    {
+        let big = w * h > 1000;
+        let stride = if big { 17 } else { 1 };
         for edge in [Edge::Wrap, Edge::None] {
             for y in [YAxis::Up, YAxis::Down] {
-                let hs: Vec<f32> = (0..w * h).map(|_| rng.f32() * hscale).collect();
+                let hs: Vec<f32> = (0..w * h)
+                    .map(|_| {
+                        let v = rng.f32() * hscale;
+                        if !big || rng.f32() < 0.03 {
+                            v
+                        } else {
+                            0.0
+                        }
+                    })
+                    .collect();
                 let tol = 1e-4 + (2.0 * hscale as f64 / 2.0) * (1.0 / 64.0f64).powi(2) / 8.0;
                 let s = Surface::new(Grid::new(w, h, &hs, edge, y));
                 for l in &lights {
-                    for row in 0..h {
-                        for col in 0..w {
+                    for k in (0..w * h).step_by(stride) {
+                        let (col, row) = (k % w, k / w);
+                        {
                             let fast = s.shadowed(col as f64, row as f64, *l);
                             let m = oracle_margin(w, h, &hs, edge, y, col, row, *l);
                             total += 1;
@@ -158,7 +175,7 @@ fn ground_truth_matches_brute_force_march() {
             }
         }
     }
-    assert!(shadowed > total / 10, "the random maps should cast shadows: {shadowed}/{total}");
+    assert!(shadowed > total / 20, "the random maps should cast shadows: {shadowed}/{total}");
     assert!(disagree as f64 <= 0.001 * total as f64, "{disagree} of {total} texels disagree");
 }
 

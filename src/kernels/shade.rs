@@ -14,7 +14,9 @@
 //! S, so (h̃(S) − h0)/S = A/S + B + c·S has its maximum over the cell at an end or at
 //! S* = √(A/c): three evaluations per cell give the exact supremum, no step size involved. The
 //! march stops as soon as no farther texel could change the answer ((h_max − h0)/S below the best
-//! tangent found), which makes high lights cheap whatever the radius. Radius is unlimited as
+//! tangent found), which makes high lights cheap whatever the radius, and it jumps over whole
+//! 8×8-cell blocks whose maximum cannot beat the best tangent from the nearest point still ahead
+//! (low lights on peaks and ridges, where the first rule alone marched to the radius). Radius is unlimited as
 //! SPEC §3.2 defines it: max(W, H) texels when wrapping; with `edge=none` the surface ends at the
 //! outermost texel centres and the ray stops there.
 
@@ -186,18 +188,61 @@ pub fn normals(grid: &Grid<'_>) -> Vec<f32> {
     out
 }
 
+/// Cells per side of the blocks whose maximum lets a ray skip terrain that cannot matter.
+const BLOCK: i64 = 8;
+
 /// The bilinear height surface h̃ of a grid, for ground-truth shadow rays.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub struct Surface<'a> {
     grid: Grid<'a>,
     hmax: f64,
+    /// Blocks of BLOCK×BLOCK cells (cell (i, j) spans texel centres i..i+1, j..j+1): the
+    /// maximum of every corner height of the block's cells, `bw × bh` of them.
+    block_max: Vec<f32>,
+    bw: usize,
 }
 
 impl<'a> Surface<'a> {
-    /// Wraps `grid` (computes its maximum once).
+    /// Wraps `grid` (computes its maximum and the block maxima once, O(W·H)).
     pub fn new(grid: Grid<'a>) -> Self {
         let (_, hi) = grid.range();
-        Surface { grid, hmax: hi as f64 }
+        let (w, h) = (grid.width as i64, grid.height as i64);
+        let bw = (w.max(1) + BLOCK - 1) / BLOCK;
+        let bh = (h.max(1) + BLOCK - 1) / BLOCK;
+        let mut block_max = vec![f32::NEG_INFINITY; (bw * bh) as usize];
+        let mut s = Surface { grid, hmax: hi as f64, block_max: Vec::new(), bw: bw as usize };
+        for by in 0..bh {
+            for bx in 0..bw {
+                let mut m = f32::NEG_INFINITY;
+                for r in by * BLOCK..=((by + 1) * BLOCK).min(h) {
+                    for c in bx * BLOCK..=((bx + 1) * BLOCK).min(w) {
+                        m = m.max(s.corner(c, r) as f32);
+                    }
+                }
+                block_max[(by * bw + bx) as usize] = m;
+            }
+        }
+        s.block_max = block_max;
+        s
+    }
+
+    /// The block holding (unwrapped) cell (`ix`, `ir`): its maximum and its cell rectangle in
+    /// the same unwrapped coordinates as the cell (x_lo, x_hi, r_lo, r_hi).
+    #[inline]
+    fn block_of(&self, ix: i64, ir: i64) -> (f64, [i64; 4]) {
+        let (w, h) = (self.grid.width as i64, self.grid.height as i64);
+        let wrapped = |i: i64, n: i64| match self.grid.edge {
+            Edge::Wrap => i.rem_euclid(n),
+            Edge::None => i.clamp(0, n - 1),
+        };
+        let (cx, cr) = (wrapped(ix, w), wrapped(ir, h));
+        let (bx, by) = (cx / BLOCK, cr / BLOCK);
+        let x_lo = ix - (cx - bx * BLOCK);
+        let r_lo = ir - (cr - by * BLOCK);
+        let x_len = BLOCK.min(w - bx * BLOCK).max(1);
+        let r_len = BLOCK.min(h - by * BLOCK).max(1);
+        let m = self.block_max[(by as usize) * self.bw + bx as usize] as f64;
+        (m, [x_lo, x_lo + x_len, r_lo, r_lo + r_len])
     }
 
     /// The grid.
@@ -301,9 +346,42 @@ impl<'a> Surface<'a> {
         let (mut tx, mut tr) = (next(ix, px, dx), next(ir, pr, dr));
         let (tdx, tdr) = (1.0 / dx.abs(), 1.0 / dr.abs());
         let mut s_in = 0.0f64;
+        let mut skipped: Option<[i64; 4]> = None;
         while s_in < limit {
             if s_in > 0.0 && headroom <= best * s_in {
                 break;
+            }
+            // Nothing in this block can beat `best` if even its highest corner, seen from the
+            // nearest distance still ahead, is no steeper: jump to where the ray leaves it.
+            if s_in > 0.0 {
+                let (m, rect) = self.block_of(ix as i64, ir as i64);
+                if m - z0 <= best * s_in && skipped != Some(rect) {
+                    let exit = |p: f64, d: f64, lo: i64, hi: i64| -> f64 {
+                        if d > 0.0 {
+                            (hi as f64 - p) / d
+                        } else if d < 0.0 {
+                            (lo as f64 - p) / d
+                        } else {
+                            f64::INFINITY
+                        }
+                    };
+                    let s_exit = exit(px, dx, rect[0], rect[1]).min(exit(pr, dr, rect[2], rect[3]));
+                    if s_exit > s_in {
+                        skipped = Some(rect);
+                        s_in = s_exit;
+                        if s_in >= limit {
+                            break;
+                        }
+                        let (qx, qr) = (px + dx * s_in, pr + dr * s_in);
+                        ix = cell(qx, dx);
+                        ir = cell(qr, dr);
+                        tx = s_in + next(ix, qx, dx);
+                        tr = s_in + next(ir, qr, dr);
+                        // Rounding may leave the point a hair inside the skipped block; then
+                        // its remaining cells are simply processed (exactly) below.
+                        continue;
+                    }
+                }
             }
             let s_out = tx.min(tr).min(limit);
             let (c, r) = (ix as i64, ir as i64);
