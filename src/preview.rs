@@ -622,6 +622,18 @@ impl<'a> Scene<'a> {
 
     /// Renders the scene for tangent-space light `l` (unit).
     pub fn render(&self, l: [f64; 3]) -> Image {
+        match self.render_cancelable(l, &Progress::new()) {
+            Ok(img) => img,
+            // A fresh Progress is never canceled.
+            Err(_) => Image { width: 0, height: 0, rgba: Vec::new() },
+        }
+    }
+
+    /// As [`Scene::render`], checking `progress` for cancellation before every output row.
+    ///
+    /// # Errors
+    /// [`Error::Canceled`] when `progress` asks for it.
+    pub fn render_cancelable(&self, l: [f64; 3], progress: &Progress) -> Result<Image> {
         let p = &self.params;
         let (ow, oh) = output_size(self.width, self.height, p.size);
         let mut rgba = vec![255u8; ow * oh * 4];
@@ -642,7 +654,10 @@ impl<'a> Scene<'a> {
         let half = normalize([l[0] + v[0], l[1] + v[1], l[2] + v[2]]);
         let k = p.hardness;
         let (sx, sy) = (self.width as f64 / ow as f64, self.height as f64 / oh as f64);
-        rgba.par_chunks_mut(ow * 4).enumerate().for_each(|(py, row)| {
+        rgba.par_chunks_mut(ow * 4).enumerate().try_for_each(|(py, row)| {
+            if progress.is_canceled() {
+                return Err(Error::Canceled);
+            }
             let r0 = (py as f64 + 0.5) * sy - 0.5;
             for (px, out) in row.chunks_exact_mut(4).enumerate() {
                 let x0 = (px as f64 + 0.5) * sx - 0.5;
@@ -690,8 +705,9 @@ impl<'a> Scene<'a> {
                 out[1] = srgb8(rgb[1]);
                 out[2] = srgb8(rgb[2]);
             }
-        });
-        Image { width: ow, height: oh, rgba }
+            Ok(())
+        })?;
+        Ok(Image { width: ow, height: oh, rgba })
     }
 }
 
@@ -706,6 +722,21 @@ pub fn render(
     params: &PreviewParams,
     baked: Baked<'_>,
 ) -> Result<Image> {
+    render_cancelable(map, bake, params, baked, &Progress::new())
+}
+
+/// As [`render`], checking `progress` for cancellation between output rows (a service can
+/// abandon a preview it no longer needs).
+///
+/// # Errors
+/// As [`render`], and [`Error::Canceled`].
+pub fn render_cancelable(
+    map: &HeightMap,
+    bake: &BakeParams,
+    params: &PreviewParams,
+    baked: Baked<'_>,
+    progress: &Progress,
+) -> Result<Image> {
     let (ow, oh) = output_size(map.width, map.height, params.size);
     let pixels = ow as u64 * oh as u64 * params.contact_sheet.max(1) as u64;
     if pixels > MAX_PIXELS {
@@ -716,16 +747,16 @@ pub fn render(
     }
     let scene = Scene::new(map, bake, params, baked)?;
     if params.contact_sheet > 0 {
-        return Ok(sheet(&scene, params));
+        return sheet(&scene, params, progress);
     }
-    Ok(scene.render(params.light_dir()))
+    scene.render_cancelable(params.light_dir(), progress)
 }
 
 /// Bakes what `params.shading` decodes (horizon layers at the asked precision, or the Fourier
 /// layers), then renders.
 ///
 /// # Errors
-/// [`Error::Canceled`] from the bake; parameter errors as [`render`].
+/// [`Error::Canceled`] from the bake or the render; parameter errors as [`render`].
 pub fn render_baking(
     map: &HeightMap,
     bake: &BakeParams,
@@ -747,7 +778,8 @@ pub fn render_baking(
         Shading::Fourier => Some(bake::bake_fourier(map, bake, progress)?.0),
         _ => None,
     };
-    render(map, bake, params, Baked { horizon: horizon.as_ref(), fourier: fourier.as_ref() })
+    let baked = Baked { horizon: horizon.as_ref(), fourier: fourier.as_ref() };
+    render_cancelable(map, bake, params, baked, progress)
 }
 
 /// The light azimuths (degrees) of an `n`-tile contact sheet centred on `azimuth`: evenly from
@@ -773,7 +805,7 @@ pub fn tile_label(azimuth: f64) -> String {
     format!("AZ {}°", if r == 0.0 { 0.0 } else { r })
 }
 
-fn sheet(scene: &Scene<'_>, params: &PreviewParams) -> Image {
+fn sheet(scene: &Scene<'_>, params: &PreviewParams, progress: &Progress) -> Result<Image> {
     let n = params.contact_sheet as usize;
     let base_az = params.light_azimuth();
     let elev = match params.light {
@@ -781,7 +813,10 @@ fn sheet(scene: &Scene<'_>, params: &PreviewParams) -> Image {
         None => params.elevation,
     };
     let azs = sheet_azimuths(base_az, params.sheet_spread, n);
-    let tiles: Vec<Image> = azs.iter().map(|&a| scene.render(from_angles(a, elev))).collect();
+    let tiles = azs
+        .iter()
+        .map(|&a| scene.render_cancelable(from_angles(a, elev), progress))
+        .collect::<Result<Vec<Image>>>()?;
     let (tw, th) = (tiles[0].width, tiles[0].height);
     let cols = (n as f64).sqrt().ceil() as usize;
     let rows = n.div_ceil(cols);
@@ -800,7 +835,7 @@ fn sheet(scene: &Scene<'_>, params: &PreviewParams) -> Image {
         }
         font::draw(&mut img, x0, y0 + th + GAP, tw, &tile_label(az), scale, [240, 240, 240]);
     }
-    img
+    Ok(img)
 }
 
 /// A tiny embedded 5×7 bitmap font for contact-sheet labels (no font crates).

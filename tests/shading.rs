@@ -735,3 +735,20 @@ fn horizon_occlusion_darkens_reflections_that_dip_below_the_surface() {
     }
     assert!(darker_count > 10, "{darker_count}");
 }
+
+#[test]
+fn a_canceled_preview_stops() {
+    let map = bump_map(16);
+    let bake = bake_params(&[]);
+    let progress = Progress::new();
+    progress.cancel();
+    let p = PreviewParams::from_pairs([("shading", "raytraced")]).unwrap();
+    assert!(matches!(
+        preview::render_cancelable(&map, &bake, &p, Baked::default(), &progress),
+        Err(horizon_bake::Error::Canceled)
+    ));
+    assert!(matches!(
+        preview::render_baking(&map, &bake, &p, &progress),
+        Err(horizon_bake::Error::Canceled)
+    ));
+}
