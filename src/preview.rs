@@ -70,14 +70,15 @@ pub struct PreviewParams {
     pub azimuth: f64,
     /// Light elevation in degrees above the tangent plane.
     pub elevation: f64,
-    /// An explicit tangent-space light vector (normalised); overrides azimuth/elevation.
+    /// An explicit tangent-space light vector (normalised); when given it wins over
+    /// azimuth/elevation whatever order they arrive in (query strings have no reliable order).
     pub light: Option<[f64; 3]>,
     /// k in F = clamp(k·(L_z − s) + 1, 0, 1).
     pub hardness: f64,
     pub view_azimuth: f64,
     /// 90 = straight down (no parallax shift).
     pub view_elevation: f64,
-    /// An explicit view vector (surface → eye, z > 0); overrides view_azimuth/view_elevation.
+    /// An explicit view vector (surface → eye, z > 0); wins over view_azimuth/view_elevation.
     pub view: Option<[f64; 3]>,
     pub parallax: Parallax,
     pub parallax_steps: u32,
@@ -217,7 +218,6 @@ impl PreviewParams {
             }
             "azimuth" => {
                 self.azimuth = num(key, value)?;
-                self.light = None;
             }
             "elevation" => {
                 let e = num(key, value)?;
@@ -225,7 +225,6 @@ impl PreviewParams {
                     return Err(Error::param(key, "must be between -90 and 90 degrees"));
                 }
                 self.elevation = e;
-                self.light = None;
             }
             "light" => self.light = Some(vector(key, value)?),
             "hardness" => {
@@ -237,7 +236,6 @@ impl PreviewParams {
             }
             "view_azimuth" => {
                 self.view_azimuth = num(key, value)?;
-                self.view = None;
             }
             "view_elevation" => {
                 let e = num(key, value)?;
@@ -245,7 +243,6 @@ impl PreviewParams {
                     return Err(Error::param(key, "must be greater than 0 and at most 90 degrees"));
                 }
                 self.view_elevation = e;
-                self.view = None;
             }
             "view" => {
                 let v = vector(key, value)?;
@@ -954,6 +951,8 @@ mod tests {
                 && (l[2] - 0.5).abs() < 1e-12
         );
         let p = PreviewParams::from_pairs([("light", "3,0,4")]).unwrap();
+        assert_eq!(p.light_dir(), [0.6, 0.0, 0.8]);
+        let p = PreviewParams::from_pairs([("light", "3,0,4"), ("azimuth", "10")]).unwrap();
         assert_eq!(p.light_dir(), [0.6, 0.0, 0.8]);
     }
 
