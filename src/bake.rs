@@ -198,3 +198,48 @@ pub fn layers_to_channels(layers: &[Vec<f32>; 2]) -> Vec<f32> {
     }
     out
 }
+
+/// Bakes the Fourier horizon encoding (SPEC §3.4): the kernel's per-bin horizon s(φ_n) of each
+/// band is projected on `fourier_terms` basis functions and stored companded in 8-bit layers
+/// (layout and formulas in [`kernels::fourier`]). `encoding` does not apply: the coefficients
+/// have their own companding.
+///
+/// # Errors
+/// [`crate::Error::Canceled`] when `progress` is canceled.
+pub fn bake_fourier(
+    map: &HeightMap,
+    params: &BakeParams,
+    progress: &Progress,
+) -> Result<(kernels::fourier::FourierLayers, ResolvedRadius)> {
+    use kernels::fourier::{encode_texel, FourierLayers, Projector, MAX_TERMS};
+    let heights = map.scaled(params.height_scale);
+    let radius = resolve_radius(params, map.width, map.height, &heights);
+    let grid = Grid::new(map.width, map.height, &heights, params.edge, params.y_axis);
+    let kernel = make_kernel(params, grid, radius.texels);
+    let (w, h, nb) = (kernel.width(), kernel.height(), kernel.bins());
+    let terms = params.fourier_terms as usize;
+    let range = params.fourier_range;
+    let projector = Projector::new(nb, terms);
+    let mut bands = vec![0u8; w * h * 4];
+    let mut constant = vec![0u8; w * h];
+    let mut high = (terms > 5).then(|| vec![0u8; w * h * 4]);
+    let band = kernels::band_rows(w, h);
+    progress.start(Stage::Fourier, h as u64);
+    {
+        let b4 = split(&mut bands, band * w * 4);
+        let b1 = split(&mut constant, band * w);
+        let bh = high.as_mut().map(|v| split(v, band * w * 4));
+        kernels::run_bands(kernel.as_ref(), band, true, progress, |bi, band: Band<'_>| {
+            let Some(bins) = band.bins else { return };
+            let (Ok(mut d4), Ok(mut d1)) = (b4[bi].lock(), b1[bi].lock()) else { return };
+            let mut dh = bh.as_ref().and_then(|v| v[bi].lock().ok());
+            let mut c = [0.0f64; MAX_TERMS];
+            for (t, s) in bins.chunks_exact(nb).enumerate() {
+                projector.project(s, &mut c);
+                let hi = dh.as_mut().map(|d| &mut d[t * 4..t * 4 + 4]);
+                encode_texel(&c, terms, range, &mut d4[t * 4..t * 4 + 4], &mut d1[t], hi);
+            }
+        })?;
+    }
+    Ok((FourierLayers { width: w, height: h, terms, range, bands, constant, high }, radius))
+}

@@ -74,7 +74,8 @@ fn fast_matches_oracle_on_random_maps() {
     let mut rng = Rng(0x5eed_1e96);
     let mut ties = 0;
     let mut bytes = 0;
-    let fixed: [(usize, usize); 8] = [(1, 1), (1, 9), (9, 1), (1, 40), (33, 1), (2, 2), (17, 5), (3, 31)];
+    let fixed: [(usize, usize); 8] =
+        [(1, 1), (1, 9), (9, 1), (1, 40), (33, 1), (2, 2), (17, 5), (3, 31)];
     for case in 0..60 {
         let (w, h) =
             if case < fixed.len() { fixed[case] } else { (rng.range(1, 70), rng.range(1, 45)) };
