@@ -356,8 +356,7 @@ fn job_body(
     for r in 0..rows {
         for x0 in (0..w).step_by(STRIP) {
             let base = r * t.stride + x0;
-            let Some(h0) = tile.get(base + centre..).and_then(<[f32]>::first_chunk::<STRIP>)
-            else {
+            let Some(h0) = tile.get(base + centre..).and_then(<[f32]>::first_chunk::<STRIP>) else {
                 continue; // unreachable: the tile has STRIP spare columns
             };
             for (n, out) in acc.iter_mut().enumerate().take(b) {
@@ -469,8 +468,7 @@ mod tests {
         let g = Grid::new(w, h, &hs, Edge::Wrap, YAxis::Down);
         let want = compute_all(&LengyelNaive::new(g, 9, 48), &Progress::new()).unwrap();
         for isa in [Isa::Baseline, Isa::Avx2, Isa::Avx512] {
-            let got =
-                compute_all(&LengyelFast::with_isa(g, 9, 48, isa), &Progress::new()).unwrap();
+            let got = compute_all(&LengyelFast::with_isa(g, 9, 48, isa), &Progress::new()).unwrap();
             let worst = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max);
             assert!(worst < 1e-5, "{isa:?}: {worst}");
         }
