@@ -5,16 +5,20 @@
 //! Here the loop is turned inside out so that the hot loop is "load, subtract, multiply, max"
 //! over contiguous memory, which LLVM vectorises:
 //!
-//! - Once per kernel, every neighbour offset (i, j) is assigned to the bins it touches, with
+//! - Once per kernel, every neighbour offset (i, j) is assigned the bins it touches, with
 //!   θ, δ and the bin range floor((θ−δ)·B/2π) ..= ceil((θ+δ)·B/2π) computed in f64 exactly as
-//!   the oracle does, so both kernels agree on which neighbour feeds which bin. Each bin keeps a
-//!   list of (linear offset into the padded tile, 1/r).
+//!   the oracle does, so both kernels agree on which neighbour feeds which bin. Offsets with the
+//!   same range (first bin, number of bins) form a group, stored as a list of (linear offset
+//!   into the padded tile, 1/r).
 //! - Each band of rows is first copied into a padded tile (wrapped, or filled with `f32::MIN`
 //!   for `edge=none`, which never occludes), so the hot loop never clamps or wraps, even when the
 //!   radius exceeds the map (the padding then wraps several times).
-//! - For a strip of [`STRIP`] consecutive texels: bin → offset → lane, keeping
-//!   max(tan) with tan = (h − h0)/r and the maximum starting at 0. Since the oracle skips h < h0
-//!   and keeps the largest tan² ≥ 0, max(tan, 0)² is exactly its value, without a sign branch.
+//! - For a strip of [`STRIP`] consecutive texels: group → offset → lane, keeping
+//!   max(tan) with tan = (h − h0)/r and the maximum starting at 0, then merging the group's
+//!   maximum into each bin of its range. Each neighbour is thus evaluated once, not once per bin
+//!   it touches (2.2–3.6× on average; R=16, B=32: 792 offsets in 104 groups instead of 2200
+//!   bin entries). Since the oracle skips h < h0 and keeps the largest tan² ≥ 0, max(tan, 0)² is
+//!   exactly its value, without a sign branch, and a max is the same in any merge order.
 //! - The finalize (s = t/√(t²+1), the B/8+1-bin averages) also runs over the strip's lanes.
 //!
 //! The hot function is compiled three times (AVX-512, AVX2+FMA, baseline) and the variant is
@@ -68,12 +72,22 @@ impl Isa {
     }
 }
 
-/// Per-(radius, bins, edge, y_axis, map size) tables: for each bin, the neighbours touching it.
+/// Neighbours that touch the same run of bins `lo ..= lo + span − 1` (mod B): their maximum
+/// tan is computed once and then merged into each of those bins.
+#[derive(Debug, Clone, Copy)]
+struct Group {
+    lo: usize,
+    span: usize,
+    /// `entries[start..end]`.
+    start: usize,
+    end: usize,
+}
+
+/// Per-(radius, bins, edge, y_axis, map size) tables: the neighbours, grouped by bin range.
 #[derive(Debug, Clone)]
 struct Tables {
-    /// `start[n]..start[n + 1]` indexes `entries` for bin n.
-    start: Vec<usize>,
-    /// (offset from the strip's top-left corner in the padded tile, 1/r).
+    groups: Vec<Group>,
+    /// (offset from the strip's top-left corner in the padded tile, 1/r), grouped.
     entries: Vec<(u32, f32)>,
     /// Padding columns on each side and rows above/below.
     pad_x: usize,
@@ -181,29 +195,30 @@ fn build_tables(
             per_offset.push((off, (1.0 / d2.sqrt()) as f32, lo, hi));
         }
     }
-    // Bins an offset touches, each once (the range is always narrower than 2π, but be safe).
-    let bins_of = |lo: i64, hi: i64| {
-        let n = ((hi - lo + 1) as usize).min(b);
-        (0..n).map(move |k| (lo + k as i64).rem_euclid(b as i64) as usize)
-    };
-    let mut start = vec![0usize; b + 1];
-    for &(_, _, lo, hi) in &per_offset {
-        for n in bins_of(lo, hi) {
-            start[n + 1] += 1;
+    // Group by (first bin mod B, number of bins); a range as wide as 2π covers every bin once.
+    // Every offset lands in exactly one group, so the hot loop evaluates it once, instead of
+    // once per bin it touches (2.2–3.6 times on average): a max over the same values, merged in
+    // another order, so the result is identical.
+    let mut keyed: Vec<(usize, usize, u32, f32)> = per_offset
+        .iter()
+        .map(|&(off, inv, lo, hi)| {
+            let span = ((hi - lo + 1) as usize).min(b);
+            let lo = if span == b { 0 } else { lo.rem_euclid(b as i64) as usize };
+            (lo, span, off, inv)
+        })
+        .collect();
+    // Stable: within a group, offsets stay in row-major order (memory locality).
+    keyed.sort_by_key(|&(lo, span, _, _)| (lo, span));
+    let mut groups: Vec<Group> = Vec::new();
+    let mut entries = Vec::with_capacity(keyed.len());
+    for (k, &(lo, span, off, inv)) in keyed.iter().enumerate() {
+        match groups.last_mut() {
+            Some(g) if g.lo == lo && g.span == span => g.end = k + 1,
+            _ => groups.push(Group { lo, span, start: k, end: k + 1 }),
         }
+        entries.push((off, inv));
     }
-    for n in 0..b {
-        start[n + 1] += start[n];
-    }
-    let mut fill = start.clone();
-    let mut entries = vec![(0u32, 0f32); start[b]];
-    for &(off, inv, lo, hi) in &per_offset {
-        for n in bins_of(lo, hi) {
-            entries[fill[n]] = (off, inv);
-            fill[n] += 1;
-        }
-    }
-    Tables { start, entries, pad_x, pad_y, stride, max_rows }
+    Tables { groups, entries, pad_x, pad_y, stride, max_rows }
 }
 
 impl HorizonRows for LengyelFast<'_> {
@@ -359,8 +374,21 @@ fn job_body(
             let Some(h0) = tile.get(base + centre..).and_then(<[f32]>::first_chunk::<STRIP>) else {
                 continue; // unreachable: the tile has STRIP spare columns
             };
-            for (n, out) in acc.iter_mut().enumerate().take(b) {
-                *out = bin_max(tile, base, h0, &t.entries[t.start[n]..t.start[n + 1]]);
+            let acc = &mut acc[..b];
+            for a in acc.iter_mut() {
+                *a = [0.0; STRIP];
+            }
+            for g in &t.groups {
+                let m = group_max(tile, base, h0, &t.entries[g.start..g.end]);
+                for k in 0..g.span {
+                    let n = g.lo + k;
+                    let a = &mut acc[if n >= b { n - b } else { n }];
+                    for (x, &y) in a.iter_mut().zip(&m) {
+                        *x = if y > *x { y } else { *x };
+                    }
+                }
+            }
+            for out in acc.iter_mut() {
                 // s = t/√(t²+1) = √(t²/(t²+1)); t is capped so t² stays finite (s is 1.0 in
                 // f32 long before 1e18).
                 for v in out.iter_mut() {
@@ -402,7 +430,7 @@ fn job_body(
 /// max(0, max over `entries` of (h − h0)·(1/r)) for the STRIP texels whose neighbourhood starts
 /// at `base`. Two accumulators so consecutive max() operations do not wait on each other.
 #[inline(always)]
-fn bin_max(tile: &[f32], base: usize, h0: &[f32; STRIP], entries: &[(u32, f32)]) -> [f32; STRIP] {
+fn group_max(tile: &[f32], base: usize, h0: &[f32; STRIP], entries: &[(u32, f32)]) -> [f32; STRIP] {
     let mut a0 = [0f32; STRIP];
     let mut a1 = [0f32; STRIP];
     let load = |off: u32| tile.get(base + off as usize..).and_then(<[f32]>::first_chunk::<STRIP>);
