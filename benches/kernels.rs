@@ -156,6 +156,15 @@ fn main() {
         memory_child(n);
         return;
     }
+    if let Some(k) = args.iter().position(|a| a == "--profile") {
+        // A loop of the default fast configuration only, for `perf record`.
+        let reps = args.get(k + 1).and_then(|s| s.parse().ok()).unwrap_or(10);
+        let hs = terrain(2048, 2048);
+        let grid = Grid::new(2048, 2048, &hs, Edge::Wrap, YAxis::Up);
+        let (secs, cpu) = time_kernel(&LengyelFast::new(grid, 16, 32), reps);
+        println!("best {:.1} ms, {:.0} CPU ms", secs * 1e3, cpu * 1e3);
+        return;
+    }
     let quick = args.iter().any(|a| a == "--quick")
         || std::env::var("HORIZON_BENCH_QUICK").is_ok_and(|v| v != "0");
     let threads = rayon::current_num_threads();
