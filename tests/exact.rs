@@ -231,10 +231,14 @@ fn fast_kernel_equals_plain_oracle_on_larger_maps() {
             let g = Grid::new(w, h, &heights, edge, YAxis::Up);
             let fast = ExactHorizon::new(g, radius, 32, Reduce::Point);
             let plain = ExactMarch::new(g, radius, 32, Reduce::Point);
-            let (mut a, mut b) = (vec![0f32; 32], vec![0f32; 32]);
+            // `rows` seeds each ray from the previous texel's horizon; the seeds must not
+            // change the result.
+            let (mut ch, mut fast_bins, mut b) =
+                (vec![0f32; w * 8], vec![0f32; w * 32], vec![0f32; 32]);
             for y in 0..h {
+                fast.rows(y, &mut ch, Some(&mut fast_bins));
                 for x in 0..w {
-                    fast.texel_bins(x, y, &mut a);
+                    let a = &fast_bins[x * 32..(x + 1) * 32];
                     plain.texel_bins(x, y, &mut b);
                     for n in 0..32 {
                         assert!(

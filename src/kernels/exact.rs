@@ -155,7 +155,15 @@ fn corners(grid: &Grid<'_>, cx: i64, cy: i64) -> [f64; 4] {
 /// `first`: s_a = 0 and the ray starts at a corner of this cell, at height h0; the supremum then
 /// includes the limit s → 0⁺, the directional slope.
 #[inline]
-fn cell_max(k: [f64; 4], fx: f64, fy: f64, ray: &Ray, s_a: f64, len: f64, first: bool) -> f64 {
+fn cell_max(
+    k: [f64; 4],
+    fx: f64,
+    fy: f64,
+    ray: &Ray,
+    s_a: f64,
+    len: f64,
+    first: bool,
+) -> (f64, f64) {
     let (dx, dy) = (ray.dx, ray.dy);
     let bx = k[1] - k[0];
     let by = k[2] - k[0];
@@ -166,9 +174,10 @@ fn cell_max(k: [f64; 4], fx: f64, fy: f64, ray: &Ray, s_a: f64, len: f64, first:
     let d2 = bxy * dx * dy;
     let a = if first { 0.0 } else { d0 - ray.h0 };
     let s_b = s_a + len;
-    let mut best = if s_b > 0.0 { (a + (d1 + d2 * len) * len) / s_b } else { f64::NEG_INFINITY };
-    if first {
-        best = best.max(d1);
+    let mut best =
+        if s_b > 0.0 { ((a + (d1 + d2 * len) * len) / s_b, s_b) } else { (f64::NEG_INFINITY, 0.0) };
+    if first && d1 > best.0 {
+        best = (d1, 0.0);
     }
     if d2 != 0.0 {
         // Interior critical point: (s_a + t)² = s_a² − (d1·s_a − a)/d2.
@@ -177,7 +186,10 @@ fn cell_max(k: [f64; 4], fx: f64, fy: f64, ray: &Ray, s_a: f64, len: f64, first:
             let d = q.sqrt();
             let t = d - s_a;
             if t > 0.0 && t < len {
-                best = best.max((a + (d1 + d2 * t) * t) / d);
+                let v = (a + (d1 + d2 * t) * t) / d;
+                if v > best.0 {
+                    best = (v, d);
+                }
             }
         }
     }
@@ -268,17 +280,27 @@ impl Pyramid {
 
 /// Walks `ray` cell by cell and returns max(0, sup (h − h0)/s). With `accel`, blocks that cannot
 /// beat the best value so far are skipped whole (identical result, see module docs).
-fn walk<F>(grid: &Grid<'_>, ray: &Ray, accel: Option<(&Pyramid, f64)>, corners: F) -> f64
+///
+/// `seed` = (t, s): a value t of the ratio already achieved at arc length s on this very ray
+/// (or (0, 0)); it only lets more blocks be skipped. Returns the best ratio and where it is.
+fn walk<F>(
+    grid: &Grid<'_>,
+    ray: &Ray,
+    accel: Option<(&Pyramid, f64)>,
+    seed: (f64, f64),
+    corners: F,
+) -> (f64, f64)
 where
     F: Fn(i64, i64) -> [f64; 4],
 {
-    let mut best = 0.0f64;
+    let mut best = seed.0.max(0.0);
+    let mut best_s = if seed.0 > 0.0 { seed.1 } else { 0.0 };
     if ray.s_end <= 0.0 {
-        return 0.0;
+        return (0.0, 0.0);
     }
     if let Some((_, hmax)) = accel {
         if hmax <= ray.h0 {
-            return 0.0;
+            return (0.0, 0.0);
         }
     }
     let (mut cx, mut cy) = ray.first_cell(grid);
@@ -321,7 +343,10 @@ where
             let fx = (ray.x0 + s * ray.dx - cx as f64).clamp(0.0, 1.0);
             let fy = (ray.y0 + s * ray.dy - cy as f64).clamp(0.0, 1.0);
             let len = s_exit.min(ray.s_end) - s;
-            best = best.max(cell_max(k, fx, fy, ray, s, len, s == 0.0));
+            let (v, at) = cell_max(k, fx, fy, ray, s, len, s == 0.0);
+            if v > best {
+                (best, best_s) = (v, at);
+            }
         }
         if s_exit >= ray.s_end {
             break;
@@ -356,7 +381,46 @@ where
             level += 1;
         }
     }
-    best
+    (best, best_s)
+}
+
+/// A lower bound for `ray` from the cell around arc length `s_hint` (where a neighbouring
+/// texel's horizon lay): the exact maximum over the ray's segment in that cell, a value the ray
+/// really reaches, so it is a valid seed for [`walk`]. (0, 0) when there is no usable hint.
+#[inline]
+fn seed_at<F>(grid: &Grid<'_>, ray: &Ray, s_hint: f64, corners: F) -> (f64, f64)
+where
+    F: Fn(i64, i64) -> [f64; 4],
+{
+    if !(s_hint > 1.0 && s_hint <= ray.s_end) {
+        return (0.0, 0.0);
+    }
+    let cell = |p: f64, n: usize| {
+        let c = p.floor() as i64;
+        match grid.edge {
+            Edge::Wrap => c,
+            Edge::None => c.clamp(0, (n as i64 - 2).max(0)),
+        }
+    };
+    let cx = cell(ray.x0 + s_hint * ray.dx, grid.width);
+    let cy = cell(ray.y0 + s_hint * ray.dy, grid.height);
+    let span = |c: i64, p: f64, d: f64| {
+        if d == 0.0 {
+            (f64::NEG_INFINITY, f64::INFINITY)
+        } else {
+            let (a, b) = ((c as f64 - p) / d, ((c + 1) as f64 - p) / d);
+            (a.min(b), a.max(b))
+        }
+    };
+    let (ax, bx) = span(cx, ray.x0, ray.dx);
+    let (ay, by) = span(cy, ray.y0, ray.dy);
+    let (sa, sb) = (ax.max(ay).max(0.0), bx.min(by).min(ray.s_end));
+    if !(sa > 0.0 && sb > sa) {
+        return (0.0, 0.0);
+    }
+    let fx = (ray.x0 + sa * ray.dx - cx as f64).clamp(0.0, 1.0);
+    let fy = (ray.y0 + sa * ray.dy - cy as f64).clamp(0.0, 1.0);
+    cell_max(corners(cx, cy), fx, fy, ray, sa, sb - sa, false)
 }
 
 /// Exact sin α of texel (`x`, `y`) at tangent-space azimuth `phi` (radians, any value), by the
@@ -372,7 +436,7 @@ pub fn horizon_sin(grid: &Grid<'_>, x: usize, y: usize, phi: f64, radius: Option
     assert!(x < grid.width && y < grid.height, "texel outside the grid");
     let (dx, dy) = direction(phi, grid.row_step());
     let ray = Ray::new(grid, x, y, dx, dy, radius);
-    sin_of_tan(walk(grid, &ray, None, |cx, cy| corners(grid, cx, cy)))
+    sin_of_tan(walk(grid, &ray, None, (0.0, 0.0), |cx, cy| corners(grid, cx, cy)).0)
 }
 
 /// Fills `out` (8 channels) from per-bin values.
@@ -407,8 +471,9 @@ impl<'a> ExactMarch<'a> {
     pub fn texel_bins(&self, x: usize, y: usize, s: &mut [f32]) {
         for (o, &(dx, dy)) in s.iter_mut().zip(&self.dirs) {
             let ray = Ray::new(&self.grid, x, y, dx, dy, self.radius);
-            *o = sin_of_tan(walk(&self.grid, &ray, None, |cx, cy| corners(&self.grid, cx, cy)))
-                as f32;
+            let t =
+                walk(&self.grid, &ray, None, (0.0, 0.0), |cx, cy| corners(&self.grid, cx, cy)).0;
+            *o = sin_of_tan(t) as f32;
         }
     }
 }
@@ -488,12 +553,13 @@ impl<'a> ExactHorizon<'a> {
         ExactHorizon { grid, radius, dirs, reduce, pyramid, hmax, progress: None, lo, cols, rows }
     }
 
-    /// The accelerated walk of one ray.
+    /// The accelerated walk of one ray, seeded from the cell at `s_hint` (0: none): returns
+    /// tan α and the arc length where it is reached.
     #[inline]
-    fn walk(&self, ray: &Ray) -> f64 {
+    fn walk(&self, ray: &Ray, s_hint: f64) -> (f64, f64) {
         let hs = self.grid.heights;
         let (cols, rows, lo) = (&self.cols[..], &self.rows[..], self.lo);
-        walk(&self.grid, ray, Some((&self.pyramid, self.hmax)), |cx, cy| {
+        let corners = |cx: i64, cy: i64| {
             let (i, j) = ((cx - lo) as usize, (cy - lo) as usize);
             let (c0, c1, r0, r1) = (cols[i], cols[i + 1], rows[j], rows[j + 1]);
             [
@@ -502,11 +568,13 @@ impl<'a> ExactHorizon<'a> {
                 hs[(r1 + c0) as usize] as f64,
                 hs[(r1 + c1) as usize] as f64,
             ]
-        })
+        };
+        let seed = seed_at(&self.grid, ray, s_hint, corners);
+        walk(&self.grid, ray, Some((&self.pyramid, self.hmax)), seed, corners)
     }
 
     /// Makes [`HorizonRows::rows`] return early (leaving the rest of its rows unspecified) once
-    /// `progress` is canceled, so a cancel lands within one row rather than one band. The band
+    /// `progress` is canceled, so a cancel lands within one texel rather than one band. The band
     /// driver notices the cancel and discards the result.
     pub fn with_cancel(mut self, progress: &Progress) -> Self {
         self.progress = Some(progress.clone());
@@ -521,14 +589,25 @@ impl<'a> ExactHorizon<'a> {
         assert!(x < self.grid.width && y < self.grid.height, "texel outside the grid");
         let (dx, dy) = direction(phi, self.grid.row_step());
         let ray = Ray::new(&self.grid, x, y, dx, dy, self.radius);
-        sin_of_tan(self.walk(&ray))
+        sin_of_tan(self.walk(&ray, 0.0).0)
     }
 
     /// Per-bin sin α of texel (x, y) into `s` (`bins` long).
     pub fn texel_bins(&self, x: usize, y: usize, s: &mut [f32]) {
-        for (o, &(dx, dy)) in s.iter_mut().zip(&self.dirs) {
+        let mut hints = vec![0.0f64; self.dirs.len()];
+        self.texel_bins_hinted(x, y, s, &mut hints);
+    }
+
+    /// [`Self::texel_bins`] seeded per direction from where the previous texel's horizon was
+    /// (`hints`, updated in place). Neighbouring rays are parallel and a texel apart, so the
+    /// occluder of one is usually near the other's: starting from that value lets the walk skip
+    /// almost everything else. The result does not depend on the hints (see [`seed_at`]).
+    fn texel_bins_hinted(&self, x: usize, y: usize, s: &mut [f32], hints: &mut [f64]) {
+        for ((o, &(dx, dy)), hint) in s.iter_mut().zip(&self.dirs).zip(hints.iter_mut()) {
             let ray = Ray::new(&self.grid, x, y, dx, dy, self.radius);
-            *o = sin_of_tan(self.walk(&ray)) as f32;
+            let (t, at) = self.walk(&ray, *hint);
+            *hint = at;
+            *o = sin_of_tan(t) as f32;
         }
     }
 }
@@ -546,11 +625,17 @@ impl HorizonRows for ExactHorizon<'_> {
     fn rows(&self, y0: usize, channels: &mut [f32], mut bins_out: Option<&mut [f32]>) {
         let (w, b) = (self.grid.width, self.dirs.len());
         let mut s = vec![0.0f32; b];
+        let mut hints = vec![0.0f64; b];
         for (k, out) in channels.chunks_exact_mut(8).enumerate() {
-            if k % w == 0 && self.progress.as_ref().is_some_and(Progress::is_canceled) {
+            // One relaxed load per texel (32 rays): negligible, and a cancel lands within a
+            // texel rather than a band.
+            if self.progress.as_ref().is_some_and(Progress::is_canceled) {
                 return;
             }
-            self.texel_bins(k % w, y0 + k / w, &mut s);
+            if k % w == 0 {
+                hints.fill(0.0);
+            }
+            self.texel_bins_hinted(k % w, y0 + k / w, &mut s, &mut hints);
             reduce(self.reduce, &s, out);
             if let Some(bo) = bins_out.as_deref_mut() {
                 bo[k * b..(k + 1) * b].copy_from_slice(&s);
@@ -584,7 +669,7 @@ mod tests {
         let r =
             Ray { dx: std::f64::consts::FRAC_1_SQRT_2, dy: std::f64::consts::FRAC_1_SQRT_2, ..ray };
         let len = std::f64::consts::SQRT_2;
-        let got = cell_max(k, fx, fy, &r, 1.0, len, false);
+        let got = cell_max(k, fx, fy, &r, 1.0, len, false).0;
         let mut want = f64::NEG_INFINITY;
         for i in 0..=100_000 {
             let t = len * i as f64 / 100_000.0;
