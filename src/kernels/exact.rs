@@ -288,6 +288,7 @@ fn walk<F>(
     ray: &Ray,
     accel: Option<(&Pyramid, f64)>,
     seed: (f64, f64),
+    start: f64,
     corners: F,
 ) -> (f64, f64)
 where
@@ -303,8 +304,14 @@ where
             return (0.0, 0.0);
         }
     }
-    let (mut cx, mut cy) = ray.first_cell(grid);
-    let mut s = 0.0f64;
+    // Mid-ray starts take the cell just ahead of the start point.
+    let ahead = |p: f64, d: f64| (p + start * d + 1e-7 * d).floor() as i64;
+    let (mut cx, mut cy) = if start > 0.0 {
+        (ahead(ray.x0, ray.dx), ahead(ray.y0, ray.dy))
+    } else {
+        ray.first_cell(grid)
+    };
+    let mut s = start;
     let mut level = 0usize;
     let max_level = accel.map_or(0, |(p, _)| p.levels.len());
     loop {
@@ -436,7 +443,211 @@ pub fn horizon_sin(grid: &Grid<'_>, x: usize, y: usize, phi: f64, radius: Option
     assert!(x < grid.width && y < grid.height, "texel outside the grid");
     let (dx, dy) = direction(phi, grid.row_step());
     let ray = Ray::new(grid, x, y, dx, dy, radius);
-    sin_of_tan(walk(grid, &ray, None, (0.0, 0.0), |cx, cy| corners(grid, cx, cy)).0)
+    sin_of_tan(walk(grid, &ray, None, (0.0, 0.0), 0.0, |cx, cy| corners(grid, cx, cy)).0)
+}
+
+/// Texels per strip of the near-field march: one AVX-512 vector of f32, two AVX2 vectors.
+const LANES: usize = 16;
+/// Arc length the vectorised near-field march covers; longer rays continue with the scalar,
+/// pyramid-skipping [`walk`] from there, seeded with the near-field value.
+const NEAR: f64 = 48.0;
+
+/// One piece of a ray between two grid-line crossings, shared by all rays of a direction: the
+/// crossings of a ray from an integer texel centre fall at s = k/|dx| and s = k/|dy| whatever
+/// the texel, so consecutive texels of a row see the same pieces at the same local positions in
+/// cells one column apart. Only the corner heights differ per texel, and they are contiguous.
+#[derive(Debug, Clone, Copy)]
+struct Seg {
+    s_a: f64,
+    len: f64,
+    fx: f32,
+    fy: f32,
+    /// Cell offset from the texel: columns (x + cxo .. x + cxo + 1), rows likewise.
+    cxo: i32,
+    cyo: i32,
+}
+
+/// The near-field march: per-direction pieces up to `s_cut` and a padded copy of the heights
+/// (wrapped, or clamped for `edge=none` where the padding is masked out) so the hot loop never
+/// wraps or clamps.
+#[derive(Debug, Clone)]
+struct Near {
+    segs: Vec<Vec<Seg>>,
+    s_cut: f64,
+    pad: usize,
+    pw: usize,
+    padded: Vec<f32>,
+    avx2: bool,
+}
+
+impl Near {
+    fn new(grid: &Grid<'_>, dirs: &[(f64, f64)], s_cut: f64) -> Near {
+        let (w, h) = (grid.width, grid.height);
+        let pad = s_cut.ceil() as usize + 2;
+        let pw = w + 2 * pad + LANES + 1;
+        let ph = h + 2 * pad + 1;
+        let mut padded = vec![0f32; pw * ph];
+        for r in 0..ph {
+            for c in 0..pw {
+                let (x, y) = (c as i64 - pad as i64, r as i64 - pad as i64);
+                let (x, y) = match grid.edge {
+                    Edge::Wrap => (x.rem_euclid(w as i64), y.rem_euclid(h as i64)),
+                    Edge::None => (x.clamp(0, w as i64 - 1), y.clamp(0, h as i64 - 1)),
+                };
+                padded[r * pw + c] = grid.heights[y as usize * w + x as usize];
+            }
+        }
+        let segs = dirs.iter().map(|&(dx, dy)| Self::pieces(dx, dy, s_cut)).collect();
+        #[cfg(target_arch = "x86_64")]
+        let avx2 = std::arch::is_x86_feature_detected!("avx2")
+            && std::arch::is_x86_feature_detected!("fma");
+        #[cfg(not(target_arch = "x86_64"))]
+        let avx2 = false;
+        Near { segs, s_cut, pad, pw, padded, avx2 }
+    }
+
+    /// The pieces of a ray from the origin along (dx, dy) up to `s_cut`.
+    fn pieces(dx: f64, dy: f64, s_cut: f64) -> Vec<Seg> {
+        let mut out = Vec::new();
+        let (ix, iy) = (1.0 / dx.abs(), 1.0 / dy.abs());
+        let (mut kx, mut ky) = (1u32, 1u32);
+        let mut s_a = 0.0f64;
+        while s_a < s_cut {
+            let (tx, ty) = (kx as f64 * ix, ky as f64 * iy);
+            let s_b = tx.min(ty).min(s_cut);
+            if tx <= s_b {
+                kx += 1;
+            }
+            if ty <= s_b {
+                ky += 1;
+            }
+            if s_b <= s_a {
+                continue;
+            }
+            let mid = 0.5 * (s_a + s_b);
+            let (cxo, cyo) = ((mid * dx).floor(), (mid * dy).floor());
+            out.push(Seg {
+                s_a,
+                len: s_b - s_a,
+                fx: (s_a * dx - cxo).clamp(0.0, 1.0) as f32,
+                fy: (s_a * dy - cyo).clamp(0.0, 1.0) as f32,
+                cxo: cxo as i32,
+                cyo: cyo as i32,
+            });
+            s_a = s_b;
+        }
+        out
+    }
+
+    /// tan α over 0 < s ≤ min(s_cut, s_end[i]) for the texels x .. x + LANES of row y along
+    /// direction `n`, into `best` (lanes past the row end are garbage).
+    fn strip(
+        &self,
+        n: usize,
+        d: (f64, f64),
+        x: usize,
+        y: usize,
+        h0: &[f32; LANES],
+        s_end: &[f64; LANES],
+        hmax: f32,
+        best: &mut [f32; LANES],
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        if self.avx2 {
+            // SAFETY: the CPU was checked for AVX2 and FMA at construction.
+            unsafe { self.strip_avx2(n, d, x, y, h0, s_end, hmax, best) };
+            return;
+        }
+        self.strip_body(n, d, x, y, h0, s_end, hmax, best);
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn strip_avx2(
+        &self,
+        n: usize,
+        d: (f64, f64),
+        x: usize,
+        y: usize,
+        h0: &[f32; LANES],
+        s_end: &[f64; LANES],
+        hmax: f32,
+        best: &mut [f32; LANES],
+    ) {
+        self.strip_body(n, d, x, y, h0, s_end, hmax, best);
+    }
+
+    /// The vectorised body: per piece, four contiguous loads per lane, a cheap cull against the
+    /// best values so far, then the closed-form cell maximum of [`cell_max`] in f32 lanes.
+    #[inline(always)]
+    fn strip_body(
+        &self,
+        n: usize,
+        d: (f64, f64),
+        x: usize,
+        y: usize,
+        h0: &[f32; LANES],
+        s_end: &[f64; LANES],
+        hmax: f32,
+        best: &mut [f32; LANES],
+    ) {
+        let (dx, dy) = (d.0 as f32, d.1 as f32);
+        let base_c = (x + self.pad) as i64;
+        let base_r = (y + self.pad) as i64;
+        *best = [0.0; LANES];
+        for (k, seg) in self.segs[n].iter().enumerate() {
+            let s_b = seg.s_a + seg.len;
+            let s_a = seg.s_a as f32;
+            // All lanes done: nothing left can beat any of them.
+            if k % 8 == 7 {
+                let mut done = true;
+                for i in 0..LANES {
+                    done &= hmax - h0[i] <= best[i] * s_a;
+                }
+                if done {
+                    break;
+                }
+            }
+            let c = (base_c + seg.cxo as i64) as usize;
+            let r = (base_r + seg.cyo as i64) as usize;
+            let row0 = &self.padded[r * self.pw + c..r * self.pw + c + LANES + 1];
+            let row1 = &self.padded[(r + 1) * self.pw + c..(r + 1) * self.pw + c + LANES + 1];
+            let mut any = false;
+            for i in 0..LANES {
+                let m = row0[i].max(row0[i + 1]).max(row1[i]).max(row1[i + 1]);
+                any |= m - h0[i] > best[i] * s_a;
+            }
+            if !any {
+                continue;
+            }
+            let first = seg.s_a == 0.0;
+            let (fx, fy, len) = (seg.fx, seg.fy, seg.len as f32);
+            let inv_sb = (1.0 / s_b) as f32;
+            let s_a2 = s_a * s_a;
+            for i in 0..LANES {
+                let (k0, k1, k2, k3) = (row0[i], row0[i + 1], row1[i], row1[i + 1]);
+                let bx = k1 - k0;
+                let by = k2 - k0;
+                let bxy = k3 - k1 - k2 + k0;
+                let d0 = k0 + bx * fx + by * fy + bxy * fx * fy;
+                let d1 = bx * dx + by * dy + bxy * (fx * dy + fy * dx);
+                let d2 = bxy * dx * dy;
+                let a = if first { 0.0 } else { d0 - h0[i] };
+                let mut v = (a + (d1 + d2 * len) * len) * inv_sb;
+                if first {
+                    v = v.max(d1);
+                }
+                let q = s_a2 - (d1 * s_a - a) / d2;
+                let dd = q.max(0.0).sqrt();
+                let t = dd - s_a;
+                let vi = (a + (d1 + d2 * t) * t) / dd;
+                let ok = d2 != 0.0 && q > 0.0 && t > 0.0 && t < len;
+                v = if ok { v.max(vi) } else { v };
+                let valid = s_b <= s_end[i] + 1e-9;
+                best[i] = if valid { best[i].max(v) } else { best[i] };
+            }
+        }
+    }
 }
 
 /// Fills `out` (8 channels) from per-bin values.
@@ -472,7 +683,8 @@ impl<'a> ExactMarch<'a> {
         for (o, &(dx, dy)) in s.iter_mut().zip(&self.dirs) {
             let ray = Ray::new(&self.grid, x, y, dx, dy, self.radius);
             let t =
-                walk(&self.grid, &ray, None, (0.0, 0.0), |cx, cy| corners(&self.grid, cx, cy)).0;
+                walk(&self.grid, &ray, None, (0.0, 0.0), 0.0, |cx, cy| corners(&self.grid, cx, cy))
+                    .0;
             *o = sin_of_tan(t) as f32;
         }
     }
@@ -517,6 +729,7 @@ pub struct ExactHorizon<'a> {
     lo: i64,
     cols: Vec<u32>,
     rows: Vec<u32>,
+    near: Near,
 }
 
 impl<'a> ExactHorizon<'a> {
@@ -550,13 +763,33 @@ impl<'a> ExactHorizon<'a> {
                 .collect()
         };
         let (cols, rows) = (map(w, 1), map(h, w));
-        ExactHorizon { grid, radius, dirs, reduce, pyramid, hmax, progress: None, lo, cols, rows }
+        // Where every ray is clipped alike: a piece straddling a lane's own end would be lost
+        // (edge=none ends fall on grid lines, i.e. on piece boundaries, so they may differ).
+        let r_all = match grid.edge {
+            Edge::Wrap => radius.unwrap_or(w.max(h) as f64),
+            Edge::None => radius.unwrap_or(f64::INFINITY),
+        };
+        let s_cut = r_all.min(NEAR);
+        let near = Near::new(&grid, &dirs, s_cut);
+        ExactHorizon {
+            grid,
+            radius,
+            dirs,
+            reduce,
+            pyramid,
+            hmax,
+            progress: None,
+            lo,
+            cols,
+            rows,
+            near,
+        }
     }
 
     /// The accelerated walk of one ray, seeded from the cell at `s_hint` (0: none): returns
     /// tan α and the arc length where it is reached.
     #[inline]
-    fn walk(&self, ray: &Ray, s_hint: f64) -> (f64, f64) {
+    fn walk(&self, ray: &Ray, s_hint: f64, start: f64, seed: f64) -> (f64, f64) {
         let hs = self.grid.heights;
         let (cols, rows, lo) = (&self.cols[..], &self.rows[..], self.lo);
         let corners = |cx: i64, cy: i64| {
@@ -569,8 +802,9 @@ impl<'a> ExactHorizon<'a> {
                 hs[(r1 + c1) as usize] as f64,
             ]
         };
-        let seed = seed_at(&self.grid, ray, s_hint, corners);
-        walk(&self.grid, ray, Some((&self.pyramid, self.hmax)), seed, corners)
+        let hinted = seed_at(&self.grid, ray, s_hint, corners);
+        let seed = if hinted.0 > seed { hinted } else { (seed, 0.0) };
+        walk(&self.grid, ray, Some((&self.pyramid, self.hmax)), seed, start, corners)
     }
 
     /// Makes [`HorizonRows::rows`] return early (leaving the rest of its rows unspecified) once
@@ -589,7 +823,7 @@ impl<'a> ExactHorizon<'a> {
         assert!(x < self.grid.width && y < self.grid.height, "texel outside the grid");
         let (dx, dy) = direction(phi, self.grid.row_step());
         let ray = Ray::new(&self.grid, x, y, dx, dy, self.radius);
-        sin_of_tan(self.walk(&ray, 0.0).0)
+        sin_of_tan(self.walk(&ray, 0.0, 0.0, 0.0).0)
     }
 
     /// Per-bin sin α of texel (x, y) into `s` (`bins` long).
@@ -605,7 +839,7 @@ impl<'a> ExactHorizon<'a> {
     fn texel_bins_hinted(&self, x: usize, y: usize, s: &mut [f32], hints: &mut [f64]) {
         for ((o, &(dx, dy)), hint) in s.iter_mut().zip(&self.dirs).zip(hints.iter_mut()) {
             let ray = Ray::new(&self.grid, x, y, dx, dy, self.radius);
-            let (t, at) = self.walk(&ray, *hint);
+            let (t, at) = self.walk(&ray, *hint, 0.0, 0.0);
             *hint = at;
             *o = sin_of_tan(t) as f32;
         }
@@ -623,22 +857,55 @@ impl HorizonRows for ExactHorizon<'_> {
         self.dirs.len()
     }
     fn rows(&self, y0: usize, channels: &mut [f32], mut bins_out: Option<&mut [f32]>) {
-        let (w, b) = (self.grid.width, self.dirs.len());
-        let mut s = vec![0.0f32; b];
-        let mut hints = vec![0.0f64; b];
-        for (k, out) in channels.chunks_exact_mut(8).enumerate() {
-            // One relaxed load per texel (32 rays): negligible, and a cancel lands within a
-            // texel rather than a band.
-            if self.progress.as_ref().is_some_and(Progress::is_canceled) {
-                return;
-            }
-            if k % w == 0 {
-                hints.fill(0.0);
-            }
-            self.texel_bins_hinted(k % w, y0 + k / w, &mut s, &mut hints);
-            reduce(self.reduce, &s, out);
-            if let Some(bo) = bins_out.as_deref_mut() {
-                bo[k * b..(k + 1) * b].copy_from_slice(&s);
+        let (w, nb) = (self.grid.width, self.dirs.len());
+        let n_rows = channels.len() / (w * 8);
+        // Per strip: LANES texels × bins values, texel-major.
+        let mut strip = vec![0.0f32; LANES * nb];
+        let near = &self.near;
+        let hmax = self.hmax as f32;
+        for r in 0..n_rows {
+            let y = y0 + r;
+            for x in (0..w).step_by(LANES) {
+                // One relaxed load per strip: negligible, and a cancel lands within a strip
+                // rather than a band.
+                if self.progress.as_ref().is_some_and(Progress::is_canceled) {
+                    return;
+                }
+                let lanes = LANES.min(w - x);
+                let mut h0 = [f32::INFINITY; LANES];
+                for (i, v) in h0.iter_mut().enumerate().take(lanes) {
+                    *v = self.grid.heights[y * w + x + i];
+                }
+                for (n, &(dx, dy)) in self.dirs.iter().enumerate() {
+                    let mut s_end = [0.0f64; LANES];
+                    let mut rays = [None; LANES];
+                    for i in 0..lanes {
+                        let ray = Ray::new(&self.grid, x + i, y, dx, dy, self.radius);
+                        s_end[i] = ray.s_end;
+                        rays[i] = Some(ray);
+                    }
+                    let mut best = [0.0f32; LANES];
+                    near.strip(n, (dx, dy), x, y, &h0, &s_end, hmax, &mut best);
+                    for i in 0..lanes {
+                        let mut t = best[i].max(0.0) as f64;
+                        if let Some(ray) = rays[i] {
+                            // The ray goes on past the near field and something there could
+                            // still beat it: continue with the scalar walk, seeded.
+                            if ray.s_end > near.s_cut && self.hmax - ray.h0 > t * near.s_cut {
+                                t = self.walk(&ray, 0.0, near.s_cut, t).0;
+                            }
+                        }
+                        strip[i * nb + n] = sin_of_tan(t) as f32;
+                    }
+                }
+                for i in 0..lanes {
+                    let k = r * w + x + i;
+                    let s = &strip[i * nb..(i + 1) * nb];
+                    reduce(self.reduce, s, &mut channels[k * 8..k * 8 + 8]);
+                    if let Some(bo) = bins_out.as_deref_mut() {
+                        bo[k * nb..(k + 1) * nb].copy_from_slice(s);
+                    }
+                }
             }
         }
     }
