@@ -225,7 +225,10 @@ fn fast_kernel_equals_plain_oracle_on_larger_maps() {
         (31, 31, Edge::Wrap, Some(9)),
         (25, 44, Edge::None, Some(20)),
         (64, 3, Edge::Wrap, None),
-        // Rays longer than the vectorised near field (48 texels) continue with the scalar walk.
+        // Rays longer than the vectorised near field (256 texels) continue with the scalar walk.
+        (300, 4, Edge::Wrap, None),
+        (290, 3, Edge::None, None),
+        (263, 5, Edge::Wrap, Some(262)),
         (70, 9, Edge::Wrap, Some(100)),
         (60, 50, Edge::None, None),
         (53, 7, Edge::None, Some(60)),

@@ -450,7 +450,7 @@ pub fn horizon_sin(grid: &Grid<'_>, x: usize, y: usize, phi: f64, radius: Option
 const LANES: usize = 16;
 /// Arc length the vectorised near-field march covers; longer rays continue with the scalar,
 /// pyramid-skipping [`walk`] from there, seeded with the near-field value.
-const NEAR: f64 = 48.0;
+const NEAR: f64 = 256.0;
 
 /// One piece of a ray between two grid-line crossings, shared by all rays of a direction: the
 /// crossings of a ray from an integer texel centre fall at s = k/|dx| and s = k/|dy| whatever
@@ -506,6 +506,12 @@ impl Near {
         Near { segs, s_cut, pad, pw, padded, avx2 }
     }
 
+    /// How many pieces of direction `n` end at or before `s_end` (a lane's own end with
+    /// `edge=none`, which falls on a piece boundary).
+    fn count(&self, n: usize, s_end: f64) -> u32 {
+        self.segs[n].partition_point(|g| g.s_a + g.len <= s_end + 1e-9) as u32
+    }
+
     /// The pieces of a ray from the origin along (dx, dy) up to `s_cut`.
     fn pieces(dx: f64, dy: f64, s_cut: f64) -> Vec<Seg> {
         let mut out = Vec::new();
@@ -548,17 +554,17 @@ impl Near {
         x: usize,
         y: usize,
         h0: &[f32; LANES],
-        s_end: &[f64; LANES],
+        count: &[u32; LANES],
         hmax: f32,
         best: &mut [f32; LANES],
     ) {
         #[cfg(target_arch = "x86_64")]
         if self.avx2 {
             // SAFETY: the CPU was checked for AVX2 and FMA at construction.
-            unsafe { self.strip_avx2(n, d, x, y, h0, s_end, hmax, best) };
+            unsafe { self.strip_avx2(n, d, x, y, h0, count, hmax, best) };
             return;
         }
-        self.strip_body(n, d, x, y, h0, s_end, hmax, best);
+        self.strip_body(n, d, x, y, h0, count, hmax, best);
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -570,11 +576,11 @@ impl Near {
         x: usize,
         y: usize,
         h0: &[f32; LANES],
-        s_end: &[f64; LANES],
+        count: &[u32; LANES],
         hmax: f32,
         best: &mut [f32; LANES],
     ) {
-        self.strip_body(n, d, x, y, h0, s_end, hmax, best);
+        self.strip_body(n, d, x, y, h0, count, hmax, best);
     }
 
     /// The vectorised body: per piece, four contiguous loads per lane, a cheap cull against the
@@ -587,7 +593,7 @@ impl Near {
         x: usize,
         y: usize,
         h0: &[f32; LANES],
-        s_end: &[f64; LANES],
+        count: &[u32; LANES],
         hmax: f32,
         best: &mut [f32; LANES],
     ) {
@@ -643,7 +649,7 @@ impl Near {
                 let vi = (a + (d1 + d2 * t) * t) / dd;
                 let ok = d2 != 0.0 && q > 0.0 && t > 0.0 && t < len;
                 v = if ok { v.max(vi) } else { v };
-                let valid = s_b <= s_end[i] + 1e-9;
+                let valid = (k as u32) < count[i];
                 best[i] = if valid { best[i].max(v) } else { best[i] };
             }
         }
@@ -862,6 +868,10 @@ impl HorizonRows for ExactHorizon<'_> {
         // Per strip: LANES texels × bins values, texel-major.
         let mut strip = vec![0.0f32; LANES * nb];
         let near = &self.near;
+        let r_all = match self.grid.edge {
+            Edge::Wrap => self.radius.unwrap_or(w.max(self.grid.height) as f64),
+            Edge::None => f64::INFINITY,
+        };
         let hmax = self.hmax as f32;
         for r in 0..n_rows {
             let y = y0 + r;
@@ -877,25 +887,31 @@ impl HorizonRows for ExactHorizon<'_> {
                     *v = self.grid.heights[y * w + x + i];
                 }
                 for (n, &(dx, dy)) in self.dirs.iter().enumerate() {
-                    let mut s_end = [0.0f64; LANES];
-                    let mut rays = [None; LANES];
-                    for i in 0..lanes {
-                        let ray = Ray::new(&self.grid, x + i, y, dx, dy, self.radius);
-                        s_end[i] = ray.s_end;
-                        rays[i] = Some(ray);
+                    // Each lane's end: shared when wrapping, at its own border otherwise.
+                    let mut s_end = [r_all; LANES];
+                    let mut count = [near.segs[n].len() as u32; LANES];
+                    if self.grid.edge == Edge::None {
+                        for i in 0..lanes {
+                            s_end[i] = Ray::new(&self.grid, x + i, y, dx, dy, self.radius).s_end;
+                            count[i] = near.count(n, s_end[i]);
+                        }
                     }
                     let mut best = [0.0f32; LANES];
-                    near.strip(n, (dx, dy), x, y, &h0, &s_end, hmax, &mut best);
-                    for i in 0..lanes {
-                        let mut t = best[i].max(0.0) as f64;
-                        if let Some(ray) = rays[i] {
+                    near.strip(n, (dx, dy), x, y, &h0, &count, hmax, &mut best);
+                    if s_end.iter().take(lanes).any(|&e| e > near.s_cut) {
+                        for i in 0..lanes {
+                            let t = best[i].max(0.0) as f64;
                             // The ray goes on past the near field and something there could
                             // still beat it: continue with the scalar walk, seeded.
-                            if ray.s_end > near.s_cut && self.hmax - ray.h0 > t * near.s_cut {
-                                t = self.walk(&ray, 0.0, near.s_cut, t).0;
+                            if s_end[i] > near.s_cut && self.hmax - h0[i] as f64 > t * near.s_cut {
+                                let ray = Ray::new(&self.grid, x + i, y, dx, dy, self.radius);
+                                best[i] = self.walk(&ray, 0.0, near.s_cut, t).0 as f32;
                             }
                         }
-                        strip[i * nb + n] = sin_of_tan(t) as f32;
+                    }
+                    for i in 0..LANES {
+                        let t = best[i].max(0.0);
+                        strip[i * nb + n] = t / (1.0 + t * t).sqrt();
                     }
                 }
                 for i in 0..lanes {
