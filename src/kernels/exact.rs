@@ -626,34 +626,73 @@ impl Near {
             if !any {
                 continue;
             }
-            let first = seg.s_a == 0.0;
             let (fx, fy, len) = (seg.fx, seg.fy, seg.len as f32);
             let inv_sb = (1.0 / s_b) as f32;
-            let s_a2 = s_a * s_a;
-            for i in 0..LANES {
-                let (k0, k1, k2, k3) = (row0[i], row0[i + 1], row1[i], row1[i + 1]);
-                let bx = k1 - k0;
-                let by = k2 - k0;
-                let bxy = k3 - k1 - k2 + k0;
-                let d0 = k0 + bx * fx + by * fy + bxy * fx * fy;
-                let d1 = bx * dx + by * dy + bxy * (fx * dy + fy * dx);
-                let d2 = bxy * dx * dy;
-                let a = if first { 0.0 } else { d0 - h0[i] };
-                let mut v = (a + (d1 + d2 * len) * len) * inv_sb;
-                if first {
-                    v = v.max(d1);
-                }
-                let q = s_a2 - (d1 * s_a - a) / d2;
-                let dd = q.max(0.0).sqrt();
-                let t = dd - s_a;
-                let vi = (a + (d1 + d2 * t) * t) / dd;
-                let ok = d2 != 0.0 && q > 0.0 && t > 0.0 && t < len;
-                v = if ok { v.max(vi) } else { v };
-                let valid = (k as u32) < count[i];
-                best[i] = if valid { best[i].max(v) } else { best[i] };
+            let valid = |i: usize| (k as u32) < count[i];
+            if seg.s_a == 0.0 {
+                piece::<true>(row0, row1, (fx, fy, dx, dy), s_a, len, inv_sb, h0, valid, best);
+            } else {
+                piece::<false>(row0, row1, (fx, fy, dx, dy), s_a, len, inv_sb, h0, valid, best);
             }
         }
     }
+}
+
+/// `a > b ? a : b`: one `maxps`, unlike `f32::max` whose NaN rules cost two more instructions
+/// (NaN cannot win here: it only arises in masked-out lanes).
+#[inline(always)]
+fn fmax(a: f32, b: f32) -> f32 {
+    if a > b {
+        a
+    } else {
+        b
+    }
+}
+
+/// [`cell_max`] for LANES cells side by side in f32, folded into `best`. `FIRST`: the piece
+/// starting at the texel itself (a = 0, and the limit s → 0⁺ counts).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn piece<const FIRST: bool>(
+    row0: &[f32],
+    row1: &[f32],
+    (fx, fy, dx, dy): (f32, f32, f32, f32),
+    s_a: f32,
+    len: f32,
+    inv_sb: f32,
+    h0: &[f32; LANES],
+    valid: impl Fn(usize) -> bool,
+    best: &mut [f32; LANES],
+) {
+    let (row0, row1) = (&row0[..LANES + 1], &row1[..LANES + 1]);
+    let s_a2 = s_a * s_a;
+    let mut out = *best;
+    for i in 0..LANES {
+        let (k0, k1, k2, k3) = (row0[i], row0[i + 1], row1[i], row1[i + 1]);
+        let bx = k1 - k0;
+        let by = k2 - k0;
+        let bxy = k3 - k1 - k2 + k0;
+        let d1 = bx * dx + by * dy + bxy * (fx * dy + fy * dx);
+        let d2 = bxy * dx * dy;
+        let mut v;
+        if FIRST {
+            v = fmax((d1 + d2 * len) * len * inv_sb, d1);
+        } else {
+            let d0 = k0 + bx * fx + by * fy + bxy * fx * fy;
+            let a = d0 - h0[i];
+            v = (a + (d1 + d2 * len) * len) * inv_sb;
+            // Interior critical point; d2 = 0 gives q = ±inf or NaN and fails `ok`.
+            let q = s_a2 - (d1 * s_a - a) / d2;
+            let dd = fmax(q, 1e-30).sqrt();
+            let t = dd - s_a;
+            let vi = (a + (d1 + d2 * t) * t) / dd;
+            let ok = q > 0.0 && t > 0.0 && t < len;
+            v = if ok { fmax(vi, v) } else { v };
+        }
+        let v = if valid(i) { v } else { f32::NEG_INFINITY };
+        out[i] = fmax(v, out[i]);
+    }
+    *best = out;
 }
 
 /// Fills `out` (8 channels) from per-bin values.
