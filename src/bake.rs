@@ -84,10 +84,12 @@ pub fn resolve_radius(
 }
 
 /// Builds the kernel a method and resolved radius mean.
+/// Kernels that can stop inside a band watch `progress` for a cancel.
 pub fn make_kernel<'a>(
     params: &BakeParams,
     grid: Grid<'a>,
     radius: u32,
+    progress: &Progress,
 ) -> Box<dyn HorizonRows + 'a> {
     match params.method {
         Method::Lengyel => {
@@ -97,7 +99,10 @@ pub fn make_kernel<'a>(
             // Unlimited means "to the map edge" with edge=none, which can be longer than
             // max(W, H) on a diagonal; the kernel resolves it itself.
             let r = (params.radius != Radius::Unlimited).then_some(radius);
-            Box::new(kernels::exact::ExactHorizon::new(grid, r, params.bins, params.reduce))
+            Box::new(
+                kernels::exact::ExactHorizon::new(grid, r, params.bins, params.reduce)
+                    .with_cancel(progress),
+            )
         }
     }
 }
@@ -115,7 +120,7 @@ pub fn bake_horizon(
     let heights = map.scaled(params.height_scale);
     let radius = resolve_radius(params, map.width, map.height, &heights);
     let grid = Grid::new(map.width, map.height, &heights, params.edge, params.y_axis);
-    let kernel = make_kernel(params, grid, radius.texels);
+    let kernel = make_kernel(params, grid, radius.texels, progress);
     progress.start(Stage::Bake, map.height as u64);
     let layers = run_into_layers(kernel.as_ref(), params.encoding, precisions, progress)?;
     Ok((layers, radius))
