@@ -220,7 +220,7 @@ pub fn bake_fourier(
     let heights = map.scaled(params.height_scale);
     let radius = resolve_radius(params, map.width, map.height, &heights);
     let grid = Grid::new(map.width, map.height, &heights, params.edge, params.y_axis);
-    let kernel = make_kernel(params, grid, radius.texels);
+    let kernel = make_kernel(params, grid, radius.texels, progress);
     let (w, h, nb) = (kernel.width(), kernel.height(), kernel.bins());
     let terms = params.fourier_terms as usize;
     let range = params.fourier_range;
