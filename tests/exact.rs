@@ -119,10 +119,12 @@ fn random_map(rng: &mut Rng, w: usize, h: usize, spiky: bool) -> Vec<f32> {
         let mut v = vec![0.0f32; w * h];
         for _ in 0..3 {
             let (fx, fy) = (rng.range(0, 2) as f32, rng.range(0, 2) as f32);
-            let (a, p) = (3.0 * rng.f32(), 6.28 * rng.f32());
+            let (a, p) = (3.0 * rng.f32(), std::f32::consts::TAU * rng.f32());
             for r in 0..h {
                 for c in 0..w {
-                    let t = 6.283 * (fx * c as f32 / w as f32 + fy * r as f32 / h as f32) + p;
+                    let t = std::f32::consts::TAU
+                        * (fx * c as f32 / w as f32 + fy * r as f32 / h as f32)
+                        + p;
                     v[r * w + c] += a * t.sin();
                 }
             }
