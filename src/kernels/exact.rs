@@ -494,6 +494,7 @@ struct Near {
     pw: usize,
     padded: Vec<f32>,
     avx2: bool,
+    avx512: bool,
 }
 
 impl Near {
@@ -519,7 +520,11 @@ impl Near {
             && std::arch::is_x86_feature_detected!("fma");
         #[cfg(not(target_arch = "x86_64"))]
         let avx2 = false;
-        Near { segs, s_cut, pad, pw, padded, avx2 }
+        #[cfg(target_arch = "x86_64")]
+        let avx512 = std::arch::is_x86_feature_detected!("avx512f");
+        #[cfg(not(target_arch = "x86_64"))]
+        let avx512 = false;
+        Near { segs, s_cut, pad, pw, padded, avx2, avx512 }
     }
 
     /// How many pieces of direction `n` end at or before `s_end` (a lane's own end with
@@ -576,11 +581,34 @@ impl Near {
         best: &mut [f32; LANES],
     ) {
         #[cfg(target_arch = "x86_64")]
+        if self.avx512 {
+            // SAFETY: the CPU was checked for AVX-512F at construction.
+            unsafe { self.strip_avx512(n, d, x, y, h0, count, hmax, best) };
+            return;
+        }
+        #[cfg(target_arch = "x86_64")]
         if self.avx2 {
             // SAFETY: the CPU was checked for AVX2 and FMA at construction.
             unsafe { self.strip_avx2(n, d, x, y, h0, count, hmax, best) };
             return;
         }
+        self.strip_body(n, d, x, y, h0, count, hmax, best);
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,avx2,fma")]
+    #[allow(clippy::too_many_arguments)] // the strip's place and lane state, hot path
+    unsafe fn strip_avx512(
+        &self,
+        n: usize,
+        d: (f64, f64),
+        x: usize,
+        y: usize,
+        h0: &[f32; LANES],
+        count: &[u32; LANES],
+        hmax: f32,
+        best: &mut [f32; LANES],
+    ) {
         self.strip_body(n, d, x, y, h0, count, hmax, best);
     }
 
