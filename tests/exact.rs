@@ -240,8 +240,8 @@ fn fast_kernel_equals_plain_oracle_on_larger_maps() {
             let g = Grid::new(w, h, &heights, edge, YAxis::Up);
             let fast = ExactHorizon::new(g, radius, 32, Reduce::Point);
             let plain = ExactMarch::new(g, radius, 32, Reduce::Point);
-            // `rows` seeds each ray from the previous texel's horizon; the seeds must not
-            // change the result.
+            // `rows` is the production path: the f32 near field over strips of texels and the
+            // seeded far-field walk; culling and skipping must not change the result.
             let (mut ch, mut fast_bins, mut b) =
                 (vec![0f32; w * 8], vec![0f32; w * 32], vec![0f32; 32]);
             for y in 0..h {

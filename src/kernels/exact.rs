@@ -402,45 +402,6 @@ where
     (best, best_s)
 }
 
-/// A lower bound for `ray` from the cell around arc length `s_hint` (where a neighbouring
-/// texel's horizon lay): the exact maximum over the ray's segment in that cell, a value the ray
-/// really reaches, so it is a valid seed for [`walk`]. (0, 0) when there is no usable hint.
-#[inline]
-fn seed_at<F>(grid: &Grid<'_>, ray: &Ray, s_hint: f64, corners: F) -> (f64, f64)
-where
-    F: Fn(i64, i64) -> [f64; 4],
-{
-    if !(s_hint > 1.0 && s_hint <= ray.s_end) {
-        return (0.0, 0.0);
-    }
-    let cell = |p: f64, n: usize| {
-        let c = p.floor() as i64;
-        match grid.edge {
-            Edge::Wrap => c,
-            Edge::None => c.clamp(0, (n as i64 - 2).max(0)),
-        }
-    };
-    let cx = cell(ray.x0 + s_hint * ray.dx, grid.width);
-    let cy = cell(ray.y0 + s_hint * ray.dy, grid.height);
-    let span = |c: i64, p: f64, d: f64| {
-        if d == 0.0 {
-            (f64::NEG_INFINITY, f64::INFINITY)
-        } else {
-            let (a, b) = ((c as f64 - p) / d, ((c + 1) as f64 - p) / d);
-            (a.min(b), a.max(b))
-        }
-    };
-    let (ax, bx) = span(cx, ray.x0, ray.dx);
-    let (ay, by) = span(cy, ray.y0, ray.dy);
-    let (sa, sb) = (ax.max(ay).max(0.0), bx.min(by).min(ray.s_end));
-    if !(sa > 0.0 && sb > sa) {
-        return (0.0, 0.0);
-    }
-    let fx = (ray.x0 + sa * ray.dx - cx as f64).clamp(0.0, 1.0);
-    let fy = (ray.y0 + sa * ray.dy - cy as f64).clamp(0.0, 1.0);
-    cell_max(corners(cx, cy), fx, fy, ray, sa, sb - sa, false)
-}
-
 /// Exact sin α of texel (`x`, `y`) at tangent-space azimuth `phi` (radians, any value), by the
 /// plain cell-by-cell walk: the single-texel ground truth for shading and evaluation.
 ///
@@ -911,10 +872,11 @@ impl<'a> ExactHorizon<'a> {
         }
     }
 
-    /// The accelerated walk of one ray, seeded from the cell at `s_hint` (0: none): returns
-    /// tan α and the arc length where it is reached.
+    /// The accelerated walk of one ray from arc length `start`, where `seed` is a value of the
+    /// ratio the ray already reaches (from the near field; 0 if none): returns tan α and the arc
+    /// length where it is reached.
     #[inline]
-    fn walk(&self, ray: &Ray, s_hint: f64, start: f64, seed: f64) -> (f64, f64) {
+    fn walk(&self, ray: &Ray, start: f64, seed: f64) -> (f64, f64) {
         let hs = self.grid.heights;
         let (cols, rows, lo) = (&self.cols[..], &self.rows[..], self.lo);
         let corners = |cx: i64, cy: i64| {
@@ -927,9 +889,7 @@ impl<'a> ExactHorizon<'a> {
                 hs[(r1 + c1) as usize] as f64,
             ]
         };
-        let hinted = seed_at(&self.grid, ray, s_hint, corners);
-        let seed = if hinted.0 > seed { hinted } else { (seed, 0.0) };
-        walk(&self.grid, ray, Some((&self.pyramid, self.hmax)), seed, start, corners)
+        walk(&self.grid, ray, Some((&self.pyramid, self.hmax)), (seed, 0.0), start, corners)
     }
 
     /// Makes [`HorizonRows::rows`] return early (leaving the rest of its rows unspecified) once
@@ -949,25 +909,15 @@ impl<'a> ExactHorizon<'a> {
         assert!(phi.is_finite(), "azimuth must be finite");
         let (dx, dy) = direction(phi, self.grid.row_step());
         let ray = Ray::new(&self.grid, x, y, dx, dy, self.radius);
-        sin_of_tan(self.walk(&ray, 0.0, 0.0, 0.0).0)
+        sin_of_tan(self.walk(&ray, 0.0, 0.0).0)
     }
 
-    /// Per-bin sin α of texel (x, y) into `s` (`bins` long).
+    /// Per-bin sin α of texel (x, y) into `s` (`bins` long), one scalar walk per azimuth (the
+    /// vectorised path is [`HorizonRows::rows`]).
     pub fn texel_bins(&self, x: usize, y: usize, s: &mut [f32]) {
-        let mut hints = vec![0.0f64; self.dirs.len()];
-        self.texel_bins_hinted(x, y, s, &mut hints);
-    }
-
-    /// [`Self::texel_bins`] seeded per direction from where the previous texel's horizon was
-    /// (`hints`, updated in place). Neighbouring rays are parallel and a texel apart, so the
-    /// occluder of one is usually near the other's: starting from that value lets the walk skip
-    /// almost everything else. The result does not depend on the hints (see [`seed_at`]).
-    fn texel_bins_hinted(&self, x: usize, y: usize, s: &mut [f32], hints: &mut [f64]) {
-        for ((o, &(dx, dy)), hint) in s.iter_mut().zip(&self.dirs).zip(hints.iter_mut()) {
+        for (o, &(dx, dy)) in s.iter_mut().zip(&self.dirs) {
             let ray = Ray::new(&self.grid, x, y, dx, dy, self.radius);
-            let (t, at) = self.walk(&ray, *hint, 0.0, 0.0);
-            *hint = at;
-            *o = sin_of_tan(t) as f32;
+            *o = sin_of_tan(self.walk(&ray, 0.0, 0.0).0) as f32;
         }
     }
 }
@@ -1025,7 +975,7 @@ impl HorizonRows for ExactHorizon<'_> {
                             // still beat it: continue with the scalar walk, seeded.
                             if s_end[i] > near.s_cut && self.hmax - h0[i] as f64 > t * near.s_cut {
                                 let ray = Ray::new(&self.grid, x + i, y, dx, dy, self.radius);
-                                best[i] = self.walk(&ray, 0.0, near.s_cut, t).0 as f32;
+                                best[i] = self.walk(&ray, near.s_cut, t).0 as f32;
                             }
                         }
                     }
