@@ -68,7 +68,9 @@ pub fn resolve_radius(
             let (lo, hi) = g.range();
             let dh = (hi - lo) as f64;
             let tan = params.min_elevation_deg.to_radians().tan();
-            let raw = (dh / tan).ceil();
+            // tan 45° is 0.9999999999999999 in f64: without the relative slack, Δh = 10 texels
+            // at 45° would resolve to 11 instead of SPEC §3.6's ceil(10 / 1) = 10.
+            let raw = (dh / tan * (1.0 - 1e-12)).ceil();
             let texels =
                 if raw.is_finite() { (raw as u64).clamp(1, cap as u64) as u32 } else { cap };
             ResolvedRadius {

@@ -337,7 +337,7 @@ struct Cube {
 
 impl Cube {
     fn new(size: usize) -> Self {
-        let f = cubemap::cube_factors(size);
+        let f = cubemap::cube_factors_shared(size);
         let texels = f
             .chunks_exact(4)
             .map(|t| {

@@ -152,7 +152,7 @@ fn auto_radius_loses_nothing_at_or_above_min_elevation() {
     // auto one is too: the shadow test of any light at elevation ≥ θ agrees bin by bin.
     for map in [corpus::bump(40), corpus::fractal(40, 1), corpus::spikes(40, 2)] {
         for method in [Method::Lengyel, Method::Exact] {
-            for theta in [10.0f64, 25.0] {
+            for theta in [20.0f64, 40.0] {
                 let unl = BakeParams { method, radius: Radius::Unlimited, edge: Edge::Wrap, ..Default::default() };
                 let auto = BakeParams { radius: Radius::Auto, min_elevation_deg: theta, ..unl.clone() };
                 let r = bake::resolve_radius(&auto, map.width, map.height, &map.heights);

@@ -165,10 +165,13 @@ fn height_scale_extremes() {
         let mut lo = params(m, "6", Edge::Wrap);
         lo.set("height_scale", "1e-6").unwrap();
         let (layers, _) = bake::bake_horizon(&map, &lo, Precisions::ALL, &Progress::new()).unwrap();
-        // Slopes of at most 1e-6: s ≤ 1e-6 everywhere, which stores as 0 in 8 and 16 bits.
+        // Height differences of at most 1e-6 texels: the steepest slope on the bilinear surface
+        // is √2·1e-6 (diagonally across a cell), so s ≤ 1.42e-6 everywhere, which stores as 0
+        // in 8 and 16 bits.
         for l in layers.f32.as_ref().unwrap() {
             assert_in_range("height_scale 1e-6", l);
-            assert!(l.iter().all(|&v| v <= 1.1e-6), "{m:?}");
+            let mx = l.iter().copied().fold(0.0f32, f32::max);
+            assert!(mx <= 1.5e-6, "{m:?}: {mx}");
         }
         assert!(layers.u8.as_ref().unwrap().iter().all(|l| l.iter().all(|&v| v == 0)));
         assert!(layers.u16.as_ref().unwrap().iter().all(|l| l.iter().all(|&v| v == 0)));

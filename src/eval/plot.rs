@@ -275,12 +275,22 @@ fn panel(cv: &mut Canvas, p: &Panel, pts: &[(f64, f64, Rgb, &str)], title: &str,
         let (x, y) = p.px(ms, e);
         cv.disc(x, y, 4, c);
     }
-    for (k, &(ms, e, name)) in fp.iter().enumerate() {
+    // Label the front, trying four places around each point and skipping a label that would
+    // overprint one already placed (the table has every name).
+    let mut placed: Vec<(i64, i64, i64, i64)> = Vec::new();
+    for &(ms, e, name) in &fp {
         let (x, y) = p.px(ms, e);
         cv.ring(x, y, 7, FRONT);
-        // Alternate label sides so neighbours on the front do not overprint.
-        let dy = if k % 2 == 0 { -14 } else { 8 };
-        cv.text(x + 8, y + dy, name, 1, FRONT);
+        let tw = text_width(name, 1);
+        for (lx, ly) in [(x + 9, y - 14), (x + 9, y + 8), (x - 9 - tw, y - 14), (x - 9 - tw, y + 8)] {
+            let r = (lx - 2, ly - 2, lx + tw + 2, ly + 9);
+            let free = placed.iter().all(|q| r.2 < q.0 || r.0 > q.2 || r.3 < q.1 || r.1 > q.3);
+            if free && lx >= 0 && lx + tw < W as i64 {
+                cv.text(lx, ly, name, 1, FRONT);
+                placed.push(r);
+                break;
+            }
+        }
     }
 }
 
@@ -309,11 +319,11 @@ pub fn render(sums: &[Summary]) -> Result<Vec<u8>> {
     for (name, c) in FAMILIES {
         if sums.iter().any(|s| s.family == name) {
             cv.disc(lx, 496, 5, c);
-            lx += 12 + cv.text(lx + 10, 493, name, 1, BLACK);
+            lx += 28 + cv.text(lx + 10, 493, name, 1, BLACK);
         }
     }
     cv.ring(lx + 6, 496, 7, FRONT);
-    cv.text(lx + 18, 493, "PARETO FRONT (SHADOW VS TIME IN LEFT, HORIZON VS TIME IN RIGHT)", 1, BLACK);
+    cv.text(lx + 18, 493, "PARETO FRONT OF EACH PANEL (ERROR VS BAKE TIME)", 1, BLACK);
     encode8(W, H, PngColor::Rgba, &cv.px)
 }
 
