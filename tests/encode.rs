@@ -250,10 +250,10 @@ fn horizon_files_hold_the_baked_layers() {
     assert_eq!(d.get_data(1).unwrap(), &l8[1][..]);
 
     let fs = files("png16,ktx2", TexturePrecision::Unorm16);
-    for l in 0..2 {
+    for (l, layer) in l16.iter().enumerate() {
         let png = image::load_from_memory(&get(&fs, &format!("horizon_{l}.png"))).unwrap();
         assert_eq!(png.color(), image::ColorType::Rgba16);
-        assert_eq!(png.to_rgba16().as_raw(), &l16[l]);
+        assert_eq!(png.to_rgba16().as_raw(), layer);
     }
     let t16 = [Texels::Unorm16(&l16[0]), Texels::Unorm16(&l16[1])];
     check_ktx2(&get(&fs, "horizon.ktx2"), w, h, Shape::Array(2), &t16, Format::R16G16B16A16_UNORM);

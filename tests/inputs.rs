@@ -373,3 +373,67 @@ fn broken_inputs_each_get_a_clear_error() {
         }
     }
 }
+
+/// A hand-built little-endian TIFF header (one IFD, one strip) declaring `w × h` 8-bit gray, with
+/// no pixel data behind it.
+fn tiff_header(w: u32, h: u32) -> Vec<u8> {
+    let entries: [(u16, u16, u32); 8] = [
+        (256, 4, w),       // ImageWidth, LONG
+        (257, 4, h),       // ImageLength
+        (258, 3, 8),       // BitsPerSample, SHORT
+        (259, 3, 1),       // Compression: none
+        (262, 3, 1),       // PhotometricInterpretation: BlackIsZero
+        (273, 4, 1 << 20), // StripOffsets: past the end of the file
+        (277, 3, 1),       // SamplesPerPixel
+        (279, 4, 16),      // StripByteCounts
+    ];
+    let mut out = b"II*\0".to_vec();
+    out.extend(8u32.to_le_bytes());
+    out.extend((entries.len() as u16).to_le_bytes());
+    for (tag, ty, value) in entries {
+        out.extend(tag.to_le_bytes());
+        out.extend(ty.to_le_bytes());
+        out.extend(1u32.to_le_bytes());
+        if ty == 3 {
+            out.extend((value as u16).to_le_bytes());
+            out.extend([0, 0]);
+        } else {
+            out.extend(value.to_le_bytes());
+        }
+    }
+    out.extend(0u32.to_le_bytes());
+    out
+}
+
+#[test]
+fn huge_tiff_header_is_rejected_before_decoding() {
+    let lim = Limits::default();
+    let t = std::time::Instant::now();
+    let e = decode(&tiff_header(100_000, 100_000), Channel::Luma, &lim).unwrap_err();
+    assert!(t.elapsed().as_millis() < 50, "took {:?}", t.elapsed());
+    assert!(
+        matches!(e, Error::Limits(LimitError::Dimensions { width: 100_000, height: 100_000, .. })),
+        "{e:?}"
+    );
+    // The same header at a small size gets as far as the missing pixel data: truncated.
+    let e = decode(&tiff_header(4, 4), Channel::Luma, &lim).unwrap_err();
+    assert!(matches!(e, Error::Decode(_)), "{e:?}");
+}
+
+#[test]
+fn huge_exr_header_is_rejected_before_decoding() {
+    use exr::prelude::FlatSamples;
+    let mut bytes = exr_bytes(2, 2, vec![("Y", FlatSamples::F32(vec![0.0; 4]))]);
+    // Patch the data window (box2i: xMin, yMin, xMax, yMax) to 100000 × 100000.
+    let key = b"dataWindow\0box2i\0";
+    let at = bytes.windows(key.len()).position(|w| w == key).unwrap() + key.len() + 4;
+    bytes[at + 8..at + 12].copy_from_slice(&99_999i32.to_le_bytes());
+    bytes[at + 12..at + 16].copy_from_slice(&99_999i32.to_le_bytes());
+    let t = std::time::Instant::now();
+    let e = decode(&bytes, Channel::Luma, &Limits::default()).unwrap_err();
+    assert!(t.elapsed().as_millis() < 50, "took {:?}", t.elapsed());
+    assert!(
+        matches!(e, Error::Limits(LimitError::Dimensions { width: 100_000, height: 100_000, .. })),
+        "{e:?}"
+    );
+}

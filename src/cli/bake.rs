@@ -33,6 +33,21 @@ pub struct BakeArgs {
     /// Sample type of horizon.ktx2 / horizon.dds: unorm8 (default), unorm16, float32.
     #[arg(long, default_value = "unorm8")]
     pub texture_precision: String,
+    /// The bake parameters (SPEC §5). Boxed: thirteen strings would make this the one huge
+    /// variant of the subcommand enum.
+    #[command(flatten)]
+    pub params: Box<ParamFlags>,
+    /// Largest accepted width or height of the input, in texels.
+    #[arg(long, default_value_t = Limits::default().max_dim)]
+    pub max_dim: u32,
+    /// Largest accepted width × height of the input.
+    #[arg(long, default_value_t = Limits::default().max_texels)]
+    pub max_texels: u64,
+}
+
+/// Every SPEC §5 parameter as a `--kebab-case` flag, as text.
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct ParamFlags {
     /// Height in texels of a normalised height of 1 (default 8).
     #[arg(long, allow_hyphen_values = true)]
     pub height_scale: Option<String>,
@@ -72,12 +87,6 @@ pub struct BakeArgs {
     /// standard (default) or expanded.
     #[arg(long)]
     pub fourier_range: Option<String>,
-    /// Largest accepted width or height of the input, in texels.
-    #[arg(long, default_value_t = Limits::default().max_dim)]
-    pub max_dim: u32,
-    /// Largest accepted width × height of the input.
-    #[arg(long, default_value_t = Limits::default().max_texels)]
-    pub max_texels: u64,
 }
 
 impl BakeArgs {
@@ -86,20 +95,21 @@ impl BakeArgs {
     /// # Errors
     /// [`Error::Param`] naming the first invalid field.
     pub fn params(&self) -> Result<BakeParams> {
+        let f = &self.params;
         let pairs = [
-            ("height_scale", &self.height_scale),
-            ("channel", &self.channel),
-            ("edge", &self.edge),
-            ("y_axis", &self.y_axis),
-            ("method", &self.method),
-            ("radius", &self.radius),
-            ("bins", &self.bins),
-            ("reduce", &self.reduce),
-            ("min_elevation_deg", &self.min_elevation_deg),
-            ("encoding", &self.encoding),
-            ("outputs", &self.outputs),
-            ("fourier_terms", &self.fourier_terms),
-            ("fourier_range", &self.fourier_range),
+            ("height_scale", &f.height_scale),
+            ("channel", &f.channel),
+            ("edge", &f.edge),
+            ("y_axis", &f.y_axis),
+            ("method", &f.method),
+            ("radius", &f.radius),
+            ("bins", &f.bins),
+            ("reduce", &f.reduce),
+            ("min_elevation_deg", &f.min_elevation_deg),
+            ("encoding", &f.encoding),
+            ("outputs", &f.outputs),
+            ("fourier_terms", &f.fourier_terms),
+            ("fourier_range", &f.fourier_range),
         ];
         BakeParams::from_pairs(pairs.iter().filter_map(|(k, v)| v.as_deref().map(|v| (*k, v))))
     }
@@ -142,7 +152,8 @@ pub fn run(args: BakeArgs) -> Result<()> {
     let precision = TexturePrecision::parse(&args.texture_precision)?;
     let formats = Formats::parse(&args.format, precision)?;
     if params.outputs.fourier {
-        // Fail before decoding or baking anything.
+        // Fail before decoding or baking anything. When the Fourier encoder lands, remove this
+        // early return and fill in `fourier_files`, which the encode step below already calls.
         return Err(Error::param("outputs", FOURIER_UNAVAILABLE));
     }
     check_out_dir(&args.out)?;
@@ -157,19 +168,23 @@ pub fn run(args: BakeArgs) -> Result<()> {
     let decode_ms = ms(t.elapsed());
 
     let t = Instant::now();
-    let (layers, radius) = with_progress_bar(&progress, map.width * map.height, || {
-        if params.outputs.horizon {
-            bake::bake_horizon(&map, &params, formats.precisions(), &progress).map(Some)
-        } else {
-            Ok(None)
-        }
-    })?
-    .map(|(l, r)| (Some(l), Some(r)))
-    .unwrap_or((None, None));
+    let (layers, radius) =
+        with_progress_bar(&progress, format!("{}×{}", map.width, map.height), || {
+            if params.outputs.horizon {
+                bake::bake_horizon(&map, &params, formats.precisions(), &progress).map(Some)
+            } else {
+                Ok(None)
+            }
+        })?
+        .map(|(l, r)| (Some(l), Some(r)))
+        .unwrap_or((None, None));
     let bake_ms = ms(t.elapsed());
 
+    // Encoding includes writing the files (to the staging directory): both are the cost of
+    // producing the outputs. `total` ends before bake.json itself and the final renames.
     let t = Instant::now();
     progress.start(Stage::Encode, 1);
+    let mut staging = Staging::new(&args.out)?;
     let mut files = match &layers {
         Some(l) => encode::horizon_files(l, &formats)?,
         None => Vec::new(),
@@ -177,6 +192,7 @@ pub fn run(args: BakeArgs) -> Result<()> {
     if params.outputs.fourier {
         files.extend(fourier_files(&map, &params, &progress)?);
     }
+    staging.write(&files)?;
     let encode_ms = ms(t.elapsed());
     let report = BakeReport {
         params: &params,
@@ -188,9 +204,8 @@ pub fn run(args: BakeArgs) -> Result<()> {
         timings: [decode_ms, bake_ms, encode_ms, ms(total.elapsed())],
         layers: layers.as_ref(),
     };
-    files.push(OutFile { name: "bake.json", bytes: report.to_json()? });
-    write_dir_atomically(&args.out, &files)?;
-    Ok(())
+    staging.write(&[OutFile { name: "bake.json", bytes: report.to_json()? }])?;
+    staging.commit()
 }
 
 /// Everything `bake.json` reports.
@@ -241,7 +256,7 @@ impl BakeReport<'_> {
 /// a terminal, so piped output and logs stay clean.
 fn with_progress_bar<T>(
     progress: &Progress,
-    texels: usize,
+    label: String,
     work: impl FnOnce() -> Result<T>,
 ) -> Result<T> {
     if !std::io::stderr().is_terminal() {
@@ -252,11 +267,11 @@ fn with_progress_bar<T>(
         s.spawn(|| {
             let bar = indicatif::ProgressBar::new(1000);
             if let Ok(style) = indicatif::ProgressStyle::with_template(
-                "{msg:>8} [{elapsed_precise}] {wide_bar} {percent:>3}% eta {eta}",
+                "bake {msg} [{elapsed_precise}] {wide_bar} {percent:>3}% eta {eta}",
             ) {
                 bar.set_style(style);
             }
-            bar.set_message(format!("{:.1} Mtexel", texels as f64 / 1e6));
+            bar.set_message(label);
             while !done.load(std::sync::atomic::Ordering::Relaxed) {
                 if progress.stage() == Stage::Bake {
                     bar.set_position((progress.fraction() * 1000.0) as u64);
@@ -300,29 +315,65 @@ fn staging_parent(dir: &Path) -> PathBuf {
     p
 }
 
-/// Writes `files` into `dir` all or nothing: each into a temporary directory beside `dir` first,
-/// then (only when every write succeeded) `dir` is created if missing and each file renamed into
-/// it. The temporary directory is removed in every case.
+/// Files being written into a temporary directory beside DIR (same file system), moved into DIR
+/// by [`Staging::commit`] only once every write succeeded. Dropping it without committing removes
+/// the temporary directory and leaves DIR as it was.
+pub struct Staging {
+    dir: PathBuf,
+    tmp: tempfile::TempDir,
+    names: Vec<&'static str>,
+}
+
+impl Staging {
+    /// Starts staging files for `dir`.
+    ///
+    /// # Errors
+    /// [`Error::Param`] naming `out` when `dir` is a file; [`Error::Io`].
+    pub fn new(dir: &Path) -> Result<Self> {
+        check_out_dir(dir)?;
+        let tmp = tempfile::Builder::new()
+            .prefix(".horizon-bake-tmp-")
+            .tempdir_in(staging_parent(dir))?;
+        Ok(Staging { dir: dir.to_path_buf(), tmp, names: Vec::new() })
+    }
+
+    /// Writes `files` into the temporary directory and flushes them to disk.
+    ///
+    /// # Errors
+    /// [`Error::Io`]; nothing in DIR has changed.
+    pub fn write(&mut self, files: &[OutFile]) -> Result<()> {
+        for f in files {
+            let mut file = std::fs::File::create(self.tmp.path().join(f.name))?;
+            std::io::Write::write_all(&mut file, &f.bytes)?;
+            // Durable before it becomes visible under its final name.
+            file.sync_all()?;
+            self.names.push(f.name);
+        }
+        Ok(())
+    }
+
+    /// Creates DIR if missing and renames every staged file into it, then removes the
+    /// temporary directory.
+    ///
+    /// # Errors
+    /// [`Error::Io`].
+    pub fn commit(self) -> Result<()> {
+        std::fs::create_dir_all(&self.dir)?;
+        for name in &self.names {
+            std::fs::rename(self.tmp.path().join(name), self.dir.join(name))?;
+        }
+        self.tmp.close()?;
+        Ok(())
+    }
+}
+
+/// Writes `files` into `dir` all or nothing (see [`Staging`]).
 ///
 /// # Errors
 /// [`Error::Io`] (or [`Error::Param`] naming `out` when `dir` is a file). Before the renames
 /// begin nothing in `dir` has changed.
 pub fn write_dir_atomically(dir: &Path, files: &[OutFile]) -> Result<()> {
-    check_out_dir(dir)?;
-    let staging =
-        tempfile::Builder::new().prefix(".horizon-bake-tmp-").tempdir_in(staging_parent(dir))?;
-    for f in files {
-        let path = staging.path().join(f.name);
-        std::fs::write(&path, &f.bytes)?;
-    }
-    // Make the files durable before they become visible under their final names.
-    for f in files {
-        std::fs::File::open(staging.path().join(f.name))?.sync_all()?;
-    }
-    std::fs::create_dir_all(dir)?;
-    for f in files {
-        std::fs::rename(staging.path().join(f.name), dir.join(f.name))?;
-    }
-    staging.close()?;
-    Ok(())
+    let mut staging = Staging::new(dir)?;
+    staging.write(files)?;
+    staging.commit()
 }
