@@ -129,9 +129,8 @@ pub fn bake_horizon(
 /// # Errors
 /// [`crate::Error::Param`] naming `height_scale` when they are not.
 pub fn check_scaled(heights: &[f32]) -> Result<()> {
-    let (lo, hi) = heights
-        .iter()
-        .fold((f32::INFINITY, f32::NEG_INFINITY), |(l, h), &v| (l.min(v), h.max(v)));
+    let (lo, hi) =
+        heights.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(l, h), &v| (l.min(v), h.max(v)));
     if heights.is_empty() || (hi - lo).is_finite() {
         return Ok(());
     }

@@ -165,7 +165,8 @@ pub fn models(quick: bool) -> Vec<ModelSpec> {
     } else {
         &[Radius::Texels(16), Radius::Texels(64), Radius::Unlimited]
     };
-    let reduces: &[Reduce] = if quick { &[Reduce::Average] } else { &[Reduce::Average, Reduce::Point] };
+    let reduces: &[Reduce] =
+        if quick { &[Reduce::Average] } else { &[Reduce::Average, Reduce::Point] };
     for &r in exact_radii {
         for &red in reduces {
             let rn = match red {
@@ -194,7 +195,8 @@ pub fn models(quick: bool) -> Vec<ModelSpec> {
     };
     for (base, base_name) in [(&default, DEFAULT_MODEL), (&exact_unl, "exact Runlimited average")] {
         for &s in storages {
-            let mut m = ModelSpec::new(format!("{base_name} {}", s.label()), "storage", base.clone());
+            let mut m =
+                ModelSpec::new(format!("{base_name} {}", s.label()), "storage", base.clone());
             m.storage = s;
             if s == Storage::Sqrt8 || s == Storage::Sqrt16 {
                 m.params.encoding = Encoding::Sqrt;
@@ -209,8 +211,11 @@ pub fn models(quick: bool) -> Vec<ModelSpec> {
     for &size in sizes {
         for bilinear in [false, true] {
             let f = Factors::Cube { size, bilinear };
-            let mut m =
-                ModelSpec::new(format!("{DEFAULT_MODEL} {}", f.label()), "cubemap", default.clone());
+            let mut m = ModelSpec::new(
+                format!("{DEFAULT_MODEL} {}", f.label()),
+                "cubemap",
+                default.clone(),
+            );
             m.factors = f;
             out.push(m);
         }
@@ -454,7 +459,13 @@ pub fn metrics(ch: &[f64], truth: &[f32], factors: Factors) -> Metrics {
     m.shadow_error = m.shadow_by_elevation.iter().sum::<f64>() / ELEVATIONS_DEG.len() as f64;
     let step = TRUTH_BINS / HORIZON_AZIMUTHS;
     let exact_f: Vec<[f64; 4]> = (0..HORIZON_AZIMUTHS)
-        .map(|a| factors_of(Factors::Exact, None, light(a as f64 * 2.0 * PI / HORIZON_AZIMUTHS as f64, 0.0)))
+        .map(|a| {
+            factors_of(
+                Factors::Exact,
+                None,
+                light(a as f64 * 2.0 * PI / HORIZON_AZIMUTHS as f64, 0.0),
+            )
+        })
         .collect();
     let sum: f64 = (0..texels)
         .into_par_iter()
@@ -541,7 +552,10 @@ pub fn run(opts: &Options) -> Result<EvalResult> {
         let truth = ground_truth(map, *edge)?;
         let tms = t0.elapsed().as_secs_f64() * 1e3;
         if opts.verbose {
-            eprintln!("eval: {} {}×{}: ground truth in {tms:.0} ms", map.name, map.width, map.height);
+            eprintln!(
+                "eval: {} {}×{}: ground truth in {tms:.0} ms",
+                map.name, map.width, map.height
+            );
         }
         truth_ms.push((map.name.clone(), tms));
         // Models sharing a bake are decoded from the same layers, timed once.

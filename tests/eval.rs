@@ -9,7 +9,8 @@ use horizon_bake::progress::Progress;
 
 /// Truth where every azimuth of texel t has horizon `v[t]`, and channels that decode to `c[t]`.
 fn flat_case(v: &[f64], c: &[f64]) -> (Vec<f64>, Vec<f32>) {
-    let truth: Vec<f32> = v.iter().flat_map(|&x| std::iter::repeat_n(x as f32, TRUTH_BINS)).collect();
+    let truth: Vec<f32> =
+        v.iter().flat_map(|&x| std::iter::repeat_n(x as f32, TRUTH_BINS)).collect();
     let ch: Vec<f64> = c.iter().flat_map(|&x| std::iter::repeat_n(x, 8)).collect();
     (ch, truth)
 }
@@ -29,7 +30,8 @@ fn metrics_of_known_answers() {
     // the 5° and 10° lights and nowhere else, so the error is ½ at two of six elevations, and
     // the horizon error is 15° on half the texels.
     let v = vec![0.0; 40];
-    let c: Vec<f64> = (0..40).map(|k| if k % 2 == 0 { 15f64.to_radians().sin() } else { 0.0 }).collect();
+    let c: Vec<f64> =
+        (0..40).map(|k| if k % 2 == 0 { 15f64.to_radians().sin() } else { 0.0 }).collect();
     let (ch, truth) = flat_case(&v, &c);
     let m = eval::metrics(&ch, &truth, Factors::Exact);
     assert_eq!(m.shadow_by_elevation, [0.5, 0.5, 0.0, 0.0, 0.0, 0.0]);
@@ -153,18 +155,37 @@ fn auto_radius_loses_nothing_at_or_above_min_elevation() {
     for map in [corpus::bump(40), corpus::fractal(40, 1), corpus::spikes(40, 2)] {
         for method in [Method::Lengyel, Method::Exact] {
             for theta in [20.0f64, 40.0] {
-                let unl = BakeParams { method, radius: Radius::Unlimited, edge: Edge::Wrap, ..Default::default() };
-                let auto = BakeParams { radius: Radius::Auto, min_elevation_deg: theta, ..unl.clone() };
+                let unl = BakeParams {
+                    method,
+                    radius: Radius::Unlimited,
+                    edge: Edge::Wrap,
+                    ..Default::default()
+                };
+                let auto =
+                    BakeParams { radius: Radius::Auto, min_elevation_deg: theta, ..unl.clone() };
                 let r = bake::resolve_radius(&auto, map.width, map.height, &map.heights);
-                assert!(r.texels < 40, "{}: auto should cut the radius, got {}", map.name, r.texels);
+                assert!(
+                    r.texels < 40,
+                    "{}: auto should cut the radius, got {}",
+                    map.name,
+                    r.texels
+                );
                 let a = per_bin(&auto, &map);
                 let u = per_bin(&unl, &map);
                 let st = theta.to_radians().sin() as f32;
                 for (k, (x, y)) in a.iter().zip(&u).enumerate() {
                     if *y > st + 1e-5 {
-                        assert!((x - y).abs() < 1e-5, "{} {method:?} θ {theta}: bin {k}: {x} vs {y}", map.name);
+                        assert!(
+                            (x - y).abs() < 1e-5,
+                            "{} {method:?} θ {theta}: bin {k}: {x} vs {y}",
+                            map.name
+                        );
                     } else {
-                        assert!(*x <= st + 1e-5, "{} {method:?} θ {theta}: bin {k}: {x} > sin θ", map.name);
+                        assert!(
+                            *x <= st + 1e-5,
+                            "{} {method:?} θ {theta}: bin {k}: {x} > sin θ",
+                            map.name
+                        );
                     }
                 }
             }
@@ -174,13 +195,14 @@ fn auto_radius_loses_nothing_at_or_above_min_elevation() {
 
 #[test]
 fn resolve_radius_follows_spec_3_6() {
-    let p = |t: f64| BakeParams { radius: Radius::Auto, min_elevation_deg: t, ..Default::default() };
+    let p =
+        |t: f64| BakeParams { radius: Radius::Auto, min_elevation_deg: t, ..Default::default() };
     // Δh = 10 texels: R = ceil(10 / tan θ).
     let mut h = vec![0.0f32; 50 * 40];
     h[7] = 10.0;
     assert_eq!(bake::resolve_radius(&p(45.0), 50, 40, &h).texels, 10);
     assert_eq!(bake::resolve_radius(&p(30.0), 50, 40, &h).texels, 18); // 17.32 → 18
-    // Capped at max(W, H).
+                                                                       // Capped at max(W, H).
     assert_eq!(bake::resolve_radius(&p(5.0), 50, 40, &h).texels, 50);
     assert_eq!(bake::resolve_radius(&p(1e-9), 50, 40, &h).texels, 50);
     // A flat map needs no search at all; the smallest radius a kernel accepts is 1.
@@ -220,7 +242,8 @@ fn cli_eval_writes_every_output_and_the_dump() {
     // The dump holds the default model's layers and the numbers the eval reported for them.
     for map in ["bump", "fractal"] {
         let meta: serde_json::Value =
-            serde_json::from_slice(&std::fs::read(dump.join(map).join("meta.json")).unwrap()).unwrap();
+            serde_json::from_slice(&std::fs::read(dump.join(map).join("meta.json")).unwrap())
+                .unwrap();
         let row = rows.iter().find(|r| r["model"] == "lengyel R16 B32" && r["map"] == map).unwrap();
         assert_eq!(meta["metrics"]["shadow_error"], row["shadow_error"]);
         let truth = std::fs::metadata(dump.join(map).join("truth.f32")).unwrap().len();

@@ -129,7 +129,10 @@ fn huge_float_values_with_height_scale() {
                 }
             }
             Err(e) => assert!(
-                matches!(e, horizon_bake::Error::InvalidInput(_) | horizon_bake::Error::Param { .. }),
+                matches!(
+                    e,
+                    horizon_bake::Error::InvalidInput(_) | horizon_bake::Error::Param { .. }
+                ),
                 "{m:?}: {e}"
             ),
         }
@@ -307,11 +310,11 @@ fn lights_at_the_extremes() {
     let mut rng = Rng(5);
     let ch: Vec<f64> = (0..8).map(|_| rng.f32() as f64).collect();
     let cases: Vec<[f64; 3]> = vec![
-        [0.0, 0.0, 1.0],                             // zenith: azimuth undefined
-        [1.0, 0.0, 1e-6],                            // grazing
-        [0.3, -0.4, -0.5],                           // below the horizon
-        [0.0, 0.0, -1.0],                            // nadir
-        [(PI / 4.0).cos(), (PI / 4.0).sin(), 1e-6],  // on channel 1's azimuth, grazing
+        [0.0, 0.0, 1.0],                            // zenith: azimuth undefined
+        [1.0, 0.0, 1e-6],                           // grazing
+        [0.3, -0.4, -0.5],                          // below the horizon
+        [0.0, 0.0, -1.0],                           // nadir
+        [(PI / 4.0).cos(), (PI / 4.0).sin(), 1e-6], // on channel 1's azimuth, grazing
     ];
     for d in cases {
         let f = cubemap::factors_for_direction(d).map(|v| v as f64);
@@ -389,7 +392,9 @@ fn cube_map_edges_corners_and_poles() {
         // The texel centres of the +Z face's corners look along the diagonals (+Z: x = sc,
         // y = −tc): their factors put all the weight on the diagonal channels 1, 3, 5, 7.
         let face = 4;
-        for (u, v, ch) in [(0, 0, 3usize), (size - 1, 0, 1), (0, size - 1, 5), (size - 1, size - 1, 7)] {
+        for (u, v, ch) in
+            [(0, 0, 3usize), (size - 1, 0, 1), (0, size - 1, 5), (size - 1, size - 1, 7)]
+        {
             if size < 2 {
                 break;
             }

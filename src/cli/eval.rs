@@ -71,10 +71,9 @@ pub fn run(args: EvalArgs) -> Result<()> {
         let name = path.file_stem().and_then(|s| s.to_str()).unwrap_or("map").to_string();
         let map = corpus::from_file(&name, path, args.map_height_scale, args.map_max_side)
             .map_err(|e| match e {
-                Error::Io(io) => Error::Io(std::io::Error::new(
-                    io.kind(),
-                    format!("{}: {io}", path.display()),
-                )),
+                Error::Io(io) => {
+                    Error::Io(std::io::Error::new(io.kind(), format!("{}: {io}", path.display())))
+                }
                 other => other,
             })?;
         extra.push((map, edge));

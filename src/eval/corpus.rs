@@ -81,7 +81,12 @@ pub fn fractal(n: usize, seed: u64) -> Map {
         amp *= 0.5;
     }
     normalise(&mut h, 0.15 * n as f64);
-    Map { name: "fractal".into(), width: n, height: n, heights: h.iter().map(|&v| v as f32).collect() }
+    Map {
+        name: "fractal".into(),
+        width: n,
+        height: n,
+        heights: h.iter().map(|&v| v as f32).collect(),
+    }
 }
 
 /// Bricks in running bond: `n/4 × n/8` texel bricks, 2-texel mortar joints at height 0, brick
@@ -144,7 +149,12 @@ pub fn generated(n: usize) -> Vec<Map> {
 ///
 /// # Errors
 /// I/O errors reading the file; whatever [`heightmap::decode`] rejects.
-pub fn from_file(name: &str, path: &std::path::Path, height_scale: f64, max_side: usize) -> Result<Map> {
+pub fn from_file(
+    name: &str,
+    path: &std::path::Path,
+    height_scale: f64,
+    max_side: usize,
+) -> Result<Map> {
     let bytes = std::fs::read(path)?;
     let (hm, _) = heightmap::decode(&bytes, Channel::Luma, &Limits::default())?;
     let (w, h) = (hm.width.min(max_side), hm.height.min(max_side));
@@ -174,7 +184,11 @@ mod tests {
                 assert_eq!(m.heights.len(), n * n, "{}", m.name);
                 let hi = m.heights.iter().copied().fold(0.0f32, f32::max);
                 let lo = m.heights.iter().copied().fold(f32::INFINITY, f32::min);
-                assert!(lo >= 0.0 && hi > 1.0 && hi <= 0.2 * n as f32 + 4.0, "{} {lo} {hi}", m.name);
+                assert!(
+                    lo >= 0.0 && hi > 1.0 && hi <= 0.2 * n as f32 + 4.0,
+                    "{} {lo} {hi}",
+                    m.name
+                );
             }
         }
         // The bump peaks at its centre.

@@ -191,7 +191,8 @@ fn glyph(c: char) -> [u8; 7] {
 fn linear_ticks(max: f64) -> (f64, Vec<f64>) {
     let raw = (max / 5.0).max(1e-12);
     let mag = 10f64.powf(raw.log10().floor());
-    let step = [1.0, 2.0, 5.0, 10.0].iter().map(|m| m * mag).find(|s| *s >= raw).unwrap_or(mag * 10.0);
+    let step =
+        [1.0, 2.0, 5.0, 10.0].iter().map(|m| m * mag).find(|s| *s >= raw).unwrap_or(mag * 10.0);
     let top = (max / step).ceil().max(1.0) * step;
     let ticks = (0..=((top / step).round() as usize)).map(|k| k as f64 * step).collect();
     (top, ticks)
@@ -282,7 +283,8 @@ fn panel(cv: &mut Canvas, p: &Panel, pts: &[(f64, f64, Rgb, &str)], title: &str,
         let (x, y) = p.px(ms, e);
         cv.ring(x, y, 7, FRONT);
         let tw = text_width(name, 1);
-        for (lx, ly) in [(x + 9, y - 14), (x + 9, y + 8), (x - 9 - tw, y - 14), (x - 9 - tw, y + 8)] {
+        for (lx, ly) in [(x + 9, y - 14), (x + 9, y + 8), (x - 9 - tw, y - 14), (x - 9 - tw, y + 8)]
+        {
             let r = (lx - 2, ly - 2, lx + tw + 2, ly + 9);
             let free = placed.iter().all(|q| r.2 < q.0 || r.0 > q.2 || r.3 < q.1 || r.1 > q.3);
             if free && lx >= 0 && lx + tw < W as i64 {
