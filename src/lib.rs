@@ -10,6 +10,7 @@
 //!   version), the exact line-of-sight horizon, the channel-factor cube map, Fourier encoding and
 //!   the shading used by previews.
 //! - [`encode`]: PNG 8/16, OpenEXR, KTX2 and DDS writers.
+//! - [`preview`]: the CPU preview of the shading (and the contact sheet), as PNG.
 //! - [`bake`]: one bake = parameters → kernels → encoded outputs, with progress and cancellation.
 //! - [`eval`]: the accuracy/time trade of every model against the exact ground truth (SPEC §4).
 //! - [`cli`]: the `horizon-bake` subcommands, thin wrappers over the above.
@@ -23,6 +24,7 @@ pub mod eval;
 pub mod heightmap;
 pub mod kernels;
 pub mod params;
+pub mod preview;
 pub mod progress;
 
 pub use error::{Error, Result};
