@@ -240,6 +240,7 @@ pub fn bake_fourier(
 ) -> Result<(kernels::fourier::FourierLayers, ResolvedRadius)> {
     use kernels::fourier::{encode_texel, FourierLayers, Projector, MAX_TERMS};
     let heights = map.scaled(params.height_scale);
+    check_scaled(&heights)?;
     let radius = resolve_radius(params, map.width, map.height, &heights);
     let grid = Grid::new(map.width, map.height, &heights, params.edge, params.y_axis);
     let kernel = make_kernel(params, grid, radius.texels, progress);

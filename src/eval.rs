@@ -11,8 +11,10 @@
 //! channel-factor blend s = Σ max(f,0)·layer0 + max(−f,0)·layer1 (SPEC §3.3) is taken with the
 //! factors of the light direction, either exact ([`Factors::Exact`]) or read from a UNORM8 cube
 //! map of a given face size ([`Factors::Cube`], nearest or bilinear within the face, as a GPU
-//! without seamless filtering samples it). Models that differ only in how they are decoded share
-//! one bake, and so one time.
+//! without seamless filtering samples it). Fourier models (SPEC §3.4) are baked with
+//! `bake::bake_fourier` and decoded with `kernels::fourier` (coefficients from the stored bytes,
+//! then Σ C_k·b_k(φ) at the light's azimuth). Models that differ only in how they are decoded
+//! share one bake, and so one time.
 //!
 //! - shadow error: fraction of texels where (L_z > s) differs from (L_z > s_true), per light
 //!   elevation (mean over the 24 azimuths) and overall (mean over all 144 lights);
@@ -31,8 +33,10 @@ pub mod report;
 
 use crate::bake::{self, HorizonLayers, Precisions};
 use crate::error::{Error, Result};
+use crate::heightmap::HeightMap;
+use crate::kernels::fourier::{self, FourierLayers, MAX_TERMS};
 use crate::kernels::{self, cubemap, Grid};
-use crate::params::{BakeParams, Edge, Encoding, Method, Radius, Reduce, YAxis};
+use crate::params::{BakeParams, Edge, Encoding, FourierRange, Method, Radius, Reduce, YAxis};
 use crate::progress::Progress;
 use corpus::Map;
 use rayon::prelude::*;
@@ -124,17 +128,30 @@ pub struct ModelSpec {
     pub params: BakeParams,
     pub storage: Storage,
     pub factors: Factors,
+    /// Baked and decoded as Fourier coefficients (`params.fourier_terms`, `fourier_range`)
+    /// instead of 8 channels.
+    pub fourier: bool,
 }
 
 impl ModelSpec {
     fn new(name: String, family: &'static str, params: BakeParams) -> Self {
-        ModelSpec { name, family, params, storage: Storage::U8, factors: Factors::Exact }
+        ModelSpec {
+            name,
+            family,
+            params,
+            storage: Storage::U8,
+            factors: Factors::Exact,
+            fourier: false,
+        }
     }
     /// The key of the bake this model needs: models with equal keys share one timed bake.
     fn bake_key(&self) -> String {
         let mut k: String =
             self.params.to_pairs().iter().map(|(a, b)| format!("{a}={b};")).collect();
         k.push_str(self.storage.label());
+        if self.fourier {
+            k.push_str(";fourier");
+        }
         k
     }
 }
@@ -220,6 +237,39 @@ pub fn models(quick: bool) -> Vec<ModelSpec> {
             out.push(m);
         }
     }
+    let fourier_terms: &[u32] = if quick { &[5] } else { &[3, 5, 7, 9] };
+    let ranges: &[FourierRange] = if quick {
+        &[FourierRange::Standard]
+    } else {
+        &[FourierRange::Standard, FourierRange::Expanded]
+    };
+    let fourier_bases: &[(&BakeParams, &str)] = if quick {
+        &[(&default, DEFAULT_MODEL)]
+    } else {
+        &[(&default, DEFAULT_MODEL), (&exact_unl, "exact Runlimited")]
+    };
+    for &(base, base_name) in fourier_bases {
+        for &terms in fourier_terms {
+            for &range in ranges {
+                let rn = match range {
+                    FourierRange::Standard => "standard",
+                    FourierRange::Expanded => "expanded",
+                };
+                // The exact base only at the standard range: the range is a storage detail
+                // already measured on the Lengyel base.
+                if base.method == Method::Exact && range == FourierRange::Expanded {
+                    continue;
+                }
+                let mut p = base.clone();
+                p.fourier_terms = terms;
+                p.fourier_range = range;
+                let mut m =
+                    ModelSpec::new(format!("fourier{terms} {rn} ({base_name})"), "fourier", p);
+                m.fourier = true;
+                out.push(m);
+            }
+        }
+    }
     out
 }
 
@@ -251,6 +301,9 @@ pub struct Row {
     pub min_elevation_deg: Option<f64>,
     pub storage: Storage,
     pub factors: String,
+    /// Terms and range of a Fourier model.
+    pub fourier_terms: Option<u32>,
+    pub fourier_range: Option<FourierRange>,
     /// Bake time (kernel preparation + kernel + quantisation), best of the repeats.
     pub ms: f64,
     pub mtexel_per_s: f64,
@@ -314,7 +367,7 @@ pub fn ground_truth(map: &Map, edge: Edge) -> Result<Vec<f32>> {
     };
     let r = bake::resolve_radius(&p, map.width, map.height, &map.heights);
     let grid = Grid::new(map.width, map.height, &map.heights, edge, YAxis::Up);
-    let kernel = bake::make_kernel(&p, grid, r.texels);
+    let kernel = bake::make_kernel(&p, grid, r.texels, &Progress::new());
     let (w, h) = (map.width, map.height);
     let mut out = vec![0.0f32; w * h * TRUTH_BINS];
     let band = kernels::band_rows(w, h);
@@ -386,21 +439,99 @@ impl Cube {
     }
 }
 
-fn factors_of(factors: Factors, cube: Option<&Cube>, d: [f64; 3]) -> [f64; 4] {
-    match (factors, cube) {
-        (Factors::Cube { bilinear, .. }, Some(c)) => c.sample(d, bilinear),
-        _ => cubemap::factors_for_direction(d).map(|v| v as f64),
+/// How a model turns its stored data back into s for a light direction, as a shader would.
+/// `prepare` does the per-light work once (factors, basis values); `s` is the per-texel part.
+pub trait Decoder: Sync {
+    /// What `prepare` computes for one light direction.
+    type Light: Sync;
+    /// The per-light part of decoding, for a (not necessarily normalised) direction.
+    fn prepare(&self, d: [f64; 3]) -> Self::Light;
+    /// s of texel `t` for a prepared light.
+    fn s(&self, light: &Self::Light, t: usize) -> f64;
+}
+
+/// 8 decoded channels per texel, blended with exact or cube-map factors.
+pub struct ChannelDecoder<'a> {
+    /// `H·W·8` values of s.
+    pub ch: &'a [f64],
+    factors: Factors,
+    cube: Option<Cube>,
+}
+
+impl<'a> ChannelDecoder<'a> {
+    /// A decoder over `ch` (`H·W·8`) reading factors from `factors`.
+    pub fn new(ch: &'a [f64], factors: Factors) -> Self {
+        let cube = match factors {
+            Factors::Cube { size, .. } => Some(Cube::new(size)),
+            Factors::Exact => None,
+        };
+        ChannelDecoder { ch, factors, cube }
+    }
+}
+
+impl Decoder for ChannelDecoder<'_> {
+    type Light = [f64; 4];
+    fn prepare(&self, d: [f64; 3]) -> [f64; 4] {
+        match (self.factors, &self.cube) {
+            (Factors::Cube { bilinear, .. }, Some(c)) => c.sample(d, bilinear),
+            _ => cubemap::factors_for_direction(d).map(|v| v as f64),
+        }
+    }
+    #[inline]
+    fn s(&self, f: &[f64; 4], t: usize) -> f64 {
+        blend(f, &self.ch[t * 8..t * 8 + 8])
+    }
+}
+
+/// Fourier coefficients per texel, evaluated at the light's azimuth (SPEC §3.4).
+pub struct FourierDecoder {
+    coeffs: Vec<[f64; MAX_TERMS]>,
+    terms: usize,
+}
+
+impl FourierDecoder {
+    /// Decodes the stored bytes of `layers` into coefficients, as a shader reads them
+    /// (t = byte/255, then `fourier::decode_texel`).
+    pub fn new(layers: &FourierLayers) -> Self {
+        let n = layers.width * layers.height;
+        let u = |b: u8| b as f64 / 255.0;
+        let coeffs = (0..n)
+            .map(|t| {
+                let q = |v: &[u8]| [u(v[t * 4]), u(v[t * 4 + 1]), u(v[t * 4 + 2]), u(v[t * 4 + 3])];
+                let high = layers.high.as_deref().map(q).unwrap_or([0.5; 4]);
+                fourier::decode_texel(
+                    q(&layers.bands),
+                    u(layers.constant[t]),
+                    high,
+                    layers.terms,
+                    layers.range,
+                )
+            })
+            .collect();
+        FourierDecoder { coeffs, terms: layers.terms }
+    }
+}
+
+impl Decoder for FourierDecoder {
+    type Light = [f64; MAX_TERMS];
+    fn prepare(&self, d: [f64; 3]) -> [f64; MAX_TERMS] {
+        let phi = d[1].atan2(d[0]);
+        fourier::basis(phi.cos(), phi.sin())
+    }
+    #[inline]
+    fn s(&self, b: &[f64; MAX_TERMS], t: usize) -> f64 {
+        self.coeffs[t].iter().zip(b).take(self.terms).map(|(c, b)| c * b).sum()
     }
 }
 
 /// The channel-factor blend of SPEC §3.3 on one texel's 8 decoded channels.
 #[inline]
 pub fn blend(f: &[f64; 4], ch: &[f64]) -> f64 {
-    let mut s = 0.0;
-    for k in 0..4 {
-        s += f[k].max(0.0) * ch[k] + (-f[k]).max(0.0) * ch[4 + k];
-    }
-    s
+    f.iter()
+        .zip(&ch[..4])
+        .zip(&ch[4..8])
+        .map(|((f, a), b)| f.max(0.0) * a + (-f).max(0.0) * b)
+        .sum()
 }
 
 /// Decodes baked layers into `H·W·8` channel values of s, as a shader would read them.
@@ -432,11 +563,12 @@ pub fn decode_layers(layers: &HorizonLayers, storage: Storage) -> Vec<f64> {
 /// Shadow and horizon error of decoded channels `ch` (`H·W·8`) against `truth`
 /// (`H·W·TRUTH_BINS`), with the factors of `factors`.
 pub fn metrics(ch: &[f64], truth: &[f32], factors: Factors) -> Metrics {
+    metrics_of(&ChannelDecoder::new(ch, factors), truth)
+}
+
+/// Shadow and horizon error of any decoder against `truth` (`H·W·TRUTH_BINS`).
+pub fn metrics_of<D: Decoder>(dec: &D, truth: &[f32]) -> Metrics {
     let texels = truth.len() / TRUTH_BINS;
-    let cube = match factors {
-        Factors::Cube { size, .. } => Some(Cube::new(size)),
-        Factors::Exact => None,
-    };
     let mut m = Metrics::default();
     for (e, &el_deg) in ELEVATIONS_DEG.iter().enumerate() {
         let el = el_deg.to_radians();
@@ -444,45 +576,28 @@ pub fn metrics(ch: &[f64], truth: &[f32], factors: Factors) -> Metrics {
         let mut wrong = 0usize;
         for a in 0..SHADOW_AZIMUTHS {
             let az = a as f64 * 2.0 * PI / SHADOW_AZIMUTHS as f64;
-            let f = factors_of(factors, cube.as_ref(), light(az, el));
+            let l = dec.prepare(light(az, el));
             let bin = a * (TRUTH_BINS / SHADOW_AZIMUTHS);
             wrong += (0..texels)
                 .into_par_iter()
-                .filter(|&t| {
-                    let s = blend(&f, &ch[t * 8..t * 8 + 8]);
-                    (lz > s) != (lz > truth[t * TRUTH_BINS + bin] as f64)
-                })
+                .filter(|&t| (lz > dec.s(&l, t)) != (lz > truth[t * TRUTH_BINS + bin] as f64))
                 .count();
         }
         m.shadow_by_elevation[e] = wrong as f64 / (texels * SHADOW_AZIMUTHS) as f64;
     }
     m.shadow_error = m.shadow_by_elevation.iter().sum::<f64>() / ELEVATIONS_DEG.len() as f64;
     let step = TRUTH_BINS / HORIZON_AZIMUTHS;
-    let exact_f: Vec<[f64; 4]> = (0..HORIZON_AZIMUTHS)
-        .map(|a| {
-            factors_of(
-                Factors::Exact,
-                None,
-                light(a as f64 * 2.0 * PI / HORIZON_AZIMUTHS as f64, 0.0),
-            )
-        })
-        .collect();
     let sum: f64 = (0..texels)
         .into_par_iter()
         .map(|t| {
-            let c = &ch[t * 8..t * 8 + 8];
             let mut acc = 0.0;
-            for (a, ef) in exact_f.iter().enumerate() {
-                let truth_alpha = (truth[t * TRUTH_BINS + a * step] as f64).clamp(0.0, 1.0).asin();
-                let f = match &cube {
-                    Some(_) => {
-                        let az = a as f64 * 2.0 * PI / HORIZON_AZIMUTHS as f64;
-                        factors_of(factors, cube.as_ref(), light(az, truth_alpha))
-                    }
-                    None => *ef,
-                };
-                let s = blend(&f, c).clamp(0.0, 1.0);
-                acc += (s.asin() - truth_alpha).abs();
+            for a in 0..HORIZON_AZIMUTHS {
+                let az = a as f64 * 2.0 * PI / HORIZON_AZIMUTHS as f64;
+                let alpha = (truth[t * TRUTH_BINS + a * step] as f64).clamp(0.0, 1.0).asin();
+                // Decoded in the direction of the true horizon, where the shadow boundary of
+                // this azimuth lies (only the cube-map rows depend on the elevation).
+                let s = dec.s(&dec.prepare(light(az, alpha)), t).clamp(0.0, 1.0);
+                acc += (s.asin() - alpha).abs();
             }
             acc
         })
@@ -511,23 +626,34 @@ fn timed<T>(budget_ms: f64, mut f: impl FnMut() -> Result<T>) -> Result<(T, f64)
 }
 
 /// One timed bake of `spec` on `map`: the layers and the resolved radius.
-fn bake_model(
-    spec: &ModelSpec,
-    map: &Map,
-    edge: Edge,
-) -> Result<(HorizonLayers, bake::ResolvedRadius)> {
+/// What one bake produced.
+enum Baked {
+    Layers(HorizonLayers),
+    Fourier(FourierLayers),
+}
+
+fn bake_model(spec: &ModelSpec, map: &Map, edge: Edge) -> Result<(Baked, bake::ResolvedRadius)> {
     let mut p = spec.params.clone();
     p.edge = edge;
+    if spec.fourier {
+        // The corpus is already in texels: a height map of those values with height_scale 1.
+        // The copy is part of the timed bake, as decoding is part of a user's.
+        p.height_scale = 1.0;
+        let hm = HeightMap::from_values(map.width, map.height, map.heights.clone())?;
+        let (layers, r) = bake::bake_fourier(&hm, &p, &Progress::new())?;
+        return Ok((Baked::Fourier(layers), r));
+    }
     let r = bake::resolve_radius(&p, map.width, map.height, &map.heights);
     let grid = Grid::new(map.width, map.height, &map.heights, edge, YAxis::Up);
-    let kernel = bake::make_kernel(&p, grid, r.texels);
+    let progress = Progress::new();
+    let kernel = bake::make_kernel(&p, grid, r.texels, &progress);
     let layers = bake::run_into_layers(
         kernel.as_ref(),
         spec.storage.encoding(),
         spec.storage.precisions(),
-        &Progress::new(),
+        &progress,
     )?;
-    Ok((layers, r))
+    Ok((Baked::Layers(layers), r))
 }
 
 /// Runs the whole eval: every model of [`models`] on every map.
@@ -559,7 +685,7 @@ pub fn run(opts: &Options) -> Result<EvalResult> {
         }
         truth_ms.push((map.name.clone(), tms));
         // Models sharing a bake are decoded from the same layers, timed once.
-        let mut done: Vec<(String, HorizonLayers, bake::ResolvedRadius, f64)> = Vec::new();
+        let mut done: Vec<(String, Baked, bake::ResolvedRadius, f64)> = Vec::new();
         for spec in &specs {
             let key = spec.bake_key();
             let idx = match done.iter().position(|d| d.0 == key) {
@@ -571,9 +697,18 @@ pub fn run(opts: &Options) -> Result<EvalResult> {
                     done.len() - 1
                 }
             };
-            let (_, layers, r, ms) = &done[idx];
-            let ch = decode_layers(layers, spec.storage);
-            let metrics = metrics(&ch, &truth, spec.factors);
+            let (_, baked, r, ms) = &done[idx];
+            let metrics = match baked {
+                Baked::Layers(layers) => {
+                    let ch = decode_layers(layers, spec.storage);
+                    let metrics = metrics(&ch, &truth, spec.factors);
+                    if let (Some(dir), true) = (&opts.dump, spec.name == DEFAULT_MODEL) {
+                        dump::write_map(dir, map, *edge, &truth, layers, &metrics)?;
+                    }
+                    metrics
+                }
+                Baked::Fourier(layers) => metrics_of(&FourierDecoder::new(layers), &truth),
+            };
             if opts.verbose {
                 eprintln!(
                     "eval: {:>8} {:<40} {:>9.1} ms  shadow {:>6.3}%  horizon {:>6.3}°",
@@ -583,9 +718,6 @@ pub fn run(opts: &Options) -> Result<EvalResult> {
                     metrics.shadow_error * 100.0,
                     metrics.horizon_error_deg
                 );
-            }
-            if let (Some(dir), true) = (&opts.dump, spec.name == DEFAULT_MODEL) {
-                dump::write_map(dir, map, *edge, &truth, layers, &metrics)?;
             }
             let texels = (map.width * map.height) as f64;
             rows.push(Row {
@@ -602,7 +734,9 @@ pub fn run(opts: &Options) -> Result<EvalResult> {
                 min_elevation_deg: (spec.params.radius == Radius::Auto)
                     .then_some(spec.params.min_elevation_deg),
                 storage: spec.storage,
-                factors: spec.factors.label(),
+                factors: if spec.fourier { "fourier".into() } else { spec.factors.label() },
+                fourier_terms: spec.fourier.then_some(spec.params.fourier_terms),
+                fourier_range: spec.fourier.then_some(spec.params.fourier_range),
                 ms: *ms,
                 mtexel_per_s: texels / (ms * 1e3).max(1e-9),
                 metrics,

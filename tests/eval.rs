@@ -133,7 +133,7 @@ fn quick_eval_ranks_models_sensibly() {
 fn per_bin(p: &BakeParams, m: &corpus::Map) -> Vec<f32> {
     let r = bake::resolve_radius(p, m.width, m.height, &m.heights);
     let g = Grid::new(m.width, m.height, &m.heights, p.edge, YAxis::Up);
-    let k = bake::make_kernel(p, g, r.texels);
+    let k = bake::make_kernel(p, g, r.texels, &Progress::new());
     let nb = k.bins();
     let mut out = vec![0.0f32; m.width * m.height * nb];
     let band = kernels::band_rows(m.width, m.height);

@@ -262,7 +262,7 @@ fn csv_field(s: &str) -> String {
 pub fn csv(res: &EvalResult) -> String {
     let mut out = String::from(
         "model,family,map,width,height,method,radius,resolved_radius,bins,reduce,\
-         min_elevation_deg,storage,factors,ms,mtexel_per_s,shadow_error",
+         min_elevation_deg,storage,factors,fourier_terms,fourier_range,ms,mtexel_per_s,shadow_error",
     );
     for e in ELEVATIONS_DEG {
         let _ = write!(out, ",shadow_error_{e}deg");
@@ -271,7 +271,7 @@ pub fn csv(res: &EvalResult) -> String {
     for r in &res.rows {
         let _ = write!(
             out,
-            "{},{},{},{},{},{},{},{},{},{},{},{},{},{:.3},{:.4},{:.6}",
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{:.3},{:.4},{:.6}",
             csv_field(&r.model),
             r.family,
             csv_field(&r.map),
@@ -285,6 +285,8 @@ pub fn csv(res: &EvalResult) -> String {
             r.min_elevation_deg.map(|v| v.to_string()).unwrap_or_default(),
             r.storage.label(),
             csv_field(&r.factors),
+            r.fourier_terms.map(|v| v.to_string()).unwrap_or_default(),
+            r.fourier_range.map(|v| format!("{v:?}").to_lowercase()).unwrap_or_default(),
             r.ms,
             r.mtexel_per_s,
             r.metrics.shadow_error
