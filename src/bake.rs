@@ -68,7 +68,9 @@ pub fn resolve_radius(
             let (lo, hi) = g.range();
             let dh = (hi - lo) as f64;
             let tan = params.min_elevation_deg.to_radians().tan();
-            let raw = (dh / tan).ceil();
+            // tan 45° is 0.9999999999999999 in f64: without the relative slack, Δh = 10 texels
+            // at 45° would resolve to 11 instead of SPEC §3.6's ceil(10 / 1) = 10.
+            let raw = (dh / tan * (1.0 - 1e-12)).ceil();
             let texels =
                 if raw.is_finite() { (raw as u64).clamp(1, cap as u64) as u32 } else { cap };
             ResolvedRadius {
@@ -118,12 +120,32 @@ pub fn bake_horizon(
     progress: &Progress,
 ) -> Result<(HorizonLayers, ResolvedRadius)> {
     let heights = map.scaled(params.height_scale);
+    check_scaled(&heights)?;
     let radius = resolve_radius(params, map.width, map.height, &heights);
     let grid = Grid::new(map.width, map.height, &heights, params.edge, params.y_axis);
     let kernel = make_kernel(params, grid, radius.texels, progress);
     progress.start(Stage::Bake, map.height as u64);
     let layers = run_into_layers(kernel.as_ref(), params.encoding, precisions, progress)?;
     Ok((layers, radius))
+}
+
+/// Kernels take height differences in f32: the scaled heights and their range must be finite.
+///
+/// # Errors
+/// [`crate::Error::Param`] naming `height_scale` when they are not.
+pub fn check_scaled(heights: &[f32]) -> Result<()> {
+    let (lo, hi) =
+        heights.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(l, h), &v| (l.min(v), h.max(v)));
+    if heights.is_empty() || (hi - lo).is_finite() {
+        return Ok(());
+    }
+    Err(crate::Error::param(
+        "height_scale",
+        format!(
+            "heights × height_scale span {lo:e} to {hi:e} texels, beyond the f32 range; \
+             use a smaller height_scale"
+        ),
+    ))
 }
 
 /// Splits `buf` (two layers of `h·w·4`) into per-band chunks, one lock each (never contended:
@@ -218,6 +240,7 @@ pub fn bake_fourier(
 ) -> Result<(kernels::fourier::FourierLayers, ResolvedRadius)> {
     use kernels::fourier::{encode_texel, FourierLayers, Projector, MAX_TERMS};
     let heights = map.scaled(params.height_scale);
+    check_scaled(&heights)?;
     let radius = resolve_radius(params, map.width, map.height, &heights);
     let grid = Grid::new(map.width, map.height, &heights, params.edge, params.y_axis);
     let kernel = make_kernel(params, grid, radius.texels, progress);

@@ -12,6 +12,7 @@
 //! - [`encode`]: PNG 8/16, OpenEXR, KTX2 and DDS writers.
 //! - [`preview`]: the CPU preview of the shading (and the contact sheet), as PNG.
 //! - [`bake`]: one bake = parameters → kernels → encoded outputs, with progress and cancellation.
+//! - [`eval`]: the accuracy/time trade of every model against the exact ground truth (SPEC §4).
 //! - [`cli`]: the `horizon-bake` subcommands, thin wrappers over the above.
 //! - [`error`]: the one error type, whose variants say whose fault a failure is.
 
@@ -19,6 +20,7 @@ pub mod bake;
 pub mod cli;
 pub mod encode;
 pub mod error;
+pub mod eval;
 pub mod heightmap;
 pub mod kernels;
 pub mod params;

@@ -91,6 +91,33 @@ pub fn cube_factors(size: usize) -> Vec<f32> {
     out
 }
 
+/// Largest face size [`cube_factors_shared`] keeps (6·256²·4 f32 = 6 MiB); larger ones are
+/// computed on every call rather than held for the life of the process.
+pub const SHARED_MAX_SIZE: usize = 256;
+
+/// [`cube_factors`] computed once per face size and shared: every face request, bake and
+/// preview of one size reuses the same table (sizes up to [`SHARED_MAX_SIZE`]).
+pub fn cube_factors_shared(size: usize) -> std::sync::Arc<[f32]> {
+    use std::collections::HashMap;
+    use std::sync::{Arc, Mutex, OnceLock};
+    static CACHE: OnceLock<Mutex<HashMap<usize, Arc<[f32]>>>> = OnceLock::new();
+    if size > SHARED_MAX_SIZE {
+        return cube_factors(size).into();
+    }
+    let cache = CACHE.get_or_init(Default::default);
+    if let Ok(map) = cache.lock() {
+        if let Some(c) = map.get(&size) {
+            return Arc::clone(c);
+        }
+    }
+    // Computed outside the lock: a racing thread may compute the same table once more.
+    let fresh: Arc<[f32]> = cube_factors(size).into();
+    match cache.lock() {
+        Ok(mut map) => Arc::clone(map.entry(size).or_insert(fresh)),
+        Err(_) => fresh,
+    }
+}
+
 /// UNORM 8-bit encoding of a signed factor: floor((f·0.5 + 0.5)·255 + 0.5).
 #[inline]
 pub fn unorm8(f: f32) -> u8 {
@@ -143,6 +170,15 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn shared_cube_is_computed_once_per_size() {
+        let a = cube_factors_shared(6);
+        let b = cube_factors_shared(6);
+        assert!(std::sync::Arc::ptr_eq(&a, &b), "the second call must reuse the first table");
+        assert_eq!(&a[..], &cube_factors(6)[..]);
+        assert!(!std::sync::Arc::ptr_eq(&a, &cube_factors_shared(7)));
     }
 
     #[test]

@@ -980,8 +980,10 @@ impl HorizonRows for ExactHorizon<'_> {
                         }
                     }
                     for i in 0..LANES {
-                        let t = best[i].max(0.0);
-                        strip[i * nb + n] = t / (1.0 + t * t).sqrt();
+                        // In f64: t² overflows f32 past 1.8e19 (cliffs of 1e30 texels), and
+                        // t / √(1 + t²) would become t / ∞ = 0 instead of 1.
+                        let t = best[i].max(0.0) as f64;
+                        strip[i * nb + n] = (t / (1.0 + t * t).sqrt()) as f32;
                     }
                 }
                 for i in 0..lanes {
