@@ -12,6 +12,7 @@
 //! - [`encode`]: PNG 8/16, OpenEXR, KTX2 and DDS writers.
 //! - [`bake`]: one bake = parameters → kernels → encoded outputs, with progress and cancellation.
 //! - [`cli`]: the `horizon-bake` subcommands, thin wrappers over the above.
+//! - [`service`]: the HTTP job service (axum): queue, rayon bake pool, store, problem+json.
 //! - [`error`]: the one error type, whose variants say whose fault a failure is.
 
 pub mod bake;
@@ -22,5 +23,6 @@ pub mod heightmap;
 pub mod kernels;
 pub mod params;
 pub mod progress;
+pub mod service;
 
 pub use error::{Error, Result};
