@@ -1,5 +1,4 @@
 //! The real binary: SIGKILL while bakes are queued and running, restart on the same data
-//! The real binary: SIGKILL while bakes are queued and running, restart on the same data
 //! directory, every bake succeeds once with the library's bytes; SIGTERM drains (readyz and
 //! submissions 503), returns the running bake to the queue when the grace period is over, and
 //! the next start finishes it.
