@@ -90,8 +90,14 @@ pub fn make_kernel<'a>(
     radius: u32,
 ) -> Box<dyn HorizonRows + 'a> {
     match params.method {
-        Method::Lengyel | Method::Exact => {
-            Box::new(kernels::lengyel::LengyelNaive::new(grid, radius, params.bins))
+        Method::Lengyel => {
+            Box::new(kernels::lengyel_fast::LengyelFast::new(grid, radius, params.bins))
+        }
+        Method::Exact => {
+            // Unlimited means "to the map edge" with edge=none, which can be longer than
+            // max(W, H) on a diagonal; the kernel resolves it itself.
+            let r = (params.radius != Radius::Unlimited).then_some(radius);
+            Box::new(kernels::exact::ExactHorizon::new(grid, r, params.bins, params.reduce))
         }
     }
 }

@@ -88,28 +88,52 @@ fn check_finite(values: &[f32], width: usize) -> Result<()> {
     Ok(())
 }
 
-/// The input formats we read, sniffed from magic bytes (never from a name or a header).
-fn sniff(bytes: &[u8]) -> Result<image::ImageFormat> {
-    if bytes.is_empty() {
-        return Err(Error::Unsupported("the input is empty".into()));
-    }
-    let fmt = image::guess_format(bytes).map_err(|_| {
-        Error::Unsupported("not a PNG, TIFF or OpenEXR image (unrecognised signature)".into())
-    })?;
-    match fmt {
-        image::ImageFormat::Png | image::ImageFormat::Tiff | image::ImageFormat::OpenExr => Ok(fmt),
-        other => Err(Error::Unsupported(format!(
-            "{} images are not supported; use PNG, TIFF or OpenEXR",
-            other.extensions_str().first().copied().unwrap_or("this kind of").to_uppercase()
-        ))),
+/// The input formats we read.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Format {
+    Png,
+    Tiff,
+    Exr,
+}
+
+impl Format {
+    fn name(self) -> &'static str {
+        match self {
+            Format::Png => "png",
+            Format::Tiff => "tiff",
+            Format::Exr => "exr",
+        }
     }
 }
 
-fn format_name(f: image::ImageFormat) -> &'static str {
-    match f {
-        image::ImageFormat::Png => "png",
-        image::ImageFormat::Tiff => "tiff",
-        _ => "exr",
+const PNG_MAGIC: &[u8] = b"\x89PNG\r\n\x1a\n";
+
+/// Sniffs the format from magic bytes (never from a name or a declared content type).
+fn sniff(bytes: &[u8]) -> Result<Format> {
+    if bytes.is_empty() {
+        return Err(Error::Unsupported("the input is empty (0 bytes)".into()));
+    }
+    if bytes.starts_with(PNG_MAGIC) {
+        return Ok(Format::Png);
+    }
+    if bytes.starts_with(b"II*\0")
+        || bytes.starts_with(b"MM\0*")
+        || bytes.starts_with(b"II+\0")
+        || bytes.starts_with(b"MM\0+")
+    {
+        return Ok(Format::Tiff);
+    }
+    if bytes.starts_with(&[0x76, 0x2f, 0x31, 0x01]) {
+        return Ok(Format::Exr);
+    }
+    match image::guess_format(bytes) {
+        Ok(other) => Err(Error::Unsupported(format!(
+            "{} images are not supported; use PNG, TIFF or OpenEXR",
+            other.extensions_str().first().copied().unwrap_or("this kind of").to_uppercase()
+        ))),
+        Err(_) => Err(Error::Unsupported(
+            "not a PNG, TIFF or OpenEXR image (unrecognised signature)".into(),
+        )),
     }
 }
 
@@ -121,7 +145,35 @@ fn image_error(e: image::ImageError) -> Error {
         E::IoError(io) if io.kind() == std::io::ErrorKind::UnexpectedEof => {
             Error::Decode("the image data is truncated".into())
         }
+        E::Decoding(d) if d.to_string().contains("EOF") || d.to_string().contains("eof") => {
+            Error::Decode(format!("the image data is truncated ({d})"))
+        }
         other => Error::Decode(other.to_string()),
+    }
+}
+
+fn tiff_error(e: tiff::TiffError) -> Error {
+    use tiff::TiffError as T;
+    match e {
+        T::IoError(io) if io.kind() == std::io::ErrorKind::UnexpectedEof => {
+            Error::Decode("the TIFF data is truncated".into())
+        }
+        T::UnsupportedError(u) => Error::Unsupported(format!("TIFF: {u}")),
+        T::LimitsExceeded => {
+            Error::InvalidInput("the TIFF exceeds the decoder's memory limits".into())
+        }
+        other => Error::Decode(format!("TIFF: {other}")),
+    }
+}
+
+fn exr_error(e: exr::error::Error) -> Error {
+    use exr::error::Error as X;
+    match e {
+        X::NotSupported(m) => Error::Unsupported(format!("OpenEXR: {m}")),
+        X::Io(io) if io.kind() == std::io::ErrorKind::UnexpectedEof => {
+            Error::Decode("the OpenEXR data is truncated".into())
+        }
+        other => Error::Decode(format!("OpenEXR: {other}")),
     }
 }
 
@@ -147,11 +199,26 @@ pub fn check_dimensions(width: u64, height: u64, limits: &Limits) -> Result<()> 
     Ok(())
 }
 
+/// Width and height from a PNG's IHDR chunk, read by hand: 16 bytes in, no decoder, no allocation,
+/// so an absurd header is rejected in microseconds.
+fn png_dimensions(bytes: &[u8]) -> Result<(u64, u64)> {
+    let ihdr = bytes
+        .get(8..24)
+        .ok_or_else(|| Error::Decode("the PNG is truncated before its IHDR header chunk".into()))?;
+    if &ihdr[4..8] != b"IHDR" {
+        return Err(Error::Decode("the PNG does not start with an IHDR header chunk".into()));
+    }
+    let w = u32::from_be_bytes([ihdr[8], ihdr[9], ihdr[10], ihdr[11]]);
+    let h = u32::from_be_bytes([ihdr[12], ihdr[13], ihdr[14], ihdr[15]]);
+    Ok((w as u64, h as u64))
+}
+
+fn tiff_decoder(bytes: &[u8]) -> Result<tiff::decoder::Decoder<Cursor<&[u8]>>> {
+    tiff::decoder::Decoder::new(Cursor::new(bytes)).map_err(tiff_error)
+}
+
 /// Reads only the header: format and dimensions, checked against `limits`.
-///
-/// # Errors
-/// As [`decode`], without touching pixel data.
-pub fn probe(bytes: &[u8], limits: &Limits) -> Result<(image::ImageFormat, u32, u32)> {
+fn probe_format(bytes: &[u8], limits: &Limits) -> Result<(Format, u32, u32)> {
     if bytes.len() as u64 > limits.max_bytes {
         return Err(Error::Limits(LimitError::Bytes {
             bytes: bytes.len() as u64,
@@ -159,10 +226,48 @@ pub fn probe(bytes: &[u8], limits: &Limits) -> Result<(image::ImageFormat, u32, 
         }));
     }
     let fmt = sniff(bytes)?;
-    let reader = image::ImageReader::with_format(Cursor::new(bytes), fmt);
-    let (w, h) = reader.into_dimensions().map_err(image_error)?;
-    check_dimensions(w as u64, h as u64, limits)?;
-    Ok((fmt, w, h))
+    let (w, h) = match fmt {
+        Format::Png => png_dimensions(bytes)?,
+        Format::Tiff => {
+            let (w, h) = tiff_decoder(bytes)?.dimensions().map_err(tiff_error)?;
+            (w as u64, h as u64)
+        }
+        Format::Exr => {
+            let meta = exr::meta::MetaData::read_from_buffered(Cursor::new(bytes), false)
+                .map_err(exr_error)?;
+            let header = meta
+                .headers
+                .first()
+                .ok_or_else(|| Error::Decode("the OpenEXR file has no layers".into()))?;
+            (header.layer_size.0 as u64, header.layer_size.1 as u64)
+        }
+    };
+    check_dimensions(w, h, limits)?;
+    // check_dimensions bounds both by `max_dim: u32`.
+    Ok((fmt, w as u32, h as u32))
+}
+
+/// Reads only the header: format and dimensions, checked against `limits`. No pixel buffer is
+/// allocated.
+///
+/// # Errors
+/// As [`decode`], without touching pixel data.
+pub fn probe(bytes: &[u8], limits: &Limits) -> Result<(image::ImageFormat, u32, u32)> {
+    let (f, w, h) = probe_format(bytes, limits)?;
+    let f = match f {
+        Format::Png => image::ImageFormat::Png,
+        Format::Tiff => image::ImageFormat::Tiff,
+        Format::Exr => image::ImageFormat::OpenExr,
+    };
+    Ok((f, w, h))
+}
+
+/// Samples decoded from an image, before the channel pick.
+struct Decoded {
+    values: Vec<f32>,
+    color: &'static str,
+    bit_depth: u8,
+    float: bool,
 }
 
 /// Decodes `bytes` into a height map, picking `channel` from colour images.
@@ -172,27 +277,161 @@ pub fn probe(bytes: &[u8], limits: &Limits) -> Result<(image::ImageFormat, u32, 
 /// header before decoding), [`Error::Decode`] (broken data), [`Error::InvalidInput`] (0×0,
 /// non-finite heights).
 pub fn decode(bytes: &[u8], channel: Channel, limits: &Limits) -> Result<(HeightMap, InputInfo)> {
-    let (fmt, w, h) = probe(bytes, limits)?;
-    let mut reader = image::ImageReader::with_format(Cursor::new(bytes), fmt);
-    let mut il = image::Limits::default();
-    il.max_image_width = Some(limits.max_dim);
-    il.max_image_height = Some(limits.max_dim);
-    // Room for the decoded image at up to 4 × f32 per texel plus the decoder's own buffers.
-    il.max_alloc = Some(limits.max_texels.saturating_mul(16).saturating_add(64 << 20));
-    reader.limits(il);
-    let img = reader.decode().map_err(image_error)?;
-    let (values, color, bit_depth, float) = extract(&img, channel);
+    let (fmt, w, h) = probe_format(bytes, limits)?;
+    // Room for the decoded image at up to 4 × f32 per texel plus the decoders' own buffers.
+    let max_alloc = limits.max_texels.saturating_mul(16).saturating_add(64 << 20);
+    let d = match fmt {
+        Format::Png => decode_png(bytes, channel, limits, max_alloc)?,
+        Format::Tiff => decode_tiff(bytes, channel, max_alloc)?,
+        Format::Exr => decode_exr(bytes, channel)?,
+    };
+    if d.values.len() != w as usize * h as usize {
+        return Err(Error::Decode(format!(
+            "decoded {} samples for a {w}×{h} image",
+            d.values.len()
+        )));
+    }
+    check_finite(&d.values, w as usize)?;
     let info = InputInfo {
         width: w,
         height: h,
-        format: format_name(fmt).into(),
-        color: color.into(),
-        bit_depth,
-        float,
+        format: fmt.name().into(),
+        color: d.color.into(),
+        bit_depth: d.bit_depth,
+        float: d.float,
         content_hash: blake3::hash(bytes).to_hex().to_string(),
     };
-    check_finite(&values, w as usize)?;
-    Ok((HeightMap { width: w as usize, height: h as usize, values }, info))
+    Ok((HeightMap { width: w as usize, height: h as usize, values: d.values }, info))
+}
+
+fn decode_png(bytes: &[u8], channel: Channel, limits: &Limits, max_alloc: u64) -> Result<Decoded> {
+    let mut reader = image::ImageReader::with_format(Cursor::new(bytes), image::ImageFormat::Png);
+    let mut il = image::Limits::default();
+    il.max_image_width = Some(limits.max_dim);
+    il.max_image_height = Some(limits.max_dim);
+    il.max_alloc = Some(max_alloc);
+    reader.limits(il);
+    let img = reader.decode().map_err(image_error)?;
+    Ok(extract(&img, channel))
+}
+
+/// TIFF through the `tiff` crate directly: `image` has no gray-f32 type, and 32-bit float gray
+/// is exactly what terrain tools export.
+fn decode_tiff(bytes: &[u8], channel: Channel, max_alloc: u64) -> Result<Decoded> {
+    use tiff::decoder::DecodingResult as R;
+    use tiff::ColorType as C;
+    let mut tl = tiff::decoder::Limits::default();
+    let cap = usize::try_from(max_alloc).unwrap_or(usize::MAX);
+    tl.decoding_buffer_size = cap;
+    tl.intermediate_buffer_size = cap;
+    let mut dec = tiff_decoder(bytes)?.with_limits(tl);
+    let ct = dec.colortype().map_err(tiff_error)?;
+    let (n, color) = match ct {
+        C::Gray(_) => (1, "gray"),
+        C::GrayA(_) | C::Multiband { num_samples: 2, .. } => (2, "gray_alpha"),
+        C::RGB(_) => (3, "rgb"),
+        C::RGBA(_) => (4, "rgba"),
+        other => {
+            return Err(Error::Unsupported(format!(
+                "TIFF colour type {other:?}; use gray, gray+alpha, RGB or RGBA"
+            )))
+        }
+    };
+    let img = dec.read_image().map_err(tiff_error)?;
+    let n8 = |v: u8| v as f32 / 255.0;
+    let n16 = |v: u16| (v as f64 / 65535.0) as f32;
+    let id = |v: f32| v;
+    let (values, bit_depth, float) = match &img {
+        R::U8(b) => (samples(b, n, channel, n8), 8, false),
+        R::U16(b) => (samples(b, n, channel, n16), 16, false),
+        R::F32(b) => (samples(b, n, channel, id), 32, true),
+        R::F64(b) => (samples(b, n, channel, |v: f64| v as f32), 64, true),
+        _ => {
+            return Err(Error::Unsupported(format!(
+                "TIFF sample type of a {}-bit {color} image; use 8/16-bit integer or 32-bit float",
+                ct.bit_depth()
+            )))
+        }
+    };
+    Ok(Decoded { values, color, bit_depth, float })
+}
+
+/// OpenEXR through the `exr` crate directly: `image`'s decoder insists on R, G and B channels,
+/// while height maps are usually a single `Y` (or arbitrarily named) channel.
+fn decode_exr(bytes: &[u8], channel: Channel) -> Result<Decoded> {
+    use exr::prelude::traits::*;
+    use exr::prelude::{read, AnyChannel, FlatSamples};
+    let img = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .from_buffered(Cursor::new(bytes))
+        .map_err(exr_error)?;
+    let list = &img.layer_data.channel_data.list;
+    let find = |name: &str| list.iter().find(|c| c.name == *name);
+    let to_f32 = |c: &AnyChannel<FlatSamples>| -> Result<Vec<f32>> {
+        match &c.sample_data {
+            FlatSamples::F16(v) => Ok(v.iter().map(|x| x.to_f32()).collect()),
+            FlatSamples::F32(v) => Ok(v.clone()),
+            FlatSamples::U32(_) => Err(Error::Unsupported(format!(
+                "OpenEXR channel `{}` holds 32-bit integers; heights must be half or float",
+                c.name
+            ))),
+        }
+    };
+    let (r, g, b, a) = (find("R"), find("G"), find("B"), find("A"));
+    if let (Some(r), Some(g), Some(b)) = (r, g, b) {
+        let (r, g, b) = (to_f32(r)?, to_f32(g)?, to_f32(b)?);
+        let a = a.map(to_f32).transpose()?;
+        let color = if a.is_some() { "rgba" } else { "rgb" };
+        let values = (0..r.len())
+            .map(|k| {
+                let alpha = a.as_ref().and_then(|a| a.get(k)).copied().unwrap_or(1.0);
+                pick(
+                    [
+                        r[k],
+                        g.get(k).copied().unwrap_or(0.0),
+                        b.get(k).copied().unwrap_or(0.0),
+                        alpha,
+                    ],
+                    channel,
+                )
+            })
+            .collect();
+        return Ok(Decoded { values, color, bit_depth: 32, float: true });
+    }
+    // A gray map: `Y`, or the only channel whatever its name.
+    let gray = find("Y").or(if list.len() == 1 { list.first() } else { None });
+    match gray {
+        Some(y) => {
+            let color = if a.is_some() && list.len() == 2 { "gray_alpha" } else { "gray" };
+            Ok(Decoded { values: to_f32(y)?, color, bit_depth: 32, float: true })
+        }
+        None => {
+            let names: Vec<String> = list.iter().map(|c| c.name.to_string()).collect();
+            Err(Error::Unsupported(format!(
+                "OpenEXR channels [{}]; expected Y, R/G/B(/A) or a single channel",
+                names.join(", ")
+            )))
+        }
+    }
+}
+
+/// Picks the height from interleaved samples with `n` channels per texel (1 gray, 2 gray+alpha,
+/// 3 RGB, 4 RGBA), after normalising each sample with `f`.
+fn samples<T: Copy>(buf: &[T], n: usize, channel: Channel, f: impl Fn(T) -> f32) -> Vec<f32> {
+    match n {
+        1 | 2 => buf.iter().step_by(n).map(|&v| f(v)).collect(),
+        _ => buf
+            .chunks_exact(n)
+            .map(|p| {
+                let px = [f(p[0]), f(p[1]), f(p[2]), if n == 4 { f(p[3]) } else { 1.0 }];
+                pick(px, channel)
+            })
+            .collect(),
+    }
 }
 
 #[inline]
@@ -208,36 +447,26 @@ fn pick(px: [f32; 4], channel: Channel) -> f32 {
     }
 }
 
-fn extract(img: &image::DynamicImage, channel: Channel) -> (Vec<f32>, &'static str, u8, bool) {
+fn extract(img: &image::DynamicImage, channel: Channel) -> Decoded {
     use image::DynamicImage as D;
-    fn gray<T: Copy>(buf: &[T], step: usize, f: impl Fn(T) -> f32) -> Vec<f32> {
-        buf.iter().step_by(step).map(|&v| f(v)).collect()
-    }
-    fn color<T: Copy>(buf: &[T], n: usize, channel: Channel, f: impl Fn(T) -> f32) -> Vec<f32> {
-        buf.chunks_exact(n)
-            .map(|p| {
-                let px = [f(p[0]), f(p[1]), f(p[2]), if n == 4 { f(p[3]) } else { 1.0 }];
-                pick(px, channel)
-            })
-            .collect()
-    }
     let n8 = |v: u8| v as f32 / 255.0;
     let n16 = |v: u16| (v as f64 / 65535.0) as f32;
     let id = |v: f32| v;
+    let d = |values, color, bit_depth, float| Decoded { values, color, bit_depth, float };
     match img {
-        D::ImageLuma8(b) => (gray(b.as_raw(), 1, n8), "gray", 8, false),
-        D::ImageLumaA8(b) => (gray(b.as_raw(), 2, n8), "gray_alpha", 8, false),
-        D::ImageRgb8(b) => (color(b.as_raw(), 3, channel, n8), "rgb", 8, false),
-        D::ImageRgba8(b) => (color(b.as_raw(), 4, channel, n8), "rgba", 8, false),
-        D::ImageLuma16(b) => (gray(b.as_raw(), 1, n16), "gray", 16, false),
-        D::ImageLumaA16(b) => (gray(b.as_raw(), 2, n16), "gray_alpha", 16, false),
-        D::ImageRgb16(b) => (color(b.as_raw(), 3, channel, n16), "rgb", 16, false),
-        D::ImageRgba16(b) => (color(b.as_raw(), 4, channel, n16), "rgba", 16, false),
-        D::ImageRgb32F(b) => (color(b.as_raw(), 3, channel, id), "rgb", 32, true),
-        D::ImageRgba32F(b) => (color(b.as_raw(), 4, channel, id), "rgba", 32, true),
+        D::ImageLuma8(b) => d(samples(b.as_raw(), 1, channel, n8), "gray", 8, false),
+        D::ImageLumaA8(b) => d(samples(b.as_raw(), 2, channel, n8), "gray_alpha", 8, false),
+        D::ImageRgb8(b) => d(samples(b.as_raw(), 3, channel, n8), "rgb", 8, false),
+        D::ImageRgba8(b) => d(samples(b.as_raw(), 4, channel, n8), "rgba", 8, false),
+        D::ImageLuma16(b) => d(samples(b.as_raw(), 1, channel, n16), "gray", 16, false),
+        D::ImageLumaA16(b) => d(samples(b.as_raw(), 2, channel, n16), "gray_alpha", 16, false),
+        D::ImageRgb16(b) => d(samples(b.as_raw(), 3, channel, n16), "rgb", 16, false),
+        D::ImageRgba16(b) => d(samples(b.as_raw(), 4, channel, n16), "rgba", 16, false),
+        D::ImageRgb32F(b) => d(samples(b.as_raw(), 3, channel, id), "rgb", 32, true),
+        D::ImageRgba32F(b) => d(samples(b.as_raw(), 4, channel, id), "rgba", 32, true),
         other => {
             let b = other.to_rgba32f();
-            (color(b.as_raw(), 4, channel, id), "rgba", 32, true)
+            d(samples(b.as_raw(), 4, channel, id), "rgba", 32, true)
         }
     }
 }

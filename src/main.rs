@@ -5,7 +5,29 @@ use clap::Parser;
 use std::process::ExitCode;
 
 fn main() -> ExitCode {
-    let cli = horizon_bake::cli::Cli::parse();
+    let cli = match horizon_bake::cli::Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) => {
+            use clap::error::ErrorKind;
+            if matches!(e.kind(), ErrorKind::DisplayHelp | ErrorKind::DisplayVersion)
+                || e.kind() == ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand
+            {
+                e.exit();
+            }
+            // SPEC §6: one clear line on stderr. clap's first paragraph says what was wrong
+            // (sometimes over two lines, e.g. the missing flags); tips and usage follow after a
+            // blank line and are dropped.
+            let text = e.render().to_string();
+            let first: Vec<&str> = text
+                .lines()
+                .map(str::trim)
+                .take_while(|l| !l.is_empty() && !l.starts_with("Usage:"))
+                .collect();
+            let line = first.join(" ");
+            eprintln!("horizon-bake: {}", line.trim_start_matches("error: "));
+            return ExitCode::from(2);
+        }
+    };
     match horizon_bake::cli::run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {

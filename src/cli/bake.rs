@@ -1,13 +1,379 @@
-//! `horizon-bake bake` (SPEC §6). Not built yet: see the open issues.
+//! `horizon-bake bake INPUT -o DIR` (SPEC §6).
+//!
+//! Every bake parameter of SPEC §5 is a `--kebab-case` flag taken as text and passed through
+//! [`BakeParams::set`], so a bad value fails with the same message (naming the field) as it does
+//! over HTTP. The files are encoded by [`crate::encode::horizon_files`], written into a temporary
+//! directory beside DIR (same file system) and only renamed into DIR once all of them were
+//! written: a failed bake leaves DIR exactly as it was. A progress bar is drawn on stderr only
+//! when stderr is a terminal.
 
-/// Flags of `horizon-bake bake`.
-#[derive(Debug, clap::Args)]
-pub struct BakeArgs {}
+use crate::bake::{self, HorizonLayers, ResolvedRadius};
+use crate::encode::{self, Formats, OutFile, TexturePrecision};
+use crate::error::{Error, Result};
+use crate::heightmap::{self, HeightMap, InputInfo, Limits};
+use crate::params::BakeParams;
+use crate::progress::{Progress, Stage};
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+/// Flags of `horizon-bake bake`. Parameter values are strings on purpose: they are validated by
+/// [`BakeParams::set`], not by clap, so messages are the same everywhere.
+#[derive(Debug, Clone, clap::Args)]
+pub struct BakeArgs {
+    /// The height map: PNG (8/16-bit gray, gray+alpha, RGB, RGBA), TIFF (8/16-bit, 32-bit float)
+    /// or OpenEXR.
+    pub input: PathBuf,
+    /// Output directory (created if missing; files in it with the same names are replaced).
+    #[arg(short = 'o', long = "out")]
+    pub out: PathBuf,
+    /// Comma list of png8 (default), png16, exr, ktx2, dds.
+    #[arg(long, default_value = "png8")]
+    pub format: String,
+    /// Sample type of horizon.ktx2 / horizon.dds: unorm8 (default), unorm16, float32.
+    #[arg(long, default_value = "unorm8")]
+    pub texture_precision: String,
+    /// The bake parameters (SPEC §5). Boxed: thirteen strings would make this the one huge
+    /// variant of the subcommand enum.
+    #[command(flatten)]
+    pub params: Box<ParamFlags>,
+    /// Largest accepted width or height of the input, in texels.
+    #[arg(long, default_value_t = Limits::default().max_dim)]
+    pub max_dim: u32,
+    /// Largest accepted width × height of the input.
+    #[arg(long, default_value_t = Limits::default().max_texels)]
+    pub max_texels: u64,
+}
+
+/// Every SPEC §5 parameter as a `--kebab-case` flag, as text.
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct ParamFlags {
+    /// Height in texels of a normalised height of 1 (default 8).
+    #[arg(long, allow_hyphen_values = true)]
+    pub height_scale: Option<String>,
+    /// Channel of an RGB(A) input: r, g, b, a or luma (default).
+    #[arg(long)]
+    pub channel: Option<String>,
+    /// wrap (default: the map tiles) or none.
+    #[arg(long)]
+    pub edge: Option<String>,
+    /// up (default, OpenGL) or down (DirectX).
+    #[arg(long)]
+    pub y_axis: Option<String>,
+    /// lengyel (default) or exact.
+    #[arg(long)]
+    pub method: Option<String>,
+    /// Search radius in texels (default 16), `unlimited` or `auto`.
+    #[arg(long, allow_hyphen_values = true)]
+    pub radius: Option<String>,
+    /// Azimuth bins, a multiple of 16 (default 32).
+    #[arg(long, allow_hyphen_values = true)]
+    pub bins: Option<String>,
+    /// average (default) or point (method=exact).
+    #[arg(long)]
+    pub reduce: Option<String>,
+    /// Lowest light elevation in degrees; drives radius=auto (default 5).
+    #[arg(long, allow_hyphen_values = true)]
+    pub min_elevation_deg: Option<String>,
+    /// linear (default) or sqrt.
+    #[arg(long)]
+    pub encoding: Option<String>,
+    /// Comma list of horizon (default), fourier.
+    #[arg(long)]
+    pub outputs: Option<String>,
+    /// 3, 5 (default), 7 or 9.
+    #[arg(long, allow_hyphen_values = true)]
+    pub fourier_terms: Option<String>,
+    /// standard (default) or expanded.
+    #[arg(long)]
+    pub fourier_range: Option<String>,
+}
+
+impl BakeArgs {
+    /// The bake parameters these flags set (defaults elsewhere).
+    ///
+    /// # Errors
+    /// [`Error::Param`] naming the first invalid field.
+    pub fn params(&self) -> Result<BakeParams> {
+        let f = &self.params;
+        let pairs = [
+            ("height_scale", &f.height_scale),
+            ("channel", &f.channel),
+            ("edge", &f.edge),
+            ("y_axis", &f.y_axis),
+            ("method", &f.method),
+            ("radius", &f.radius),
+            ("bins", &f.bins),
+            ("reduce", &f.reduce),
+            ("min_elevation_deg", &f.min_elevation_deg),
+            ("encoding", &f.encoding),
+            ("outputs", &f.outputs),
+            ("fourier_terms", &f.fourier_terms),
+            ("fourier_range", &f.fourier_range),
+        ];
+        BakeParams::from_pairs(pairs.iter().filter_map(|(k, v)| v.as_deref().map(|v| (*k, v))))
+    }
+
+    fn limits(&self) -> Limits {
+        Limits { max_dim: self.max_dim, max_texels: self.max_texels, ..Limits::default() }
+    }
+}
+
+/// Hook for the Fourier outputs (`fourier_0.png` RGBA, `fourier_1.png` one channel, SPEC §3.4,
+/// §6). The Fourier encoder lives in `kernels::fourier` and is not wired in yet, so asking for it
+/// is a clear parameter error rather than a silently missing file.
+///
+/// # Errors
+/// Always [`Error::Param`] naming `outputs`, until the Fourier encoder is wired in here.
+pub fn fourier_files(
+    _map: &HeightMap,
+    _params: &BakeParams,
+    _progress: &Progress,
+) -> Result<Vec<OutFile>> {
+    Err(Error::param("outputs", FOURIER_UNAVAILABLE))
+}
+
+const FOURIER_UNAVAILABLE: &str =
+    "`fourier` (fourier_0.png, fourier_1.png) is not available in this build yet";
+
+/// Milliseconds of a duration, for `timings_ms`.
+fn ms(d: Duration) -> f64 {
+    (d.as_secs_f64() * 1e6).round() / 1e3
+}
 
 /// Runs `horizon-bake bake`.
 ///
 /// # Errors
-/// Always, until this subcommand is built.
-pub fn run(_args: BakeArgs) -> crate::Result<()> {
-    Err(crate::Error::Internal("`bake` is not available in this build yet".into()))
+/// [`Error::Param`] for a bad flag, the decode errors of [`heightmap::decode`] for a bad input,
+/// [`Error::Io`] when the output cannot be written; DIR is left untouched in every case.
+pub fn run(args: BakeArgs) -> Result<()> {
+    let total = Instant::now();
+    let params = args.params()?;
+    let precision = TexturePrecision::parse(&args.texture_precision)?;
+    let formats = Formats::parse(&args.format, precision)?;
+    if params.outputs.fourier {
+        // Fail before decoding or baking anything. When the Fourier encoder lands, remove this
+        // early return and fill in `fourier_files`, which the encode step below already calls.
+        return Err(Error::param("outputs", FOURIER_UNAVAILABLE));
+    }
+    check_out_dir(&args.out)?;
+    let progress = Progress::new();
+
+    let t = Instant::now();
+    progress.start(Stage::Decode, 1);
+    let bytes = std::fs::read(&args.input)
+        .map_err(|e| Error::InvalidInput(format!("cannot read {}: {e}", args.input.display())))?;
+    let (map, info) = heightmap::decode(&bytes, params.channel, &args.limits())?;
+    drop(bytes);
+    let decode_ms = ms(t.elapsed());
+
+    let t = Instant::now();
+    let (layers, radius) =
+        with_progress_bar(&progress, format!("{}×{}", map.width, map.height), || {
+            if params.outputs.horizon {
+                bake::bake_horizon(&map, &params, formats.precisions(), &progress).map(Some)
+            } else {
+                Ok(None)
+            }
+        })?
+        .map(|(l, r)| (Some(l), Some(r)))
+        .unwrap_or((None, None));
+    let bake_ms = ms(t.elapsed());
+
+    // Encoding includes writing the files (to the staging directory): both are the cost of
+    // producing the outputs. `total` ends before bake.json itself and the final renames.
+    let t = Instant::now();
+    progress.start(Stage::Encode, 1);
+    let mut staging = Staging::new(&args.out)?;
+    let mut files = match &layers {
+        Some(l) => encode::horizon_files(l, &formats)?,
+        None => Vec::new(),
+    };
+    if params.outputs.fourier {
+        files.extend(fourier_files(&map, &params, &progress)?);
+    }
+    staging.write(&files)?;
+    let encode_ms = ms(t.elapsed());
+    let report = BakeReport {
+        params: &params,
+        resolved_radius: radius.as_ref(),
+        formats: &formats,
+        input: &info,
+        input_path: &args.input,
+        files: files.iter().map(|f| f.name).collect(),
+        timings: [decode_ms, bake_ms, encode_ms, ms(total.elapsed())],
+        layers: layers.as_ref(),
+    };
+    staging.write(&[OutFile { name: "bake.json", bytes: report.to_json()? }])?;
+    staging.commit()
+}
+
+/// Everything `bake.json` reports.
+struct BakeReport<'a> {
+    params: &'a BakeParams,
+    resolved_radius: Option<&'a ResolvedRadius>,
+    formats: &'a Formats,
+    input: &'a InputInfo,
+    input_path: &'a Path,
+    files: Vec<&'static str>,
+    /// decode, bake, encode, total (ms).
+    timings: [f64; 4],
+    layers: Option<&'a HorizonLayers>,
+}
+
+impl BakeReport<'_> {
+    fn to_json(&self) -> Result<Vec<u8>> {
+        let mut params = serde_json::to_value(self.params)
+            .map_err(|e| Error::Internal(format!("bake.json: {e}")))?;
+        if let (Some(obj), Some(r)) = (params.as_object_mut(), self.resolved_radius) {
+            obj.insert("resolved_radius".into(), serde_json::json!(r));
+        }
+        let mut input = serde_json::to_value(self.input)
+            .map_err(|e| Error::Internal(format!("bake.json: {e}")))?;
+        if let Some(obj) = input.as_object_mut() {
+            obj.insert("path".into(), self.input_path.display().to_string().into());
+        }
+        let [decode, bake, encode, total] = self.timings;
+        let v = serde_json::json!({
+            "params": params,
+            "input": input,
+            "output": {
+                "formats": self.formats,
+                "width": self.layers.map(|l| l.width),
+                "height": self.layers.map(|l| l.height),
+                "files": self.files,
+            },
+            "timings_ms": { "decode": decode, "bake": bake, "encode": encode, "total": total },
+        });
+        let mut out = serde_json::to_vec_pretty(&v)
+            .map_err(|e| Error::Internal(format!("bake.json: {e}")))?;
+        out.push(b'\n');
+        Ok(out)
+    }
+}
+
+/// Runs `work` while a thread polls `progress` into a progress bar on stderr — only when stderr is
+/// a terminal, so piped output and logs stay clean.
+fn with_progress_bar<T>(
+    progress: &Progress,
+    label: String,
+    work: impl FnOnce() -> Result<T>,
+) -> Result<T> {
+    if !std::io::stderr().is_terminal() {
+        return work();
+    }
+    let done = std::sync::atomic::AtomicBool::new(false);
+    std::thread::scope(|s| {
+        s.spawn(|| {
+            let bar = indicatif::ProgressBar::new(1000);
+            if let Ok(style) = indicatif::ProgressStyle::with_template(
+                "bake {msg} [{elapsed_precise}] {wide_bar} {percent:>3}% eta {eta}",
+            ) {
+                bar.set_style(style);
+            }
+            bar.set_message(label);
+            while !done.load(std::sync::atomic::Ordering::Relaxed) {
+                if progress.stage() == Stage::Bake {
+                    bar.set_position((progress.fraction() * 1000.0) as u64);
+                }
+                std::thread::sleep(Duration::from_millis(50));
+            }
+            bar.finish_and_clear();
+        });
+        let r = work();
+        done.store(true, std::sync::atomic::Ordering::Relaxed);
+        r
+    })
+}
+
+/// Fails early when DIR exists but is not a directory.
+fn check_out_dir(dir: &Path) -> Result<()> {
+    if dir.exists() && !dir.is_dir() {
+        return Err(Error::param(
+            "out",
+            format!("{} exists and is not a directory", dir.display()),
+        ));
+    }
+    Ok(())
+}
+
+/// The nearest existing ancestor of `dir` (its parent, usually), where the temporary directory
+/// goes so the final renames stay on one file system.
+fn staging_parent(dir: &Path) -> PathBuf {
+    let abs = if dir.is_absolute() {
+        dir.to_path_buf()
+    } else {
+        std::env::current_dir().map(|c| c.join(dir)).unwrap_or_else(|_| dir.to_path_buf())
+    };
+    let mut p = abs.parent().map(Path::to_path_buf).unwrap_or_else(|| PathBuf::from("."));
+    while !p.is_dir() {
+        match p.parent() {
+            Some(q) => p = q.to_path_buf(),
+            None => return PathBuf::from("."),
+        }
+    }
+    p
+}
+
+/// Files being written into a temporary directory beside DIR (same file system), moved into DIR
+/// by [`Staging::commit`] only once every write succeeded. Dropping it without committing removes
+/// the temporary directory and leaves DIR as it was.
+pub struct Staging {
+    dir: PathBuf,
+    tmp: tempfile::TempDir,
+    names: Vec<&'static str>,
+}
+
+impl Staging {
+    /// Starts staging files for `dir`.
+    ///
+    /// # Errors
+    /// [`Error::Param`] naming `out` when `dir` is a file; [`Error::Io`].
+    pub fn new(dir: &Path) -> Result<Self> {
+        check_out_dir(dir)?;
+        let tmp = tempfile::Builder::new()
+            .prefix(".horizon-bake-tmp-")
+            .tempdir_in(staging_parent(dir))?;
+        Ok(Staging { dir: dir.to_path_buf(), tmp, names: Vec::new() })
+    }
+
+    /// Writes `files` into the temporary directory and flushes them to disk.
+    ///
+    /// # Errors
+    /// [`Error::Io`]; nothing in DIR has changed.
+    pub fn write(&mut self, files: &[OutFile]) -> Result<()> {
+        for f in files {
+            let mut file = std::fs::File::create(self.tmp.path().join(f.name))?;
+            std::io::Write::write_all(&mut file, &f.bytes)?;
+            // Durable before it becomes visible under its final name.
+            file.sync_all()?;
+            self.names.push(f.name);
+        }
+        Ok(())
+    }
+
+    /// Creates DIR if missing and renames every staged file into it, then removes the
+    /// temporary directory.
+    ///
+    /// # Errors
+    /// [`Error::Io`].
+    pub fn commit(self) -> Result<()> {
+        std::fs::create_dir_all(&self.dir)?;
+        for name in &self.names {
+            std::fs::rename(self.tmp.path().join(name), self.dir.join(name))?;
+        }
+        self.tmp.close()?;
+        Ok(())
+    }
+}
+
+/// Writes `files` into `dir` all or nothing (see [`Staging`]).
+///
+/// # Errors
+/// [`Error::Io`] (or [`Error::Param`] naming `out` when `dir` is a file). Before the renames
+/// begin nothing in `dir` has changed.
+pub fn write_dir_atomically(dir: &Path, files: &[OutFile]) -> Result<()> {
+    let mut staging = Staging::new(dir)?;
+    staging.write(files)?;
+    staging.commit()
 }

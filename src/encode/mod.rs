@@ -3,8 +3,18 @@
 //! Encoders take finished, quantised buffers and return bytes; they never compute. Quantisation
 //! lives here too ([`quantize8`], [`quantize16`]) so every producer rounds the same way
 //! (SPEC §2: floor(v·255 + 0.5), floor(v·65535 + 0.5)).
+//!
+//! [`horizon_files`] turns baked [`HorizonLayers`] into the files SPEC §6 names, so the CLI and
+//! the service produce byte-identical outputs from one place; [`Formats`] says which files a
+//! caller asked for and which layer precisions the bake must therefore produce.
 
+pub mod dds;
+pub mod exr;
+pub mod ktx2;
 pub mod png;
+
+use crate::bake::{HorizonLayers, Precisions};
+use crate::error::{Error, Result};
 
 /// 8-bit UNORM of a value in [0, 1]: floor(v·255 + 0.5).
 #[inline]
@@ -16,4 +26,317 @@ pub fn quantize8(v: f32) -> u8 {
 #[inline]
 pub fn quantize16(v: f32) -> u16 {
     ((v as f64) * 65535.0 + 0.5).floor().clamp(0.0, 65535.0) as u16
+}
+
+/// One image (a layer or a cube face) of RGBA texels, `width · height · 4` samples row-major from
+/// the top row, in one of the sample types the texture containers carry.
+#[derive(Debug, Clone, Copy)]
+pub enum Texels<'a> {
+    /// UNORM 8-bit.
+    Unorm8(&'a [u8]),
+    /// SNORM 8-bit (0 exact; ±127 = ±1).
+    Snorm8(&'a [i8]),
+    /// UNORM 16-bit.
+    Unorm16(&'a [u16]),
+    /// IEEE f32.
+    Float32(&'a [f32]),
+}
+
+impl Texels<'_> {
+    /// Number of samples.
+    pub fn len(&self) -> usize {
+        match self {
+            Texels::Unorm8(d) => d.len(),
+            Texels::Snorm8(d) => d.len(),
+            Texels::Unorm16(d) => d.len(),
+            Texels::Float32(d) => d.len(),
+        }
+    }
+
+    /// Whether there are no samples.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Bytes per sample.
+    pub fn sample_bytes(&self) -> usize {
+        match self {
+            Texels::Unorm8(_) | Texels::Snorm8(_) => 1,
+            Texels::Unorm16(_) => 2,
+            Texels::Float32(_) => 4,
+        }
+    }
+
+    /// Whether `other` has the same sample type.
+    pub fn same_kind(&self, other: &Texels<'_>) -> bool {
+        std::mem::discriminant(self) == std::mem::discriminant(other)
+    }
+
+    /// Appends the samples little-endian (the byte order of KTX2 and DDS).
+    pub fn extend_le(&self, out: &mut Vec<u8>) {
+        match self {
+            Texels::Unorm8(d) => out.extend_from_slice(d),
+            Texels::Snorm8(d) => out.extend(d.iter().map(|&v| v as u8)),
+            Texels::Unorm16(d) => out.extend(d.iter().flat_map(|v| v.to_le_bytes())),
+            Texels::Float32(d) => out.extend(d.iter().flat_map(|v| v.to_le_bytes())),
+        }
+    }
+}
+
+/// How a texture container (KTX2, DDS) arranges its images.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Shape {
+    /// A 2D array texture with this many layers (the horizon map: 2).
+    Array(u32),
+    /// A cube map: six faces +X, −X, +Y, −Y, +Z, −Z.
+    Cube,
+}
+
+/// Checks that `images` fit `width × height` RGBA, agree on the sample type and match `shape`.
+fn check_images(width: usize, height: usize, shape: Shape, images: &[Texels<'_>]) -> Result<()> {
+    let want = match shape {
+        Shape::Array(n) => n as usize,
+        Shape::Cube => 6,
+    };
+    if width == 0 || height == 0 {
+        return Err(Error::Internal(format!("texture of {width}×{height} texels")));
+    }
+    if images.len() != want {
+        return Err(Error::Internal(format!(
+            "{shape:?} needs {want} images, got {}",
+            images.len()
+        )));
+    }
+    for (k, img) in images.iter().enumerate() {
+        if img.len() != width * height * 4 {
+            return Err(Error::Internal(format!(
+                "image {k}: {} samples for {width}×{height} RGBA",
+                img.len()
+            )));
+        }
+        if !img.same_kind(&images[0]) {
+            return Err(Error::Internal("images of one texture must share a sample type".into()));
+        }
+    }
+    Ok(())
+}
+
+/// Sample precision of the KTX2 and DDS horizon textures (`--texture-precision`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TexturePrecision {
+    /// R8G8B8A8_UNORM (the default, the precision of `png8`).
+    Unorm8,
+    /// R16G16B16A16_UNORM.
+    Unorm16,
+    /// R32G32B32A32_SFLOAT.
+    Float32,
+}
+
+impl TexturePrecision {
+    /// Parses `unorm8`, `unorm16` or `float32`.
+    ///
+    /// # Errors
+    /// [`Error::Param`] naming `texture_precision`.
+    pub fn parse(value: &str) -> Result<Self> {
+        match value.trim().to_ascii_lowercase().as_str() {
+            "unorm8" => Ok(TexturePrecision::Unorm8),
+            "unorm16" => Ok(TexturePrecision::Unorm16),
+            "float32" => Ok(TexturePrecision::Float32),
+            _ => Err(Error::param(
+                "texture_precision",
+                format!("`{value}` is not one of unorm8, unorm16, float32"),
+            )),
+        }
+    }
+}
+
+/// Which horizon files to write (SPEC §6 `--format`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+pub struct Formats {
+    pub png8: bool,
+    pub png16: bool,
+    pub exr: bool,
+    pub ktx2: bool,
+    pub dds: bool,
+    /// Precision of `horizon.ktx2` / `horizon.dds`.
+    pub texture_precision: TexturePrecision,
+}
+
+impl Default for Formats {
+    fn default() -> Self {
+        Formats {
+            png8: true,
+            png16: false,
+            exr: false,
+            ktx2: false,
+            dds: false,
+            texture_precision: TexturePrecision::Unorm8,
+        }
+    }
+}
+
+impl Formats {
+    /// Parses a comma list of `png8`, `png16`, `exr`, `ktx2`, `dds`.
+    ///
+    /// `png8` and `png16` both name `horizon_0.png`, so asking for both is an error rather than
+    /// a silent pick.
+    ///
+    /// # Errors
+    /// [`Error::Param`] naming `format`.
+    pub fn parse(list: &str, texture_precision: TexturePrecision) -> Result<Self> {
+        let mut f = Formats {
+            png8: false,
+            png16: false,
+            exr: false,
+            ktx2: false,
+            dds: false,
+            texture_precision,
+        };
+        for part in list.split(',').map(str::trim).filter(|p| !p.is_empty()) {
+            match part.to_ascii_lowercase().as_str() {
+                "png8" => f.png8 = true,
+                "png16" => f.png16 = true,
+                "exr" => f.exr = true,
+                "ktx2" => f.ktx2 = true,
+                "dds" => f.dds = true,
+                _ => {
+                    return Err(Error::param(
+                        "format",
+                        format!("`{part}` is not one of png8, png16, exr, ktx2, dds"),
+                    ))
+                }
+            }
+        }
+        if f.png8 && f.png16 {
+            return Err(Error::param(
+                "format",
+                "png8 and png16 both write horizon_0.png/horizon_1.png; ask for one of them",
+            ));
+        }
+        if !(f.png8 || f.png16 || f.exr || f.ktx2 || f.dds) {
+            return Err(Error::param(
+                "format",
+                "must name at least one of png8, png16, exr, ktx2, dds",
+            ));
+        }
+        Ok(f)
+    }
+
+    /// The layer precisions a bake must produce for these files.
+    pub fn precisions(&self) -> Precisions {
+        let tex = (self.ktx2 || self.dds).then_some(self.texture_precision);
+        Precisions {
+            u8: self.png8 || tex == Some(TexturePrecision::Unorm8),
+            u16: self.png16 || tex == Some(TexturePrecision::Unorm16),
+            f32: self.exr || tex == Some(TexturePrecision::Float32),
+        }
+    }
+}
+
+/// A named output file.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct OutFile {
+    /// File name as SPEC §6 spells it.
+    pub name: &'static str,
+    pub bytes: Vec<u8>,
+}
+
+fn missing(what: &str) -> Error {
+    Error::Internal(format!("the bake did not produce the {what} layers an output needs"))
+}
+
+/// Encodes the horizon layers into the files `formats` asks for (SPEC §6): `horizon_0.png` and
+/// `horizon_1.png` (8- or 16-bit RGBA), `horizon_0.exr` and `horizon_1.exr` (f32 RGBA),
+/// `horizon.ktx2` and `horizon.dds` (one 2-layer array texture).
+///
+/// # Errors
+/// [`Error::Internal`] when `layers` lacks a precision `formats` needs (bake with
+/// [`Formats::precisions`]) or an encoder fails.
+pub fn horizon_files(layers: &HorizonLayers, formats: &Formats) -> Result<Vec<OutFile>> {
+    let (w, h) = (layers.width, layers.height);
+    let mut out = Vec::new();
+    if formats.png8 {
+        let l = layers.u8.as_ref().ok_or_else(|| missing("8-bit"))?;
+        out.push(OutFile {
+            name: "horizon_0.png",
+            bytes: png::encode8(w, h, png::PngColor::Rgba, &l[0])?,
+        });
+        out.push(OutFile {
+            name: "horizon_1.png",
+            bytes: png::encode8(w, h, png::PngColor::Rgba, &l[1])?,
+        });
+    }
+    if formats.png16 {
+        let l = layers.u16.as_ref().ok_or_else(|| missing("16-bit"))?;
+        out.push(OutFile {
+            name: "horizon_0.png",
+            bytes: png::encode16(w, h, png::PngColor::Rgba, &l[0])?,
+        });
+        out.push(OutFile {
+            name: "horizon_1.png",
+            bytes: png::encode16(w, h, png::PngColor::Rgba, &l[1])?,
+        });
+    }
+    if formats.exr {
+        let l = layers.f32.as_ref().ok_or_else(|| missing("f32"))?;
+        out.push(OutFile { name: "horizon_0.exr", bytes: exr::encode_rgba(w, h, &l[0])? });
+        out.push(OutFile { name: "horizon_1.exr", bytes: exr::encode_rgba(w, h, &l[1])? });
+    }
+    if formats.ktx2 || formats.dds {
+        let images: [Texels<'_>; 2] = match formats.texture_precision {
+            TexturePrecision::Unorm8 => {
+                let l = layers.u8.as_ref().ok_or_else(|| missing("8-bit"))?;
+                [Texels::Unorm8(&l[0]), Texels::Unorm8(&l[1])]
+            }
+            TexturePrecision::Unorm16 => {
+                let l = layers.u16.as_ref().ok_or_else(|| missing("16-bit"))?;
+                [Texels::Unorm16(&l[0]), Texels::Unorm16(&l[1])]
+            }
+            TexturePrecision::Float32 => {
+                let l = layers.f32.as_ref().ok_or_else(|| missing("f32"))?;
+                [Texels::Float32(&l[0]), Texels::Float32(&l[1])]
+            }
+        };
+        if formats.ktx2 {
+            out.push(OutFile {
+                name: "horizon.ktx2",
+                bytes: ktx2::encode(w, h, Shape::Array(2), &images)?,
+            });
+        }
+        if formats.dds {
+            out.push(OutFile {
+                name: "horizon.dds",
+                bytes: dds::encode(w, h, Shape::Array(2), &images)?,
+            });
+        }
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn formats_parse_and_precisions() {
+        let f = Formats::parse("png16, exr,ktx2", TexturePrecision::Unorm8).unwrap();
+        assert!(f.png16 && f.exr && f.ktx2 && !f.png8 && !f.dds);
+        assert_eq!(f.precisions(), Precisions { u8: true, u16: true, f32: true });
+        let f = Formats::parse("dds", TexturePrecision::Float32).unwrap();
+        assert_eq!(f.precisions(), Precisions { u8: false, u16: false, f32: true });
+        for bad in ["png8,png16", "jpeg", ""] {
+            match Formats::parse(bad, TexturePrecision::Unorm8) {
+                Err(Error::Param { field, .. }) => assert_eq!(field, "format", "{bad}"),
+                other => panic!("{bad}: {other:?}"),
+            }
+        }
+        assert!(TexturePrecision::parse("unorm12").is_err());
+    }
+
+    #[test]
+    fn missing_precision_is_an_error_not_a_panic() {
+        let layers = HorizonLayers { width: 1, height: 1, ..Default::default() };
+        assert!(horizon_files(&layers, &Formats::default()).is_err());
+    }
 }

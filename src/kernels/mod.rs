@@ -12,7 +12,9 @@
 //! of a kernel is 8 consecutive f32 (channel 0..7), texel-major.
 
 pub mod cubemap;
+pub mod exact;
 pub mod lengyel;
+pub mod lengyel_fast;
 
 use crate::error::{Error, Result};
 use crate::params::{Edge, YAxis};
@@ -163,6 +165,10 @@ where
                 None
             };
             kernel.rows(y0, &mut ch[..], bins);
+            // A kernel may return early on cancel; never hand its partial band on.
+            if progress.is_canceled() {
+                return Err(Error::Canceled);
+            }
             sink(b, Band { y0, rows, channels: ch, bins: want_bins.then_some(&bn[..]) });
             progress.advance(rows as u64);
             Ok(())

@@ -1,0 +1,113 @@
+//! `method=exact` throughput: prints a Markdown table (ms, Mtexel/s, ratio to the plain
+//! cell-by-cell march measured in the same run).
+//!
+//! The plain march ([`ExactMarch`]) is far too slow for a whole 2048² map, so it is timed on a
+//! crop of texels (its rays still run over the whole map) and scaled by the texel count; the
+//! table says so. Input: deterministic fBm value noise in [0, 1] × `height_scale` 8 (the
+//! default), a terrain-like map; a white-noise map is timed too, the worst case for skipping.
+//!
+//! Build once with `cargo bench --bench exact --no-run`, then run the binary it names.
+//! Arguments: `[size]` (default 2048).
+
+use horizon_bake::kernels::exact::{ExactHorizon, ExactMarch};
+use horizon_bake::kernels::{compute_all, Grid};
+use horizon_bake::params::{Edge, Reduce, YAxis};
+use horizon_bake::progress::Progress;
+use std::time::Instant;
+
+fn splitmix(state: &mut u64) -> u64 {
+    *state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    let mut z = *state;
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// Periodic fBm value noise, 7 octaves, normalised to [0, 1].
+fn fbm(n: usize) -> Vec<f32> {
+    let mut out = vec![0f32; n * n];
+    let mut seed = 1234u64;
+    let mut amp = 1.0f32;
+    let mut cells = 4usize;
+    while cells <= n && cells <= 256 {
+        let lattice: Vec<f32> = (0..cells * cells)
+            .map(|_| (splitmix(&mut seed) >> 40) as f32 / (1u64 << 24) as f32)
+            .collect();
+        let step = n as f32 / cells as f32;
+        for y in 0..n {
+            let fy = y as f32 / step;
+            let (y0, ty) = (fy.floor() as usize % cells, fy.fract());
+            let y1 = (y0 + 1) % cells;
+            let ty = ty * ty * (3.0 - 2.0 * ty);
+            for x in 0..n {
+                let fx = x as f32 / step;
+                let (x0, tx) = (fx.floor() as usize % cells, fx.fract());
+                let x1 = (x0 + 1) % cells;
+                let tx = tx * tx * (3.0 - 2.0 * tx);
+                let a = lattice[y0 * cells + x0] * (1.0 - tx) + lattice[y0 * cells + x1] * tx;
+                let b = lattice[y1 * cells + x0] * (1.0 - tx) + lattice[y1 * cells + x1] * tx;
+                out[y * n + x] += amp * (a * (1.0 - ty) + b * ty);
+            }
+        }
+        amp *= 0.5;
+        cells *= 2;
+    }
+    let (lo, hi) = out.iter().fold((f32::MAX, f32::MIN), |(l, h), &v| (l.min(v), h.max(v)));
+    out.iter().map(|v| (v - lo) / (hi - lo)).collect()
+}
+
+fn white(n: usize) -> Vec<f32> {
+    let mut seed = 99u64;
+    (0..n * n).map(|_| (splitmix(&mut seed) >> 40) as f32 / (1u64 << 24) as f32).collect()
+}
+
+/// Seconds for the plain march over a `crop`×`crop` block of texels, scaled to the whole map.
+fn plain_scaled(grid: Grid<'_>, radius: Option<u32>, bins: u32, crop: usize) -> f64 {
+    let k = ExactMarch::new(grid, radius, bins, Reduce::Average);
+    let mut s = vec![0f32; bins as usize];
+    let t = Instant::now();
+    let mut sink = 0f32;
+    for y in 0..crop {
+        for x in 0..crop {
+            k.texel_bins(x * grid.width / crop, y * grid.height / crop, &mut s);
+            sink += s[0];
+        }
+    }
+    std::hint::black_box(sink);
+    t.elapsed().as_secs_f64() * (grid.width * grid.height) as f64 / (crop * crop) as f64
+}
+
+fn main() {
+    let n: usize = std::env::args().nth(1).and_then(|a| a.parse().ok()).unwrap_or(2048);
+    let threads = rayon::current_num_threads();
+    let scale = 8.0f32;
+    println!("| map | method | size | radius | bins | threads | ms | Mtexel/s | × plain march |");
+    println!("|---|---|---|---|---|---|---|---|---|");
+    for (map_name, values) in [("fbm", fbm(n)), ("white", white(n))] {
+        let heights: Vec<f32> = values.iter().map(|v| v * scale).collect();
+        let grid = Grid::new(n, n, &heights, Edge::Wrap, YAxis::Up);
+        let radii: &[Option<u32>] = if map_name == "fbm" {
+            &[None, Some(16), Some(32), Some(64)]
+        } else {
+            &[None, Some(32)]
+        };
+        for &radius in radii {
+            let bins = 32u32;
+            let t = Instant::now();
+            let k = ExactHorizon::new(grid, radius, bins, Reduce::Average);
+            let out = compute_all(&k, &Progress::new()).expect("not canceled");
+            let secs = t.elapsed().as_secs_f64();
+            std::hint::black_box(&out);
+            let crop = if radius.is_none() { 16 } else { 48 };
+            let plain = plain_scaled(grid, radius, bins, crop);
+            let r = radius.map_or("unlimited".to_string(), |r| r.to_string());
+            println!(
+                "| {map_name} | exact (pyramid) | {n}² | {r} | {bins} | {threads} | {:.0} | {:.2} | {:.1} (plain: {crop}² crop, 1 thread, scaled: {:.0} ms) |",
+                secs * 1e3,
+                (n * n) as f64 / secs / 1e6,
+                plain / secs,
+                plain * 1e3
+            );
+        }
+    }
+}

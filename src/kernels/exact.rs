@@ -1,0 +1,600 @@
+//! The exact line-of-sight horizon (SPEC §3.2): the ground truth the approximations are judged
+//! against.
+//!
+//! For texel p with height h0 and azimuth φ, u = (cos φ, sin φ) in tangent space,
+//!   tan α = max(0, sup over 0 < s ≤ R of (h̃(p + s·u) − h0) / s)
+//! where h̃ is the bilinear surface through the texel centres, and the stored value is
+//! sin α = tan α / √(1 + tan² α).
+//!
+//! # Why per-cell analysis instead of a fine march
+//! Along a straight line, the bilinear surface inside one cell (the square between four texel
+//! centres) is a quadratic in s: h(t) = d0 + d1·t + d2·t², t = s − s_entry. The ratio
+//! g(t) = (h(t) − h0)/(s_entry + t) on that segment has at most one interior critical point,
+//! the root of d2·t² + 2·d2·s_entry·t + (d1·s_entry − (d0 − h0)) = 0, so its maximum over the
+//! segment is found exactly from the exit point and that root. A ray therefore costs one small
+//! closed-form evaluation per cell it crosses, and the result is exact up to f64 rounding:
+//! every candidate is g evaluated at a real point of the ray, so the kernel never overshoots the
+//! definition, and no maximum between samples is missed. A fine-step march (the test oracle in
+//! `tests/exact.rs`) can only approach this value from below.
+//!
+//! At s → 0 the ratio tends to the directional slope d1 of the first cell (p is a corner of it),
+//! which is part of the supremum: on a linear ramp every s gives the same ratio.
+//!
+//! # Why a max pyramid instead of a sweep
+//! A convex-hull sweep (Timonen & Westerholm 2010) is O(1) per texel and direction, but its lines
+//! do not pass through texel centres, and the definition is texel-centred: measured, 9–22 % of
+//! 8-bit outputs came out more than 1 LSB low. A hard radius breaks a plain hull as well. This
+//! kernel keeps every ray exact and makes long rays cheap instead: block maxima of the surface
+//! (4×4, 16×16, 64×64, … cells) bound (h − h0)/s ≤ (M − h0)/s_entry over a whole block, so a block
+//! that cannot beat the best value found so far is skipped in one step (the "maximum mipmap"
+//! traversal of height-field ray casting), and a ray stops as soon as the global maximum height
+//! cannot beat it. Skipping is conservative, so the result is identical to visiting every cell
+//! ([`ExactMarch`], the plain oracle, does exactly that and the tests compare the two).
+//!
+//! # Edges
+//! - `edge=wrap`: the surface tiles; blocks are laid out in unwrapped coordinates (a ray may cross
+//!   the period more than once) and their maxima are read from the wrapped heights, so map sizes
+//!   need not be powers of two.
+//! - `edge=none`: the surface exists on the convex hull of the texel centres,
+//!   [0, W−1] × [0, H−1] in image coordinates; a ray ends where it leaves it. The outer half
+//!   texel beyond the border centres is *not* part of the surface (nothing outside the map
+//!   occludes, and extrapolating the border would invent terrain). A ray running exactly along a
+//!   border row or column stays on the surface and sees it. A 1-texel-wide map is a single line.
+//! - `radius`: `Some(R)` clips every ray at s = R exactly (a cell straddling R is analysed on
+//!   [s_entry, R]); `None` (unlimited) runs to the map edge with `edge=none` and max(W, H) texels
+//!   with `edge=wrap` (SPEC §3.2).
+
+use super::{reduce_average, reduce_point, Grid, HorizonRows};
+use crate::params::{Edge, Reduce};
+use crate::progress::Progress;
+use std::f64::consts::PI;
+
+/// Image-space unit direction (column step, row step) of tangent-space azimuth `phi` (radians).
+/// Components within 1e-12 of 0 are snapped to exactly 0, so rays at multiples of 90° stay on
+/// their row or column (sin π is 1.2e-16 in floating point; with `edge=none` such a ray along a
+/// border row would otherwise leave the surface at once).
+pub fn direction(phi: f64, row_step: i64) -> (f64, f64) {
+    let snap = |v: f64| if v.abs() < 1e-12 { 0.0 } else { v };
+    let (s, c) = phi.sin_cos();
+    let (c, s) = (snap(c), snap(s));
+    // Renormalise after snapping so (dx, dy) stays a unit vector.
+    let n = (c * c + s * s).sqrt();
+    (c / n, s / n * row_step as f64)
+}
+
+/// Image-space directions of the `bins` azimuths φ_n = n·2π/bins.
+fn bin_directions(bins: usize, row_step: i64) -> Vec<(f64, f64)> {
+    (0..bins).map(|n| direction(n as f64 * 2.0 * PI / bins as f64, row_step)).collect()
+}
+
+/// sin α from tan α ≥ 0.
+#[inline]
+fn sin_of_tan(t: f64) -> f64 {
+    t / (1.0 + t * t).sqrt()
+}
+
+/// The ray from texel (x0, y0) along image direction (dx, dy) and the arc length where it ends.
+#[derive(Debug, Clone, Copy)]
+struct Ray {
+    x0: f64,
+    y0: f64,
+    dx: f64,
+    dy: f64,
+    h0: f64,
+    s_end: f64,
+}
+
+impl Ray {
+    /// The ray of texel (x, y) along (dx, dy), ending at `radius` (`None`: unlimited) or where it
+    /// leaves the surface (`edge=none`).
+    fn new(grid: &Grid<'_>, x: usize, y: usize, dx: f64, dy: f64, radius: Option<f64>) -> Ray {
+        let (w, h) = (grid.width, grid.height);
+        let h0 = grid.heights[y * w + x] as f64;
+        let (x0, y0) = (x as f64, y as f64);
+        let s_end = match grid.edge {
+            Edge::Wrap => radius.unwrap_or(w.max(h) as f64),
+            Edge::None => {
+                let to_edge = |p: f64, d: f64, last: f64| {
+                    if d > 0.0 {
+                        (last - p) / d
+                    } else if d < 0.0 {
+                        p / -d
+                    } else {
+                        f64::INFINITY
+                    }
+                };
+                let e = to_edge(x0, dx, (w - 1) as f64).min(to_edge(y0, dy, (h - 1) as f64));
+                radius.map_or(e, |r| r.min(e))
+            }
+        };
+        Ray { x0, y0, dx, dy, h0, s_end }
+    }
+
+    /// The first cell: texel (x0, y0) is one of its corners, chosen so the ray enters it.
+    /// A ray along a cell edge (d = 0) may use either side; with `edge=none` the one inside.
+    fn first_cell(&self, grid: &Grid<'_>) -> (i64, i64) {
+        let pick = |p: f64, d: f64, n: usize| {
+            let c = p as i64;
+            if d < 0.0 {
+                c - 1
+            } else if d == 0.0 && grid.edge == Edge::None && c == n as i64 - 1 && n > 1 {
+                c - 1
+            } else {
+                c
+            }
+        };
+        (pick(self.x0, self.dx, grid.width), pick(self.y0, self.dy, grid.height))
+    }
+}
+
+/// Heights of the four corners of cell (cx, cy) (unwrapped image coordinates), as
+/// [h(cx, cy), h(cx+1, cy), h(cx, cy+1), h(cx+1, cy+1)]: wrapped, or clamped to the map with
+/// `edge=none` (rays never leave the map there, so clamping only meets degenerate cells of a
+/// 1-texel-wide map, where the clamped side has weight 0).
+#[inline]
+fn corners(grid: &Grid<'_>, cx: i64, cy: i64) -> [f64; 4] {
+    let (w, h) = (grid.width as i64, grid.height as i64);
+    let (c0, c1, r0, r1) = match grid.edge {
+        Edge::Wrap => {
+            let c0 = cx.rem_euclid(w);
+            let r0 = cy.rem_euclid(h);
+            (c0, if c0 + 1 == w { 0 } else { c0 + 1 }, r0, if r0 + 1 == h { 0 } else { r0 + 1 })
+        }
+        Edge::None => {
+            let c0 = cx.clamp(0, w - 1);
+            let r0 = cy.clamp(0, h - 1);
+            (c0, (cx + 1).clamp(0, w - 1), r0, (cy + 1).clamp(0, h - 1))
+        }
+    };
+    let at = |c: i64, r: i64| grid.heights[(r * w + c) as usize] as f64;
+    [at(c0, r0), at(c1, r0), at(c0, r1), at(c1, r1)]
+}
+
+/// The exact maximum of (h(s) − h0)/s over the part s ∈ [s_a, s_a + len] of a ray inside one
+/// cell, given the corner heights `k` and the ray's local position (fx, fy) ∈ [0,1]² at s_a.
+/// `first`: s_a = 0 and the ray starts at a corner of this cell, at height h0; the supremum then
+/// includes the limit s → 0⁺, the directional slope.
+#[inline]
+fn cell_max(k: [f64; 4], fx: f64, fy: f64, ray: &Ray, s_a: f64, len: f64, first: bool) -> f64 {
+    let (dx, dy) = (ray.dx, ray.dy);
+    let bx = k[1] - k[0];
+    let by = k[2] - k[0];
+    let bxy = k[3] - k[1] - k[2] + k[0];
+    // h(t) = d0 + d1 t + d2 t² along the segment.
+    let d0 = k[0] + bx * fx + by * fy + bxy * fx * fy;
+    let d1 = bx * dx + by * dy + bxy * (fx * dy + fy * dx);
+    let d2 = bxy * dx * dy;
+    let a = if first { 0.0 } else { d0 - ray.h0 };
+    let s_b = s_a + len;
+    let mut best = if s_b > 0.0 { (a + (d1 + d2 * len) * len) / s_b } else { f64::NEG_INFINITY };
+    if first {
+        best = best.max(d1);
+    }
+    if d2 != 0.0 {
+        // Interior critical point: (s_a + t)² = s_a² − (d1·s_a − a)/d2.
+        let q = s_a * s_a - (d1 * s_a - a) / d2;
+        if q > 0.0 {
+            let d = q.sqrt();
+            let t = d - s_a;
+            if t > 0.0 && t < len {
+                best = best.max((a + (d1 + d2 * t) * t) / d);
+            }
+        }
+    }
+    best
+}
+
+/// Per-level block maxima of the surface in unwrapped cell coordinates (see module docs).
+#[derive(Debug, Clone)]
+struct Pyramid {
+    /// Level k ≥ 1 covers blocks of 4^k × 4^k cells; `levels[k - 1]`.
+    levels: Vec<Level>,
+}
+
+#[derive(Debug, Clone)]
+struct Level {
+    /// Block index of the first stored block in x and y.
+    bx0: i64,
+    by0: i64,
+    nx: usize,
+    ny: usize,
+    max: Vec<f32>,
+}
+
+impl Level {
+    #[inline]
+    fn at(&self, bx: i64, by: i64) -> f32 {
+        let i = (bx - self.bx0).clamp(0, self.nx as i64 - 1) as usize;
+        let j = (by - self.by0).clamp(0, self.ny as i64 - 1) as usize;
+        self.max[j * self.nx + i]
+    }
+}
+
+impl Pyramid {
+    /// Block maxima for every cell a ray of length ≤ `reach` from a texel of `grid` can enter.
+    fn new(grid: &Grid<'_>, reach: f64) -> Pyramid {
+        let (w, h) = (grid.width as i64, grid.height as i64);
+        let reach = reach.min(1e7).ceil() as i64 + 2;
+        let (lo_x, hi_x, lo_y, hi_y) = match grid.edge {
+            Edge::Wrap => (-reach, w + reach, -reach, h + reach),
+            Edge::None => (0, w - 1, 0, h - 1),
+        };
+        // Cell maxima over the wrapped (or clamped) cells, one per texel position.
+        let mut cell = vec![0f32; (w * h) as usize];
+        for r in 0..h {
+            for c in 0..w {
+                let k = corners(grid, c, r);
+                cell[(r * w + c) as usize] = k[0].max(k[1]).max(k[2]).max(k[3]) as f32;
+            }
+        }
+        let cell_at = |c: i64, r: i64| -> f32 {
+            let (c, r) = match grid.edge {
+                Edge::Wrap => (c.rem_euclid(w), r.rem_euclid(h)),
+                Edge::None => (c.clamp(0, w - 1), r.clamp(0, h - 1)),
+            };
+            cell[(r * w + c) as usize]
+        };
+        let mut levels: Vec<Level> = Vec::new();
+        let span = (hi_x - lo_x).max(hi_y - lo_y).max(1);
+        let mut k = 1u32;
+        while 4i64.pow(k - 1) < span && k <= 15 {
+            let shift = 2 * k;
+            let (bx0, by0) = (lo_x >> shift, lo_y >> shift);
+            let (nx, ny) =
+                (((hi_x >> shift) - bx0 + 1) as usize, ((hi_y >> shift) - by0 + 1) as usize);
+            let mut max = vec![f32::NEG_INFINITY; nx * ny];
+            for j in 0..ny {
+                for i in 0..nx {
+                    let (bx, by) = (bx0 + i as i64, by0 + j as i64);
+                    let mut m = f32::NEG_INFINITY;
+                    for cj in 0..4 {
+                        for ci in 0..4 {
+                            let (x, y) = (bx * 4 + ci, by * 4 + cj);
+                            m = m.max(match levels.last() {
+                                None => cell_at(x, y),
+                                Some(prev) => prev.at(x, y),
+                            });
+                        }
+                    }
+                    max[j * nx + i] = m;
+                }
+            }
+            levels.push(Level { bx0, by0, nx, ny, max });
+            k += 1;
+        }
+        Pyramid { levels }
+    }
+}
+
+/// Walks `ray` cell by cell and returns max(0, sup (h − h0)/s). With `accel`, blocks that cannot
+/// beat the best value so far are skipped whole (identical result, see module docs).
+fn walk<F>(grid: &Grid<'_>, ray: &Ray, accel: Option<(&Pyramid, f64)>, corners: F) -> f64
+where
+    F: Fn(i64, i64) -> [f64; 4],
+{
+    let mut best = 0.0f64;
+    if ray.s_end <= 0.0 {
+        return 0.0;
+    }
+    if let Some((_, hmax)) = accel {
+        if hmax <= ray.h0 {
+            return 0.0;
+        }
+    }
+    let (mut cx, mut cy) = ray.first_cell(grid);
+    let mut s = 0.0f64;
+    let mut level = 0usize;
+    let max_level = accel.map_or(0, |(p, _)| p.levels.len());
+    loop {
+        if let Some((_, hmax)) = accel {
+            if s > 0.0 && hmax - ray.h0 <= best * s {
+                break;
+            }
+        }
+        let shift = 2 * level as u32;
+        let (bx, by) = (cx >> shift, cy >> shift);
+        let k = if level == 0 { Some(corners(cx, cy)) } else { None };
+        let skip = match accel {
+            None => false,
+            Some((p, _)) => {
+                let m = match k {
+                    Some(k) => k[0].max(k[1]).max(k[2]).max(k[3]),
+                    None => p.levels[level - 1].at(bx, by) as f64,
+                };
+                m - ray.h0 <= best * s
+            }
+        };
+        if !skip && level > 0 {
+            level -= 1;
+            continue;
+        }
+        // Where the ray leaves the current block (cell at level 0).
+        let size = 1i64 << shift;
+        let bound_x = if ray.dx > 0.0 { (bx + 1) * size } else { bx * size };
+        let bound_y = if ray.dy > 0.0 { (by + 1) * size } else { by * size };
+        let tx = if ray.dx != 0.0 { (bound_x as f64 - ray.x0) / ray.dx } else { f64::INFINITY };
+        let ty = if ray.dy != 0.0 { (bound_y as f64 - ray.y0) / ray.dy } else { f64::INFINITY };
+        let s_exit = tx.min(ty).max(s);
+        if !skip {
+            // level == 0: exact analysis of this cell on [s, min(s_exit, s_end)].
+            let k = k.unwrap_or([0.0; 4]);
+            let fx = (ray.x0 + s * ray.dx - cx as f64).clamp(0.0, 1.0);
+            let fy = (ray.y0 + s * ray.dy - cy as f64).clamp(0.0, 1.0);
+            let len = s_exit.min(ray.s_end) - s;
+            best = best.max(cell_max(k, fx, fy, ray, s, len, s == 0.0));
+        }
+        if s_exit >= ray.s_end {
+            break;
+        }
+        // Step into the next cell: across the exited boundary on the axis (or both) that left
+        // the block; the other coordinate from the exit point, kept inside the block's range.
+        let inside = |p: f64, b: i64| (p.floor() as i64).clamp(b * size, (b + 1) * size - 1);
+        let (ncx, ncy) = (
+            if tx <= ty {
+                if ray.dx > 0.0 {
+                    bound_x
+                } else {
+                    bound_x - 1
+                }
+            } else {
+                inside(ray.x0 + s_exit * ray.dx, bx)
+            },
+            if ty <= tx {
+                if ray.dy > 0.0 {
+                    bound_y
+                } else {
+                    bound_y - 1
+                }
+            } else {
+                inside(ray.y0 + s_exit * ray.dy, by)
+            },
+        );
+        cx = ncx;
+        cy = ncy;
+        s = s_exit;
+        if skip && level < max_level {
+            level += 1;
+        }
+    }
+    best
+}
+
+/// Exact sin α of texel (`x`, `y`) at tangent-space azimuth `phi` (radians, any value), by the
+/// plain cell-by-cell walk: the single-texel ground truth for shading and evaluation.
+///
+/// `radius`: `Some(R)` limits occluders to 0 < s ≤ R texels; `None` is `unlimited` (to the map
+/// edge with `edge=none`, max(W, H) texels with `edge=wrap`). Cost O(R) per call; for many calls
+/// on one grid, [`ExactHorizon::horizon_sin`] skips empty space and is much faster.
+///
+/// # Panics
+/// If (`x`, `y`) is outside the grid (a programming error).
+pub fn horizon_sin(grid: &Grid<'_>, x: usize, y: usize, phi: f64, radius: Option<f64>) -> f64 {
+    assert!(x < grid.width && y < grid.height, "texel outside the grid");
+    let (dx, dy) = direction(phi, grid.row_step());
+    let ray = Ray::new(grid, x, y, dx, dy, radius);
+    sin_of_tan(walk(grid, &ray, None, |cx, cy| corners(grid, cx, cy)))
+}
+
+/// Fills `out` (8 channels) from per-bin values.
+#[inline]
+fn reduce(reduce: Reduce, bins: &[f32], out: &mut [f32]) {
+    let mut ch = [0.0f32; 8];
+    match reduce {
+        Reduce::Average => reduce_average(bins, &mut ch),
+        Reduce::Point => reduce_point(bins, &mut ch),
+    }
+    out.copy_from_slice(&ch);
+}
+
+/// The plain oracle: every cell of every ray, no skipping. Slow (O(R) per ray); the tests check
+/// [`ExactHorizon`] against it, and it against a brute-force fine-step march.
+#[derive(Debug, Clone)]
+pub struct ExactMarch<'a> {
+    grid: Grid<'a>,
+    radius: Option<f64>,
+    dirs: Vec<(f64, f64)>,
+    reduce: Reduce,
+}
+
+impl<'a> ExactMarch<'a> {
+    /// `radius`: `None` = unlimited. `bins` a multiple of 16 (validated by `params`).
+    pub fn new(grid: Grid<'a>, radius: Option<u32>, bins: u32, reduce: Reduce) -> Self {
+        let dirs = bin_directions(bins as usize, grid.row_step());
+        ExactMarch { grid, radius: radius.map(f64::from), dirs, reduce }
+    }
+
+    /// Per-bin sin α of texel (x, y) into `s` (`bins` long).
+    pub fn texel_bins(&self, x: usize, y: usize, s: &mut [f32]) {
+        for (o, &(dx, dy)) in s.iter_mut().zip(&self.dirs) {
+            let ray = Ray::new(&self.grid, x, y, dx, dy, self.radius);
+            *o = sin_of_tan(walk(&self.grid, &ray, None, |cx, cy| corners(&self.grid, cx, cy)))
+                as f32;
+        }
+    }
+}
+
+impl HorizonRows for ExactMarch<'_> {
+    fn width(&self) -> usize {
+        self.grid.width
+    }
+    fn height(&self) -> usize {
+        self.grid.height
+    }
+    fn bins(&self) -> usize {
+        self.dirs.len()
+    }
+    fn rows(&self, y0: usize, channels: &mut [f32], mut bins_out: Option<&mut [f32]>) {
+        let (w, b) = (self.grid.width, self.dirs.len());
+        let mut s = vec![0.0f32; b];
+        for (k, out) in channels.chunks_exact_mut(8).enumerate() {
+            self.texel_bins(k % w, y0 + k / w, &mut s);
+            reduce(self.reduce, &s, out);
+            if let Some(bo) = bins_out.as_deref_mut() {
+                bo[k * b..(k + 1) * b].copy_from_slice(&s);
+            }
+        }
+    }
+}
+
+/// The production exact kernel: the same rays as [`ExactMarch`], with empty space skipped
+/// through a max pyramid and each ray stopped once nothing left can raise it.
+#[derive(Debug, Clone)]
+pub struct ExactHorizon<'a> {
+    grid: Grid<'a>,
+    radius: Option<f64>,
+    dirs: Vec<(f64, f64)>,
+    reduce: Reduce,
+    pyramid: Pyramid,
+    hmax: f64,
+    progress: Option<Progress>,
+    /// Unwrapped cell column `lo + i` → stored column, for i in 0..; likewise rows → row·W.
+    /// Replaces two `rem_euclid` per corner fetch in the hot loop.
+    lo: i64,
+    cols: Vec<u32>,
+    rows: Vec<u32>,
+}
+
+impl<'a> ExactHorizon<'a> {
+    /// Prepares the kernel (O(W·H) block maxima). `radius`: `None` = unlimited, otherwise at
+    /// most max(`MAX_RADIUS`, W, H) (larger values are clamped; `params` rejects them); `bins`
+    /// a multiple of 16 (validated by `params`).
+    pub fn new(grid: Grid<'a>, radius: Option<u32>, bins: u32, reduce: Reduce) -> Self {
+        let (w, h) = (grid.width, grid.height);
+        // Bounded so a caller bypassing `params` cannot ask for gigantic tables.
+        let cap = crate::params::MAX_RADIUS.max(w.max(h) as u32);
+        let radius = radius.map(|r| f64::from(r.min(cap)));
+        // How far outside the map a ray can go: the tables below must cover it.
+        let reach = match grid.edge {
+            Edge::Wrap => radius.unwrap_or(w.max(h) as f64),
+            Edge::None => 1.0,
+        };
+        let pyramid = Pyramid::new(&grid, reach);
+        let dirs = bin_directions(bins as usize, grid.row_step());
+        let hmax = grid.range().1 as f64;
+        let lo = -(reach.ceil() as i64) - 4;
+        let map = |n: usize, mul: usize| -> Vec<u32> {
+            let hi = n as i64 + reach.ceil() as i64 + 4;
+            (lo..=hi)
+                .map(|c| {
+                    let c = match grid.edge {
+                        Edge::Wrap => c.rem_euclid(n as i64),
+                        Edge::None => c.clamp(0, n as i64 - 1),
+                    };
+                    (c as usize * mul) as u32
+                })
+                .collect()
+        };
+        let (cols, rows) = (map(w, 1), map(h, w));
+        ExactHorizon { grid, radius, dirs, reduce, pyramid, hmax, progress: None, lo, cols, rows }
+    }
+
+    /// The accelerated walk of one ray.
+    #[inline]
+    fn walk(&self, ray: &Ray) -> f64 {
+        let hs = self.grid.heights;
+        let (cols, rows, lo) = (&self.cols[..], &self.rows[..], self.lo);
+        walk(&self.grid, ray, Some((&self.pyramid, self.hmax)), |cx, cy| {
+            let (i, j) = ((cx - lo) as usize, (cy - lo) as usize);
+            let (c0, c1, r0, r1) = (cols[i], cols[i + 1], rows[j], rows[j + 1]);
+            [
+                hs[(r0 + c0) as usize] as f64,
+                hs[(r0 + c1) as usize] as f64,
+                hs[(r1 + c0) as usize] as f64,
+                hs[(r1 + c1) as usize] as f64,
+            ]
+        })
+    }
+
+    /// Makes [`HorizonRows::rows`] return early (leaving the rest of its rows unspecified) once
+    /// `progress` is canceled, so a cancel lands within one row rather than one band. The band
+    /// driver notices the cancel and discards the result.
+    pub fn with_cancel(mut self, progress: &Progress) -> Self {
+        self.progress = Some(progress.clone());
+        self
+    }
+
+    /// Exact sin α of texel (`x`, `y`) at any azimuth `phi` (radians), with this kernel's radius.
+    ///
+    /// # Panics
+    /// If (`x`, `y`) is outside the grid (a programming error).
+    pub fn horizon_sin(&self, x: usize, y: usize, phi: f64) -> f64 {
+        assert!(x < self.grid.width && y < self.grid.height, "texel outside the grid");
+        let (dx, dy) = direction(phi, self.grid.row_step());
+        let ray = Ray::new(&self.grid, x, y, dx, dy, self.radius);
+        sin_of_tan(self.walk(&ray))
+    }
+
+    /// Per-bin sin α of texel (x, y) into `s` (`bins` long).
+    pub fn texel_bins(&self, x: usize, y: usize, s: &mut [f32]) {
+        for (o, &(dx, dy)) in s.iter_mut().zip(&self.dirs) {
+            let ray = Ray::new(&self.grid, x, y, dx, dy, self.radius);
+            *o = sin_of_tan(self.walk(&ray)) as f32;
+        }
+    }
+}
+
+impl HorizonRows for ExactHorizon<'_> {
+    fn width(&self) -> usize {
+        self.grid.width
+    }
+    fn height(&self) -> usize {
+        self.grid.height
+    }
+    fn bins(&self) -> usize {
+        self.dirs.len()
+    }
+    fn rows(&self, y0: usize, channels: &mut [f32], mut bins_out: Option<&mut [f32]>) {
+        let (w, b) = (self.grid.width, self.dirs.len());
+        let mut s = vec![0.0f32; b];
+        for (k, out) in channels.chunks_exact_mut(8).enumerate() {
+            if k % w == 0 && self.progress.as_ref().is_some_and(Progress::is_canceled) {
+                return;
+            }
+            self.texel_bins(k % w, y0 + k / w, &mut s);
+            reduce(self.reduce, &s, out);
+            if let Some(bo) = bins_out.as_deref_mut() {
+                bo[k * b..(k + 1) * b].copy_from_slice(&s);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::params::YAxis;
+
+    #[test]
+    fn direction_snaps_axes() {
+        assert_eq!(direction(PI, -1), (-1.0, 0.0));
+        assert_eq!(direction(PI / 2.0, -1), (0.0, -1.0));
+        assert_eq!(direction(PI / 2.0, 1), (0.0, 1.0));
+    }
+
+    #[test]
+    fn cell_max_finds_interior_peak() {
+        // Ray along x through a cell whose bilinear surface along the diagonal bulges.
+        let h = [0.0f32, 0.0, 0.0, 0.0];
+        let g = Grid::new(2, 2, &h, Edge::None, YAxis::Down);
+        let ray = Ray::new(&g, 0, 0, 1.0, 0.0, None);
+        // A ridge h(t) = −1 + 4t − 4t² (peak 0 at t = ½) seen from s_a = 1: the ratio
+        // (h − 0)/(1 + t) peaks where t² + 2t − 5/4 = 0… check against a fine scan.
+        let k = [-1.0, -1.0, 3.0, -5.0];
+        let (fx, fy) = (0.0, 0.0);
+        let r =
+            Ray { dx: std::f64::consts::FRAC_1_SQRT_2, dy: std::f64::consts::FRAC_1_SQRT_2, ..ray };
+        let len = std::f64::consts::SQRT_2;
+        let got = cell_max(k, fx, fy, &r, 1.0, len, false);
+        let mut want = f64::NEG_INFINITY;
+        for i in 0..=100_000 {
+            let t = len * i as f64 / 100_000.0;
+            let (u, v) = (t * r.dx, t * r.dy);
+            let hh = k[0] * (1.0 - u) * (1.0 - v)
+                + k[1] * u * (1.0 - v)
+                + k[2] * (1.0 - u) * v
+                + k[3] * u * v;
+            want = want.max(hh / (1.0 + t));
+        }
+        assert!((got - want).abs() < 1e-9 && got >= want - 1e-12, "{got} vs {want}");
+    }
+}

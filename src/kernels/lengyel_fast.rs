@@ -1,0 +1,493 @@
+//! The Lengyel/Max horizon map, fast: the same function as the oracle in [`super::lengyel`],
+//! vectorised across texels (SPEC §3.1).
+//!
+//! The oracle loops texel → neighbour → bin, which is branchy scalar work (≈0.4 Mtexel/s).
+//! Here the loop is turned inside out so that the hot loop is "load, subtract, multiply, max"
+//! over contiguous memory, which LLVM vectorises:
+//!
+//! - Once per kernel, every neighbour offset (i, j) is assigned to the bins it touches, with
+//!   θ, δ and the bin range floor((θ−δ)·B/2π) ..= ceil((θ+δ)·B/2π) computed in f64 exactly as
+//!   the oracle does, so both kernels agree on which neighbour feeds which bin. Each bin keeps a
+//!   list of (linear offset into the padded tile, 1/r).
+//! - Each band of rows is first copied into a padded tile (wrapped, or filled with `f32::MIN`
+//!   for `edge=none`, which never occludes), so the hot loop never clamps or wraps, even when the
+//!   radius exceeds the map (the padding then wraps several times).
+//! - For a strip of [`STRIP`] consecutive texels: bin → offset → lane, keeping
+//!   max(tan) with tan = (h − h0)/r and the maximum starting at 0. Since the oracle skips h < h0
+//!   and keeps the largest tan² ≥ 0, max(tan, 0)² is exactly its value, without a sign branch.
+//! - The finalize (s = t/√(t²+1), the B/8+1-bin averages) also runs over the strip's lanes.
+//!
+//! The hot function is compiled three times (AVX-512, AVX2+FMA, baseline) and the variant is
+//! chosen once per kernel with `is_x86_feature_detected!`, so the release binary needs no
+//! `-C target-cpu` and still runs on CPUs without AVX-512; other architectures use the baseline.
+//!
+//! Precision: tan is computed in f32 (relative error a few ulp), the oracle works in f64; the
+//! results agree within ~1e-6, so the 8-bit outputs only differ where the oracle's value sits
+//! on a rounding tie. When the padded tile would exceed [`MAX_TILE`] floats (a radius of
+//! thousands of texels) the kernel falls back to the oracle: such bakes cost O(R²) per texel and
+//! are impractical either way, but they stay correct and bounded in memory.
+
+use super::lengyel::LengyelNaive;
+use super::{Grid, HorizonRows};
+use crate::params::Edge;
+use std::cell::RefCell;
+use std::f64::consts::PI;
+
+/// Texels per strip. 32 lanes = two AVX-512 vectors (four AVX2 ones) per accumulator, and two
+/// accumulators per bin, so the max() chains have enough independent work to hide latency.
+pub const STRIP: usize = 32;
+
+/// Largest padded tile (floats, per thread) before falling back to the oracle (64 MiB).
+pub const MAX_TILE: usize = 1 << 24;
+
+/// Height used outside the map with `edge=none`: h − h0 ≤ 0 for every finite h0, so it never
+/// raises a bin, and it never makes NaN (unlike −∞ − −∞ in the discarded lanes).
+const LOW: f32 = f32::MIN;
+
+/// Which compiled variant of the hot loop this CPU runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Isa {
+    Avx512,
+    Avx2,
+    Baseline,
+}
+
+impl Isa {
+    /// The best variant the running CPU supports.
+    pub fn detect() -> Isa {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if is_x86_feature_detected!("avx512f") {
+                return Isa::Avx512;
+            }
+            if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
+                return Isa::Avx2;
+            }
+        }
+        Isa::Baseline
+    }
+}
+
+/// Per-(radius, bins, edge, y_axis, map size) tables: for each bin, the neighbours touching it.
+#[derive(Debug, Clone)]
+struct Tables {
+    /// `start[n]..start[n + 1]` indexes `entries` for bin n.
+    start: Vec<usize>,
+    /// (offset from the strip's top-left corner in the padded tile, 1/r).
+    entries: Vec<(u32, f32)>,
+    /// Padding columns on each side and rows above/below.
+    pad_x: usize,
+    pad_y: usize,
+    /// Row stride of the padded tile: W + 2·pad_x + STRIP (room for the last strip's lanes).
+    stride: usize,
+    /// Rows per tile so it stays under MAX_TILE.
+    max_rows: usize,
+}
+
+#[derive(Debug, Clone)]
+enum Mode<'a> {
+    Fast(Tables),
+    /// Radius too large for a padded tile: the oracle, slow but bounded in memory.
+    Oracle(LengyelNaive<'a>),
+}
+
+/// The fast Lengyel kernel for one grid.
+#[derive(Debug, Clone)]
+pub struct LengyelFast<'a> {
+    grid: Grid<'a>,
+    bins: usize,
+    isa: Isa,
+    mode: Mode<'a>,
+}
+
+impl<'a> LengyelFast<'a> {
+    /// Prepares the kernel, choosing the CPU variant at run time. `radius ≥ 1`, `bins` a
+    /// multiple of 16 (validated by `params`).
+    pub fn new(grid: Grid<'a>, radius: u32, bins: u32) -> Self {
+        Self::with_isa(grid, radius, bins, Isa::detect())
+    }
+
+    /// Prepares the kernel with a given variant (tests and benches compare them). A variant the
+    /// CPU lacks is replaced by the best one it has.
+    pub fn with_isa(grid: Grid<'a>, radius: u32, bins: u32, isa: Isa) -> Self {
+        let best = Isa::detect();
+        let isa = match (isa, best) {
+            (Isa::Avx512, b) if b != Isa::Avx512 => b,
+            (Isa::Avx2, Isa::Baseline) => Isa::Baseline,
+            (i, _) => i,
+        };
+        let b = bins.max(1) as usize;
+        let r = radius.max(1) as usize;
+        let (w, h) = (grid.width, grid.height);
+        // With edge=none an offset reaching past the whole map never finds a neighbour: drop
+        // it and pad less. With wrap every offset is real and the padding wraps as needed.
+        let (pad_x, pad_y) = match grid.edge {
+            Edge::Wrap => (r - 1, r - 1),
+            Edge::None => ((r - 1).min(w.saturating_sub(1)), (r - 1).min(h.saturating_sub(1))),
+        };
+        let stride = w + 2 * pad_x + STRIP;
+        let one_row = stride.saturating_mul(2 * pad_y + 1);
+        let mode = if one_row > MAX_TILE {
+            Mode::Oracle(LengyelNaive::new(grid, radius, bins))
+        } else {
+            let max_rows = (MAX_TILE / stride - 2 * pad_y).max(1);
+            Mode::Fast(build_tables(r, b, pad_x, pad_y, stride, max_rows, grid.row_step()))
+        };
+        LengyelFast { grid, bins: b, isa, mode }
+    }
+
+    /// The CPU variant in use.
+    pub fn isa(&self) -> Isa {
+        self.isa
+    }
+
+    /// Whether the radius forced the oracle fallback.
+    pub fn is_fallback(&self) -> bool {
+        matches!(self.mode, Mode::Oracle(_))
+    }
+}
+
+/// Builds the per-bin neighbour lists. θ, δ and the bin range are computed in f64 with the
+/// oracle's exact expressions, so the same neighbours feed the same bins.
+fn build_tables(
+    r: usize,
+    b: usize,
+    pad_x: usize,
+    pad_y: usize,
+    stride: usize,
+    max_rows: usize,
+    row_step: i64,
+) -> Tables {
+    let r = r as i64;
+    let scale = b as f64 / (2.0 * PI);
+    let mut per_offset: Vec<(u32, f32, i64, i64)> = Vec::new();
+    for j in (1 - r)..r {
+        for i in (1 - r)..r {
+            let d2 = (i * i + j * j) as f64;
+            if d2 == 0.0 || d2 >= (r * r) as f64 {
+                continue;
+            }
+            if i.unsigned_abs() as usize > pad_x || j.unsigned_abs() as usize > pad_y {
+                continue; // edge=none, beyond the whole map
+            }
+            let theta = (j as f64).atan2(i as f64);
+            let delta = (2f64.sqrt() / (2.0 * d2.sqrt())).atan();
+            let lo = ((theta - delta) * scale).floor() as i64;
+            let hi = ((theta + delta) * scale).ceil() as i64;
+            let row = (pad_y as i64 + j * row_step) as usize;
+            let col = (pad_x as i64 + i) as usize;
+            // Fits: the tile is at most MAX_TILE < 2^32 floats.
+            let off = (row * stride + col) as u32;
+            per_offset.push((off, (1.0 / d2.sqrt()) as f32, lo, hi));
+        }
+    }
+    // Bins an offset touches, each once (the range is always narrower than 2π, but be safe).
+    let bins_of = |lo: i64, hi: i64| {
+        let n = ((hi - lo + 1) as usize).min(b);
+        (0..n).map(move |k| (lo + k as i64).rem_euclid(b as i64) as usize)
+    };
+    let mut start = vec![0usize; b + 1];
+    for &(_, _, lo, hi) in &per_offset {
+        for n in bins_of(lo, hi) {
+            start[n + 1] += 1;
+        }
+    }
+    for n in 0..b {
+        start[n + 1] += start[n];
+    }
+    let mut fill = start.clone();
+    let mut entries = vec![(0u32, 0f32); start[b]];
+    for &(off, inv, lo, hi) in &per_offset {
+        for n in bins_of(lo, hi) {
+            entries[fill[n]] = (off, inv);
+            fill[n] += 1;
+        }
+    }
+    Tables { start, entries, pad_x, pad_y, stride, max_rows }
+}
+
+impl HorizonRows for LengyelFast<'_> {
+    fn width(&self) -> usize {
+        self.grid.width
+    }
+    fn height(&self) -> usize {
+        self.grid.height
+    }
+    fn bins(&self) -> usize {
+        self.bins
+    }
+    fn rows(&self, y0: usize, channels: &mut [f32], mut bins_out: Option<&mut [f32]>) {
+        let t = match &self.mode {
+            Mode::Oracle(k) => return k.rows(y0, channels, bins_out),
+            Mode::Fast(t) => t,
+        };
+        let w = self.grid.width;
+        let b = self.bins;
+        let n = channels.len() / (w * 8).max(1);
+        SCRATCH.with(|cell| {
+            let mut fresh = Scratch::default();
+            let mut guard = cell.try_borrow_mut();
+            let scratch = match guard.as_deref_mut() {
+                Ok(s) => s,
+                Err(_) => &mut fresh,
+            };
+            let mut r0 = 0;
+            while r0 < n {
+                let m = t.max_rows.min(n - r0);
+                fill_tile(&self.grid, t, y0 + r0, m, &mut scratch.tile);
+                scratch.acc.resize(b, [0.0; STRIP]);
+                let ch = &mut channels[r0 * w * 8..(r0 + m) * w * 8];
+                let bo = bins_out.as_deref_mut().map(|bo| &mut bo[r0 * w * b..(r0 + m) * w * b]);
+                let job = Job { t, tile: &scratch.tile, rows: m, width: w, bins: b };
+                run_job(self.isa, &job, &mut scratch.acc, ch, bo);
+                r0 += m;
+            }
+        });
+    }
+}
+
+/// Per-thread buffers reused across bands, so the band loop does not allocate.
+#[derive(Default)]
+struct Scratch {
+    tile: Vec<f32>,
+    acc: Vec<[f32; STRIP]>,
+}
+
+thread_local! {
+    static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
+}
+
+/// Copies image rows `y0 .. y0 + m` and their padding into `tile` (`(m + 2·pad_y) · stride`).
+fn fill_tile(g: &Grid<'_>, t: &Tables, y0: usize, m: usize, tile: &mut Vec<f32>) {
+    let (w, h) = (g.width as i64, g.height as i64);
+    let rows = m + 2 * t.pad_y;
+    tile.clear();
+    tile.resize(rows * t.stride, LOW);
+    // Tile row 0 is image row y0 − pad_y; offsets were laid out with the y-axis sign already.
+    for (tr, dst) in tile.chunks_exact_mut(t.stride).enumerate() {
+        let iy = y0 as i64 + tr as i64 - t.pad_y as i64;
+        let src_row = match g.edge {
+            Edge::Wrap => iy.rem_euclid(h),
+            Edge::None if iy < 0 || iy >= h => continue, // stays LOW
+            Edge::None => iy,
+        } as usize;
+        let src = &g.heights[src_row * g.width..(src_row + 1) * g.width];
+        let px = t.pad_x;
+        dst[px..px + g.width].copy_from_slice(src);
+        if g.edge == Edge::Wrap {
+            for (tc, d) in dst.iter_mut().enumerate() {
+                let ix = tc as i64 - px as i64;
+                if ix < 0 || ix >= w {
+                    *d = src[ix.rem_euclid(w) as usize];
+                }
+            }
+        }
+    }
+}
+
+/// One tile's worth of work for the hot loop.
+struct Job<'a> {
+    t: &'a Tables,
+    tile: &'a [f32],
+    rows: usize,
+    width: usize,
+    bins: usize,
+}
+
+/// Runs the variant of [`job_body`] compiled for `isa`.
+fn run_job(
+    isa: Isa,
+    job: &Job<'_>,
+    acc: &mut [[f32; STRIP]],
+    channels: &mut [f32],
+    bins_out: Option<&mut [f32]>,
+) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        match isa {
+            // SAFETY: `isa` is only Avx512 / Avx2 when `Isa::detect` saw those features on this
+            // CPU (`with_isa` downgrades anything else), which is the one requirement of calling
+            // a `#[target_feature]` function. The bodies themselves are safe code.
+            Isa::Avx512 => return unsafe { job_avx512(job, acc, channels, bins_out) },
+            Isa::Avx2 => return unsafe { job_avx2(job, acc, channels, bins_out) },
+            Isa::Baseline => {}
+        }
+    }
+    let _ = isa;
+    job_body(job, acc, channels, bins_out)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+fn job_avx512(
+    job: &Job<'_>,
+    acc: &mut [[f32; STRIP]],
+    channels: &mut [f32],
+    bins_out: Option<&mut [f32]>,
+) {
+    job_body(job, acc, channels, bins_out)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn job_avx2(
+    job: &Job<'_>,
+    acc: &mut [[f32; STRIP]],
+    channels: &mut [f32],
+    bins_out: Option<&mut [f32]>,
+) {
+    job_body(job, acc, channels, bins_out)
+}
+
+/// The hot loop over one padded tile, inlined into each `#[target_feature]` variant so LLVM
+/// vectorises it for that instruction set.
+#[inline(always)]
+fn job_body(
+    job: &Job<'_>,
+    acc: &mut [[f32; STRIP]],
+    channels: &mut [f32],
+    mut bins_out: Option<&mut [f32]>,
+) {
+    let Job { t, tile, rows, width: w, bins: b } = *job;
+    let centre = t.pad_y * t.stride + t.pad_x;
+    let step = b / 8;
+    let half = b / 16;
+    let inv_count = 1.0 / (step + 1) as f32;
+    for r in 0..rows {
+        for x0 in (0..w).step_by(STRIP) {
+            let base = r * t.stride + x0;
+            let Some(h0) = tile.get(base + centre..).and_then(<[f32]>::first_chunk::<STRIP>)
+            else {
+                continue; // unreachable: the tile has STRIP spare columns
+            };
+            for (n, out) in acc.iter_mut().enumerate().take(b) {
+                *out = bin_max(tile, base, h0, &t.entries[t.start[n]..t.start[n + 1]]);
+                // s = t/√(t²+1) = √(t²/(t²+1)); t is capped so t² stays finite (s is 1.0 in
+                // f32 long before 1e18).
+                for v in out.iter_mut() {
+                    let tt = v.min(1e18);
+                    *v = tt / (tt * tt + 1.0).sqrt();
+                }
+            }
+            let lanes = STRIP.min(w - x0);
+            let mut ch = [[0f32; STRIP]; 8];
+            for (c, chc) in ch.iter_mut().enumerate() {
+                for k in 0..=2 * half {
+                    let n = (c * step + b + k - half) % b;
+                    for (o, &s) in chc.iter_mut().zip(&acc[n]) {
+                        *o += s;
+                    }
+                }
+                for o in chc.iter_mut() {
+                    *o *= inv_count;
+                }
+            }
+            let row0 = (r * w + x0) * 8;
+            for (k, dst) in channels[row0..row0 + lanes * 8].chunks_exact_mut(8).enumerate() {
+                for (c, d) in dst.iter_mut().enumerate() {
+                    *d = ch[c][k];
+                }
+            }
+            if let Some(bo) = bins_out.as_deref_mut() {
+                let row0 = (r * w + x0) * b;
+                for (k, dst) in bo[row0..row0 + lanes * b].chunks_exact_mut(b).enumerate() {
+                    for (n, d) in dst.iter_mut().enumerate() {
+                        *d = acc[n][k];
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// max(0, max over `entries` of (h − h0)·(1/r)) for the STRIP texels whose neighbourhood starts
+/// at `base`. Two accumulators so consecutive max() operations do not wait on each other.
+#[inline(always)]
+fn bin_max(tile: &[f32], base: usize, h0: &[f32; STRIP], entries: &[(u32, f32)]) -> [f32; STRIP] {
+    let mut a0 = [0f32; STRIP];
+    let mut a1 = [0f32; STRIP];
+    let load = |off: u32| tile.get(base + off as usize..).and_then(<[f32]>::first_chunk::<STRIP>);
+    let mut pairs = entries.chunks_exact(2);
+    for p in &mut pairs {
+        let (Some(s0), Some(s1)) = (load(p[0].0), load(p[1].0)) else {
+            continue; // unreachable: offsets stay inside the padded tile
+        };
+        let (i0, i1) = (p[0].1, p[1].1);
+        for k in 0..STRIP {
+            let v0 = (s0[k] - h0[k]) * i0;
+            let v1 = (s1[k] - h0[k]) * i1;
+            a0[k] = if v0 > a0[k] { v0 } else { a0[k] };
+            a1[k] = if v1 > a1[k] { v1 } else { a1[k] };
+        }
+    }
+    for &(off, inv) in pairs.remainder() {
+        if let Some(s0) = load(off) {
+            for k in 0..STRIP {
+                let v0 = (s0[k] - h0[k]) * inv;
+                a0[k] = if v0 > a0[k] { v0 } else { a0[k] };
+            }
+        }
+    }
+    for k in 0..STRIP {
+        a0[k] = if a1[k] > a0[k] { a1[k] } else { a0[k] };
+    }
+    a0
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::kernels::compute_all;
+    use crate::params::YAxis;
+    use crate::progress::Progress;
+
+    #[test]
+    fn single_wall_east_of_texel_matches_hand_value() {
+        let mut h = vec![0.0f32; 9];
+        h[2] = 2.0;
+        let g = Grid::new(9, 1, &h, Edge::None, YAxis::Up);
+        let k = LengyelFast::new(g, 4, 32);
+        let mut ch = vec![0.0f32; 9 * 8];
+        let mut bins = vec![0.0f32; 9 * 32];
+        k.rows(0, &mut ch, Some(&mut bins));
+        // tan = 1 → s = √½ on bins 30, 31, 0, 1, 2 (δ ≈ 0.34 rad); nothing elsewhere.
+        let expect = (0.5f64).sqrt() as f32;
+        for n in [30usize, 31, 0, 1, 2] {
+            assert!((bins[n] - expect).abs() < 1e-6, "bin {n}: {}", bins[n]);
+        }
+        assert_eq!(bins[3], 0.0);
+        assert_eq!(bins[16], 0.0);
+        // Channel 0 averages bins 30..=2, all √½.
+        assert!((ch[0] - expect).abs() < 1e-6);
+        assert_eq!(ch[4], 0.0);
+    }
+
+    #[test]
+    fn every_isa_agrees_with_the_oracle() {
+        let (w, h) = (45, 7);
+        let hs: Vec<f32> = (0..w * h).map(|k| ((k * 7919) % 101) as f32 * 0.13).collect();
+        let g = Grid::new(w, h, &hs, Edge::Wrap, YAxis::Down);
+        let want = compute_all(&LengyelNaive::new(g, 9, 48), &Progress::new()).unwrap();
+        for isa in [Isa::Baseline, Isa::Avx2, Isa::Avx512] {
+            let got =
+                compute_all(&LengyelFast::with_isa(g, 9, 48, isa), &Progress::new()).unwrap();
+            let worst = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max);
+            assert!(worst < 1e-5, "{isa:?}: {worst}");
+        }
+    }
+
+    #[test]
+    fn huge_radius_falls_back_to_the_oracle() {
+        let hs = vec![0.0f32, 1.0, 0.5, 2.0];
+        let g = Grid::new(2, 2, &hs, Edge::Wrap, YAxis::Up);
+        let k = LengyelFast::new(g, 4000, 16);
+        assert!(k.is_fallback());
+        let small = LengyelFast::new(g, 40, 16);
+        assert!(!small.is_fallback());
+        let want = compute_all(&LengyelNaive::new(g, 40, 16), &Progress::new()).unwrap();
+        let got = compute_all(&small, &Progress::new()).unwrap();
+        for (a, b) in got.iter().zip(&want) {
+            assert!((a - b).abs() < 1e-5);
+        }
+    }
+}
