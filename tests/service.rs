@@ -20,7 +20,8 @@ async fn submit_poll_download_is_byte_identical_to_the_library() {
     let srv = Server::start(|_| {}).await;
     let c = client();
     let png = terrain_png16(67, 45, 7);
-    let want = library_layers(&png, PAIRS);
+    let want = library_files(&png, PAIRS);
+    assert_eq!(want.len(), 8);
 
     let res = c
         .post(srv.url("/v1/bakes?radius=8&height_scale=24&y_axis=down"))
@@ -54,14 +55,13 @@ async fn submit_poll_download_is_byte_identical_to_the_library() {
     assert!(v["timings_ms"]["bake"].as_f64().unwrap() > 0.0);
     assert_eq!(v["attempts"], 1);
 
-    for (i, (layer, fmt)) in [(0, "png8"), (1, "png8"), (0, "png16"), (1, "png16")].iter().enumerate()
-    {
-        let url = srv.url(&format!("{loc}/horizon/{layer}?format={fmt}"));
+    for (name, bytes) in &want {
+        let url = srv.url(&format!("{loc}{}", result_path(name)));
         let res = c.get(&url).send().await.unwrap();
-        assert_eq!(res.status(), 200);
+        assert_eq!(res.status(), 200, "{url}");
         let etag = res.headers()["etag"].to_str().unwrap().to_owned();
         let body = res.bytes().await.unwrap();
-        assert!(body[..] == want[i][..], "layer {layer} {fmt} differs from the library's");
+        assert!(body[..] == bytes[..], "{name} differs from the library's");
         assert_eq!(etag, format!("\"{}\"", blake3::hash(&body).to_hex()));
         let res = c.get(&url).header("if-none-match", &etag).send().await.unwrap();
         assert_eq!(res.status(), 304);
@@ -70,7 +70,9 @@ async fn submit_poll_download_is_byte_identical_to_the_library() {
     }
     // Default format is png8.
     let b = c.get(srv.url(&format!("{loc}/horizon/1"))).send().await.unwrap().bytes().await.unwrap();
-    assert!(b[..] == want[1][..]);
+    assert!(b[..] == want["horizon_1.png8"][..]);
+    let res = c.get(srv.url(&format!("{loc}/horizon/0?format=jpeg"))).send().await.unwrap();
+    assert_eq!(res.status(), 422);
 
     // The same input and resolved parameters by multipart: the existing bake, 200.
     let form = reqwest::multipart::Form::new()
@@ -112,7 +114,7 @@ async fn submit_poll_download_is_byte_identical_to_the_library() {
     assert!(m.contains("horizon_bakes_finished_total{status=\"succeeded\"} 2\n"), "{m}");
     assert!(m.contains("horizon_bakes_deduplicated_total 1\n"), "{m}");
     assert!(m.contains("horizon_texels_baked_total 6030\n"), "{m}");
-    assert!(m.contains("route=\"/v1/bakes/{id}/horizon/{layer}\",method=\"GET\",status=\"304\"} 4"), "{m}");
+    assert!(m.contains("route=\"/v1/bakes/{id}/horizon/{layer}\",method=\"GET\",status=\"304\"} 6"), "{m}");
 
     // Delete a finished bake: 204, then 404, and its results are gone.
     let res = c.delete(srv.url(&loc)).send().await.unwrap();
@@ -122,7 +124,7 @@ async fn submit_poll_download_is_byte_identical_to_the_library() {
     let dir = srv.stop().await;
     // The input blob is shared with the other bake and stays; the deleted bake's own results go.
     let files = blob_files(dir.path());
-    assert_eq!(files.len(), 1 + 4, "{files:?}");
+    assert_eq!(files.len(), 1 + 8, "{files:?}");
 }
 
 async fn problem(res: reqwest::Response) -> (u16, Value) {
@@ -152,9 +154,10 @@ async fn every_rejection_is_a_problem_and_leaves_nothing_behind() {
 
     let (s, p) = problem(post(vec![7u8; 100 * 1024], "", "image/png").await.unwrap()).await;
     assert_eq!((s, p["code"].as_str().unwrap()), (413, "payload_too_large"));
-    // Chunked (no Content-Length) is cut off by the limit too.
+    // Chunked (no Content-Length) is cut off by the limit too (72 KiB: small enough that the
+    // client has sent it all before the answer, so the 413 is read rather than a reset).
     let chunks = futures_util::stream::iter(
-        (0..20).map(|_| Ok::<_, std::io::Error>(vec![0u8; 8192])),
+        (0..9).map(|_| Ok::<_, std::io::Error>(vec![0u8; 8192])),
     );
     let res = c
         .post(srv.url("/v1/bakes"))
@@ -331,6 +334,14 @@ async fn cubemap_faces_match_the_library() {
         )
         .await;
         assert_eq!(s, 304);
+    }
+    for (path, file) in [("/v1/cubemap.ktx2?size=8", "cubemap.ktx2"), ("/v1/cubemap.dds?size=8", "cubemap.dds")] {
+        let (s, _, body) = oneshot(&app, Request::get(path).body(Body::empty()).unwrap()).await;
+        assert_eq!(s, 200);
+        let formats = horizon_bake::cli::cubemap::CubeFormats { png8: false, ktx2: true, dds: true };
+        let files = horizon_bake::cli::cubemap::cube_files(8, formats).unwrap();
+        let want = files.iter().find(|f| f.name == file).unwrap();
+        assert!(body == want.bytes, "{path}");
     }
     let (_, _, body) = oneshot(&app, Request::get("/v1/cubemap/0").body(Body::empty()).unwrap()).await;
     assert_eq!(image::load_from_memory(&body).unwrap().width(), 16, "default size");

@@ -1,6 +1,7 @@
 //! HTTP handlers: validate, call the store or the queue, answer. No pixel arithmetic here; the
 //! only CPU work a handler starts (the cube map) runs on a blocking thread.
 
+use crate::cli::cubemap::CubeFormats;
 use crate::error::Error;
 use crate::heightmap;
 use crate::params::BakeParams;
@@ -130,6 +131,8 @@ pub fn resource(st: &AppState, rec: &BakeRecord) -> Value {
         if let Some(obj) = links.as_object_mut() {
             obj.insert("horizon_0".into(), json!(format!("{base}/horizon/0")));
             obj.insert("horizon_1".into(), json!(format!("{base}/horizon/1")));
+            obj.insert("horizon_ktx2".into(), json!(format!("{base}/horizon.ktx2")));
+            obj.insert("horizon_dds".into(), json!(format!("{base}/horizon.dds")));
         }
     }
     json!({
@@ -708,19 +711,104 @@ pub async fn horizon_layer(
         _ => return Err(Problem::param("layer", format!("`{layer}` is not 0 or 1"))),
     };
     let format = q.get("format").map(String::as_str).unwrap_or("png8");
-    if !["png8", "png16"].contains(&format) {
-        return Err(Problem::param("format", format!("`{format}` is not one of png8, png16")));
-    }
+    let (content_type, ext) = match format {
+        "png8" | "png16" => ("image/png", "png"),
+        "exr" => ("image/x-exr", "exr"),
+        _ => {
+            return Err(Problem::param(
+                "format",
+                format!("`{format}` is not one of png8, png16, exr"),
+            ))
+        }
+    };
     let rec = finished(&st, &id).await?;
-    let name = format!("horizon_{layer}.{format}");
+    let name = if ext == "exr" { format!("horizon_{layer}.exr") } else { format!("horizon_{layer}.{format}") };
     let hash = rec
         .results
         .get(&name)
         .ok_or_else(|| Problem::internal(&format!("bake {id} succeeded without {name}")))?;
-    blob_response(&st, &headers, hash, "image/png", &format!("horizon_{layer}.png")).await
+    blob_response(&st, &headers, hash, content_type, &format!("horizon_{layer}.{ext}")).await
 }
 
-/// `GET /v1/cubemap/{face}?size=N`: one face of the channel-factor cube map as RGBA8 UNORM PNG.
+async fn horizon_texture(st: AppState, id: String, q: Vec<(String, String)>, headers: HeaderMap, name: &'static str, content_type: &'static str) -> Answer {
+    query_map(q, &[])?;
+    let rec = finished(&st, &id).await?;
+    let hash = rec
+        .results
+        .get(name)
+        .ok_or_else(|| Problem::internal(&format!("bake {id} succeeded without {name}")))?;
+    blob_response(&st, &headers, hash, content_type, name).await
+}
+
+/// `GET /v1/bakes/{id}/horizon.ktx2`: both layers as one 2-layer RGBA8 UNORM array texture.
+pub async fn horizon_ktx2(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    horizon_texture(st, id, q, headers, "horizon.ktx2", KTX2_TYPE).await
+}
+
+/// `GET /v1/bakes/{id}/horizon.dds`: both layers as one DX10 2-element RGBA8 UNORM array.
+pub async fn horizon_dds(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    horizon_texture(st, id, q, headers, "horizon.dds", DDS_TYPE).await
+}
+
+const KTX2_TYPE: &str = "image/ktx2";
+const DDS_TYPE: &str = "image/vnd-ms.dds";
+
+fn cube_size(st: &AppState, q: &HashMap<String, String>) -> Result<usize, Problem> {
+    let max = st.0.config.max_cubemap_size as usize;
+    match q.get("size") {
+        None => Ok(16),
+        Some(v) => match v.parse::<usize>() {
+            Ok(n) if (1..=max).contains(&n) => Ok(n),
+            _ => Err(Problem::param("size", format!("`{v}` is not a whole number from 1 to {max}"))),
+        },
+    }
+}
+
+/// Encodes a cube-map file (the CLI's own function) and answers it with a content-hash ETag.
+async fn cube_answer(
+    headers: &HeaderMap,
+    size: usize,
+    formats: CubeFormats,
+    pick: usize,
+    content_type: &'static str,
+) -> Answer {
+    let file = blocking(move || {
+        let mut files = crate::cli::cubemap::cube_files(size, formats)?;
+        if pick >= files.len() {
+            return Err(Error::Internal("cube map file missing".into()));
+        }
+        Ok(files.swap_remove(pick))
+    })
+    .await
+    .map_err(store_err)?;
+    let etag = format!("\"{}\"", blake3::hash(&file.bytes).to_hex());
+    let mut res = if etag_matches(headers, &etag) {
+        StatusCode::NOT_MODIFIED.into_response()
+    } else {
+        let mut r = Response::new(Body::from(file.bytes));
+        r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
+        if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"{}\"", file.name)) {
+            r.headers_mut().insert(header::CONTENT_DISPOSITION, v);
+        }
+        r
+    };
+    if let Ok(v) = HeaderValue::from_str(&etag) {
+        res.headers_mut().insert(header::ETAG, v);
+    }
+    Ok(res)
+}
+
+/// `GET /v1/cubemap/{face}?size=N`: one face of the channel-factor cube map, RGBA8 UNORM PNG.
 pub async fn cubemap_face(
     State(st): State<AppState>,
     Path(face): Path<String>,
@@ -732,37 +820,31 @@ pub async fn cubemap_face(
         Ok(f) if f < 6 && face.len() == 1 => f,
         _ => return Err(Problem::param("face", format!("`{face}` is not a face index 0..5"))),
     };
-    let max = st.0.config.max_cubemap_size as usize;
-    let size = match q.get("size") {
-        None => 16,
-        Some(v) => match v.parse::<usize>() {
-            Ok(n) if (1..=max).contains(&n) => n,
-            _ => return Err(Problem::param("size", format!("`{v}` is not a whole number from 1 to {max}"))),
-        },
-    };
-    let png = blocking(move || {
-        let all = crate::kernels::cubemap::cube_factors(size);
-        let n = size * size * 4;
-        let texels: Vec<u8> = all[face * n..(face + 1) * n]
-            .iter()
-            .map(|&f| crate::kernels::cubemap::unorm8(f))
-            .collect();
-        crate::encode::png::encode8(size, size, crate::encode::png::PngColor::Rgba, &texels)
-    })
-    .await
-    .map_err(store_err)?;
-    let etag = format!("\"{}\"", blake3::hash(&png).to_hex());
-    let mut res = if etag_matches(&headers, &etag) {
-        StatusCode::NOT_MODIFIED.into_response()
-    } else {
-        let mut r = Response::new(Body::from(png));
-        r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static("image/png"));
-        r
-    };
-    if let Ok(v) = HeaderValue::from_str(&etag) {
-        res.headers_mut().insert(header::ETAG, v);
-    }
-    Ok(res)
+    let size = cube_size(&st, &q)?;
+    let formats = CubeFormats { png8: true, ktx2: false, dds: false };
+    cube_answer(&headers, size, formats, face, "image/png").await
+}
+
+/// `GET /v1/cubemap.ktx2?size=N`: the six faces as one RGBA8 SNORM cube map.
+pub async fn cubemap_ktx2(
+    State(st): State<AppState>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    let q = query_map(q, &["size"])?;
+    let size = cube_size(&st, &q)?;
+    cube_answer(&headers, size, CubeFormats { png8: false, ktx2: true, dds: false }, 0, KTX2_TYPE).await
+}
+
+/// `GET /v1/cubemap.dds?size=N`: the six faces as one RGBA8 SNORM DDS cube map.
+pub async fn cubemap_dds(
+    State(st): State<AppState>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    let q = query_map(q, &["size"])?;
+    let size = cube_size(&st, &q)?;
+    cube_answer(&headers, size, CubeFormats { png8: false, ktx2: false, dds: true }, 0, DDS_TYPE).await
 }
 
 // ---------------------------------------------------------------------------------------------

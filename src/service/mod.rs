@@ -49,7 +49,11 @@ pub const ROUTES: &[(&str, &[&str])] = &[
     ("/v1/bakes/{id}", &["GET", "DELETE"]),
     ("/v1/bakes/{id}/events", &["GET"]),
     ("/v1/bakes/{id}/horizon/{layer}", &["GET"]),
+    ("/v1/bakes/{id}/horizon.ktx2", &["GET"]),
+    ("/v1/bakes/{id}/horizon.dds", &["GET"]),
     ("/v1/cubemap/{face}", &["GET"]),
+    ("/v1/cubemap.ktx2", &["GET"]),
+    ("/v1/cubemap.dds", &["GET"]),
     ("/healthz", &["GET"]),
     ("/readyz", &["GET"]),
     ("/metrics", &["GET"]),
@@ -217,7 +221,11 @@ pub fn app(st: AppState) -> Router {
         .route("/v1/bakes/{id}", get(handlers::get_bake).delete(handlers::delete_bake))
         .route("/v1/bakes/{id}/events", get(handlers::events))
         .route("/v1/bakes/{id}/horizon/{layer}", get(handlers::horizon_layer))
+        .route("/v1/bakes/{id}/horizon.ktx2", get(handlers::horizon_ktx2))
+        .route("/v1/bakes/{id}/horizon.dds", get(handlers::horizon_dds))
         .route("/v1/cubemap/{face}", get(handlers::cubemap_face))
+        .route("/v1/cubemap.ktx2", get(handlers::cubemap_ktx2))
+        .route("/v1/cubemap.dds", get(handlers::cubemap_dds))
         .route_layer(axum::middleware::from_fn_with_state(st.clone(), handlers::auth));
     Router::new()
         .merge(v1)

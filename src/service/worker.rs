@@ -8,7 +8,7 @@
 //! Cancellation goes through [`Progress::cancel`], which the kernel polls between bands.
 
 use crate::bake::{self, Precisions};
-use crate::encode::png::{encode16, encode8, PngColor};
+use crate::encode::{self, Formats, TexturePrecision};
 use crate::error::{Error, Result};
 use crate::heightmap;
 use crate::params::BakeParams;
@@ -20,9 +20,20 @@ use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::atomic::Ordering;
 use std::time::Instant;
 
-/// Names of the results a horizon bake stores, in the order they are encoded.
-pub const HORIZON_RESULTS: [&str; 4] =
-    ["horizon_0.png8", "horizon_1.png8", "horizon_0.png16", "horizon_1.png16"];
+/// Names of the results a horizon bake stores (each an immutable blob). Every format is
+/// encoded once, when the bake finishes, by the same function the CLI uses
+/// ([`encode::horizon_files`]), so a download is a file read with a content-hash ETag and is
+/// byte-identical to `horizon-bake bake --format …` (KTX2/DDS at the CLI's default `unorm8`).
+pub const HORIZON_RESULTS: [&str; 8] = [
+    "horizon_0.png8",
+    "horizon_1.png8",
+    "horizon_0.png16",
+    "horizon_1.png16",
+    "horizon_0.exr",
+    "horizon_1.exr",
+    "horizon.ktx2",
+    "horizon.dds",
+];
 
 /// The parameters stored in a record.
 ///
@@ -176,29 +187,34 @@ fn execute(st: &AppState, mut rec: BakeRecord, progress: &Progress) -> Result<Ba
     let decode_ms = ms(t);
 
     let t = Instant::now();
-    let precisions = Precisions { u8: true, u16: true, f32: false };
-    let (layers, radius) = bake::bake_horizon(&map, &params, precisions, progress)?;
+    let (layers, radius) = bake::bake_horizon(&map, &params, Precisions::ALL, progress)?;
     drop(map);
     let bake_ms = ms(t);
 
-    progress.start(Stage::Encode, HORIZON_RESULTS.len() as u64);
+    progress.start(Stage::Encode, 2);
     let t = Instant::now();
-    let (w, h) = (layers.width, layers.height);
-    let missing = || Error::Internal("the bake did not produce the requested precision".into());
-    let l8 = layers.u8.as_ref().ok_or_else(missing)?;
-    let l16 = layers.u16.as_ref().ok_or_else(missing)?;
-    let mut encoded: Vec<(&str, Vec<u8>)> = Vec::with_capacity(HORIZON_RESULTS.len());
-    for (i, name) in HORIZON_RESULTS.iter().enumerate() {
+    // png8 and png16 share a file name in the CLI's scheme, so they are two calls.
+    let main_formats = Formats {
+        png8: true,
+        png16: false,
+        exr: true,
+        ktx2: true,
+        dds: true,
+        texture_precision: TexturePrecision::Unorm8,
+    };
+    let wide = Formats { png8: false, png16: true, exr: false, ktx2: false, dds: false, ..main_formats };
+    let mut encoded: Vec<(String, Vec<u8>)> = Vec::with_capacity(HORIZON_RESULTS.len());
+    for (formats, png_suffix) in [(main_formats, "png8"), (wide, "png16")] {
         if progress.is_canceled() {
             return Err(Error::Canceled);
         }
-        let layer = i % 2;
-        let bytes = if i < 2 {
-            encode8(w, h, PngColor::Rgba, &l8[layer])?
-        } else {
-            encode16(w, h, PngColor::Rgba, &l16[layer])?
-        };
-        encoded.push((name, bytes));
+        for f in encode::horizon_files(&layers, &formats)? {
+            let name = match f.name.strip_suffix(".png") {
+                Some(stem) => format!("{stem}.{png_suffix}"),
+                None => f.name.to_owned(),
+            };
+            encoded.push((name, f.bytes));
+        }
         progress.advance(1);
     }
     drop(layers);
@@ -214,7 +230,7 @@ fn execute(st: &AppState, mut rec: BakeRecord, progress: &Progress) -> Result<Ba
     let _gc = st.0.gc_lock.read().unwrap_or_else(|e| e.into_inner());
     for (name, bytes) in &encoded {
         let hash = st.0.blobs.put(bytes)?;
-        rec.results.insert((*name).to_owned(), hash);
+        rec.results.insert(name.clone(), hash);
         progress.advance(1);
     }
     rec.status = Status::Succeeded;

@@ -3,6 +3,8 @@
 
 use horizon_bake::bake::{self, Precisions};
 use horizon_bake::encode::png::{encode16, encode8, PngColor};
+use horizon_bake::encode::{self, Formats, TexturePrecision};
+use std::collections::BTreeMap;
 use horizon_bake::heightmap::{self, Limits};
 use horizon_bake::params::BakeParams;
 use horizon_bake::progress::Progress;
@@ -56,21 +58,38 @@ pub fn noise_png8(w: usize, h: usize, seed: u64) -> Vec<u8> {
     encode8(w, h, PngColor::Gray, &data).unwrap()
 }
 
-/// What the library produces for `png` and `pairs`: [png8 layer 0, png8 layer 1, png16 0, png16 1].
-pub fn library_layers(png: &[u8], pairs: &[(&str, &str)]) -> [Vec<u8>; 4] {
+/// What the library produces for `png` and `pairs`, by the service's result name:
+/// `horizon_{0,1}.png8`, `horizon_{0,1}.png16`, `horizon_{0,1}.exr`, `horizon.ktx2`, `horizon.dds`.
+pub fn library_files(png: &[u8], pairs: &[(&str, &str)]) -> BTreeMap<String, Vec<u8>> {
     let params = BakeParams::from_pairs(pairs.iter().copied()).unwrap();
     let (map, _) = heightmap::decode(png, params.channel, &Limits::default()).unwrap();
-    let p = Precisions { u8: true, u16: true, f32: false };
-    let (layers, _) = bake::bake_horizon(&map, &params, p, &Progress::new()).unwrap();
-    let (w, h) = (layers.width, layers.height);
-    let l8 = layers.u8.as_ref().unwrap();
-    let l16 = layers.u16.as_ref().unwrap();
-    [
-        encode8(w, h, PngColor::Rgba, &l8[0]).unwrap(),
-        encode8(w, h, PngColor::Rgba, &l8[1]).unwrap(),
-        encode16(w, h, PngColor::Rgba, &l16[0]).unwrap(),
-        encode16(w, h, PngColor::Rgba, &l16[1]).unwrap(),
-    ]
+    let (layers, _) =
+        bake::bake_horizon(&map, &params, Precisions::ALL, &Progress::new()).unwrap();
+    let mut out = BTreeMap::new();
+    let all = Formats::parse("png8,exr,ktx2,dds", TexturePrecision::Unorm8).unwrap();
+    let wide = Formats::parse("png16", TexturePrecision::Unorm8).unwrap();
+    for (f, suffix) in [(all, "png8"), (wide, "png16")] {
+        for file in encode::horizon_files(&layers, &f).unwrap() {
+            let name = match file.name.strip_suffix(".png") {
+                Some(stem) => format!("{stem}.{suffix}"),
+                None => file.name.to_owned(),
+            };
+            out.insert(name, file.bytes);
+        }
+    }
+    out
+}
+
+/// The download URL path (after `/v1/bakes/{id}`) of a result name.
+pub fn result_path(name: &str) -> String {
+    match name {
+        "horizon.ktx2" | "horizon.dds" => format!("/{name}"),
+        _ => {
+            let (stem, fmt) = name.split_once('.').unwrap();
+            let layer = stem.trim_start_matches("horizon_");
+            format!("/horizon/{layer}?format={fmt}")
+        }
+    }
 }
 
 /// A server running in this process on 127.0.0.1:0.
