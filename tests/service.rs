@@ -69,7 +69,8 @@ async fn submit_poll_download_is_byte_identical_to_the_library() {
         assert!(res.bytes().await.unwrap().is_empty());
     }
     // Default format is png8.
-    let b = c.get(srv.url(&format!("{loc}/horizon/1"))).send().await.unwrap().bytes().await.unwrap();
+    let b =
+        c.get(srv.url(&format!("{loc}/horizon/1"))).send().await.unwrap().bytes().await.unwrap();
     assert!(b[..] == want["horizon_1.png8"][..]);
     let res = c.get(srv.url(&format!("{loc}/horizon/0?format=jpeg"))).send().await.unwrap();
     assert_eq!(res.status(), 422);
@@ -77,8 +78,10 @@ async fn submit_poll_download_is_byte_identical_to_the_library() {
     // The same input and resolved parameters by multipart: the existing bake, 200.
     let form = reqwest::multipart::Form::new()
         .part("heightmap", reqwest::multipart::Part::bytes(png.clone()).file_name("h.png"))
-        .text("params", r#"{"radius": 8, "height_scale": "24", "y_axis": "down", "bins": 32}"#);
-    let res = c.post(srv.url("/v1/bakes")).multipart(form).send().await.unwrap();
+        .text("params", r#"{"radius": 8, "height_scale": "24", "bins": 32}"#);
+    // The query and the JSON part merge, the JSON part winning (radius 8, not 3).
+    let res =
+        c.post(srv.url("/v1/bakes?y_axis=down&radius=3")).multipart(form).send().await.unwrap();
     assert_eq!(res.status(), 200);
     let again: Value = res.json().await.unwrap();
     assert_eq!(again["id"], bake["id"]);
@@ -94,10 +97,16 @@ async fn submit_poll_download_is_byte_identical_to_the_library() {
     assert_eq!(res.status(), 202);
     let other: Value = res.json().await.unwrap();
     assert_ne!(other["id"], bake["id"]);
-    wait_done(&c, &srv.url(&format!("/v1/bakes/{}", other["id"].as_str().unwrap())), Duration::from_secs(60)).await;
+    wait_done(
+        &c,
+        &srv.url(&format!("/v1/bakes/{}", other["id"].as_str().unwrap())),
+        Duration::from_secs(60),
+    )
+    .await;
 
     // Listing: two bakes, oldest first, paginated, filtered.
-    let page: Value = c.get(srv.url("/v1/bakes?limit=1")).send().await.unwrap().json().await.unwrap();
+    let page: Value =
+        c.get(srv.url("/v1/bakes?limit=1")).send().await.unwrap().json().await.unwrap();
     assert_eq!(page["items"].as_array().unwrap().len(), 1);
     assert_eq!(page["items"][0]["id"], bake["id"]);
     let href = page["next"]["href"].as_str().unwrap();
@@ -114,7 +123,10 @@ async fn submit_poll_download_is_byte_identical_to_the_library() {
     assert!(m.contains("horizon_bakes_finished_total{status=\"succeeded\"} 2\n"), "{m}");
     assert!(m.contains("horizon_bakes_deduplicated_total 1\n"), "{m}");
     assert!(m.contains("horizon_texels_baked_total 6030\n"), "{m}");
-    assert!(m.contains("route=\"/v1/bakes/{id}/horizon/{layer}\",method=\"GET\",status=\"304\"} 6"), "{m}");
+    assert!(
+        m.contains("route=\"/v1/bakes/{id}/horizon/{layer}\",method=\"GET\",status=\"304\"} 6"),
+        "{m}"
+    );
 
     // Delete a finished bake: 204, then 404, and its results are gone.
     let res = c.delete(srv.url(&loc)).send().await.unwrap();
@@ -156,9 +168,8 @@ async fn every_rejection_is_a_problem_and_leaves_nothing_behind() {
     assert_eq!((s, p["code"].as_str().unwrap()), (413, "payload_too_large"));
     // Chunked (no Content-Length) is cut off by the limit too (72 KiB: small enough that the
     // client has sent it all before the answer, so the 413 is read rather than a reset).
-    let chunks = futures_util::stream::iter(
-        (0..9).map(|_| Ok::<_, std::io::Error>(vec![0u8; 8192])),
-    );
+    let chunks =
+        futures_util::stream::iter((0..9).map(|_| Ok::<_, std::io::Error>(vec![0u8; 8192])));
     let res = c
         .post(srv.url("/v1/bakes"))
         .header("content-type", "image/png")
@@ -168,7 +179,8 @@ async fn every_rejection_is_a_problem_and_leaves_nothing_behind() {
         .unwrap();
     assert_eq!(problem(res).await.0, 413);
 
-    let jpeg = [0xFF, 0xD8, 0xFF, 0xE0, 0, 16, b'J', b'F', b'I', b'F', 0, 1, 1, 0, 0, 1, 0, 1, 0, 0];
+    let jpeg =
+        [0xFF, 0xD8, 0xFF, 0xE0, 0, 16, b'J', b'F', b'I', b'F', 0, 1, 1, 0, 0, 1, 0, 1, 0, 0];
     let (s, p) = problem(post(jpeg.to_vec(), "", "image/png").await.unwrap()).await;
     assert_eq!((s, p["code"].as_str().unwrap()), (415, "unsupported_media_type"));
     let (s, _) = problem(post(jpeg.to_vec(), "", "image/jpeg").await.unwrap()).await;
@@ -197,7 +209,8 @@ async fn every_rejection_is_a_problem_and_leaves_nothing_behind() {
     let (s, p) = problem(c.post(srv.url("/v1/bakes")).multipart(form).send().await.unwrap()).await;
     assert_eq!((s, p["field"].as_str().unwrap()), (422, "heightmap"));
 
-    let (s, p) = problem(c.get(srv.url("/v1/bakes/0123456789abcdef0123")).send().await.unwrap()).await;
+    let (s, p) =
+        problem(c.get(srv.url("/v1/bakes/0123456789abcdef0123")).send().await.unwrap()).await;
     assert_eq!((s, p["code"].as_str().unwrap()), (404, "bake_not_found"));
     let (s, p) = problem(c.get(srv.url("/v1/bakes/nope/horizon/0")).send().await.unwrap()).await;
     assert_eq!((s, p["code"].as_str().unwrap()), (404, "bake_not_found"));
@@ -216,7 +229,10 @@ async fn every_rejection_is_a_problem_and_leaves_nothing_behind() {
     assert!(blob_files(dir.path()).is_empty(), "a rejection left a file");
 }
 
-async fn oneshot(app: &axum::Router, req: Request<Body>) -> (StatusCode, axum::http::HeaderMap, Vec<u8>) {
+async fn oneshot(
+    app: &axum::Router,
+    req: Request<Body>,
+) -> (StatusCode, axum::http::HeaderMap, Vec<u8>) {
     let res = app.clone().oneshot(req).await.unwrap();
     let (parts, body) = res.into_parts();
     let bytes = axum::body::to_bytes(body, usize::MAX).await.unwrap();
@@ -224,7 +240,10 @@ async fn oneshot(app: &axum::Router, req: Request<Body>) -> (StatusCode, axum::h
 }
 
 fn submit_req(png: &[u8]) -> Request<Body> {
-    Request::post("/v1/bakes").header("content-type", "image/png").body(Body::from(png.to_vec())).unwrap()
+    Request::post("/v1/bakes")
+        .header("content-type", "image/png")
+        .body(Body::from(png.to_vec()))
+        .unwrap()
 }
 
 #[tokio::test]
@@ -237,7 +256,10 @@ async fn not_ready_409_queue_full_429_and_cancel_of_a_queued_bake() {
         let (s, h, body) = oneshot(&app, submit_req(&terrain_png16(8, 8, seed))).await;
         assert_eq!(s, 202);
         let v: Value = serde_json::from_slice(&body).unwrap();
-        assert_eq!(h["location"].to_str().unwrap(), format!("/v1/bakes/{}", v["id"].as_str().unwrap()));
+        assert_eq!(
+            h["location"].to_str().unwrap(),
+            format!("/v1/bakes/{}", v["id"].as_str().unwrap())
+        );
         ids.push(v["id"].as_str().unwrap().to_owned());
     }
     let (s, h, body) = oneshot(&app, submit_req(&terrain_png16(8, 8, 99))).await;
@@ -251,15 +273,27 @@ async fn not_ready_409_queue_full_429_and_cancel_of_a_queued_bake() {
     assert_eq!(s, 200);
     assert_eq!(serde_json::from_slice::<Value>(&body).unwrap()["id"], ids[0].as_str());
 
-    let (s, _, body) = oneshot(&app, Request::get(format!("/v1/bakes/{}/horizon/0", ids[0])).body(Body::empty()).unwrap()).await;
+    let (s, _, body) = oneshot(
+        &app,
+        Request::get(format!("/v1/bakes/{}/horizon/0", ids[0])).body(Body::empty()).unwrap(),
+    )
+    .await;
     assert_eq!(s, 409);
     assert_eq!(serde_json::from_slice::<Value>(&body).unwrap()["code"], "result_not_ready");
-    let (s, _, body) = oneshot(&app, Request::get(format!("/v1/bakes/{}/horizon/2", ids[0])).body(Body::empty()).unwrap()).await;
+    let (s, _, body) = oneshot(
+        &app,
+        Request::get(format!("/v1/bakes/{}/horizon/2", ids[0])).body(Body::empty()).unwrap(),
+    )
+    .await;
     assert_eq!(s, 422);
     assert_eq!(serde_json::from_slice::<Value>(&body).unwrap()["field"], "layer");
 
     // Cancel a queued bake: 200, `canceled`, and the queue has room again.
-    let (s, _, body) = oneshot(&app, Request::delete(format!("/v1/bakes/{}", ids[0])).body(Body::empty()).unwrap()).await;
+    let (s, _, body) = oneshot(
+        &app,
+        Request::delete(format!("/v1/bakes/{}", ids[0])).body(Body::empty()).unwrap(),
+    )
+    .await;
     assert_eq!(s, 200);
     assert_eq!(serde_json::from_slice::<Value>(&body).unwrap()["status"], "canceled");
     let (s, _, _) = oneshot(&app, submit_req(&terrain_png16(8, 8, 99))).await;
@@ -317,8 +351,11 @@ async fn cubemap_faces_match_the_library() {
     let size = 8;
     let all = horizon_bake::kernels::cubemap::cube_factors(size);
     for face in 0..6 {
-        let (s, h, body) =
-            oneshot(&app, Request::get(format!("/v1/cubemap/{face}?size={size}")).body(Body::empty()).unwrap()).await;
+        let (s, h, body) = oneshot(
+            &app,
+            Request::get(format!("/v1/cubemap/{face}?size={size}")).body(Body::empty()).unwrap(),
+        )
+        .await;
         assert_eq!(s, 200);
         let img = image::load_from_memory(&body).unwrap().to_rgba8();
         let n = size * size * 4;
@@ -330,22 +367,34 @@ async fn cubemap_faces_match_the_library() {
         let etag = h["etag"].to_str().unwrap().to_owned();
         let (s, _, _) = oneshot(
             &app,
-            Request::get(format!("/v1/cubemap/{face}?size={size}")).header("if-none-match", etag).body(Body::empty()).unwrap(),
+            Request::get(format!("/v1/cubemap/{face}?size={size}"))
+                .header("if-none-match", etag)
+                .body(Body::empty())
+                .unwrap(),
         )
         .await;
         assert_eq!(s, 304);
     }
-    for (path, file) in [("/v1/cubemap.ktx2?size=8", "cubemap.ktx2"), ("/v1/cubemap.dds?size=8", "cubemap.dds")] {
+    for (path, file) in
+        [("/v1/cubemap.ktx2?size=8", "cubemap.ktx2"), ("/v1/cubemap.dds?size=8", "cubemap.dds")]
+    {
         let (s, _, body) = oneshot(&app, Request::get(path).body(Body::empty()).unwrap()).await;
         assert_eq!(s, 200);
-        let formats = horizon_bake::cli::cubemap::CubeFormats { png8: false, ktx2: true, dds: true };
+        let formats =
+            horizon_bake::cli::cubemap::CubeFormats { png8: false, ktx2: true, dds: true };
         let files = horizon_bake::cli::cubemap::cube_files(8, formats).unwrap();
         let want = files.iter().find(|f| f.name == file).unwrap();
         assert!(body == want.bytes, "{path}");
     }
-    let (_, _, body) = oneshot(&app, Request::get("/v1/cubemap/0").body(Body::empty()).unwrap()).await;
+    let (_, _, body) =
+        oneshot(&app, Request::get("/v1/cubemap/0").body(Body::empty()).unwrap()).await;
     assert_eq!(image::load_from_memory(&body).unwrap().width(), 16, "default size");
-    for (path, field) in [("/v1/cubemap/6", "face"), ("/v1/cubemap/0?size=0", "size"), ("/v1/cubemap/0?size=99999", "size"), ("/v1/cubemap/0?sise=4", "sise")] {
+    for (path, field) in [
+        ("/v1/cubemap/6", "face"),
+        ("/v1/cubemap/0?size=0", "size"),
+        ("/v1/cubemap/0?size=99999", "size"),
+        ("/v1/cubemap/0?sise=4", "sise"),
+    ] {
         let (s, _, body) = oneshot(&app, Request::get(path).body(Body::empty()).unwrap()).await;
         assert_eq!(s, 422, "{path}");
         assert_eq!(serde_json::from_slice::<Value>(&body).unwrap()["field"], field);

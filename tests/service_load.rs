@@ -37,7 +37,8 @@ async fn two_hundred_concurrent_submissions_on_a_small_queue() {
         let c = c.clone();
         let url = srv.url("/v1/bakes?radius=4");
         tasks.push(tokio::spawn(async move {
-            let res = c.post(url).header("content-type", "image/png").body(body).send().await.unwrap();
+            let res =
+                c.post(url).header("content-type", "image/png").body(body).send().await.unwrap();
             let status = res.status().as_u16();
             let retry = res.headers().get("retry-after").is_some();
             let v: Value = res.json().await.unwrap();
@@ -65,7 +66,8 @@ async fn two_hundred_concurrent_submissions_on_a_small_queue() {
     }
     let grown_mib = peak_rss_kib().saturating_sub(rss_before) / 1024;
     assert!(grown_mib < 512, "peak RSS grew by {grown_mib} MiB");
-    let list: Value = c.get(srv.url("/v1/bakes?limit=1000")).send().await.unwrap().json().await.unwrap();
+    let list: Value =
+        c.get(srv.url("/v1/bakes?limit=1000")).send().await.unwrap().json().await.unwrap();
     assert_eq!(list["items"].as_array().unwrap().len(), accepted.len(), "records ≠ accepted bakes");
     srv.stop().await;
 }
@@ -76,7 +78,7 @@ async fn canceling_a_running_4096_bake_stops_within_a_second() {
     let c = client();
     let png = noise_png8(4096, 4096, 3);
     let res = c
-        .post(srv.url("/v1/bakes?radius=8"))
+        .post(srv.url("/v1/bakes?radius=32"))
         .header("content-type", "image/png")
         .body(png)
         .send()

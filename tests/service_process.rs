@@ -33,10 +33,13 @@ fn spawn(data: &Path, extra: &[&str]) -> Proc {
         .stderr(Stdio::inherit())
         .spawn()
         .unwrap();
+    // Owned by `Proc` at once, so every path (a failed assert included) kills and reaps it.
+    let mut p = Proc { child, base: String::new() };
     let t = Instant::now();
     loop {
         if let Ok(a) = std::fs::read_to_string(&addr_file) {
-            return Proc { child, base: format!("http://{a}") };
+            p.base = format!("http://{a}");
+            return p;
         }
         assert!(t.elapsed() < Duration::from_secs(20), "server did not start");
         std::thread::sleep(Duration::from_millis(20));
@@ -64,8 +67,14 @@ async fn submit(c: &reqwest::Client, base: &str, png: &[u8], q: &str) -> (u16, V
 async fn wait_running(c: &reqwest::Client, base: &str) {
     let t = Instant::now();
     loop {
-        let v: Value =
-            c.get(format!("{base}/v1/bakes?status=running")).send().await.unwrap().json().await.unwrap();
+        let v: Value = c
+            .get(format!("{base}/v1/bakes?status=running"))
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
         if !v["items"].as_array().unwrap().is_empty() {
             return;
         }
@@ -98,7 +107,8 @@ async fn sigkill_with_bakes_queued_and_running_loses_nothing() {
         let p2 = spawn(&data, &[]);
         let mut out = Vec::new();
         for id in &ids {
-            let v = wait_done(&c, &format!("{}/v1/bakes/{id}", p2.base), Duration::from_secs(120)).await;
+            let v = wait_done(&c, &format!("{}/v1/bakes/{id}", p2.base), Duration::from_secs(120))
+                .await;
             assert_eq!(v["status"], "succeeded", "{v}");
             out.push(v);
         }
@@ -187,7 +197,8 @@ async fn downloads_are_byte_identical_to_the_cli() {
     cli("b", "png16");
     let p = spawn(&dir.path().join("data"), &[]);
     let c = client();
-    let (s, v) = submit(&c, &p.base, &png, "radius=12&height_scale=20&edge=none&encoding=sqrt").await;
+    let (s, v) =
+        submit(&c, &p.base, &png, "radius=12&height_scale=20&edge=none&encoding=sqrt").await;
     assert_eq!(s, 202);
     let url = format!("{}/v1/bakes/{}", p.base, v["id"].as_str().unwrap());
     assert_eq!(wait_done(&c, &url, Duration::from_secs(60)).await["status"], "succeeded");
@@ -203,7 +214,14 @@ async fn downloads_are_byte_identical_to_the_cli() {
     ];
     for (name, file) in pairs {
         let want = std::fs::read(dir.path().join(file)).unwrap();
-        let got = c.get(format!("{url}{}", result_path(name))).send().await.unwrap().bytes().await.unwrap();
+        let got = c
+            .get(format!("{url}{}", result_path(name)))
+            .send()
+            .await
+            .unwrap()
+            .bytes()
+            .await
+            .unwrap();
         assert!(got[..] == want[..], "{name} differs from the CLI's {file}");
     }
 }

@@ -198,14 +198,12 @@ mod tests {
         assert_eq!(c.queue_capacity, 64);
         assert_eq!(c.limits.max_dim, 16384);
         assert!(c.bake_threads >= 1);
-        let mut a = ServeArgs::default();
-        a.queue_capacity = 0;
+        let a = ServeArgs { queue_capacity: 0, ..Default::default() };
         match Config::from_args(a) {
             Err(Error::Param { field, .. }) => assert_eq!(field, "queue_capacity"),
             other => panic!("expected a parameter error, got {other:?}"),
         }
-        let mut a = ServeArgs::default();
-        a.addr = "nowhere".into();
+        let a = ServeArgs { addr: "nowhere".into(), ..Default::default() };
         match Config::from_args(a) {
             Err(Error::Param { field, .. }) => assert_eq!(field, "addr"),
             other => panic!("expected a parameter error, got {other:?}"),

@@ -1,6 +1,10 @@
 //! HTTP handlers: validate, call the store or the queue, answer. No pixel arithmetic here; the
 //! only CPU work a handler starts (the cube map) runs on a blocking thread.
 
+// `Problem` is the error answer itself, built at most once per request on the way out; boxing it
+// would add an allocation to every error path for no gain.
+#![allow(clippy::result_large_err)]
+
 use crate::cli::cubemap::CubeFormats;
 use crate::error::Error;
 use crate::heightmap;
@@ -36,13 +40,19 @@ fn store_err(e: Error) -> Problem {
 }
 
 /// Parses query pairs, rejecting names not in `allowed` and repeated names (422 naming them).
-fn query_map(pairs: Vec<(String, String)>, allowed: &[&str]) -> Result<HashMap<String, String>, Problem> {
+fn query_map(
+    pairs: Vec<(String, String)>,
+    allowed: &[&str],
+) -> Result<HashMap<String, String>, Problem> {
     let mut out = HashMap::new();
     for (k, v) in pairs {
         if !allowed.contains(&k.as_str()) {
             return Err(Problem::param(
                 k,
-                format!("unknown query parameter; this route accepts {}", if allowed.is_empty() { "none".to_owned() } else { allowed.join(", ") }),
+                format!(
+                    "unknown query parameter; this route accepts {}",
+                    if allowed.is_empty() { "none".to_owned() } else { allowed.join(", ") }
+                ),
             ));
         }
         if out.insert(k.clone(), v).is_some() {
@@ -100,16 +110,17 @@ pub fn resource(st: &AppState, rec: &BakeRecord) -> Value {
         (Some(l), s) if !s.is_terminal() => {
             let stage = l.progress.stage();
             let status = if l.running { Status::Running } else { Status::Queued };
-            (status, json!({"fraction": overall(stage, l.progress.fraction()), "stage": stage_name(stage)}))
+            (
+                status,
+                json!({"fraction": overall(stage, l.progress.fraction()), "stage": stage_name(stage)}),
+            )
         }
         (_, Status::Succeeded) => (Status::Succeeded, json!({"fraction": 1.0, "stage": "done"})),
         (_, s) if s.is_terminal() => (s, json!({"fraction": 0.0, "stage": "done"})),
         (_, s) => (s, json!({"fraction": 0.0, "stage": "queued"})),
     };
-    let mut params = params_of(rec)
-        .ok()
-        .and_then(|p| serde_json::to_value(p).ok())
-        .unwrap_or_else(|| json!({}));
+    let mut params =
+        params_of(rec).ok().and_then(|p| serde_json::to_value(p).ok()).unwrap_or_else(|| json!({}));
     if let (Some(obj), Some(r)) = (params.as_object_mut(), &rec.radius) {
         obj.insert("resolved_radius".into(), json!({"texels": r.texels, "reason": r.reason}));
     }
@@ -205,18 +216,48 @@ fn body_error(e: &(dyn std::error::Error + 'static)) -> Problem {
     Problem::new(StatusCode::BAD_REQUEST, "bad_request", "the request body could not be read")
 }
 
-async fn read_multipart(st: &AppState, req: Request) -> Result<(Vec<u8>, BakeParams), Problem> {
-    if !req.uri().query().unwrap_or("").is_empty() {
-        return Err(Problem::param(
-            "params",
-            "with a multipart upload, send the parameters in the `params` part, not the query",
-        ));
+fn query_params(uri: &axum::http::Uri) -> Result<BakeParams, Problem> {
+    let pairs: Vec<(String, String)> = match Query::<Vec<(String, String)>>::try_from_uri(uri) {
+        Ok(Query(p)) => p,
+        Err(_) => return Err(Problem::param("query", "the query string is malformed")),
+    };
+    BakeParams::from_pairs(pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
+        .map_err(Problem::from)
+}
+
+/// Applies the keys present in a multipart `params` JSON object on top of `base` (the query's),
+/// so the JSON part wins where both name a parameter.
+fn merge_json(base: BakeParams, text: &[u8]) -> Result<BakeParams, Problem> {
+    if text.iter().all(u8::is_ascii_whitespace) {
+        return Ok(base);
     }
+    let v: Value = serde_json::from_slice(text)
+        .map_err(|e| Problem::param("params", format!("not valid JSON: {e}")))?;
+    let from_json = BakeParams::from_json(&v).map_err(Problem::from)?;
+    let given: Vec<&String> = v
+        .as_object()
+        .map(|o| o.iter().filter(|(_, x)| !x.is_null()).map(|(k, _)| k).collect())
+        .unwrap_or_default();
+    let mut merged = base;
+    for (k, val) in from_json.to_pairs() {
+        if given.iter().any(|g| g.as_str() == k) {
+            merged.set(k, &val).map_err(Problem::from)?;
+        }
+    }
+    Ok(merged)
+}
+
+async fn read_multipart(st: &AppState, req: Request) -> Result<(Vec<u8>, BakeParams), Problem> {
+    let query = query_params(req.uri())?;
     let mut mp = axum::extract::Multipart::from_request(req, st).await.map_err(|e| {
-        Problem::new(StatusCode::BAD_REQUEST, "bad_request", format!("malformed multipart body: {}", e.body_text()))
+        Problem::new(
+            StatusCode::BAD_REQUEST,
+            "bad_request",
+            format!("malformed multipart body: {}", e.body_text()),
+        )
     })?;
     let mut image: Option<Vec<u8>> = None;
-    let mut params = BakeParams::default();
+    let mut params = query.clone();
     loop {
         let field = match mp.next_field().await {
             Ok(Some(f)) => f,
@@ -233,9 +274,7 @@ async fn read_multipart(st: &AppState, req: Request) -> Result<(Vec<u8>, BakePar
             }
             "params" => {
                 let text = field.bytes().await.map_err(|e| multipart_error(&e))?;
-                let v: Value = serde_json::from_slice(&text)
-                    .map_err(|e| Problem::param("params", format!("not valid JSON: {e}")))?;
-                params = BakeParams::from_json(&v).map_err(Problem::from)?;
+                params = merge_json(query.clone(), &text)?;
             }
             other => {
                 return Err(Problem::param(
@@ -245,7 +284,8 @@ async fn read_multipart(st: &AppState, req: Request) -> Result<(Vec<u8>, BakePar
             }
         }
     }
-    let image = image.ok_or_else(|| Problem::param("heightmap", "the multipart body has no `heightmap` part"))?;
+    let image = image
+        .ok_or_else(|| Problem::param("heightmap", "the multipart body has no `heightmap` part"))?;
     Ok((image, params))
 }
 
@@ -257,7 +297,11 @@ fn multipart_error(e: &axum::extract::multipart::MultipartError) -> Problem {
             "the request body is larger than the server accepts (max_body_bytes)",
         );
     }
-    Problem::new(StatusCode::BAD_REQUEST, "bad_request", format!("malformed multipart body: {}", e.body_text()))
+    Problem::new(
+        StatusCode::BAD_REQUEST,
+        "bad_request",
+        format!("malformed multipart body: {}", e.body_text()),
+    )
 }
 
 async fn read_raw(st: &AppState, req: Request, ct: &str) -> Result<(Vec<u8>, BakeParams), Problem> {
@@ -268,12 +312,7 @@ async fn read_raw(st: &AppState, req: Request, ct: &str) -> Result<(Vec<u8>, Bak
         ))
         .into());
     }
-    let pairs: Vec<(String, String)> = match Query::<Vec<(String, String)>>::try_from_uri(req.uri()) {
-        Ok(Query(p)) => p,
-        Err(_) => return Err(Problem::param("query", "the query string is malformed")),
-    };
-    let params = BakeParams::from_pairs(pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
-        .map_err(Problem::from)?;
+    let params = query_params(req.uri())?;
     let limit = usize::try_from(st.0.config.max_body_bytes).unwrap_or(usize::MAX);
     let bytes = axum::body::to_bytes(req.into_body(), limit).await.map_err(|e| body_error(&e))?;
     Ok((bytes.to_vec(), params))
@@ -303,18 +342,21 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
     if st.is_draining() {
         return Err(Problem::shutting_down());
     }
-    let _upload = match tokio::time::timeout(st.0.config.upload_wait, st.0.uploads.clone().acquire_owned()).await {
-        Ok(Ok(p)) => p,
-        _ => {
-            let mut p = Problem::new(
-                StatusCode::TOO_MANY_REQUESTS,
-                "too_many_uploads",
-                "too many uploads in progress; retry later",
-            );
-            p.retry_after = Some(1);
-            return Err(p);
-        }
-    };
+    let _upload =
+        match tokio::time::timeout(st.0.config.upload_wait, st.0.uploads.clone().acquire_owned())
+            .await
+        {
+            Ok(Ok(p)) => p,
+            _ => {
+                let mut p = Problem::new(
+                    StatusCode::TOO_MANY_REQUESTS,
+                    "too_many_uploads",
+                    "too many uploads in progress; retry later",
+                );
+                p.retry_after = Some(1);
+                return Err(p);
+            }
+        };
     let ct = req
         .headers()
         .get(header::CONTENT_TYPE)
@@ -421,7 +463,12 @@ pub async fn list(State(st): State<AppState>, Query(q): Query<Vec<(String, Strin
         None => 50,
         Some(v) => match v.parse::<usize>() {
             Ok(n) if (1..=1000).contains(&n) => n,
-            _ => return Err(Problem::param("limit", format!("`{v}` is not a whole number from 1 to 1000"))),
+            _ => {
+                return Err(Problem::param(
+                    "limit",
+                    format!("`{v}` is not a whole number from 1 to 1000"),
+                ))
+            }
         },
     };
     let status = match q.get("status") {
@@ -435,7 +482,8 @@ pub async fn list(State(st): State<AppState>, Query(q): Query<Vec<(String, Strin
         }
     }
     let store = st.0.bakes.clone();
-    let page = blocking(move || store.list(status, cursor.as_deref(), limit)).await.map_err(store_err)?;
+    let page =
+        blocking(move || store.list(status, cursor.as_deref(), limit)).await.map_err(store_err)?;
     let items: Vec<Value> = page.items.iter().map(|r| resource(&st, r)).collect();
     let next = page.next.map(|c| {
         let mut link = format!("/v1/bakes?limit={limit}&cursor={c}");
@@ -620,7 +668,8 @@ pub async fn events(
             match snapshot(&w.st, &w.id).await {
                 None => {
                     w.done = true;
-                    let ev = Event::default().event("deleted").data(json!({"id": w.id}).to_string());
+                    let ev =
+                        Event::default().event("deleted").data(json!({"id": w.id}).to_string());
                     return Some((Ok(ev), w));
                 }
                 Some((status, res)) if status.is_terminal() => {
@@ -629,8 +678,9 @@ pub async fn events(
                     return Some((Ok(ev), w));
                 }
                 Some((status, res)) => {
-                    let text = json!({"id": w.id, "status": status.as_str(), "progress": res["progress"]})
-                        .to_string();
+                    let text =
+                        json!({"id": w.id, "status": status.as_str(), "progress": res["progress"]})
+                            .to_string();
                     if w.last.as_ref() != Some(&text) {
                         w.last = Some(text.clone());
                         return Some((Ok(Event::default().event("progress").data(text)), w));
@@ -669,9 +719,10 @@ async fn blob_response(
     } else {
         let blobs = st.0.blobs.clone();
         let key = hash.to_owned();
-        let bytes = blocking(move || blobs.get(&key)).await.map_err(store_err)?.ok_or_else(|| {
-            Problem::internal(&format!("result blob {hash} is missing from the blob store"))
-        })?;
+        let bytes =
+            blocking(move || blobs.get(&key)).await.map_err(store_err)?.ok_or_else(|| {
+                Problem::internal(&format!("result blob {hash} is missing from the blob store"))
+            })?;
         let mut r = Response::new(Body::from(bytes));
         r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
         if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"{filename}\"")) {
@@ -682,8 +733,10 @@ async fn blob_response(
     if let Ok(v) = HeaderValue::from_str(&etag) {
         res.headers_mut().insert(header::ETAG, v);
     }
-    res.headers_mut()
-        .insert(header::CACHE_CONTROL, HeaderValue::from_static("private, max-age=31536000, immutable"));
+    res.headers_mut().insert(
+        header::CACHE_CONTROL,
+        HeaderValue::from_static("private, max-age=31536000, immutable"),
+    );
     Ok(res)
 }
 
@@ -722,7 +775,11 @@ pub async fn horizon_layer(
         }
     };
     let rec = finished(&st, &id).await?;
-    let name = if ext == "exr" { format!("horizon_{layer}.exr") } else { format!("horizon_{layer}.{format}") };
+    let name = if ext == "exr" {
+        format!("horizon_{layer}.exr")
+    } else {
+        format!("horizon_{layer}.{format}")
+    };
     let hash = rec
         .results
         .get(&name)
@@ -730,7 +787,14 @@ pub async fn horizon_layer(
     blob_response(&st, &headers, hash, content_type, &format!("horizon_{layer}.{ext}")).await
 }
 
-async fn horizon_texture(st: AppState, id: String, q: Vec<(String, String)>, headers: HeaderMap, name: &'static str, content_type: &'static str) -> Answer {
+async fn horizon_texture(
+    st: AppState,
+    id: String,
+    q: Vec<(String, String)>,
+    headers: HeaderMap,
+    name: &'static str,
+    content_type: &'static str,
+) -> Answer {
     query_map(q, &[])?;
     let rec = finished(&st, &id).await?;
     let hash = rec
@@ -769,7 +833,9 @@ fn cube_size(st: &AppState, q: &HashMap<String, String>) -> Result<usize, Proble
         None => Ok(16),
         Some(v) => match v.parse::<usize>() {
             Ok(n) if (1..=max).contains(&n) => Ok(n),
-            _ => Err(Problem::param("size", format!("`{v}` is not a whole number from 1 to {max}"))),
+            _ => {
+                Err(Problem::param("size", format!("`{v}` is not a whole number from 1 to {max}")))
+            }
         },
     }
 }
@@ -833,7 +899,8 @@ pub async fn cubemap_ktx2(
 ) -> Answer {
     let q = query_map(q, &["size"])?;
     let size = cube_size(&st, &q)?;
-    cube_answer(&headers, size, CubeFormats { png8: false, ktx2: true, dds: false }, 0, KTX2_TYPE).await
+    cube_answer(&headers, size, CubeFormats { png8: false, ktx2: true, dds: false }, 0, KTX2_TYPE)
+        .await
 }
 
 /// `GET /v1/cubemap.dds?size=N`: the six faces as one RGBA8 SNORM DDS cube map.
@@ -844,7 +911,8 @@ pub async fn cubemap_dds(
 ) -> Answer {
     let q = query_map(q, &["size"])?;
     let size = cube_size(&st, &q)?;
-    cube_answer(&headers, size, CubeFormats { png8: false, ktx2: false, dds: true }, 0, DDS_TYPE).await
+    cube_answer(&headers, size, CubeFormats { png8: false, ktx2: false, dds: true }, 0, DDS_TYPE)
+        .await
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -883,7 +951,10 @@ pub async fn metrics(State(st): State<AppState>) -> Answer {
                 None => break,
             }
         }
-        Ok(Status::ALL.iter().map(|s| (*s, counts.get(s).copied().unwrap_or(0))).collect::<Vec<_>>())
+        Ok(Status::ALL
+            .iter()
+            .map(|s| (*s, counts.get(s).copied().unwrap_or(0)))
+            .collect::<Vec<_>>())
     })
     .await
     .map_err(store_err)?;

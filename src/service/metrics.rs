@@ -92,15 +92,18 @@ impl Metrics {
         for (st, n) in stored {
             let _ = writeln!(s, "horizon_bakes{{status=\"{}\"}} {n}", st.as_str());
         }
-        let _ = writeln!(s, "# HELP horizon_bakes_finished_total Bakes that reached a final state.");
+        let _ =
+            writeln!(s, "# HELP horizon_bakes_finished_total Bakes that reached a final state.");
         let _ = writeln!(s, "# TYPE horizon_bakes_finished_total counter");
         for st in [Status::Succeeded, Status::Failed, Status::Canceled] {
             let n = self.finished[status_index(st)].load(Ordering::Relaxed);
             let _ = writeln!(s, "horizon_bakes_finished_total{{status=\"{}\"}} {n}", st.as_str());
         }
-        let _ = writeln!(s, "# HELP horizon_bakes_submitted_total Submissions that created a bake.");
+        let _ =
+            writeln!(s, "# HELP horizon_bakes_submitted_total Submissions that created a bake.");
         let _ = writeln!(s, "# TYPE horizon_bakes_submitted_total counter");
-        let _ = writeln!(s, "horizon_bakes_submitted_total {}", self.submitted.load(Ordering::Relaxed));
+        let _ =
+            writeln!(s, "horizon_bakes_submitted_total {}", self.submitted.load(Ordering::Relaxed));
         let _ = writeln!(
             s,
             "# HELP horizon_bakes_deduplicated_total Submissions answered with an existing bake."
@@ -117,7 +120,10 @@ impl Metrics {
         let _ = writeln!(s, "# HELP horizon_bakes_running Bakes on the bake pool now.");
         let _ = writeln!(s, "# TYPE horizon_bakes_running gauge");
         let _ = writeln!(s, "horizon_bakes_running {running}");
-        let _ = writeln!(s, "# HELP horizon_bake_duration_seconds Time from a worker taking a bake to its outcome.");
+        let _ = writeln!(
+            s,
+            "# HELP horizon_bake_duration_seconds Time from a worker taking a bake to its outcome."
+        );
         let _ = writeln!(s, "# TYPE horizon_bake_duration_seconds histogram");
         for (b, le) in self.buckets.iter().zip(DURATION_BUCKETS) {
             let _ = writeln!(

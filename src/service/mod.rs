@@ -195,7 +195,10 @@ impl AppState {
         let grace = self.0.config.shutdown_grace;
         if tokio::time::timeout(grace, self.0.tracker.wait()).await.is_err() {
             let ids = self.0.queue.running_ids();
-            tracing::warn!(count = ids.len(), "grace period over: returning running bakes to the queue");
+            tracing::warn!(
+                count = ids.len(),
+                "grace period over: returning running bakes to the queue"
+            );
             for id in ids {
                 self.0.queue.cancel_running(&id, true);
             }

@@ -132,7 +132,10 @@ impl BakeRecord {
 
 /// Unix milliseconds now.
 pub fn now_ms() -> u64 {
-    SystemTime::now().duration_since(SystemTime::UNIX_EPOCH).map(|d| d.as_millis() as u64).unwrap_or(0)
+    SystemTime::now()
+        .duration_since(SystemTime::UNIX_EPOCH)
+        .map(|d| d.as_millis() as u64)
+        .unwrap_or(0)
 }
 
 /// One page of a listing.
@@ -269,7 +272,9 @@ impl BakeStore for RedbStore {
         let tx = self.db.begin_read().map_err(db_err)?;
         let bakes = tx.open_table(BAKES).map_err(db_err)?;
         let iter = match after {
-            Some(a) => bakes.range::<&str>((std::ops::Bound::Excluded(a), std::ops::Bound::Unbounded)),
+            Some(a) => {
+                bakes.range::<&str>((std::ops::Bound::Excluded(a), std::ops::Bound::Unbounded))
+            }
             None => bakes.range::<&str>(..),
         }
         .map_err(db_err)?;
@@ -449,13 +454,19 @@ mod tests {
                 s.put(&rec(&format!("id{i}"), &format!("k{i}"), *st)).unwrap();
             }
             let page = s.list(None, None, 2).unwrap();
-            assert_eq!(page.items.iter().map(|r| r.id.as_str()).collect::<Vec<_>>(), ["id0", "id1"]);
+            assert_eq!(
+                page.items.iter().map(|r| r.id.as_str()).collect::<Vec<_>>(),
+                ["id0", "id1"]
+            );
             assert_eq!(page.next.as_deref(), Some("id1"));
             let page = s.list(None, page.next.as_deref(), 2).unwrap();
             assert_eq!(page.items.len(), 1);
             assert_eq!(page.next, None);
             let queued = s.list(Some(Status::Queued), None, 10).unwrap();
-            assert_eq!(queued.items.iter().map(|r| r.id.as_str()).collect::<Vec<_>>(), ["id0", "id2"]);
+            assert_eq!(
+                queued.items.iter().map(|r| r.id.as_str()).collect::<Vec<_>>(),
+                ["id0", "id2"]
+            );
         }
         let s = RedbStore::open(&path).unwrap();
         assert_eq!(s.get("id1").unwrap().unwrap().status, Status::Succeeded);

@@ -176,11 +176,10 @@ fn execute(st: &AppState, mut rec: BakeRecord, progress: &Progress) -> Result<Ba
 
     progress.start(Stage::Decode, 1);
     let t = Instant::now();
-    let bytes = st
-        .0
-        .blobs
-        .get(&rec.input_blob)?
-        .ok_or_else(|| Error::Internal(format!("input blob {} is missing", rec.input_blob)))?;
+    let bytes =
+        st.0.blobs
+            .get(&rec.input_blob)?
+            .ok_or_else(|| Error::Internal(format!("input blob {} is missing", rec.input_blob)))?;
     let (map, info) = heightmap::decode(&bytes, params.channel, &st.0.config.limits)?;
     drop(bytes);
     progress.advance(1);
@@ -202,7 +201,8 @@ fn execute(st: &AppState, mut rec: BakeRecord, progress: &Progress) -> Result<Ba
         dds: true,
         texture_precision: TexturePrecision::Unorm8,
     };
-    let wide = Formats { png8: false, png16: true, exr: false, ktx2: false, dds: false, ..main_formats };
+    let wide =
+        Formats { png8: false, png16: true, exr: false, ktx2: false, dds: false, ..main_formats };
     let mut encoded: Vec<(String, Vec<u8>)> = Vec::with_capacity(HORIZON_RESULTS.len());
     for (formats, png_suffix) in [(main_formats, "png8"), (wide, "png16")] {
         if progress.is_canceled() {

@@ -4,12 +4,12 @@
 use horizon_bake::bake::{self, Precisions};
 use horizon_bake::encode::png::{encode16, encode8, PngColor};
 use horizon_bake::encode::{self, Formats, TexturePrecision};
-use std::collections::BTreeMap;
 use horizon_bake::heightmap::{self, Limits};
 use horizon_bake::params::BakeParams;
 use horizon_bake::progress::Progress;
 use horizon_bake::service::{self, AppState, Config};
 use serde_json::Value;
+use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
 /// SplitMix64, as tests/common does.
@@ -63,8 +63,7 @@ pub fn noise_png8(w: usize, h: usize, seed: u64) -> Vec<u8> {
 pub fn library_files(png: &[u8], pairs: &[(&str, &str)]) -> BTreeMap<String, Vec<u8>> {
     let params = BakeParams::from_pairs(pairs.iter().copied()).unwrap();
     let (map, _) = heightmap::decode(png, params.channel, &Limits::default()).unwrap();
-    let (layers, _) =
-        bake::bake_horizon(&map, &params, Precisions::ALL, &Progress::new()).unwrap();
+    let (layers, _) = bake::bake_horizon(&map, &params, Precisions::ALL, &Progress::new()).unwrap();
     let mut out = BTreeMap::new();
     let all = Formats::parse("png8,exr,ktx2,dds", TexturePrecision::Unorm8).unwrap();
     let wide = Formats::parse("png16", TexturePrecision::Unorm8).unwrap();
