@@ -7,7 +7,9 @@
 //! default), a terrain-like map; a white-noise map is timed too, the worst case for skipping.
 //!
 //! Build once with `cargo bench --bench exact --no-run`, then run the binary it names.
-//! Arguments: `[size]` (default 2048).
+//! Arguments: `[size] [radius]` (default 2048, every radius). The "cpu ms" column is the process
+//! CPU time (all threads, from /proc/self/stat): on a shared machine it is the fairer figure.
+//! At the current speed the `unlimited` rows take minutes at 2048²; `1024 unlimited` is quicker.
 
 use horizon_bake::kernels::exact::{ExactHorizon, ExactMarch};
 use horizon_bake::kernels::{compute_all, Grid};
@@ -77,12 +79,25 @@ fn plain_scaled(grid: Grid<'_>, radius: Option<u32>, bins: u32, crop: usize) -> 
     t.elapsed().as_secs_f64() * (grid.width * grid.height) as f64 / (crop * crop) as f64
 }
 
+/// CPU seconds used by this process so far (all threads), from /proc/self/stat: on a shared
+/// machine wall time alone overstates the cost.
+fn cpu_secs() -> f64 {
+    let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+    let after = stat.rsplit(')').next().unwrap_or("");
+    let f: Vec<&str> = after.split_whitespace().collect();
+    let tick = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+    // Fields 14 and 15 (utime, stime) are the 12th and 13th after the command name.
+    (tick(11) + tick(12)) / 100.0
+}
+
 fn main() {
     let n: usize = std::env::args().nth(1).and_then(|a| a.parse().ok()).unwrap_or(2048);
+    // Optional second argument: only the rows whose radius is this ("unlimited" or a number).
+    let only: Option<String> = std::env::args().nth(2);
     let threads = rayon::current_num_threads();
     let scale = 8.0f32;
-    println!("| map | method | size | radius | bins | threads | ms | Mtexel/s | × plain march |");
-    println!("|---|---|---|---|---|---|---|---|---|");
+    println!("| map | method | size | radius | bins | threads | ms | cpu ms | Mtexel/s | Mtexel/s per cpu-s | × plain march |");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|");
     for (map_name, values) in [("fbm", fbm(n)), ("white", white(n))] {
         let heights: Vec<f32> = values.iter().map(|v| v * scale).collect();
         let grid = Grid::new(n, n, &heights, Edge::Wrap, YAxis::Up);
@@ -92,19 +107,25 @@ fn main() {
             &[None, Some(32)]
         };
         for &radius in radii {
+            let r = radius.map_or("unlimited".to_string(), |r| r.to_string());
+            if only.as_ref().is_some_and(|o| *o != r) {
+                continue;
+            }
             let bins = 32u32;
-            let t = Instant::now();
+            let (t, c0) = (Instant::now(), cpu_secs());
             let k = ExactHorizon::new(grid, radius, bins, Reduce::Average);
             let out = compute_all(&k, &Progress::new()).expect("not canceled");
             let secs = t.elapsed().as_secs_f64();
+            let cpu = cpu_secs() - c0;
             std::hint::black_box(&out);
             let crop = if radius.is_none() { 16 } else { 48 };
             let plain = plain_scaled(grid, radius, bins, crop);
-            let r = radius.map_or("unlimited".to_string(), |r| r.to_string());
             println!(
-                "| {map_name} | exact (pyramid) | {n}² | {r} | {bins} | {threads} | {:.0} | {:.2} | {:.1} (plain: {crop}² crop, 1 thread, scaled: {:.0} ms) |",
+                "| {map_name} | exact | {n}² | {r} | {bins} | {threads} | {:.0} | {:.0} | {:.2} | {:.2} | {:.1} (plain: {crop}² crop, 1 thread, scaled: {:.0} ms) |",
                 secs * 1e3,
+                cpu * 1e3,
                 (n * n) as f64 / secs / 1e6,
+                (n * n) as f64 / cpu.max(1e-3) / 1e6,
                 plain / secs,
                 plain * 1e3
             );

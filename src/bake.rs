@@ -84,10 +84,12 @@ pub fn resolve_radius(
 }
 
 /// Builds the kernel a method and resolved radius mean.
+/// Kernels that can stop inside a band watch `progress` for a cancel.
 pub fn make_kernel<'a>(
     params: &BakeParams,
     grid: Grid<'a>,
     radius: u32,
+    progress: &Progress,
 ) -> Box<dyn HorizonRows + 'a> {
     match params.method {
         Method::Lengyel => {
@@ -97,7 +99,10 @@ pub fn make_kernel<'a>(
             // Unlimited means "to the map edge" with edge=none, which can be longer than
             // max(W, H) on a diagonal; the kernel resolves it itself.
             let r = (params.radius != Radius::Unlimited).then_some(radius);
-            Box::new(kernels::exact::ExactHorizon::new(grid, r, params.bins, params.reduce))
+            Box::new(
+                kernels::exact::ExactHorizon::new(grid, r, params.bins, params.reduce)
+                    .with_cancel(progress),
+            )
         }
     }
 }
@@ -115,7 +120,7 @@ pub fn bake_horizon(
     let heights = map.scaled(params.height_scale);
     let radius = resolve_radius(params, map.width, map.height, &heights);
     let grid = Grid::new(map.width, map.height, &heights, params.edge, params.y_axis);
-    let kernel = make_kernel(params, grid, radius.texels);
+    let kernel = make_kernel(params, grid, radius.texels, progress);
     progress.start(Stage::Bake, map.height as u64);
     let layers = run_into_layers(kernel.as_ref(), params.encoding, precisions, progress)?;
     Ok((layers, radius))
@@ -197,4 +202,49 @@ pub fn layers_to_channels(layers: &[Vec<f32>; 2]) -> Vec<f32> {
         out.extend_from_slice(b);
     }
     out
+}
+
+/// Bakes the Fourier horizon encoding (SPEC §3.4): the kernel's per-bin horizon s(φ_n) of each
+/// band is projected on `fourier_terms` basis functions and stored companded in 8-bit layers
+/// (layout and formulas in [`kernels::fourier`]). `encoding` does not apply: the coefficients
+/// have their own companding.
+///
+/// # Errors
+/// [`crate::Error::Canceled`] when `progress` is canceled.
+pub fn bake_fourier(
+    map: &HeightMap,
+    params: &BakeParams,
+    progress: &Progress,
+) -> Result<(kernels::fourier::FourierLayers, ResolvedRadius)> {
+    use kernels::fourier::{encode_texel, FourierLayers, Projector, MAX_TERMS};
+    let heights = map.scaled(params.height_scale);
+    let radius = resolve_radius(params, map.width, map.height, &heights);
+    let grid = Grid::new(map.width, map.height, &heights, params.edge, params.y_axis);
+    let kernel = make_kernel(params, grid, radius.texels, progress);
+    let (w, h, nb) = (kernel.width(), kernel.height(), kernel.bins());
+    let terms = params.fourier_terms as usize;
+    let range = params.fourier_range;
+    let projector = Projector::new(nb, terms);
+    let mut bands = vec![0u8; w * h * 4];
+    let mut constant = vec![0u8; w * h];
+    let mut high = (terms > 5).then(|| vec![0u8; w * h * 4]);
+    let band = kernels::band_rows(w, h);
+    progress.start(Stage::Fourier, h as u64);
+    {
+        let b4 = split(&mut bands, band * w * 4);
+        let b1 = split(&mut constant, band * w);
+        let bh = high.as_mut().map(|v| split(v, band * w * 4));
+        kernels::run_bands(kernel.as_ref(), band, true, progress, |bi, band: Band<'_>| {
+            let Some(bins) = band.bins else { return };
+            let (Ok(mut d4), Ok(mut d1)) = (b4[bi].lock(), b1[bi].lock()) else { return };
+            let mut dh = bh.as_ref().and_then(|v| v[bi].lock().ok());
+            let mut c = [0.0f64; MAX_TERMS];
+            for (t, s) in bins.chunks_exact(nb).enumerate() {
+                projector.project(s, &mut c);
+                let hi = dh.as_mut().map(|d| &mut d[t * 4..t * 4 + 4]);
+                encode_texel(&c, terms, range, &mut d4[t * 4..t * 4 + 4], &mut d1[t], hi);
+            }
+        })?;
+    }
+    Ok((FourierLayers { width: w, height: h, terms, range, bands, constant, high }, radius))
 }

@@ -10,6 +10,7 @@
 //!   version), the exact line-of-sight horizon, the channel-factor cube map, Fourier encoding and
 //!   the shading used by previews.
 //! - [`encode`]: PNG 8/16, OpenEXR, KTX2 and DDS writers.
+//! - [`preview`]: the CPU preview of the shading (and the contact sheet), as PNG.
 //! - [`bake`]: one bake = parameters → kernels → encoded outputs, with progress and cancellation.
 //! - [`cli`]: the `horizon-bake` subcommands, thin wrappers over the above.
 //! - [`service`]: the HTTP job service (axum): queue, rayon bake pool, store, problem+json.
@@ -22,6 +23,7 @@ pub mod error;
 pub mod heightmap;
 pub mod kernels;
 pub mod params;
+pub mod preview;
 pub mod progress;
 pub mod service;
 

@@ -263,7 +263,8 @@ fn bad_flags_and_inputs_fail_with_one_line_and_leave_dir_alone() {
         (vec!["bake", good, "-o", d, "--format", "png8,jpeg"], "format"),
         (vec!["bake", good, "-o", d, "--format", "png8,png16"], "format"),
         (vec!["bake", good, "-o", d, "--texture-precision", "unorm4"], "texture_precision"),
-        (vec!["bake", good, "-o", d, "--outputs", "horizon,fourier"], "outputs"),
+        (vec!["bake", good, "-o", d, "--outputs", "horizon,normals"], "outputs"),
+        (vec!["bake", good, "-o", d, "--fourier-terms", "4"], "fourier_terms"),
         (vec!["bake", good, "-o", d, "--max-dim", "32"], "64×64"),
         (vec!["bake", jpeg.to_str().unwrap(), "-o", d], "JPG"),
         (vec!["bake", truncated.to_str().unwrap(), "-o", d], "truncated"),
@@ -351,4 +352,68 @@ fn cubemap_writes_golden_faces_ktx2_and_dds() {
         ["cube_0.png", "cube_1.png", "cube_2.png", "cube_3.png", "cube_4.png", "cube_5.png"]
     );
     assert_eq!(image::open(out2.join("cube_0.png")).unwrap().width(), 16);
+}
+
+#[test]
+fn fourier_outputs_are_written_alone_or_beside_the_layers() {
+    use horizon_bake::{bake, heightmap, params::BakeParams, progress::Progress};
+    let tmp = tempfile::tempdir().unwrap();
+    let good = common::golden_dir().join("inputs/bump64.png");
+    let only = tmp.path().join("only");
+    let o = run(&[
+        "bake",
+        good.to_str().unwrap(),
+        "-o",
+        only.to_str().unwrap(),
+        "--radius",
+        "6",
+        "--outputs",
+        "fourier",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let names: Vec<String> = listing(&only).into_iter().map(|(n, _)| n).collect();
+    // Asking only for Fourier encodes no horizon layers.
+    assert_eq!(names, ["bake.json", "fourier_0.png", "fourier_1.png"]);
+    let report: Value =
+        serde_json::from_slice(&std::fs::read(only.join("bake.json")).unwrap()).unwrap();
+    assert_eq!(report["params"]["resolved_radius"]["texels"], 6);
+
+    // The files hold exactly what the library's Fourier bake produces.
+    let params = BakeParams::from_pairs([("radius", "6"), ("outputs", "fourier")]).unwrap();
+    let bytes = std::fs::read(&good).unwrap();
+    let (map, _) = heightmap::decode(&bytes, params.channel, &Default::default()).unwrap();
+    let (layers, _) = bake::bake_fourier(&map, &params, &Progress::new()).unwrap();
+    let f0 = image::open(only.join("fourier_0.png")).unwrap();
+    assert_eq!(f0.color(), image::ColorType::Rgba8);
+    assert_eq!(f0.to_rgba8().into_raw(), layers.bands);
+    let f1 = image::open(only.join("fourier_1.png")).unwrap();
+    assert_eq!(f1.color(), image::ColorType::L8);
+    assert_eq!(f1.to_luma8().into_raw(), layers.constant);
+
+    let both = tmp.path().join("both");
+    let o = run(&[
+        "bake",
+        good.to_str().unwrap(),
+        "-o",
+        both.to_str().unwrap(),
+        "--radius",
+        "6",
+        "--outputs",
+        "horizon,fourier",
+        "--fourier-terms",
+        "9",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let names: Vec<String> = listing(&both).into_iter().map(|(n, _)| n).collect();
+    assert_eq!(
+        names,
+        [
+            "bake.json",
+            "fourier_0.png",
+            "fourier_1.png",
+            "fourier_2.png",
+            "horizon_0.png",
+            "horizon_1.png"
+        ]
+    );
 }

@@ -7,8 +7,8 @@
 //! at s = 1e-7, 1e-5, 1e-3 (the supremum may be the limit s → 0⁺, the slope at the texel), so it
 //! approaches the definition from below with an error of order h''·δ²/8 ≈ 1e-4 in tan α on the
 //! spikiest maps here. Stated and asserted, per bin:
-//! - never below the oracle: sin α_kernel ≥ sin α_march − 1e-6 (the supremum is at least any
-//!   sample of it);
+//! - never below the oracle: sin α_kernel ≥ sin α_march − 1e-5 (the supremum is at least any
+//!   sample of it; 1e-5 covers the f32 arithmetic of the vectorised near field);
 //! - |α_kernel − α_march| ≤ 0.01° (≈ 0.044 LSB of an 8-bit output near the horizon, where
 //!   1 LSB = 1/255 in sin α ≈ 0.225°);
 //! - 8-bit outputs (floor(s·255 + 0.5)) differ by at most 1 LSB, and on at most 0.5 % of values
@@ -94,7 +94,7 @@ fn march(g: &Grid<'_>, x: usize, y: usize, phi: f64, radius: Option<f64>) -> f64
         k += 1;
     }
     eval(far);
-    for (p, d) in [(x0, dx), (y0, dy)] {
+    for d in [dx, dy] {
         if d != 0.0 {
             let mut i = 1;
             while i as f64 / d.abs() <= far {
@@ -119,10 +119,12 @@ fn random_map(rng: &mut Rng, w: usize, h: usize, spiky: bool) -> Vec<f32> {
         let mut v = vec![0.0f32; w * h];
         for _ in 0..3 {
             let (fx, fy) = (rng.range(0, 2) as f32, rng.range(0, 2) as f32);
-            let (a, p) = (3.0 * rng.f32(), 6.28 * rng.f32());
+            let (a, p) = (3.0 * rng.f32(), std::f32::consts::TAU * rng.f32());
             for r in 0..h {
                 for c in 0..w {
-                    let t = 6.283 * (fx * c as f32 / w as f32 + fy * r as f32 / h as f32) + p;
+                    let t = std::f32::consts::TAU
+                        * (fx * c as f32 / w as f32 + fy * r as f32 / h as f32)
+                        + p;
                     v[r * w + c] += a * t.sin();
                 }
             }
@@ -156,7 +158,7 @@ fn check_against_march<K: HorizonRows>(
                 let want = march(g, x, y, phi, radius);
                 let got = bins[x * b + n] as f64;
                 assert!(
-                    got >= want - 1e-6,
+                    got >= want - 1e-5,
                     "{name}: texel ({x},{y}) bin {n}: {got} below the march {want}"
                 );
                 let d = (got.asin() - want.asin()).abs().to_degrees();
@@ -225,20 +227,31 @@ fn fast_kernel_equals_plain_oracle_on_larger_maps() {
         (31, 31, Edge::Wrap, Some(9)),
         (25, 44, Edge::None, Some(20)),
         (64, 3, Edge::Wrap, None),
+        // Rays longer than the vectorised near field (256 texels) continue with the scalar walk.
+        (300, 4, Edge::Wrap, None),
+        (290, 3, Edge::None, None),
+        (263, 5, Edge::Wrap, Some(262)),
+        (70, 9, Edge::Wrap, Some(100)),
+        (60, 50, Edge::None, None),
+        (53, 7, Edge::None, Some(60)),
     ] {
         for spiky in [false, true] {
             let heights = random_map(&mut rng, w, h, spiky);
             let g = Grid::new(w, h, &heights, edge, YAxis::Up);
             let fast = ExactHorizon::new(g, radius, 32, Reduce::Point);
             let plain = ExactMarch::new(g, radius, 32, Reduce::Point);
-            let (mut a, mut b) = (vec![0f32; 32], vec![0f32; 32]);
+            // `rows` is the production path: the f32 near field over strips of texels and the
+            // seeded far-field walk; culling and skipping must not change the result.
+            let (mut ch, mut fast_bins, mut b) =
+                (vec![0f32; w * 8], vec![0f32; w * 32], vec![0f32; 32]);
             for y in 0..h {
+                fast.rows(y, &mut ch, Some(&mut fast_bins));
                 for x in 0..w {
-                    fast.texel_bins(x, y, &mut a);
+                    let a = &fast_bins[x * 32..(x + 1) * 32];
                     plain.texel_bins(x, y, &mut b);
                     for n in 0..32 {
                         assert!(
-                            (a[n] - b[n]).abs() <= 1e-6,
+                            (a[n] - b[n]).abs() <= 1e-5,
                             "{w}x{h} {edge:?} {radius:?}: ({x},{y}) bin {n}: {} vs {}",
                             a[n],
                             b[n]
@@ -511,6 +524,6 @@ fn bake_uses_the_exact_kernel() {
     let want = compute_all(&ExactMarch::new(g, Some(6), 32, Reduce::Average), &Progress::new());
     let got = bake::layers_to_channels(layers.f32.as_ref().unwrap());
     for (a, b) in got.iter().zip(&want.unwrap()) {
-        assert!((a - b).abs() <= 1e-6, "{a} vs {b}");
+        assert!((a - b).abs() <= 1e-5, "{a} vs {b}");
     }
 }

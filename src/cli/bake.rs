@@ -119,22 +119,23 @@ impl BakeArgs {
     }
 }
 
-/// Hook for the Fourier outputs (`fourier_0.png` RGBA, `fourier_1.png` one channel, SPEC §3.4,
-/// §6). The Fourier encoder lives in `kernels::fourier` and is not wired in yet, so asking for it
-/// is a clear parameter error rather than a silently missing file.
+/// Bakes the Fourier coefficients (SPEC §3.4) into `fourier_0.png`, `fourier_1.png` and, with
+/// 7 or 9 terms, `fourier_2.png`.
 ///
 /// # Errors
-/// Always [`Error::Param`] naming `outputs`, until the Fourier encoder is wired in here.
+/// Whatever the bake or the PNG encoder fails with.
 pub fn fourier_files(
-    _map: &HeightMap,
-    _params: &BakeParams,
-    _progress: &Progress,
-) -> Result<Vec<OutFile>> {
-    Err(Error::param("outputs", FOURIER_UNAVAILABLE))
+    map: &HeightMap,
+    params: &BakeParams,
+    progress: &Progress,
+) -> Result<(Vec<OutFile>, bake::ResolvedRadius)> {
+    const NAMES: [&str; 3] = ["fourier_0.png", "fourier_1.png", "fourier_2.png"];
+    let (layers, radius) = bake::bake_fourier(map, params, progress)?;
+    let files = (0..layers.layer_count())
+        .map(|i| Ok(OutFile { name: NAMES[i], bytes: layers.png(i)? }))
+        .collect::<Result<Vec<_>>>()?;
+    Ok((files, radius))
 }
-
-const FOURIER_UNAVAILABLE: &str =
-    "`fourier` (fourier_0.png, fourier_1.png) is not available in this build yet";
 
 /// Milliseconds of a duration, for `timings_ms`.
 fn ms(d: Duration) -> f64 {
@@ -151,11 +152,6 @@ pub fn run(args: BakeArgs) -> Result<()> {
     let params = args.params()?;
     let precision = TexturePrecision::parse(&args.texture_precision)?;
     let formats = Formats::parse(&args.format, precision)?;
-    if params.outputs.fourier {
-        // Fail before decoding or baking anything. When the Fourier encoder lands, remove this
-        // early return and fill in `fourier_files`, which the encode step below already calls.
-        return Err(Error::param("outputs", FOURIER_UNAVAILABLE));
-    }
     check_out_dir(&args.out)?;
     let progress = Progress::new();
 
@@ -189,8 +185,11 @@ pub fn run(args: BakeArgs) -> Result<()> {
         Some(l) => encode::horizon_files(l, &formats)?,
         None => Vec::new(),
     };
+    let mut radius = radius;
     if params.outputs.fourier {
-        files.extend(fourier_files(&map, &params, &progress)?);
+        let (fourier, r) = fourier_files(&map, &params, &progress)?;
+        files.extend(fourier);
+        radius.get_or_insert(r);
     }
     staging.write(&files)?;
     let encode_ms = ms(t.elapsed());

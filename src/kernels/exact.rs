@@ -20,16 +20,29 @@
 //! At s → 0 the ratio tends to the directional slope d1 of the first cell (p is a corner of it),
 //! which is part of the supremum: on a linear ramp every s gives the same ratio.
 //!
-//! # Why a max pyramid instead of a sweep
+//! # How the production kernel is fast without leaving the definition
 //! A convex-hull sweep (Timonen & Westerholm 2010) is O(1) per texel and direction, but its lines
 //! do not pass through texel centres, and the definition is texel-centred: measured, 9–22 % of
-//! 8-bit outputs came out more than 1 LSB low. A hard radius breaks a plain hull as well. This
-//! kernel keeps every ray exact and makes long rays cheap instead: block maxima of the surface
-//! (4×4, 16×16, 64×64, … cells) bound (h − h0)/s ≤ (M − h0)/s_entry over a whole block, so a block
-//! that cannot beat the best value found so far is skipped in one step (the "maximum mipmap"
-//! traversal of height-field ray casting), and a ray stops as soon as the global maximum height
-//! cannot beat it. Skipping is conservative, so the result is identical to visiting every cell
-//! ([`ExactMarch`], the plain oracle, does exactly that and the tests compare the two).
+//! 8-bit outputs came out more than 1 LSB low. A hard radius breaks a plain hull as well. So
+//! [`ExactHorizon`] keeps every ray texel-centred and exact, and makes rays cheap instead:
+//! - **Near field, vectorised** (s ≤ 256 texels or R): the grid-line crossings of a ray from an
+//!   integer texel centre fall at s = k/|dx| and s = k/|dy| whatever the texel, so the rays of 16
+//!   consecutive texels of a row along one azimuth cross the same pieces at the same local
+//!   positions, in cells one column apart. The pieces are listed once per azimuth; per piece the
+//!   16 lanes load contiguous corner heights from a padded copy of the map (no wrapping or
+//!   clamping in the loop), cull the piece when no lane's (max corner − h0)/s_entry beats its
+//!   best value, and otherwise evaluate the per-cell closed form in f32 lanes (the divisions and
+//!   square root only when some lane can have an interior maximum). The strip stops when no
+//!   lane can still be raised by the highest point of the map.
+//! - **Far field, skipping** (rays longer than that, `unlimited` on big maps): a scalar walk
+//!   seeded with the near-field value and a max pyramid of the surface (4×4, 16×16, 64×64, …
+//!   cells) that bounds (h − h0)/s ≤ (M − h0)/s_entry over a whole block, so a block that cannot
+//!   beat the best value so far is skipped in one step (the "maximum mipmap" traversal of
+//!   height-field ray casting), and the ray stops once the global maximum cannot beat it.
+//!
+//! Culling and skipping are conservative, so the result is the same as visiting every cell;
+//! [`ExactMarch`] (the plain oracle) does exactly that and the tests compare the two. The f32
+//! near field differs from the f64 oracle by ≤ 1e-5 in sin α (asserted).
 //!
 //! # Edges
 //! - `edge=wrap`: the surface tiles; blocks are laid out in unwrapped coordinates (a ray may cross
@@ -115,9 +128,7 @@ impl Ray {
     fn first_cell(&self, grid: &Grid<'_>) -> (i64, i64) {
         let pick = |p: f64, d: f64, n: usize| {
             let c = p as i64;
-            if d < 0.0 {
-                c - 1
-            } else if d == 0.0 && grid.edge == Edge::None && c == n as i64 - 1 && n > 1 {
+            if d < 0.0 || (d == 0.0 && grid.edge == Edge::None && c == n as i64 - 1 && n > 1) {
                 c - 1
             } else {
                 c
@@ -155,7 +166,15 @@ fn corners(grid: &Grid<'_>, cx: i64, cy: i64) -> [f64; 4] {
 /// `first`: s_a = 0 and the ray starts at a corner of this cell, at height h0; the supremum then
 /// includes the limit s → 0⁺, the directional slope.
 #[inline]
-fn cell_max(k: [f64; 4], fx: f64, fy: f64, ray: &Ray, s_a: f64, len: f64, first: bool) -> f64 {
+fn cell_max(
+    k: [f64; 4],
+    fx: f64,
+    fy: f64,
+    ray: &Ray,
+    s_a: f64,
+    len: f64,
+    first: bool,
+) -> (f64, f64) {
     let (dx, dy) = (ray.dx, ray.dy);
     let bx = k[1] - k[0];
     let by = k[2] - k[0];
@@ -166,9 +185,10 @@ fn cell_max(k: [f64; 4], fx: f64, fy: f64, ray: &Ray, s_a: f64, len: f64, first:
     let d2 = bxy * dx * dy;
     let a = if first { 0.0 } else { d0 - ray.h0 };
     let s_b = s_a + len;
-    let mut best = if s_b > 0.0 { (a + (d1 + d2 * len) * len) / s_b } else { f64::NEG_INFINITY };
-    if first {
-        best = best.max(d1);
+    let mut best =
+        if s_b > 0.0 { ((a + (d1 + d2 * len) * len) / s_b, s_b) } else { (f64::NEG_INFINITY, 0.0) };
+    if first && d1 > best.0 {
+        best = (d1, 0.0);
     }
     if d2 != 0.0 {
         // Interior critical point: (s_a + t)² = s_a² − (d1·s_a − a)/d2.
@@ -177,7 +197,10 @@ fn cell_max(k: [f64; 4], fx: f64, fy: f64, ray: &Ray, s_a: f64, len: f64, first:
             let d = q.sqrt();
             let t = d - s_a;
             if t > 0.0 && t < len {
-                best = best.max((a + (d1 + d2 * t) * t) / d);
+                let v = (a + (d1 + d2 * t) * t) / d;
+                if v > best.0 {
+                    best = (v, d);
+                }
             }
         }
     }
@@ -268,21 +291,38 @@ impl Pyramid {
 
 /// Walks `ray` cell by cell and returns max(0, sup (h − h0)/s). With `accel`, blocks that cannot
 /// beat the best value so far are skipped whole (identical result, see module docs).
-fn walk<F>(grid: &Grid<'_>, ray: &Ray, accel: Option<(&Pyramid, f64)>, corners: F) -> f64
+///
+/// `seed` = (t, s): a value t of the ratio already achieved at arc length s on this very ray
+/// (or (0, 0)); it only lets more blocks be skipped. Returns the best ratio and where it is.
+fn walk<F>(
+    grid: &Grid<'_>,
+    ray: &Ray,
+    accel: Option<(&Pyramid, f64)>,
+    seed: (f64, f64),
+    start: f64,
+    corners: F,
+) -> (f64, f64)
 where
     F: Fn(i64, i64) -> [f64; 4],
 {
-    let mut best = 0.0f64;
+    let mut best = seed.0.max(0.0);
+    let mut best_s = if seed.0 > 0.0 { seed.1 } else { 0.0 };
     if ray.s_end <= 0.0 {
-        return 0.0;
+        return (0.0, 0.0);
     }
     if let Some((_, hmax)) = accel {
         if hmax <= ray.h0 {
-            return 0.0;
+            return (0.0, 0.0);
         }
     }
-    let (mut cx, mut cy) = ray.first_cell(grid);
-    let mut s = 0.0f64;
+    // Mid-ray starts take the cell just ahead of the start point.
+    let ahead = |p: f64, d: f64| (p + start * d + 1e-7 * d).floor() as i64;
+    let (mut cx, mut cy) = if start > 0.0 {
+        (ahead(ray.x0, ray.dx), ahead(ray.y0, ray.dy))
+    } else {
+        ray.first_cell(grid)
+    };
+    let mut s = start;
     let mut level = 0usize;
     let max_level = accel.map_or(0, |(p, _)| p.levels.len());
     loop {
@@ -321,7 +361,10 @@ where
             let fx = (ray.x0 + s * ray.dx - cx as f64).clamp(0.0, 1.0);
             let fy = (ray.y0 + s * ray.dy - cy as f64).clamp(0.0, 1.0);
             let len = s_exit.min(ray.s_end) - s;
-            best = best.max(cell_max(k, fx, fy, ray, s, len, s == 0.0));
+            let (v, at) = cell_max(k, fx, fy, ray, s, len, s == 0.0);
+            if v > best {
+                (best, best_s) = (v, at);
+            }
         }
         if s_exit >= ray.s_end {
             break;
@@ -356,7 +399,7 @@ where
             level += 1;
         }
     }
-    best
+    (best, best_s)
 }
 
 /// Exact sin α of texel (`x`, `y`) at tangent-space azimuth `phi` (radians, any value), by the
@@ -366,13 +409,331 @@ where
 /// edge with `edge=none`, max(W, H) texels with `edge=wrap`). Cost O(R) per call; for many calls
 /// on one grid, [`ExactHorizon::horizon_sin`] skips empty space and is much faster.
 ///
+/// A radius beyond max(`MAX_RADIUS`, W, H) is clamped to it (`params` never passes more).
+///
 /// # Panics
-/// If (`x`, `y`) is outside the grid (a programming error).
+/// If (`x`, `y`) is outside the grid or `phi` is not finite (programming errors).
 pub fn horizon_sin(grid: &Grid<'_>, x: usize, y: usize, phi: f64, radius: Option<f64>) -> f64 {
     assert!(x < grid.width && y < grid.height, "texel outside the grid");
+    assert!(phi.is_finite(), "azimuth must be finite");
+    let cap = f64::from(crate::params::MAX_RADIUS).max(grid.width.max(grid.height) as f64);
+    let radius = radius.map(|r| r.clamp(0.0, cap));
     let (dx, dy) = direction(phi, grid.row_step());
     let ray = Ray::new(grid, x, y, dx, dy, radius);
-    sin_of_tan(walk(grid, &ray, None, |cx, cy| corners(grid, cx, cy)))
+    sin_of_tan(walk(grid, &ray, None, (0.0, 0.0), 0.0, |cx, cy| corners(grid, cx, cy)).0)
+}
+
+/// Texels per strip of the near-field march: one AVX-512 vector of f32, two AVX2 vectors.
+const LANES: usize = 16;
+/// Arc length the vectorised near-field march covers; longer rays continue with the scalar,
+/// pyramid-skipping [`walk`] from there, seeded with the near-field value.
+const NEAR: f64 = 256.0;
+
+/// One piece of a ray between two grid-line crossings, shared by all rays of a direction: the
+/// crossings of a ray from an integer texel centre fall at s = k/|dx| and s = k/|dy| whatever
+/// the texel, so consecutive texels of a row see the same pieces at the same local positions in
+/// cells one column apart. Only the corner heights differ per texel, and they are contiguous.
+#[derive(Debug, Clone, Copy)]
+struct Seg {
+    s_a: f64,
+    len: f64,
+    fx: f32,
+    fy: f32,
+    /// Cell offset from the texel: columns (x + cxo .. x + cxo + 1), rows likewise.
+    cxo: i32,
+    cyo: i32,
+}
+
+/// The near-field march: per-direction pieces up to `s_cut` and a padded copy of the heights
+/// (wrapped, or clamped for `edge=none` where the padding is masked out) so the hot loop never
+/// wraps or clamps.
+#[derive(Debug, Clone)]
+struct Near {
+    segs: Vec<Vec<Seg>>,
+    s_cut: f64,
+    pad: usize,
+    pw: usize,
+    padded: Vec<f32>,
+    avx2: bool,
+    avx512: bool,
+}
+
+impl Near {
+    fn new(grid: &Grid<'_>, dirs: &[(f64, f64)], s_cut: f64) -> Near {
+        let (w, h) = (grid.width, grid.height);
+        let pad = s_cut.ceil() as usize + 2;
+        let pw = w + 2 * pad + LANES + 1;
+        let ph = h + 2 * pad + 1;
+        let mut padded = vec![0f32; pw * ph];
+        for r in 0..ph {
+            for c in 0..pw {
+                let (x, y) = (c as i64 - pad as i64, r as i64 - pad as i64);
+                let (x, y) = match grid.edge {
+                    Edge::Wrap => (x.rem_euclid(w as i64), y.rem_euclid(h as i64)),
+                    Edge::None => (x.clamp(0, w as i64 - 1), y.clamp(0, h as i64 - 1)),
+                };
+                padded[r * pw + c] = grid.heights[y as usize * w + x as usize];
+            }
+        }
+        let segs = dirs.iter().map(|&(dx, dy)| Self::pieces(dx, dy, s_cut)).collect();
+        #[cfg(target_arch = "x86_64")]
+        let avx2 = std::arch::is_x86_feature_detected!("avx2")
+            && std::arch::is_x86_feature_detected!("fma");
+        #[cfg(not(target_arch = "x86_64"))]
+        let avx2 = false;
+        #[cfg(target_arch = "x86_64")]
+        let avx512 = std::arch::is_x86_feature_detected!("avx512f");
+        #[cfg(not(target_arch = "x86_64"))]
+        let avx512 = false;
+        Near { segs, s_cut, pad, pw, padded, avx2, avx512 }
+    }
+
+    /// How many pieces of direction `n` end at or before `s_end` (a lane's own end with
+    /// `edge=none`, which falls on a piece boundary).
+    fn count(&self, n: usize, s_end: f64) -> u32 {
+        self.segs[n].partition_point(|g| g.s_a + g.len <= s_end + 1e-9) as u32
+    }
+
+    /// The pieces of a ray from the origin along (dx, dy) up to `s_cut`.
+    fn pieces(dx: f64, dy: f64, s_cut: f64) -> Vec<Seg> {
+        let mut out = Vec::new();
+        let (ix, iy) = (1.0 / dx.abs(), 1.0 / dy.abs());
+        let (mut kx, mut ky) = (1u32, 1u32);
+        let mut s_a = 0.0f64;
+        while s_a < s_cut {
+            let (tx, ty) = (kx as f64 * ix, ky as f64 * iy);
+            let s_b = tx.min(ty).min(s_cut);
+            if tx <= s_b {
+                kx += 1;
+            }
+            if ty <= s_b {
+                ky += 1;
+            }
+            if s_b <= s_a {
+                continue;
+            }
+            let mid = 0.5 * (s_a + s_b);
+            let (cxo, cyo) = ((mid * dx).floor(), (mid * dy).floor());
+            out.push(Seg {
+                s_a,
+                len: s_b - s_a,
+                fx: (s_a * dx - cxo).clamp(0.0, 1.0) as f32,
+                fy: (s_a * dy - cyo).clamp(0.0, 1.0) as f32,
+                cxo: cxo as i32,
+                cyo: cyo as i32,
+            });
+            s_a = s_b;
+        }
+        out
+    }
+
+    /// tan α over 0 < s ≤ min(s_cut, s_end[i]) for the texels x .. x + LANES of row y along
+    /// direction `n`, into `best` (lanes past the row end are garbage).
+    #[allow(clippy::too_many_arguments)] // the strip's place and lane state, hot path
+    fn strip(
+        &self,
+        n: usize,
+        d: (f64, f64),
+        x: usize,
+        y: usize,
+        h0: &[f32; LANES],
+        count: &[u32; LANES],
+        hmax: f32,
+        best: &mut [f32; LANES],
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        if self.avx512 {
+            // SAFETY: the CPU was checked for AVX-512F at construction.
+            unsafe { self.strip_avx512(n, d, x, y, h0, count, hmax, best) };
+            return;
+        }
+        #[cfg(target_arch = "x86_64")]
+        if self.avx2 {
+            // SAFETY: the CPU was checked for AVX2 and FMA at construction.
+            unsafe { self.strip_avx2(n, d, x, y, h0, count, hmax, best) };
+            return;
+        }
+        self.strip_body(n, d, x, y, h0, count, hmax, best);
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,avx2,fma")]
+    #[allow(clippy::too_many_arguments)] // the strip's place and lane state, hot path
+    unsafe fn strip_avx512(
+        &self,
+        n: usize,
+        d: (f64, f64),
+        x: usize,
+        y: usize,
+        h0: &[f32; LANES],
+        count: &[u32; LANES],
+        hmax: f32,
+        best: &mut [f32; LANES],
+    ) {
+        self.strip_body(n, d, x, y, h0, count, hmax, best);
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    #[allow(clippy::too_many_arguments)] // the strip's place and lane state, hot path
+    unsafe fn strip_avx2(
+        &self,
+        n: usize,
+        d: (f64, f64),
+        x: usize,
+        y: usize,
+        h0: &[f32; LANES],
+        count: &[u32; LANES],
+        hmax: f32,
+        best: &mut [f32; LANES],
+    ) {
+        self.strip_body(n, d, x, y, h0, count, hmax, best);
+    }
+
+    /// The vectorised body: per piece, four contiguous loads per lane, a cheap cull against the
+    /// best values so far, then the closed-form cell maximum of [`cell_max`] in f32 lanes.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)] // the strip's place and lane state, hot path
+    fn strip_body(
+        &self,
+        n: usize,
+        d: (f64, f64),
+        x: usize,
+        y: usize,
+        h0: &[f32; LANES],
+        count: &[u32; LANES],
+        hmax: f32,
+        best: &mut [f32; LANES],
+    ) {
+        let (dx, dy) = (d.0 as f32, d.1 as f32);
+        let base_c = (x + self.pad) as i64;
+        let base_r = (y + self.pad) as i64;
+        *best = [0.0; LANES];
+        for (k, seg) in self.segs[n].iter().enumerate() {
+            let s_b = seg.s_a + seg.len;
+            let s_a = seg.s_a as f32;
+            // All lanes done: nothing left can beat any of them.
+            if k % 8 == 7 {
+                let mut done = true;
+                for i in 0..LANES {
+                    done &= hmax - h0[i] <= best[i] * s_a;
+                }
+                if done {
+                    break;
+                }
+            }
+            let c = (base_c + seg.cxo as i64) as usize;
+            let r = (base_r + seg.cyo as i64) as usize;
+            let row0 = &self.padded[r * self.pw + c..r * self.pw + c + LANES + 1];
+            let row1 = &self.padded[(r + 1) * self.pw + c..(r + 1) * self.pw + c + LANES + 1];
+            let mut any = false;
+            for i in 0..LANES {
+                let m = row0[i].max(row0[i + 1]).max(row1[i]).max(row1[i + 1]);
+                any |= m - h0[i] > best[i] * s_a;
+            }
+            if !any {
+                continue;
+            }
+            let (fx, fy, len) = (seg.fx, seg.fy, seg.len as f32);
+            let inv_sb = (1.0 / s_b) as f32;
+            let valid = |i: usize| (k as u32) < count[i];
+            if seg.s_a == 0.0 {
+                piece::<true>(row0, row1, (fx, fy, dx, dy), s_a, len, inv_sb, h0, valid, best);
+            } else {
+                piece::<false>(row0, row1, (fx, fy, dx, dy), s_a, len, inv_sb, h0, valid, best);
+            }
+        }
+    }
+}
+
+/// `a > b ? a : b`: one `maxps`, unlike `f32::max` whose NaN rules cost two more instructions
+/// (NaN cannot win here: it only arises in masked-out lanes).
+#[inline(always)]
+fn fmax(a: f32, b: f32) -> f32 {
+    if a > b {
+        a
+    } else {
+        b
+    }
+}
+
+/// [`cell_max`] for LANES cells side by side in f32, folded into `best`. `FIRST`: the piece
+/// starting at the texel itself (a = 0, and the limit s → 0⁺ counts).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn piece<const FIRST: bool>(
+    row0: &[f32],
+    row1: &[f32],
+    (fx, fy, dx, dy): (f32, f32, f32, f32),
+    s_a: f32,
+    len: f32,
+    inv_sb: f32,
+    h0: &[f32; LANES],
+    valid: impl Fn(usize) -> bool,
+    best: &mut [f32; LANES],
+) {
+    let (row0, row1) = (&row0[..LANES + 1], &row1[..LANES + 1]);
+    let s_a2 = s_a * s_a;
+    let mut out = *best;
+    // The interior stationary point is a maximum inside the piece only where d2 < 0 and
+    // 0 < N = d1·s_a − a < (s_b² − s_a²)·(−d2) (g = A/s + B + E·s is concave iff A, E < 0).
+    // Checked without a division first: most pieces have none, and then the divisions and
+    // the square root of the general path are skipped.
+    let interior = !FIRST && {
+        let l2 = (s_a + len) * (s_a + len) - s_a2;
+        let mut any = false;
+        for i in 0..LANES {
+            let (k0, k1, k2, k3) = (row0[i], row0[i + 1], row1[i], row1[i + 1]);
+            let (bx, by, bxy) = (k1 - k0, k2 - k0, k3 - k1 - k2 + k0);
+            let d0 = k0 + bx * fx + by * fy + bxy * fx * fy;
+            let d1 = bx * dx + by * dy + bxy * (fx * dy + fy * dx);
+            let d2 = bxy * dx * dy;
+            let nn = d1 * s_a - (d0 - h0[i]);
+            // Generous margins: a false positive only costs time.
+            any |= d2 < 0.0 && nn > -1e-3 * l2 * -d2 && nn < 1.001 * l2 * -d2 && valid(i);
+        }
+        any
+    };
+    if !FIRST && !interior {
+        for i in 0..LANES {
+            let (k0, k1, k2, k3) = (row0[i], row0[i + 1], row1[i], row1[i + 1]);
+            let (bx, by, bxy) = (k1 - k0, k2 - k0, k3 - k1 - k2 + k0);
+            let d0 = k0 + bx * fx + by * fy + bxy * fx * fy;
+            let d1 = bx * dx + by * dy + bxy * (fx * dy + fy * dx);
+            let d2 = bxy * dx * dy;
+            let v = (d0 - h0[i] + (d1 + d2 * len) * len) * inv_sb;
+            let v = if valid(i) { v } else { f32::NEG_INFINITY };
+            out[i] = fmax(v, out[i]);
+        }
+        *best = out;
+        return;
+    }
+    for i in 0..LANES {
+        let (k0, k1, k2, k3) = (row0[i], row0[i + 1], row1[i], row1[i + 1]);
+        let bx = k1 - k0;
+        let by = k2 - k0;
+        let bxy = k3 - k1 - k2 + k0;
+        let d1 = bx * dx + by * dy + bxy * (fx * dy + fy * dx);
+        let d2 = bxy * dx * dy;
+        let mut v;
+        if FIRST {
+            v = fmax((d1 + d2 * len) * len * inv_sb, d1);
+        } else {
+            let d0 = k0 + bx * fx + by * fy + bxy * fx * fy;
+            let a = d0 - h0[i];
+            v = (a + (d1 + d2 * len) * len) * inv_sb;
+            // Interior critical point; d2 = 0 gives q = ±inf or NaN and fails `ok`.
+            let q = s_a2 - (d1 * s_a - a) / d2;
+            let dd = fmax(q, 1e-30).sqrt();
+            let t = dd - s_a;
+            let vi = (a + (d1 + d2 * t) * t) / dd;
+            let ok = q > 0.0 && t > 0.0 && t < len;
+            v = if ok { fmax(vi, v) } else { v };
+        }
+        let v = if valid(i) { v } else { f32::NEG_INFINITY };
+        out[i] = fmax(v, out[i]);
+    }
+    *best = out;
 }
 
 /// Fills `out` (8 channels) from per-bin values.
@@ -407,8 +768,10 @@ impl<'a> ExactMarch<'a> {
     pub fn texel_bins(&self, x: usize, y: usize, s: &mut [f32]) {
         for (o, &(dx, dy)) in s.iter_mut().zip(&self.dirs) {
             let ray = Ray::new(&self.grid, x, y, dx, dy, self.radius);
-            *o = sin_of_tan(walk(&self.grid, &ray, None, |cx, cy| corners(&self.grid, cx, cy)))
-                as f32;
+            let t =
+                walk(&self.grid, &ray, None, (0.0, 0.0), 0.0, |cx, cy| corners(&self.grid, cx, cy))
+                    .0;
+            *o = sin_of_tan(t) as f32;
         }
     }
 }
@@ -452,6 +815,7 @@ pub struct ExactHorizon<'a> {
     lo: i64,
     cols: Vec<u32>,
     rows: Vec<u32>,
+    near: Near,
 }
 
 impl<'a> ExactHorizon<'a> {
@@ -485,15 +849,37 @@ impl<'a> ExactHorizon<'a> {
                 .collect()
         };
         let (cols, rows) = (map(w, 1), map(h, w));
-        ExactHorizon { grid, radius, dirs, reduce, pyramid, hmax, progress: None, lo, cols, rows }
+        // Where every ray is clipped alike: a piece straddling a lane's own end would be lost
+        // (edge=none ends fall on grid lines, i.e. on piece boundaries, so they may differ).
+        let r_all = match grid.edge {
+            Edge::Wrap => radius.unwrap_or(w.max(h) as f64),
+            Edge::None => radius.unwrap_or(f64::INFINITY),
+        };
+        let s_cut = r_all.min(NEAR);
+        let near = Near::new(&grid, &dirs, s_cut);
+        ExactHorizon {
+            grid,
+            radius,
+            dirs,
+            reduce,
+            pyramid,
+            hmax,
+            progress: None,
+            lo,
+            cols,
+            rows,
+            near,
+        }
     }
 
-    /// The accelerated walk of one ray.
+    /// The accelerated walk of one ray from arc length `start`, where `seed` is a value of the
+    /// ratio the ray already reaches (from the near field; 0 if none): returns tan α and the arc
+    /// length where it is reached.
     #[inline]
-    fn walk(&self, ray: &Ray) -> f64 {
+    fn walk(&self, ray: &Ray, start: f64, seed: f64) -> (f64, f64) {
         let hs = self.grid.heights;
         let (cols, rows, lo) = (&self.cols[..], &self.rows[..], self.lo);
-        walk(&self.grid, ray, Some((&self.pyramid, self.hmax)), |cx, cy| {
+        let corners = |cx: i64, cy: i64| {
             let (i, j) = ((cx - lo) as usize, (cy - lo) as usize);
             let (c0, c1, r0, r1) = (cols[i], cols[i + 1], rows[j], rows[j + 1]);
             [
@@ -502,11 +888,12 @@ impl<'a> ExactHorizon<'a> {
                 hs[(r1 + c0) as usize] as f64,
                 hs[(r1 + c1) as usize] as f64,
             ]
-        })
+        };
+        walk(&self.grid, ray, Some((&self.pyramid, self.hmax)), (seed, 0.0), start, corners)
     }
 
     /// Makes [`HorizonRows::rows`] return early (leaving the rest of its rows unspecified) once
-    /// `progress` is canceled, so a cancel lands within one row rather than one band. The band
+    /// `progress` is canceled, so a cancel lands within one texel rather than one band. The band
     /// driver notices the cancel and discards the result.
     pub fn with_cancel(mut self, progress: &Progress) -> Self {
         self.progress = Some(progress.clone());
@@ -516,19 +903,21 @@ impl<'a> ExactHorizon<'a> {
     /// Exact sin α of texel (`x`, `y`) at any azimuth `phi` (radians), with this kernel's radius.
     ///
     /// # Panics
-    /// If (`x`, `y`) is outside the grid (a programming error).
+    /// If (`x`, `y`) is outside the grid or `phi` is not finite (programming errors).
     pub fn horizon_sin(&self, x: usize, y: usize, phi: f64) -> f64 {
         assert!(x < self.grid.width && y < self.grid.height, "texel outside the grid");
+        assert!(phi.is_finite(), "azimuth must be finite");
         let (dx, dy) = direction(phi, self.grid.row_step());
         let ray = Ray::new(&self.grid, x, y, dx, dy, self.radius);
-        sin_of_tan(self.walk(&ray))
+        sin_of_tan(self.walk(&ray, 0.0, 0.0).0)
     }
 
-    /// Per-bin sin α of texel (x, y) into `s` (`bins` long).
+    /// Per-bin sin α of texel (x, y) into `s` (`bins` long), one scalar walk per azimuth (the
+    /// vectorised path is [`HorizonRows::rows`]).
     pub fn texel_bins(&self, x: usize, y: usize, s: &mut [f32]) {
         for (o, &(dx, dy)) in s.iter_mut().zip(&self.dirs) {
             let ray = Ray::new(&self.grid, x, y, dx, dy, self.radius);
-            *o = sin_of_tan(self.walk(&ray)) as f32;
+            *o = sin_of_tan(self.walk(&ray, 0.0, 0.0).0) as f32;
         }
     }
 }
@@ -544,16 +933,65 @@ impl HorizonRows for ExactHorizon<'_> {
         self.dirs.len()
     }
     fn rows(&self, y0: usize, channels: &mut [f32], mut bins_out: Option<&mut [f32]>) {
-        let (w, b) = (self.grid.width, self.dirs.len());
-        let mut s = vec![0.0f32; b];
-        for (k, out) in channels.chunks_exact_mut(8).enumerate() {
-            if k % w == 0 && self.progress.as_ref().is_some_and(Progress::is_canceled) {
-                return;
-            }
-            self.texel_bins(k % w, y0 + k / w, &mut s);
-            reduce(self.reduce, &s, out);
-            if let Some(bo) = bins_out.as_deref_mut() {
-                bo[k * b..(k + 1) * b].copy_from_slice(&s);
+        let (w, nb) = (self.grid.width, self.dirs.len());
+        let n_rows = channels.len() / (w * 8);
+        // Per strip: LANES texels × bins values, texel-major.
+        let mut strip = vec![0.0f32; LANES * nb];
+        let near = &self.near;
+        let r_all = match self.grid.edge {
+            Edge::Wrap => self.radius.unwrap_or(w.max(self.grid.height) as f64),
+            Edge::None => f64::INFINITY,
+        };
+        let hmax = self.hmax as f32;
+        for r in 0..n_rows {
+            let y = y0 + r;
+            for x in (0..w).step_by(LANES) {
+                // One relaxed load per strip: negligible, and a cancel lands within a strip
+                // rather than a band.
+                if self.progress.as_ref().is_some_and(Progress::is_canceled) {
+                    return;
+                }
+                let lanes = LANES.min(w - x);
+                let mut h0 = [f32::INFINITY; LANES];
+                for (i, v) in h0.iter_mut().enumerate().take(lanes) {
+                    *v = self.grid.heights[y * w + x + i];
+                }
+                for (n, &(dx, dy)) in self.dirs.iter().enumerate() {
+                    // Each lane's end: shared when wrapping, at its own border otherwise.
+                    let mut s_end = [r_all; LANES];
+                    let mut count = [near.segs[n].len() as u32; LANES];
+                    if self.grid.edge == Edge::None {
+                        for i in 0..lanes {
+                            s_end[i] = Ray::new(&self.grid, x + i, y, dx, dy, self.radius).s_end;
+                            count[i] = near.count(n, s_end[i]);
+                        }
+                    }
+                    let mut best = [0.0f32; LANES];
+                    near.strip(n, (dx, dy), x, y, &h0, &count, hmax, &mut best);
+                    if s_end.iter().take(lanes).any(|&e| e > near.s_cut) {
+                        for i in 0..lanes {
+                            let t = best[i].max(0.0) as f64;
+                            // The ray goes on past the near field and something there could
+                            // still beat it: continue with the scalar walk, seeded.
+                            if s_end[i] > near.s_cut && self.hmax - h0[i] as f64 > t * near.s_cut {
+                                let ray = Ray::new(&self.grid, x + i, y, dx, dy, self.radius);
+                                best[i] = self.walk(&ray, near.s_cut, t).0 as f32;
+                            }
+                        }
+                    }
+                    for i in 0..LANES {
+                        let t = best[i].max(0.0);
+                        strip[i * nb + n] = t / (1.0 + t * t).sqrt();
+                    }
+                }
+                for i in 0..lanes {
+                    let k = r * w + x + i;
+                    let s = &strip[i * nb..(i + 1) * nb];
+                    reduce(self.reduce, s, &mut channels[k * 8..k * 8 + 8]);
+                    if let Some(bo) = bins_out.as_deref_mut() {
+                        bo[k * nb..(k + 1) * nb].copy_from_slice(s);
+                    }
+                }
             }
         }
     }
@@ -584,7 +1022,7 @@ mod tests {
         let r =
             Ray { dx: std::f64::consts::FRAC_1_SQRT_2, dy: std::f64::consts::FRAC_1_SQRT_2, ..ray };
         let len = std::f64::consts::SQRT_2;
-        let got = cell_max(k, fx, fy, &r, 1.0, len, false);
+        let got = cell_max(k, fx, fy, &r, 1.0, len, false).0;
         let mut want = f64::NEG_INFINITY;
         for i in 0..=100_000 {
             let t = len * i as f64 / 100_000.0;

@@ -5,16 +5,20 @@
 //! Here the loop is turned inside out so that the hot loop is "load, subtract, multiply, max"
 //! over contiguous memory, which LLVM vectorises:
 //!
-//! - Once per kernel, every neighbour offset (i, j) is assigned to the bins it touches, with
+//! - Once per kernel, every neighbour offset (i, j) is assigned the bins it touches, with
 //!   θ, δ and the bin range floor((θ−δ)·B/2π) ..= ceil((θ+δ)·B/2π) computed in f64 exactly as
-//!   the oracle does, so both kernels agree on which neighbour feeds which bin. Each bin keeps a
-//!   list of (linear offset into the padded tile, 1/r).
+//!   the oracle does, so both kernels agree on which neighbour feeds which bin. Offsets with the
+//!   same range (first bin, number of bins) form a group, stored as a list of (linear offset
+//!   into the padded tile, 1/r).
 //! - Each band of rows is first copied into a padded tile (wrapped, or filled with `f32::MIN`
 //!   for `edge=none`, which never occludes), so the hot loop never clamps or wraps, even when the
 //!   radius exceeds the map (the padding then wraps several times).
-//! - For a strip of [`STRIP`] consecutive texels: bin → offset → lane, keeping
-//!   max(tan) with tan = (h − h0)/r and the maximum starting at 0. Since the oracle skips h < h0
-//!   and keeps the largest tan² ≥ 0, max(tan, 0)² is exactly its value, without a sign branch.
+//! - For a strip of [`STRIP`] consecutive texels: group → offset → lane, keeping
+//!   max(tan) with tan = (h − h0)/r and the maximum starting at 0, then merging the group's
+//!   maximum into each bin of its range. Each neighbour is thus evaluated once, not once per bin
+//!   it touches (2.2–3.6× on average; R=16, B=32: 792 offsets in 104 groups instead of 2200
+//!   bin entries). Since the oracle skips h < h0 and keeps the largest tan² ≥ 0, max(tan, 0)² is
+//!   exactly its value, without a sign branch, and a max is the same in any merge order.
 //! - The finalize (s = t/√(t²+1), the B/8+1-bin averages) also runs over the strip's lanes.
 //!
 //! The hot function is compiled three times (AVX-512, AVX2+FMA, baseline) and the variant is
@@ -34,7 +38,9 @@ use std::cell::RefCell;
 use std::f64::consts::PI;
 
 /// Texels per strip. 32 lanes = two AVX-512 vectors (four AVX2 ones) per accumulator, and two
-/// accumulators per bin, so the max() chains have enough independent work to hide latency.
+/// accumulators per group, so the max() chains have enough independent work to hide latency.
+/// 64 lanes measured ~8% less CPU time with AVX-512 (within noise on this shared machine) but
+/// would run the AVX2 and SSE2 builds out of registers.
 pub const STRIP: usize = 32;
 
 /// Largest padded tile (floats, per thread) before falling back to the oracle (64 MiB).
@@ -55,26 +61,48 @@ pub enum Isa {
 impl Isa {
     /// The best variant the running CPU supports.
     pub fn detect() -> Isa {
+        [Isa::Avx512, Isa::Avx2].into_iter().find(|i| i.supported()).unwrap_or(Isa::Baseline)
+    }
+
+    /// Whether the running CPU has every feature this variant was compiled for.
+    pub fn supported(self) -> bool {
         #[cfg(target_arch = "x86_64")]
         {
-            if is_x86_feature_detected!("avx512f") {
-                return Isa::Avx512;
-            }
-            if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
-                return Isa::Avx2;
+            match self {
+                Isa::Avx512 => is_x86_feature_detected!("avx512f"),
+                Isa::Avx2 => is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma"),
+                Isa::Baseline => true,
             }
         }
-        Isa::Baseline
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            self == Isa::Baseline
+        }
     }
 }
 
-/// Per-(radius, bins, edge, y_axis, map size) tables: for each bin, the neighbours touching it.
+/// Neighbours that touch the same run of bins `lo ..= lo + span − 1` (mod B): their maximum
+/// tan is computed once and then merged into each of those bins.
+#[derive(Debug, Clone, Copy)]
+struct Group {
+    lo: usize,
+    span: usize,
+    /// `entries[start..end]`.
+    start: usize,
+    end: usize,
+}
+
+/// Per-(radius, bins, edge, y_axis, map size) tables: the neighbours, grouped by bin range.
 #[derive(Debug, Clone)]
 struct Tables {
-    /// `start[n]..start[n + 1]` indexes `entries` for bin n.
-    start: Vec<usize>,
-    /// (offset from the strip's top-left corner in the padded tile, 1/r).
+    groups: Vec<Group>,
+    /// (offset from the strip's top-left corner in the padded tile, 1/r), grouped.
     entries: Vec<(u32, f32)>,
+    /// `cover[cover_start[n]..cover_start[n + 1]]`: the groups whose range includes bin n.
+    cover_start: Vec<usize>,
+    cover: Vec<u32>,
+    /// Largest entry offset + STRIP: the window of the tile one strip reads.
+    reach: usize,
     /// Padding columns on each side and rows above/below.
     pad_x: usize,
     pad_y: usize,
@@ -110,12 +138,7 @@ impl<'a> LengyelFast<'a> {
     /// Prepares the kernel with a given variant (tests and benches compare them). A variant the
     /// CPU lacks is replaced by the best one it has.
     pub fn with_isa(grid: Grid<'a>, radius: u32, bins: u32, isa: Isa) -> Self {
-        let best = Isa::detect();
-        let isa = match (isa, best) {
-            (Isa::Avx512, b) if b != Isa::Avx512 => b,
-            (Isa::Avx2, Isa::Baseline) => Isa::Baseline,
-            (i, _) => i,
-        };
+        let isa = if isa.supported() { isa } else { Isa::detect() };
         let b = bins.max(1) as usize;
         let r = radius.max(1) as usize;
         let (w, h) = (grid.width, grid.height);
@@ -181,29 +204,50 @@ fn build_tables(
             per_offset.push((off, (1.0 / d2.sqrt()) as f32, lo, hi));
         }
     }
-    // Bins an offset touches, each once (the range is always narrower than 2π, but be safe).
-    let bins_of = |lo: i64, hi: i64| {
-        let n = ((hi - lo + 1) as usize).min(b);
-        (0..n).map(move |k| (lo + k as i64).rem_euclid(b as i64) as usize)
-    };
-    let mut start = vec![0usize; b + 1];
-    for &(_, _, lo, hi) in &per_offset {
-        for n in bins_of(lo, hi) {
-            start[n + 1] += 1;
+    // Group by (first bin mod B, number of bins); a range as wide as 2π covers every bin once.
+    // Every offset lands in exactly one group, so the hot loop evaluates it once, instead of
+    // once per bin it touches (2.2–3.6 times on average): a max over the same values, merged in
+    // another order, so the result is identical.
+    let mut keyed: Vec<(usize, usize, u32, f32)> = per_offset
+        .iter()
+        .map(|&(off, inv, lo, hi)| {
+            let span = ((hi - lo + 1) as usize).min(b);
+            let lo = if span == b { 0 } else { lo.rem_euclid(b as i64) as usize };
+            (lo, span, off, inv)
+        })
+        .collect();
+    // Stable: within a group, offsets stay in row-major order (memory locality).
+    keyed.sort_by_key(|&(lo, span, _, _)| (lo, span));
+    let mut groups: Vec<Group> = Vec::new();
+    let mut entries = Vec::with_capacity(keyed.len());
+    for (k, &(lo, span, off, inv)) in keyed.iter().enumerate() {
+        match groups.last_mut() {
+            Some(g) if g.lo == lo && g.span == span => g.end = k + 1,
+            _ => groups.push(Group { lo, span, start: k, end: k + 1 }),
+        }
+        entries.push((off, inv));
+    }
+    let reach = entries.iter().map(|&(off, _)| off as usize).max().unwrap_or(0) + STRIP;
+    // For each bin, the groups covering it (CSR layout, counted first).
+    let mut cover_start = vec![0usize; b + 1];
+    for g in &groups {
+        for k in 0..g.span {
+            cover_start[(g.lo + k) % b + 1] += 1;
         }
     }
     for n in 0..b {
-        start[n + 1] += start[n];
+        cover_start[n + 1] += cover_start[n];
     }
-    let mut fill = start.clone();
-    let mut entries = vec![(0u32, 0f32); start[b]];
-    for &(off, inv, lo, hi) in &per_offset {
-        for n in bins_of(lo, hi) {
-            entries[fill[n]] = (off, inv);
+    let mut fill = cover_start.clone();
+    let mut cover = vec![0u32; cover_start[b]];
+    for (gi, g) in groups.iter().enumerate() {
+        for k in 0..g.span {
+            let n = (g.lo + k) % b;
+            cover[fill[n]] = gi as u32;
             fill[n] += 1;
         }
     }
-    Tables { start, entries, pad_x, pad_y, stride, max_rows }
+    Tables { groups, entries, cover_start, cover, reach, pad_x, pad_y, stride, max_rows }
 }
 
 impl HorizonRows for LengyelFast<'_> {
@@ -235,7 +279,8 @@ impl HorizonRows for LengyelFast<'_> {
             while r0 < n {
                 let m = t.max_rows.min(n - r0);
                 fill_tile(&self.grid, t, y0 + r0, m, &mut scratch.tile);
-                scratch.acc.resize(b, [0.0; STRIP]);
+                // Per-bin results, then per-group maxima.
+                scratch.acc.resize(b + t.groups.len(), [0.0; STRIP]);
                 let ch = &mut channels[r0 * w * 8..(r0 + m) * w * 8];
                 let bo = bins_out.as_deref_mut().map(|bo| &mut bo[r0 * w * b..(r0 + m) * w * b]);
                 let job = Job { t, tile: &scratch.tile, rows: m, width: w, bins: b };
@@ -250,6 +295,7 @@ impl HorizonRows for LengyelFast<'_> {
 #[derive(Default)]
 struct Scratch {
     tile: Vec<f32>,
+    /// `bins` per-bin accumulators followed by one per group.
     acc: Vec<[f32; STRIP]>,
 }
 
@@ -305,9 +351,9 @@ fn run_job(
     #[cfg(target_arch = "x86_64")]
     {
         match isa {
-            // SAFETY: `isa` is only Avx512 / Avx2 when `Isa::detect` saw those features on this
-            // CPU (`with_isa` downgrades anything else), which is the one requirement of calling
-            // a `#[target_feature]` function. The bodies themselves are safe code.
+            // SAFETY: a kernel holds Avx512 / Avx2 only when `Isa::supported` saw those features
+            // on this CPU (`with_isa` replaces anything else), which is the one requirement of
+            // calling a `#[target_feature]` function. The bodies themselves are safe code.
             Isa::Avx512 => return unsafe { job_avx512(job, acc, channels, bins_out) },
             Isa::Avx2 => return unsafe { job_avx2(job, acc, channels, bins_out) },
             Isa::Baseline => {}
@@ -353,21 +399,40 @@ fn job_body(
     let step = b / 8;
     let half = b / 16;
     let inv_count = 1.0 / (step + 1) as f32;
+    let (acc, gmax) = acc.split_at_mut(b);
     for r in 0..rows {
         for x0 in (0..w).step_by(STRIP) {
             let base = r * t.stride + x0;
-            let Some(h0) = tile.get(base + centre..).and_then(<[f32]>::first_chunk::<STRIP>)
-            else {
+            let Some(h0) = tile.get(base + centre..).and_then(<[f32]>::first_chunk::<STRIP>) else {
                 continue; // unreachable: the tile has STRIP spare columns
             };
-            for (n, out) in acc.iter_mut().enumerate().take(b) {
-                *out = bin_max(tile, base, h0, &t.entries[t.start[n]..t.start[n + 1]]);
+            // The strip's whole neighbourhood, checked once here so the hot loop need not.
+            let Some(win) = tile.get(base..base + t.reach) else {
+                continue; // unreachable: the tile holds every strip's neighbourhood
+            };
+            for (g, gm) in t.groups.iter().zip(gmax.iter_mut()) {
+                // SAFETY: `win.len() == t.reach` and every entry's offset + STRIP ≤ t.reach
+                // (`reach` is that maximum, computed in `build_tables`).
+                *gm = unsafe { group_max(win, h0, &t.entries[g.start..g.end]) };
+            }
+            // Each bin is the max over the groups covering it, gathered into a register
+            // accumulator: scattering each group into its bins instead made LLVM emit masked
+            // read-modify-write stores, ~20% of the kernel's time (perf, Zen 4).
+            for (n, out) in acc.iter_mut().enumerate() {
+                let mut a = [0f32; STRIP];
+                for &gi in &t.cover[t.cover_start[n]..t.cover_start[n + 1]] {
+                    let m = &gmax[gi as usize];
+                    for (x, &y) in a.iter_mut().zip(m) {
+                        *x = if y > *x { y } else { *x };
+                    }
+                }
                 // s = t/√(t²+1) = √(t²/(t²+1)); t is capped so t² stays finite (s is 1.0 in
                 // f32 long before 1e18).
-                for v in out.iter_mut() {
+                for v in a.iter_mut() {
                     let tt = v.min(1e18);
                     *v = tt / (tt * tt + 1.0).sqrt();
                 }
+                *out = a;
             }
             let lanes = STRIP.min(w - x0);
             let mut ch = [[0f32; STRIP]; 8];
@@ -400,18 +465,26 @@ fn job_body(
     }
 }
 
-/// max(0, max over `entries` of (h − h0)·(1/r)) for the STRIP texels whose neighbourhood starts
-/// at `base`. Two accumulators so consecutive max() operations do not wait on each other.
+/// max(0, max over `entries` of (h − h0)·(1/r)) for the STRIP texels whose neighbourhood is
+/// `win`. Two accumulators so consecutive max() operations do not wait on each other.
+///
+/// # Safety
+/// Every entry's offset + STRIP must be ≤ `win.len()`. The loads are unchecked because the
+/// two bounds checks per neighbour (and the register they cost) took ~10% of the kernel's time;
+/// the caller checks the whole window once per strip instead.
 #[inline(always)]
-fn bin_max(tile: &[f32], base: usize, h0: &[f32; STRIP], entries: &[(u32, f32)]) -> [f32; STRIP] {
+unsafe fn group_max(win: &[f32], h0: &[f32; STRIP], entries: &[(u32, f32)]) -> [f32; STRIP] {
+    debug_assert!(entries.iter().all(|&(off, _)| off as usize + STRIP <= win.len()));
+    let load = |off: u32| -> &[f32; STRIP] {
+        // SAFETY: off + STRIP ≤ win.len() (this function's contract), so the STRIP floats
+        // starting at `off` are inside `win`; [f32; STRIP] has the alignment of f32.
+        unsafe { &*win.as_ptr().add(off as usize).cast::<[f32; STRIP]>() }
+    };
     let mut a0 = [0f32; STRIP];
     let mut a1 = [0f32; STRIP];
-    let load = |off: u32| tile.get(base + off as usize..).and_then(<[f32]>::first_chunk::<STRIP>);
     let mut pairs = entries.chunks_exact(2);
     for p in &mut pairs {
-        let (Some(s0), Some(s1)) = (load(p[0].0), load(p[1].0)) else {
-            continue; // unreachable: offsets stay inside the padded tile
-        };
+        let (s0, s1) = (load(p[0].0), load(p[1].0));
         let (i0, i1) = (p[0].1, p[1].1);
         for k in 0..STRIP {
             let v0 = (s0[k] - h0[k]) * i0;
@@ -421,11 +494,10 @@ fn bin_max(tile: &[f32], base: usize, h0: &[f32; STRIP], entries: &[(u32, f32)])
         }
     }
     for &(off, inv) in pairs.remainder() {
-        if let Some(s0) = load(off) {
-            for k in 0..STRIP {
-                let v0 = (s0[k] - h0[k]) * inv;
-                a0[k] = if v0 > a0[k] { v0 } else { a0[k] };
-            }
+        let s0 = load(off);
+        for k in 0..STRIP {
+            let v0 = (s0[k] - h0[k]) * inv;
+            a0[k] = if v0 > a0[k] { v0 } else { a0[k] };
         }
     }
     for k in 0..STRIP {
@@ -469,10 +541,29 @@ mod tests {
         let g = Grid::new(w, h, &hs, Edge::Wrap, YAxis::Down);
         let want = compute_all(&LengyelNaive::new(g, 9, 48), &Progress::new()).unwrap();
         for isa in [Isa::Baseline, Isa::Avx2, Isa::Avx512] {
-            let got =
-                compute_all(&LengyelFast::with_isa(g, 9, 48, isa), &Progress::new()).unwrap();
+            let got = compute_all(&LengyelFast::with_isa(g, 9, 48, isa), &Progress::new()).unwrap();
             let worst = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max);
             assert!(worst < 1e-5, "{isa:?}: {worst}");
+        }
+    }
+
+    #[test]
+    fn bands_split_into_several_tiles_match_the_oracle() {
+        // A radius of thousands of texels splits a band into tiles of a few rows; shrink the
+        // limit instead so the oracle stays quick.
+        let (w, h) = (23, 17);
+        let hs: Vec<f32> = (0..w * h).map(|k| ((k * 31) % 17) as f32 * 0.4).collect();
+        for edge in [Edge::Wrap, Edge::None] {
+            let g = Grid::new(w, h, &hs, edge, YAxis::Up);
+            let mut k = LengyelFast::new(g, 7, 32);
+            if let Mode::Fast(t) = &mut k.mode {
+                t.max_rows = 3;
+            }
+            let want = compute_all(&LengyelNaive::new(g, 7, 32), &Progress::new()).unwrap();
+            let mut got = vec![0.0f32; w * h * 8];
+            k.rows(0, &mut got, None);
+            let worst = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max);
+            assert!(worst < 1e-5, "{edge:?}: {worst}");
         }
     }
 

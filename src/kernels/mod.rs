@@ -13,8 +13,11 @@
 
 pub mod cubemap;
 pub mod exact;
+pub mod fourier;
 pub mod lengyel;
 pub mod lengyel_fast;
+pub mod parallax;
+pub mod shade;
 
 use crate::error::{Error, Result};
 use crate::params::{Edge, YAxis};
