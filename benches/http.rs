@@ -27,8 +27,8 @@ fn terrain(n: usize) -> Vec<u8> {
         for x in 0..n {
             seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
             let (u, v) = (x as f64 / n as f64, y as f64 / n as f64);
-            let s = (u * TAU * 3.0).sin() * (v * TAU * 2.0).cos()
-                + 0.5 * ((u + v) * TAU * 5.0).sin();
+            let s =
+                (u * TAU * 3.0).sin() * (v * TAU * 2.0).cos() + 0.5 * ((u + v) * TAU * 5.0).sin();
             let noise = ((seed >> 40) as f64 / (1u64 << 24) as f64 - 0.5) * 0.1;
             data.push((((s / 1.5 + 1.0) * 0.45 + noise).clamp(0.0, 1.0) * 65535.0) as u16);
         }

@@ -194,7 +194,7 @@ async fn every_rejection_is_a_problem_and_leaves_nothing_behind() {
         ("?radius=0", "radius"),
         ("?edge=clamp", "edge"),
         ("?bogus=1", "bogus"),
-        ("?outputs=fourier", "outputs"),
+        ("?outputs=normals", "outputs"),
     ] {
         let (s, p) = problem(post(png.clone(), q, "image/png").await.unwrap()).await;
         assert_eq!((s, p["field"].as_str().unwrap()), (422, field), "{q}: {p}");
@@ -486,4 +486,50 @@ async fn router_serves_exactly_the_declared_routes() {
             }
         }
     }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn fourier_outputs_match_the_cli_function() {
+    use horizon_bake::params::BakeParams;
+    let srv = Server::start(|_| {}).await;
+    let c = client();
+    let png = terrain_png16(40, 33, 21);
+    let pairs = [("radius", "6"), ("outputs", "fourier"), ("fourier_terms", "7")];
+    let params = BakeParams::from_pairs(pairs).unwrap();
+    let (map, _) =
+        horizon_bake::heightmap::decode(&png, params.channel, &Default::default()).unwrap();
+    let (want, _) = horizon_bake::cli::bake::fourier_files(
+        &map,
+        &params,
+        &horizon_bake::progress::Progress::new(),
+    )
+    .unwrap();
+    assert_eq!(want.len(), 3);
+    let res = c
+        .post(srv.url("/v1/bakes?radius=6&outputs=fourier&fourier_terms=7"))
+        .header("content-type", "image/png")
+        .body(png)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(res.status(), 202);
+    let loc = res.headers()["location"].to_str().unwrap().to_owned();
+    let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
+    assert_eq!(v["status"], "succeeded", "{v}");
+    assert_eq!(v["links"]["fourier_2"], format!("{loc}/fourier/2"));
+    assert!(v["links"].get("horizon_0").is_none());
+    for (k, f) in want.iter().enumerate() {
+        let res = c.get(srv.url(&format!("{loc}/fourier/{k}"))).send().await.unwrap();
+        assert_eq!(res.status(), 200);
+        let body = res.bytes().await.unwrap();
+        assert!(body[..] == f.bytes[..], "{} differs", f.name);
+    }
+    // Not asked for: 409 with a code that says so.
+    let res = c.get(srv.url(&format!("{loc}/horizon/0"))).send().await.unwrap();
+    assert_eq!(res.status(), 409);
+    let p: Value = res.json().await.unwrap();
+    assert_eq!(p["code"], "result_not_requested");
+    let res = c.get(srv.url(&format!("{loc}/fourier/3"))).send().await.unwrap();
+    assert_eq!(res.status(), 422);
+    srv.stop().await;
 }

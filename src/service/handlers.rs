@@ -140,6 +140,15 @@ pub fn resource(st: &AppState, rec: &BakeRecord) -> Value {
     let mut links = json!({"self": base, "events": format!("{base}/events")});
     if status == Status::Succeeded {
         if let Some(obj) = links.as_object_mut() {
+            for k in 0..3 {
+                if rec.results.contains_key(&format!("fourier_{k}.png")) {
+                    obj.insert(format!("fourier_{k}"), json!(format!("{base}/fourier/{k}")));
+                }
+            }
+        }
+    }
+    if status == Status::Succeeded && rec.results.contains_key("horizon_0.png8") {
+        if let Some(obj) = links.as_object_mut() {
             obj.insert("horizon_0".into(), json!(format!("{base}/horizon/0")));
             obj.insert("horizon_1".into(), json!(format!("{base}/horizon/1")));
             obj.insert("horizon_ktx2".into(), json!(format!("{base}/horizon.ktx2")));
@@ -318,17 +327,6 @@ async fn read_raw(st: &AppState, req: Request, ct: &str) -> Result<(Vec<u8>, Bak
     Ok((bytes.to_vec(), params))
 }
 
-/// What this build can bake; anything else is refused before queueing rather than faked.
-fn check_supported(params: &BakeParams) -> Result<(), Problem> {
-    if params.outputs.fourier {
-        return Err(Problem::param(
-            "outputs",
-            "`fourier` is not available in this build of the service; use `horizon`",
-        ));
-    }
-    Ok(())
-}
-
 fn retry_after(st: &AppState) -> u64 {
     let (waiting, _) = st.0.queue.counts();
     let mean = st.0.metrics.mean_duration().unwrap_or(1.0);
@@ -368,7 +366,6 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
     } else {
         read_raw(&st, req, &ct).await?
     };
-    check_supported(&params)?;
     // Header only: format and dimensions against the limits, before any pixel allocation.
     let (fmt, width, height) = heightmap::probe(&bytes, &st.0.config.limits)?;
     let format = match fmt {
@@ -775,6 +772,9 @@ pub async fn horizon_layer(
         }
     };
     let rec = finished(&st, &id).await?;
+    if !rec.results.keys().any(|k| k.starts_with("horizon")) {
+        return Err(not_produced(&id, "horizon"));
+    }
     let name = if ext == "exr" {
         format!("horizon_{layer}.exr")
     } else {
@@ -787,6 +787,40 @@ pub async fn horizon_layer(
     blob_response(&st, &headers, hash, content_type, &format!("horizon_{layer}.{ext}")).await
 }
 
+fn not_produced(id: &str, what: &str) -> Problem {
+    Problem::new(
+        StatusCode::CONFLICT,
+        "result_not_requested",
+        format!("bake `{id}` did not compute `{what}`; submit it with outputs including {what}"),
+    )
+}
+
+/// `GET /v1/bakes/{id}/fourier/{layer}`: `fourier_{layer}.png` as the CLI writes it (layer 0:
+/// RGBA band coefficients, 1: the constant term, 2: the extra bands of 7 or 9 terms).
+pub async fn fourier_layer(
+    State(st): State<AppState>,
+    Path((id, layer)): Path<(String, String)>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    query_map(q, &[])?;
+    let layer: u8 = match layer.as_str() {
+        "0" => 0,
+        "1" => 1,
+        "2" => 2,
+        _ => return Err(Problem::param("layer", format!("`{layer}` is not 0, 1 or 2"))),
+    };
+    let rec = finished(&st, &id).await?;
+    let name = format!("fourier_{layer}.png");
+    let Some(hash) = rec.results.get(&name) else {
+        return Err(not_produced(
+            &id,
+            if layer == 2 { "fourier (7 or 9 terms)" } else { "fourier" },
+        ));
+    };
+    blob_response(&st, &headers, hash, "image/png", &name).await
+}
+
 async fn horizon_texture(
     st: AppState,
     id: String,
@@ -797,10 +831,9 @@ async fn horizon_texture(
 ) -> Answer {
     query_map(q, &[])?;
     let rec = finished(&st, &id).await?;
-    let hash = rec
-        .results
-        .get(name)
-        .ok_or_else(|| Problem::internal(&format!("bake {id} succeeded without {name}")))?;
+    let Some(hash) = rec.results.get(name) else {
+        return Err(not_produced(&id, "horizon"));
+    };
     blob_response(&st, &headers, hash, content_type, name).await
 }
 

@@ -20,8 +20,9 @@ use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::atomic::Ordering;
 use std::time::Instant;
 
-/// Names of the results a horizon bake stores (each an immutable blob). Every format is
-/// encoded once, when the bake finishes, by the same function the CLI uses
+/// Names of the horizon results a bake stores (each an immutable blob); with
+/// `outputs=fourier` it also stores `fourier_0.png`, `fourier_1.png` (and `fourier_2.png` for
+/// 7 or 9 terms), as the CLI names them. Every format is encoded once, when the bake finishes, by the same function the CLI uses
 /// ([`encode::horizon_files`]), so a download is a file read with a content-hash ETag and is
 /// byte-identical to `horizon-bake bake --format …` (KTX2/DDS at the CLI's default `unorm8`).
 pub const HORIZON_RESULTS: [&str; 8] = [
@@ -186,39 +187,57 @@ fn execute(st: &AppState, mut rec: BakeRecord, progress: &Progress) -> Result<Ba
     let decode_ms = ms(t);
 
     let t = Instant::now();
-    let (layers, radius) = bake::bake_horizon(&map, &params, Precisions::ALL, progress)?;
-    drop(map);
-    let bake_ms = ms(t);
-
-    progress.start(Stage::Encode, 2);
-    let t = Instant::now();
-    // png8 and png16 share a file name in the CLI's scheme, so they are two calls.
-    let main_formats = Formats {
-        png8: true,
-        png16: false,
-        exr: true,
-        ktx2: true,
-        dds: true,
-        texture_precision: TexturePrecision::Unorm8,
-    };
-    let wide =
-        Formats { png8: false, png16: true, exr: false, ktx2: false, dds: false, ..main_formats };
-    let mut encoded: Vec<(String, Vec<u8>)> = Vec::with_capacity(HORIZON_RESULTS.len());
-    for (formats, png_suffix) in [(main_formats, "png8"), (wide, "png16")] {
-        if progress.is_canceled() {
-            return Err(Error::Canceled);
+    let mut encoded: Vec<(String, Vec<u8>)> = Vec::with_capacity(HORIZON_RESULTS.len() + 3);
+    let mut radius = None;
+    let mut encode_ms = 0.0;
+    if params.outputs.horizon {
+        let (layers, r) = bake::bake_horizon(&map, &params, Precisions::ALL, progress)?;
+        radius = Some(r);
+        let te = Instant::now();
+        progress.start(Stage::Encode, 2);
+        // png8 and png16 share a file name in the CLI's scheme, so they are two calls.
+        let main_formats = Formats {
+            png8: true,
+            png16: false,
+            exr: true,
+            ktx2: true,
+            dds: true,
+            texture_precision: TexturePrecision::Unorm8,
+        };
+        let wide = Formats {
+            png8: false,
+            png16: true,
+            exr: false,
+            ktx2: false,
+            dds: false,
+            ..main_formats
+        };
+        for (formats, png_suffix) in [(main_formats, "png8"), (wide, "png16")] {
+            if progress.is_canceled() {
+                return Err(Error::Canceled);
+            }
+            for f in encode::horizon_files(&layers, &formats)? {
+                let name = match f.name.strip_suffix(".png") {
+                    Some(stem) => format!("{stem}.{png_suffix}"),
+                    None => f.name.to_owned(),
+                };
+                encoded.push((name, f.bytes));
+            }
+            progress.advance(1);
         }
-        for f in encode::horizon_files(&layers, &formats)? {
-            let name = match f.name.strip_suffix(".png") {
-                Some(stem) => format!("{stem}.{png_suffix}"),
-                None => f.name.to_owned(),
-            };
-            encoded.push((name, f.bytes));
-        }
-        progress.advance(1);
+        encode_ms += ms(te);
     }
-    drop(layers);
-    let encode_ms = ms(t);
+    if params.outputs.fourier {
+        // The CLI's own function: the same files `horizon-bake bake --outputs fourier` writes.
+        let (files, r) = crate::cli::bake::fourier_files(&map, &params, progress)?;
+        radius.get_or_insert(r);
+        for f in files {
+            encoded.push((f.name.to_owned(), f.bytes));
+        }
+    }
+    drop(map);
+    let bake_ms = ms(t) - encode_ms;
+    let radius = radius.ok_or_else(|| Error::Internal("a bake with no outputs".into()))?;
 
     if progress.is_canceled() {
         return Err(Error::Canceled);
