@@ -85,6 +85,9 @@ async fn over_http(c: &reqwest::Client, base: &str, png: &[u8]) -> usize {
             .expect("body")
             .len();
     }
+    let v: serde_json::Value =
+        c.get(format!("{base}{loc}")).send().await.expect("get").json().await.expect("json");
+    println!("service timings_ms: {}", v["timings_ms"]);
     // Remove it so the next run is a fresh bake rather than a deduplicated answer.
     let res = c.delete(format!("{base}{loc}")).send().await.expect("delete");
     assert_eq!(res.status(), 204);
