@@ -7,7 +7,9 @@
 //! default), a terrain-like map; a white-noise map is timed too, the worst case for skipping.
 //!
 //! Build once with `cargo bench --bench exact --no-run`, then run the binary it names.
-//! Arguments: `[size]` (default 2048).
+//! Arguments: `[size] [radius]` (default 2048, every radius). The "cpu ms" column is the process
+//! CPU time (all threads, from /proc/self/stat): on a shared machine it is the fairer figure.
+//! At the current speed the `unlimited` rows take minutes at 2048²; `1024 unlimited` is quicker.
 
 use horizon_bake::kernels::exact::{ExactHorizon, ExactMarch};
 use horizon_bake::kernels::{compute_all, Grid};

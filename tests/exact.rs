@@ -119,10 +119,12 @@ fn random_map(rng: &mut Rng, w: usize, h: usize, spiky: bool) -> Vec<f32> {
         let mut v = vec![0.0f32; w * h];
         for _ in 0..3 {
             let (fx, fy) = (rng.range(0, 2) as f32, rng.range(0, 2) as f32);
-            let (a, p) = (3.0 * rng.f32(), 6.28 * rng.f32());
+            let (a, p) = (3.0 * rng.f32(), std::f32::consts::TAU * rng.f32());
             for r in 0..h {
                 for c in 0..w {
-                    let t = 6.283 * (fx * c as f32 / w as f32 + fy * r as f32 / h as f32) + p;
+                    let t = std::f32::consts::TAU
+                        * (fx * c as f32 / w as f32 + fy * r as f32 / h as f32)
+                        + p;
                     v[r * w + c] += a * t.sin();
                 }
             }
@@ -238,8 +240,8 @@ fn fast_kernel_equals_plain_oracle_on_larger_maps() {
             let g = Grid::new(w, h, &heights, edge, YAxis::Up);
             let fast = ExactHorizon::new(g, radius, 32, Reduce::Point);
             let plain = ExactMarch::new(g, radius, 32, Reduce::Point);
-            // `rows` seeds each ray from the previous texel's horizon; the seeds must not
-            // change the result.
+            // `rows` is the production path: the f32 near field over strips of texels and the
+            // seeded far-field walk; culling and skipping must not change the result.
             let (mut ch, mut fast_bins, mut b) =
                 (vec![0f32; w * 8], vec![0f32; w * 32], vec![0f32; 32]);
             for y in 0..h {
