@@ -14,6 +14,7 @@
 //! - [`bake`]: one bake = parameters → kernels → encoded outputs, with progress and cancellation.
 //! - [`eval`]: the accuracy/time trade of every model against the exact ground truth (SPEC §4).
 //! - [`cli`]: the `horizon-bake` subcommands, thin wrappers over the above.
+//! - [`service`]: the HTTP job service (axum): queue, rayon bake pool, store, problem+json.
 //! - [`error`]: the one error type, whose variants say whose fault a failure is.
 
 pub mod bake;
@@ -26,5 +27,6 @@ pub mod kernels;
 pub mod params;
 pub mod preview;
 pub mod progress;
+pub mod service;
 
 pub use error::{Error, Result};

@@ -28,10 +28,10 @@ pub struct CubemapArgs {
 
 /// Which cube-map files to write.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-struct CubeFormats {
-    png8: bool,
-    ktx2: bool,
-    dds: bool,
+pub struct CubeFormats {
+    pub png8: bool,
+    pub ktx2: bool,
+    pub dds: bool,
 }
 
 fn parse_formats(list: &str) -> Result<CubeFormats> {
@@ -72,7 +72,10 @@ fn parse_size(value: &str) -> Result<usize> {
 }
 
 /// The cube-map files for face size `size`: PNG faces, KTX2 and DDS as `formats` asks.
-fn cube_files(size: usize, formats: CubeFormats) -> Result<Vec<OutFile>> {
+///
+/// # Errors
+/// An encoder failure.
+pub fn cube_files(size: usize, formats: CubeFormats) -> Result<Vec<OutFile>> {
     const NAMES: [&str; 6] =
         ["cube_0.png", "cube_1.png", "cube_2.png", "cube_3.png", "cube_4.png", "cube_5.png"];
     let factors = cubemap::cube_factors_shared(size);

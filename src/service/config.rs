@@ -1,0 +1,212 @@
+//! Service configuration in two steps: clap reads raw flags and environment variables
+//! ([`ServeArgs`]), then [`Config::from_args`] validates them into the one [`Config`] the server
+//! state is built from. Every limit has a flag, an environment variable and an embedded default,
+//! so `horizon-bake serve` starts with no configuration at all.
+
+use crate::error::{Error, Result};
+use crate::heightmap::Limits;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::time::Duration;
+
+/// Raw flags of `horizon-bake serve` (each also read from a `HORIZON_*` environment variable).
+#[derive(Debug, Clone, clap::Args)]
+pub struct ServeArgs {
+    /// Address to listen on (`127.0.0.1:0` picks a free port).
+    #[arg(long, env = "HORIZON_ADDR", default_value = "127.0.0.1:8080")]
+    pub addr: String,
+    /// Directory holding the bake records (redb) and the content-addressed result files.
+    #[arg(long, env = "HORIZON_DATA_DIR", default_value = "./data")]
+    pub data_dir: PathBuf,
+    /// Write the bound address (`IP:PORT`) to this file once listening (for scripts and tests).
+    #[arg(long, env = "HORIZON_ADDR_FILE")]
+    pub addr_file: Option<PathBuf>,
+    /// Largest accepted request body in bytes (an upload, multipart included).
+    #[arg(long, env = "HORIZON_MAX_BODY_BYTES", default_value_t = 256 * 1024 * 1024)]
+    pub max_body_bytes: u64,
+    /// Largest width or height of an input, in texels.
+    #[arg(long, env = "HORIZON_MAX_DIM", default_value_t = 16384)]
+    pub max_dim: u32,
+    /// Largest width × height of an input.
+    #[arg(long, env = "HORIZON_MAX_TEXELS", default_value_t = 8192 * 8192)]
+    pub max_texels: u64,
+    /// Threads of the dedicated bake pool (0 = one per core).
+    #[arg(long, env = "HORIZON_BAKE_THREADS", default_value_t = 0)]
+    pub bake_threads: usize,
+    /// Bakes running at the same time (they share the bake pool).
+    #[arg(long, env = "HORIZON_MAX_CONCURRENT_BAKES", default_value_t = 1)]
+    pub max_concurrent_bakes: usize,
+    /// Bakes waiting in the queue before submissions get 429.
+    #[arg(long, env = "HORIZON_QUEUE_CAPACITY", default_value_t = 64)]
+    pub queue_capacity: usize,
+    /// Uploads read at the same time; more wait up to `upload_wait_ms`, then get 429.
+    #[arg(long, env = "HORIZON_MAX_INFLIGHT_UPLOADS", default_value_t = 16)]
+    pub max_inflight_uploads: usize,
+    /// How long an upload waits for a free upload slot before 429, in milliseconds.
+    #[arg(long, env = "HORIZON_UPLOAD_WAIT_MS", default_value_t = 5000)]
+    pub upload_wait_ms: u64,
+    /// Seconds a finished bake (and its results) is kept before it is removed.
+    #[arg(long, env = "HORIZON_RETENTION_SECS", default_value_t = 7 * 24 * 3600)]
+    pub retention_secs: u64,
+    /// Seconds between retention sweeps.
+    #[arg(long, env = "HORIZON_SWEEP_INTERVAL_SECS", default_value_t = 60)]
+    pub sweep_interval_secs: u64,
+    /// On SIGTERM, seconds running bakes get to finish before they are put back in the queue.
+    #[arg(long, env = "HORIZON_SHUTDOWN_GRACE_SECS", default_value_t = 30)]
+    pub shutdown_grace_secs: u64,
+    /// When set, every /v1 route needs `Authorization: Bearer <key>` (health stays open).
+    #[arg(long, env = "HORIZON_API_KEY", hide_env_values = true)]
+    pub api_key: Option<String>,
+    /// Largest cube-map face size served by /v1/cubemap.
+    #[arg(long, env = "HORIZON_MAX_CUBEMAP_SIZE", default_value_t = 1024)]
+    pub max_cubemap_size: u32,
+}
+
+impl Default for ServeArgs {
+    /// The embedded defaults, independent of the environment (tests, benches, embedding).
+    fn default() -> Self {
+        ServeArgs {
+            addr: "127.0.0.1:8080".into(),
+            data_dir: PathBuf::from("./data"),
+            addr_file: None,
+            max_body_bytes: 256 * 1024 * 1024,
+            max_dim: 16384,
+            max_texels: 8192 * 8192,
+            bake_threads: 0,
+            max_concurrent_bakes: 1,
+            queue_capacity: 64,
+            max_inflight_uploads: 16,
+            upload_wait_ms: 5000,
+            retention_secs: 7 * 24 * 3600,
+            sweep_interval_secs: 60,
+            shutdown_grace_secs: 30,
+            api_key: None,
+            max_cubemap_size: 1024,
+        }
+    }
+}
+
+/// The validated service configuration.
+#[derive(Debug, Clone)]
+pub struct Config {
+    pub addr: SocketAddr,
+    pub data_dir: PathBuf,
+    pub addr_file: Option<PathBuf>,
+    pub max_body_bytes: u64,
+    pub limits: Limits,
+    pub bake_threads: usize,
+    pub max_concurrent_bakes: usize,
+    pub queue_capacity: usize,
+    pub max_inflight_uploads: usize,
+    pub upload_wait: Duration,
+    pub retention: Duration,
+    pub sweep_interval: Duration,
+    pub shutdown_grace: Duration,
+    pub api_key: Option<String>,
+    pub max_cubemap_size: u32,
+}
+
+fn at_least_one(field: &str, v: u64) -> Result<()> {
+    if v == 0 {
+        return Err(Error::param(field, "must be at least 1"));
+    }
+    Ok(())
+}
+
+impl Config {
+    /// Validates raw flags.
+    ///
+    /// # Errors
+    /// [`Error::Param`] naming the flag (snake_case) that is out of range or malformed.
+    pub fn from_args(a: ServeArgs) -> Result<Self> {
+        let addr: SocketAddr = a
+            .addr
+            .parse()
+            .map_err(|_| Error::param("addr", format!("`{}` is not an IP:PORT address", a.addr)))?;
+        at_least_one("max_body_bytes", a.max_body_bytes)?;
+        at_least_one("max_dim", a.max_dim as u64)?;
+        at_least_one("max_texels", a.max_texels)?;
+        at_least_one("max_concurrent_bakes", a.max_concurrent_bakes as u64)?;
+        at_least_one("queue_capacity", a.queue_capacity as u64)?;
+        at_least_one("max_inflight_uploads", a.max_inflight_uploads as u64)?;
+        at_least_one("sweep_interval_secs", a.sweep_interval_secs)?;
+        at_least_one("max_cubemap_size", a.max_cubemap_size as u64)?;
+        if a.max_cubemap_size > crate::cli::cubemap::MAX_CUBE_SIZE {
+            return Err(Error::param(
+                "max_cubemap_size",
+                format!("must be at most {}", crate::cli::cubemap::MAX_CUBE_SIZE),
+            ));
+        }
+        if let Some(k) = &a.api_key {
+            if k.trim().is_empty() {
+                return Err(Error::param("api_key", "must not be empty when given"));
+            }
+        }
+        let bake_threads = if a.bake_threads == 0 {
+            std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)
+        } else {
+            a.bake_threads
+        };
+        Ok(Config {
+            addr,
+            data_dir: a.data_dir,
+            addr_file: a.addr_file,
+            max_body_bytes: a.max_body_bytes,
+            limits: Limits {
+                max_dim: a.max_dim,
+                max_texels: a.max_texels,
+                max_bytes: a.max_body_bytes,
+            },
+            bake_threads,
+            max_concurrent_bakes: a.max_concurrent_bakes,
+            queue_capacity: a.queue_capacity,
+            max_inflight_uploads: a.max_inflight_uploads,
+            upload_wait: Duration::from_millis(a.upload_wait_ms),
+            retention: Duration::from_secs(a.retention_secs),
+            sweep_interval: Duration::from_secs(a.sweep_interval_secs),
+            shutdown_grace: Duration::from_secs(a.shutdown_grace_secs),
+            api_key: a.api_key,
+            max_cubemap_size: a.max_cubemap_size,
+        })
+    }
+
+    /// The embedded defaults with the data directory at `dir` and an ephemeral port on
+    /// 127.0.0.1 (tests, benches, embedding); the environment is not read.
+    ///
+    /// # Errors
+    /// None in practice: the embedded defaults are valid (a test checks it).
+    pub fn for_dir(dir: impl Into<PathBuf>) -> Result<Self> {
+        Config::from_args(ServeArgs {
+            addr: "127.0.0.1:0".into(),
+            data_dir: dir.into(),
+            ..Default::default()
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_are_valid_and_bad_flags_name_themselves() {
+        let c = Config::from_args(ServeArgs::default()).unwrap();
+        assert_eq!(c.addr.port(), 8080);
+        let d = Config::for_dir("/tmp/x").unwrap();
+        assert_eq!(d.queue_capacity, c.queue_capacity);
+        assert_eq!(d.limits, c.limits);
+        assert_eq!(c.queue_capacity, 64);
+        assert_eq!(c.limits.max_dim, 16384);
+        assert!(c.bake_threads >= 1);
+        let a = ServeArgs { queue_capacity: 0, ..Default::default() };
+        match Config::from_args(a) {
+            Err(Error::Param { field, .. }) => assert_eq!(field, "queue_capacity"),
+            other => panic!("expected a parameter error, got {other:?}"),
+        }
+        let a = ServeArgs { addr: "nowhere".into(), ..Default::default() };
+        match Config::from_args(a) {
+            Err(Error::Param { field, .. }) => assert_eq!(field, "addr"),
+            other => panic!("expected a parameter error, got {other:?}"),
+        }
+    }
+}

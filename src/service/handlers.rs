@@ -1,0 +1,1090 @@
+//! HTTP handlers: validate, call the store or the queue, answer. No pixel arithmetic here; the
+//! only CPU work a handler starts (the cube map) runs on a blocking thread.
+
+// `Problem` is the error answer itself, built at most once per request on the way out; boxing it
+// would add an allocation to every error path for no gain.
+#![allow(clippy::result_large_err)]
+
+use crate::cli::cubemap::CubeFormats;
+use crate::error::Error;
+use crate::heightmap;
+use crate::params::BakeParams;
+use crate::progress::Stage;
+use crate::service::problem::Problem;
+use crate::service::store::{now_ms, BakeRecord, Status};
+use crate::service::worker::{blocking, params_of};
+use crate::service::AppState;
+use axum::body::Body;
+use axum::extract::{FromRequest, MatchedPath, Path, Query, Request, State};
+use axum::http::{header, HeaderMap, HeaderValue, Method, StatusCode};
+use axum::middleware::Next;
+use axum::response::sse::{Event, KeepAlive, Sse};
+use axum::response::{IntoResponse, Response};
+use axum::Json;
+use futures_util::stream::Stream;
+use serde_json::{json, Value};
+use std::collections::HashMap;
+use std::convert::Infallible;
+use std::time::Duration;
+
+type Answer = Result<Response, Problem>;
+
+/// The openapi document this server implements.
+pub const OPENAPI_YAML: &str = include_str!("../../openapi.yaml");
+
+// ---------------------------------------------------------------------------------------------
+// Small helpers
+
+fn store_err(e: Error) -> Problem {
+    Problem::from(e)
+}
+
+/// Parses query pairs, rejecting names not in `allowed` and repeated names (422 naming them).
+fn query_map(
+    pairs: Vec<(String, String)>,
+    allowed: &[&str],
+) -> Result<HashMap<String, String>, Problem> {
+    let mut out = HashMap::new();
+    for (k, v) in pairs {
+        if !allowed.contains(&k.as_str()) {
+            return Err(Problem::param(
+                k,
+                format!(
+                    "unknown query parameter; this route accepts {}",
+                    if allowed.is_empty() { "none".to_owned() } else { allowed.join(", ") }
+                ),
+            ));
+        }
+        if out.insert(k.clone(), v).is_some() {
+            return Err(Problem::param(k, "given more than once"));
+        }
+    }
+    Ok(out)
+}
+
+/// RFC 3339 UTC time of Unix milliseconds (civil-from-days, Howard Hinnant's algorithm).
+pub fn rfc3339(ms: u64) -> String {
+    let secs = ms / 1000;
+    let days = (secs / 86_400) as i64;
+    let rem = secs % 86_400;
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!(
+        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}.{:03}Z",
+        rem / 3600,
+        (rem % 3600) / 60,
+        rem % 60,
+        ms % 1000
+    )
+}
+
+/// Overall progress in [0, 1] from a stage and its fraction (weights: decode 5%, bake 85%,
+/// encode 7%, store 3%).
+fn overall(stage: Stage, f: f64) -> f64 {
+    let (start, span) = match stage {
+        Stage::Queued => (0.0, 0.0),
+        Stage::Decode => (0.0, 0.05),
+        Stage::Bake | Stage::Fourier => (0.05, 0.85),
+        Stage::Encode => (0.90, 0.07),
+        Stage::Store => (0.97, 0.03),
+        Stage::Done => (1.0, 0.0),
+    };
+    (start + span * f).clamp(0.0, 1.0)
+}
+
+fn stage_name(s: Stage) -> Value {
+    serde_json::to_value(s).unwrap_or(Value::Null)
+}
+
+/// The bake resource (SPEC §5) for a record, with live progress when it is in flight.
+pub fn resource(st: &AppState, rec: &BakeRecord) -> Value {
+    let live = st.0.queue.live(&rec.id);
+    let (status, progress) = match (&live, rec.status) {
+        (Some(l), s) if !s.is_terminal() => {
+            let stage = l.progress.stage();
+            let status = if l.running { Status::Running } else { Status::Queued };
+            (
+                status,
+                json!({"fraction": overall(stage, l.progress.fraction()), "stage": stage_name(stage)}),
+            )
+        }
+        (_, Status::Succeeded) => (Status::Succeeded, json!({"fraction": 1.0, "stage": "done"})),
+        (_, s) if s.is_terminal() => (s, json!({"fraction": 0.0, "stage": "done"})),
+        (_, s) => (s, json!({"fraction": 0.0, "stage": "queued"})),
+    };
+    let mut params =
+        params_of(rec).ok().and_then(|p| serde_json::to_value(p).ok()).unwrap_or_else(|| json!({}));
+    if let (Some(obj), Some(r)) = (params.as_object_mut(), &rec.radius) {
+        obj.insert("resolved_radius".into(), json!({"texels": r.texels, "reason": r.reason}));
+    }
+    let input = match &rec.input {
+        Some(i) => json!({
+            "width": i.width, "height": i.height, "format": i.format, "color": i.color,
+            "bit_depth": i.bit_depth, "float": i.float, "content_hash": i.content_hash,
+            "bytes": rec.input_bytes,
+        }),
+        None => json!({
+            "width": rec.width, "height": rec.height, "format": rec.input_format,
+            "color": null, "bit_depth": null, "float": null, "content_hash": rec.input_blob,
+            "bytes": rec.input_bytes,
+        }),
+    };
+    let base = format!("/v1/bakes/{}", rec.id);
+    let mut links = json!({"self": base, "events": format!("{base}/events")});
+    if status == Status::Succeeded {
+        if let Some(obj) = links.as_object_mut() {
+            for k in 0..3 {
+                if rec.results.contains_key(&format!("fourier_{k}.png")) {
+                    obj.insert(format!("fourier_{k}"), json!(format!("{base}/fourier/{k}")));
+                }
+            }
+        }
+    }
+    if status == Status::Succeeded && rec.results.contains_key("horizon_0.png8") {
+        if let Some(obj) = links.as_object_mut() {
+            obj.insert("horizon_0".into(), json!(format!("{base}/horizon/0")));
+            obj.insert("horizon_1".into(), json!(format!("{base}/horizon/1")));
+            obj.insert("horizon_ktx2".into(), json!(format!("{base}/horizon.ktx2")));
+            obj.insert("horizon_dds".into(), json!(format!("{base}/horizon.dds")));
+        }
+    }
+    json!({
+        "id": rec.id,
+        "status": status.as_str(),
+        "progress": progress,
+        "params": params,
+        "input": input,
+        "created_at": rfc3339(rec.created_ms),
+        "started_at": rec.started_ms.map(rfc3339),
+        "finished_at": rec.finished_ms.map(rfc3339),
+        "timings_ms": rec.timings_ms,
+        "error": rec.error,
+        "attempts": rec.attempts,
+        "links": links,
+    })
+}
+
+async fn load(st: &AppState, id: &str) -> Result<BakeRecord, Problem> {
+    if id.is_empty() || id.len() > 64 {
+        return Err(Problem::bake_not_found(id));
+    }
+    let store = st.0.bakes.clone();
+    let key = id.to_owned();
+    blocking(move || store.get(&key))
+        .await
+        .map_err(store_err)?
+        .ok_or_else(|| Problem::bake_not_found(id))
+}
+
+fn json_response(status: StatusCode, body: &Value) -> Response {
+    (status, Json(body)).into_response()
+}
+
+fn new_id() -> String {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static COUNTER: AtomicU64 = AtomicU64::new(0);
+    let n = COUNTER.fetch_add(1, Ordering::Relaxed);
+    let nanos = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_nanos())
+        .unwrap_or(0);
+    let mut h = blake3::Hasher::new();
+    h.update(&n.to_le_bytes());
+    h.update(&nanos.to_le_bytes());
+    h.update(&std::process::id().to_le_bytes());
+    let noise = h.finalize();
+    format!("{:012x}{}", now_ms() & 0xffff_ffff_ffff, &noise.to_hex()[..8])
+}
+
+// ---------------------------------------------------------------------------------------------
+// Submission
+
+/// Media types accepted as a raw-body upload (the bytes are sniffed anyway).
+const RAW_TYPES: &[&str] =
+    &["image/png", "image/tiff", "image/x-exr", "image/exr", "application/octet-stream"];
+
+fn body_error(e: &(dyn std::error::Error + 'static)) -> Problem {
+    let mut cur: Option<&(dyn std::error::Error + 'static)> = Some(e);
+    while let Some(c) = cur {
+        if c.is::<http_body_util::LengthLimitError>() {
+            return Problem::new(
+                StatusCode::PAYLOAD_TOO_LARGE,
+                "payload_too_large",
+                "the request body is larger than the server accepts (max_body_bytes)",
+            );
+        }
+        cur = c.source();
+    }
+    Problem::new(StatusCode::BAD_REQUEST, "bad_request", "the request body could not be read")
+}
+
+fn query_params(uri: &axum::http::Uri) -> Result<BakeParams, Problem> {
+    let pairs: Vec<(String, String)> = match Query::<Vec<(String, String)>>::try_from_uri(uri) {
+        Ok(Query(p)) => p,
+        Err(_) => return Err(Problem::param("query", "the query string is malformed")),
+    };
+    BakeParams::from_pairs(pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
+        .map_err(Problem::from)
+}
+
+/// Applies the keys present in a multipart `params` JSON object on top of `base` (the query's),
+/// so the JSON part wins where both name a parameter.
+fn merge_json(base: BakeParams, text: &[u8]) -> Result<BakeParams, Problem> {
+    if text.iter().all(u8::is_ascii_whitespace) {
+        return Ok(base);
+    }
+    let v: Value = serde_json::from_slice(text)
+        .map_err(|e| Problem::param("params", format!("not valid JSON: {e}")))?;
+    let from_json = BakeParams::from_json(&v).map_err(Problem::from)?;
+    let given: Vec<&String> = v
+        .as_object()
+        .map(|o| o.iter().filter(|(_, x)| !x.is_null()).map(|(k, _)| k).collect())
+        .unwrap_or_default();
+    let mut merged = base;
+    for (k, val) in from_json.to_pairs() {
+        if given.iter().any(|g| g.as_str() == k) {
+            merged.set(k, &val).map_err(Problem::from)?;
+        }
+    }
+    Ok(merged)
+}
+
+async fn read_multipart(st: &AppState, req: Request) -> Result<(Vec<u8>, BakeParams), Problem> {
+    let query = query_params(req.uri())?;
+    let mut mp = axum::extract::Multipart::from_request(req, st).await.map_err(|e| {
+        Problem::new(
+            StatusCode::BAD_REQUEST,
+            "bad_request",
+            format!("malformed multipart body: {}", e.body_text()),
+        )
+    })?;
+    let mut image: Option<Vec<u8>> = None;
+    let mut params = query.clone();
+    loop {
+        let field = match mp.next_field().await {
+            Ok(Some(f)) => f,
+            Ok(None) => break,
+            Err(e) => return Err(multipart_error(&e)),
+        };
+        let name = field.name().unwrap_or("").to_owned();
+        match name.as_str() {
+            "heightmap" => {
+                if image.is_some() {
+                    return Err(Problem::param("heightmap", "given more than once"));
+                }
+                image = Some(field.bytes().await.map_err(|e| multipart_error(&e))?.to_vec());
+            }
+            "params" => {
+                let text = field.bytes().await.map_err(|e| multipart_error(&e))?;
+                params = merge_json(query.clone(), &text)?;
+            }
+            other => {
+                return Err(Problem::param(
+                    if other.is_empty() { "multipart" } else { other },
+                    "unknown multipart part; expected `heightmap` and optionally `params`",
+                ))
+            }
+        }
+    }
+    let image = image
+        .ok_or_else(|| Problem::param("heightmap", "the multipart body has no `heightmap` part"))?;
+    Ok((image, params))
+}
+
+fn multipart_error(e: &axum::extract::multipart::MultipartError) -> Problem {
+    if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
+        return Problem::new(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "payload_too_large",
+            "the request body is larger than the server accepts (max_body_bytes)",
+        );
+    }
+    Problem::new(
+        StatusCode::BAD_REQUEST,
+        "bad_request",
+        format!("malformed multipart body: {}", e.body_text()),
+    )
+}
+
+async fn read_raw(st: &AppState, req: Request, ct: &str) -> Result<(Vec<u8>, BakeParams), Problem> {
+    let mime = ct.split(';').next().unwrap_or("").trim().to_ascii_lowercase();
+    if !mime.is_empty() && !RAW_TYPES.contains(&mime.as_str()) {
+        return Err(Error::Unsupported(format!(
+            "Content-Type `{mime}` is not accepted; send image/png, image/tiff, image/x-exr or multipart/form-data"
+        ))
+        .into());
+    }
+    let params = query_params(req.uri())?;
+    let limit = usize::try_from(st.0.config.max_body_bytes).unwrap_or(usize::MAX);
+    let bytes = axum::body::to_bytes(req.into_body(), limit).await.map_err(|e| body_error(&e))?;
+    Ok((bytes.to_vec(), params))
+}
+
+fn retry_after(st: &AppState) -> u64 {
+    let (waiting, _) = st.0.queue.counts();
+    let mean = st.0.metrics.mean_duration().unwrap_or(1.0);
+    let per_slot = waiting as f64 * mean / st.0.config.max_concurrent_bakes.max(1) as f64;
+    per_slot.ceil().clamp(1.0, 300.0) as u64
+}
+
+/// `POST /v1/bakes`: multipart (`heightmap` + optional `params` JSON) or a raw image body with
+/// the parameters in the query string.
+pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
+    if st.is_draining() {
+        return Err(Problem::shutting_down());
+    }
+    let _upload =
+        match tokio::time::timeout(st.0.config.upload_wait, st.0.uploads.clone().acquire_owned())
+            .await
+        {
+            Ok(Ok(p)) => p,
+            _ => {
+                let mut p = Problem::new(
+                    StatusCode::TOO_MANY_REQUESTS,
+                    "too_many_uploads",
+                    "too many uploads in progress; retry later",
+                );
+                p.retry_after = Some(1);
+                return Err(p);
+            }
+        };
+    let ct = req
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("")
+        .to_owned();
+    let (bytes, params) = if ct.to_ascii_lowercase().starts_with("multipart/form-data") {
+        read_multipart(&st, req).await?
+    } else {
+        read_raw(&st, req, &ct).await?
+    };
+    // Header only: format and dimensions against the limits, before any pixel allocation.
+    let (fmt, width, height) = heightmap::probe(&bytes, &st.0.config.limits)?;
+    let format = match fmt {
+        image::ImageFormat::Png => "png",
+        image::ImageFormat::Tiff => "tiff",
+        _ => "exr",
+    };
+    let pairs: Vec<(String, String)> =
+        params.to_pairs().into_iter().map(|(k, v)| (k.to_owned(), v)).collect();
+    let (bytes, input_hash, key) = blocking(move || {
+        let input_hash = blake3::hash(&bytes).to_hex().to_string();
+        let mut h = blake3::Hasher::new();
+        h.update(input_hash.as_bytes());
+        for (k, v) in &pairs {
+            h.update(b"\n");
+            h.update(k.as_bytes());
+            h.update(b"=");
+            h.update(v.as_bytes());
+        }
+        Ok((bytes, input_hash, h.finalize().to_hex().to_string()))
+    })
+    .await
+    .map_err(store_err)?;
+
+    let _serial = st.0.submit_lock.lock().await;
+    let store = st.0.bakes.clone();
+    let lookup = key.clone();
+    let existing = blocking(move || store.find_by_key(&lookup)).await.map_err(store_err)?;
+    if let Some(rec) = existing {
+        if !matches!(rec.status, Status::Failed | Status::Canceled) {
+            st.0.metrics.submitted(true);
+            let mut res = json_response(StatusCode::OK, &resource(&st, &rec));
+            if let Ok(v) = HeaderValue::from_str(&format!("/v1/bakes/{}", rec.id)) {
+                res.headers_mut().insert(header::LOCATION, v);
+            }
+            return Ok(res);
+        }
+    }
+    if st.0.queue.is_full() {
+        return Err(Problem::queue_full(st.0.queue.capacity(), retry_after(&st)));
+    }
+    let rec = BakeRecord {
+        id: new_id(),
+        status: Status::Queued,
+        dedup_key: key,
+        params: params.to_pairs().into_iter().map(|(k, v)| (k.to_owned(), v)).collect(),
+        input_blob: input_hash,
+        input_format: format.into(),
+        input_bytes: bytes.len() as u64,
+        width,
+        height,
+        input: None,
+        radius: None,
+        created_ms: now_ms(),
+        started_ms: None,
+        finished_ms: None,
+        timings_ms: None,
+        error: None,
+        results: Default::default(),
+        attempts: 0,
+    };
+    let job = st.clone();
+    let to_store = rec.clone();
+    blocking(move || {
+        let _gc = job.0.gc_lock.read().unwrap_or_else(|e| e.into_inner());
+        job.0.blobs.put(&bytes)?;
+        job.0.bakes.put(&to_store)
+    })
+    .await
+    .map_err(store_err)?;
+    if st.0.queue.try_push(&rec.id).is_err() {
+        // Unreachable while the submit lock is held (the capacity was checked above), but never
+        // leave a durable record nobody will run: the next start would pick it up anyway.
+        st.0.queue.push_recovered(&rec.id);
+    }
+    st.0.metrics.submitted(false);
+    st.notify(&rec.id);
+    let mut res = json_response(StatusCode::ACCEPTED, &resource(&st, &rec));
+    if let Ok(v) = HeaderValue::from_str(&format!("/v1/bakes/{}", rec.id)) {
+        res.headers_mut().insert(header::LOCATION, v);
+    }
+    Ok(res)
+}
+
+// ---------------------------------------------------------------------------------------------
+// Reading and managing bakes
+
+/// `GET /v1/bakes?limit=&cursor=&status=`.
+pub async fn list(State(st): State<AppState>, Query(q): Query<Vec<(String, String)>>) -> Answer {
+    let q = query_map(q, &["limit", "cursor", "status"])?;
+    let limit = match q.get("limit") {
+        None => 50,
+        Some(v) => match v.parse::<usize>() {
+            Ok(n) if (1..=1000).contains(&n) => n,
+            _ => {
+                return Err(Problem::param(
+                    "limit",
+                    format!("`{v}` is not a whole number from 1 to 1000"),
+                ))
+            }
+        },
+    };
+    let status = match q.get("status") {
+        None => None,
+        Some(s) => Some(Status::parse(s).map_err(Problem::from)?),
+    };
+    let cursor = q.get("cursor").cloned();
+    if let Some(c) = &cursor {
+        if c.is_empty() || c.len() > 64 {
+            return Err(Problem::param("cursor", "not a cursor returned by this API"));
+        }
+    }
+    let store = st.0.bakes.clone();
+    let page =
+        blocking(move || store.list(status, cursor.as_deref(), limit)).await.map_err(store_err)?;
+    let items: Vec<Value> = page.items.iter().map(|r| resource(&st, r)).collect();
+    let next = page.next.map(|c| {
+        let mut link = format!("/v1/bakes?limit={limit}&cursor={c}");
+        if let Some(s) = status {
+            link.push_str(&format!("&status={}", s.as_str()));
+        }
+        json!({"cursor": c, "href": link})
+    });
+    Ok(json_response(StatusCode::OK, &json!({"items": items, "next": next})))
+}
+
+/// `GET /v1/bakes/{id}`.
+pub async fn get_bake(State(st): State<AppState>, Path(id): Path<String>) -> Answer {
+    let rec = load(&st, &id).await?;
+    Ok(json_response(StatusCode::OK, &resource(&st, &rec)))
+}
+
+/// `DELETE /v1/bakes/{id}`: cancels a queued bake (200, now `canceled`), asks a running one to
+/// stop (202, it turns `canceled` within a band of rows), removes a finished one and its
+/// results (204).
+pub async fn delete_bake(State(st): State<AppState>, Path(id): Path<String>) -> Answer {
+    let rec = load(&st, &id).await?;
+    if rec.status.is_terminal() {
+        let job = st.clone();
+        let rid = rec.id.clone();
+        blocking(move || remove_bake(&job, &rid)).await.map_err(store_err)?;
+        st.notify(&id);
+        return Ok(StatusCode::NO_CONTENT.into_response());
+    }
+    if st.0.queue.remove_waiting(&id) {
+        let mut rec = rec;
+        rec.status = Status::Canceled;
+        rec.finished_ms = Some(now_ms());
+        let store = st.0.bakes.clone();
+        let to_store = rec.clone();
+        blocking(move || store.put(&to_store)).await.map_err(store_err)?;
+        st.0.metrics.finished(Status::Canceled, 0.0, 0);
+        st.notify(&id);
+        return Ok(json_response(StatusCode::OK, &resource(&st, &rec)));
+    }
+    st.0.queue.cancel_running(&id, false);
+    // Running (or just taken by a worker): the worker records `canceled` when the kernel stops.
+    let rec = load(&st, &id).await?;
+    Ok(json_response(StatusCode::ACCEPTED, &resource(&st, &rec)))
+}
+
+/// Removes a finished bake and every blob no other record references (blocking).
+///
+/// # Errors
+/// Store failures.
+pub fn remove_bake(st: &AppState, id: &str) -> crate::Result<bool> {
+    let _gc = st.0.gc_lock.write().unwrap_or_else(|e| e.into_inner());
+    let Some(rec) = st.0.bakes.get(id)? else {
+        return Ok(false);
+    };
+    st.0.bakes.delete(id)?;
+    let mut mine: Vec<String> = rec.blobs().map(str::to_owned).collect();
+    let mut after: Option<String> = None;
+    while !mine.is_empty() {
+        let page = st.0.bakes.list(None, after.as_deref(), 1000)?;
+        for other in &page.items {
+            mine.retain(|b| other.blobs().all(|o| o != b));
+        }
+        match page.next {
+            Some(n) => after = Some(n),
+            None => break,
+        }
+    }
+    for b in mine {
+        st.0.blobs.delete(&b)?;
+    }
+    Ok(true)
+}
+
+/// Removes finished bakes older than the retention, then orphaned blobs (older than an hour, so
+/// a submission between its blob write and its record commit is never touched).
+///
+/// # Errors
+/// Store failures.
+pub fn sweep(st: &AppState) -> crate::Result<usize> {
+    let cutoff = now_ms().saturating_sub(st.0.config.retention.as_millis() as u64);
+    let mut expired = Vec::new();
+    let mut after: Option<String> = None;
+    loop {
+        let page = st.0.bakes.list(None, after.as_deref(), 1000)?;
+        for r in &page.items {
+            if r.status.is_terminal() && r.finished_ms.is_some_and(|f| f <= cutoff) {
+                expired.push(r.id.clone());
+            }
+        }
+        match page.next {
+            Some(n) => after = Some(n),
+            None => break,
+        }
+    }
+    let mut removed = 0;
+    for id in &expired {
+        if remove_bake(st, id)? {
+            removed += 1;
+        }
+    }
+    let _gc = st.0.gc_lock.write().unwrap_or_else(|e| e.into_inner());
+    let mut referenced = std::collections::HashSet::new();
+    let mut after: Option<String> = None;
+    loop {
+        let page = st.0.bakes.list(None, after.as_deref(), 1000)?;
+        for r in &page.items {
+            referenced.extend(r.blobs().map(str::to_owned));
+        }
+        match page.next {
+            Some(n) => after = Some(n),
+            None => break,
+        }
+    }
+    for (hash, age) in st.0.blobs.list()? {
+        if age > 3600 && !referenced.contains(&hash) {
+            st.0.blobs.delete(&hash)?;
+        }
+    }
+    Ok(removed)
+}
+
+/// Runs [`sweep`] every `sweep_interval` until the server closes.
+pub async fn sweep_loop(st: AppState) {
+    loop {
+        tokio::select! {
+            _ = st.0.closing.cancelled() => return,
+            _ = tokio::time::sleep(st.0.config.sweep_interval) => {}
+        }
+        let job = st.clone();
+        match blocking(move || sweep(&job)).await {
+            Ok(0) => {}
+            Ok(n) => tracing::info!(removed = n, "retention sweep"),
+            Err(e) => tracing::error!(error = %e, "retention sweep failed"),
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Progress events
+
+async fn snapshot(st: &AppState, id: &str) -> Option<(Status, Value)> {
+    let store = st.0.bakes.clone();
+    let key = id.to_owned();
+    let rec = blocking(move || store.get(&key)).await.ok().flatten()?;
+    let res = resource(st, &rec);
+    let status = res.get("status").and_then(Value::as_str).and_then(|s| Status::parse(s).ok())?;
+    Some((status, res))
+}
+
+struct Watch {
+    st: AppState,
+    id: String,
+    rx: tokio::sync::broadcast::Receiver<String>,
+    last: Option<String>,
+    first: bool,
+    done: bool,
+}
+
+/// `GET /v1/bakes/{id}/events`: `progress` events while the bake is in flight, then one `done`
+/// event carrying the final resource (or `deleted`), then the stream ends.
+pub async fn events(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, Problem> {
+    load(&st, &id).await?;
+    let rx = st.0.changes.subscribe();
+    let w = Watch { st, id, rx, last: None, first: true, done: false };
+    let stream = futures_util::stream::unfold(w, |mut w| async move {
+        if w.done {
+            return None;
+        }
+        loop {
+            if !w.first {
+                tokio::select! {
+                    _ = w.st.0.closing.cancelled() => return None,
+                    _ = tokio::time::sleep(Duration::from_millis(250)) => {}
+                    _ = w.rx.recv() => {}
+                }
+            }
+            w.first = false;
+            match snapshot(&w.st, &w.id).await {
+                None => {
+                    w.done = true;
+                    let ev =
+                        Event::default().event("deleted").data(json!({"id": w.id}).to_string());
+                    return Some((Ok(ev), w));
+                }
+                Some((status, res)) if status.is_terminal() => {
+                    w.done = true;
+                    let ev = Event::default().event("done").data(res.to_string());
+                    return Some((Ok(ev), w));
+                }
+                Some((status, res)) => {
+                    let text =
+                        json!({"id": w.id, "status": status.as_str(), "progress": res["progress"]})
+                            .to_string();
+                    if w.last.as_ref() != Some(&text) {
+                        w.last = Some(text.clone());
+                        return Some((Ok(Event::default().event("progress").data(text)), w));
+                    }
+                }
+            }
+        }
+    });
+    Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
+}
+
+// ---------------------------------------------------------------------------------------------
+// Results
+
+fn etag_matches(headers: &HeaderMap, etag: &str) -> bool {
+    headers
+        .get_all(header::IF_NONE_MATCH)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .flat_map(|v| v.split(','))
+        .map(|t| t.trim().trim_start_matches("W/"))
+        .any(|t| t == "*" || t == etag)
+}
+
+/// Answers with immutable bytes: strong ETag = the content hash, 304 on If-None-Match.
+async fn blob_response(
+    st: &AppState,
+    headers: &HeaderMap,
+    hash: &str,
+    content_type: &'static str,
+    filename: &str,
+) -> Answer {
+    let etag = format!("\"{hash}\"");
+    let mut res = if etag_matches(headers, &etag) {
+        StatusCode::NOT_MODIFIED.into_response()
+    } else {
+        let blobs = st.0.blobs.clone();
+        let key = hash.to_owned();
+        let bytes =
+            blocking(move || blobs.get(&key)).await.map_err(store_err)?.ok_or_else(|| {
+                Problem::internal(&format!("result blob {hash} is missing from the blob store"))
+            })?;
+        let mut r = Response::new(Body::from(bytes));
+        r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
+        if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"{filename}\"")) {
+            r.headers_mut().insert(header::CONTENT_DISPOSITION, v);
+        }
+        r
+    };
+    if let Ok(v) = HeaderValue::from_str(&etag) {
+        res.headers_mut().insert(header::ETAG, v);
+    }
+    res.headers_mut().insert(
+        header::CACHE_CONTROL,
+        HeaderValue::from_static("private, max-age=31536000, immutable"),
+    );
+    Ok(res)
+}
+
+/// A succeeded bake, or the 404/409 that says why there is no result.
+async fn finished(st: &AppState, id: &str) -> Result<BakeRecord, Problem> {
+    let rec = load(st, id).await?;
+    let status = resource(st, &rec)["status"].as_str().unwrap_or("queued").to_owned();
+    if rec.status != Status::Succeeded {
+        return Err(Problem::not_ready(id, &status));
+    }
+    Ok(rec)
+}
+
+/// `GET /v1/bakes/{id}/horizon/{layer}?format=png8|png16`.
+pub async fn horizon_layer(
+    State(st): State<AppState>,
+    Path((id, layer)): Path<(String, String)>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    let q = query_map(q, &["format"])?;
+    let layer: u8 = match layer.as_str() {
+        "0" => 0,
+        "1" => 1,
+        _ => return Err(Problem::param("layer", format!("`{layer}` is not 0 or 1"))),
+    };
+    let format = q.get("format").map(String::as_str).unwrap_or("png8");
+    let (content_type, ext) = match format {
+        "png8" | "png16" => ("image/png", "png"),
+        "exr" => ("image/x-exr", "exr"),
+        _ => {
+            return Err(Problem::param(
+                "format",
+                format!("`{format}` is not one of png8, png16, exr"),
+            ))
+        }
+    };
+    let rec = finished(&st, &id).await?;
+    if !rec.results.keys().any(|k| k.starts_with("horizon")) {
+        return Err(not_produced(&id, "horizon"));
+    }
+    let name = if ext == "exr" {
+        format!("horizon_{layer}.exr")
+    } else {
+        format!("horizon_{layer}.{format}")
+    };
+    let hash = rec
+        .results
+        .get(&name)
+        .ok_or_else(|| Problem::internal(&format!("bake {id} succeeded without {name}")))?;
+    blob_response(&st, &headers, hash, content_type, &format!("horizon_{layer}.{ext}")).await
+}
+
+fn not_produced(id: &str, what: &str) -> Problem {
+    Problem::new(
+        StatusCode::CONFLICT,
+        "result_not_requested",
+        format!("bake `{id}` did not compute `{what}`; submit it with outputs including {what}"),
+    )
+}
+
+/// `GET /v1/bakes/{id}/fourier/{layer}`: `fourier_{layer}.png` as the CLI writes it (layer 0:
+/// RGBA band coefficients, 1: the constant term, 2: the extra bands of 7 or 9 terms).
+pub async fn fourier_layer(
+    State(st): State<AppState>,
+    Path((id, layer)): Path<(String, String)>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    query_map(q, &[])?;
+    let layer: u8 = match layer.as_str() {
+        "0" => 0,
+        "1" => 1,
+        "2" => 2,
+        _ => return Err(Problem::param("layer", format!("`{layer}` is not 0, 1 or 2"))),
+    };
+    let rec = finished(&st, &id).await?;
+    let name = format!("fourier_{layer}.png");
+    let Some(hash) = rec.results.get(&name) else {
+        return Err(not_produced(
+            &id,
+            if layer == 2 { "fourier (7 or 9 terms)" } else { "fourier" },
+        ));
+    };
+    blob_response(&st, &headers, hash, "image/png", &name).await
+}
+
+async fn horizon_texture(
+    st: AppState,
+    id: String,
+    q: Vec<(String, String)>,
+    headers: HeaderMap,
+    name: &'static str,
+    content_type: &'static str,
+) -> Answer {
+    query_map(q, &[])?;
+    let rec = finished(&st, &id).await?;
+    let Some(hash) = rec.results.get(name) else {
+        return Err(not_produced(&id, "horizon"));
+    };
+    blob_response(&st, &headers, hash, content_type, name).await
+}
+
+/// `GET /v1/bakes/{id}/horizon.ktx2`: both layers as one 2-layer RGBA8 UNORM array texture.
+pub async fn horizon_ktx2(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    horizon_texture(st, id, q, headers, "horizon.ktx2", KTX2_TYPE).await
+}
+
+/// `GET /v1/bakes/{id}/horizon.dds`: both layers as one DX10 2-element RGBA8 UNORM array.
+pub async fn horizon_dds(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    horizon_texture(st, id, q, headers, "horizon.dds", DDS_TYPE).await
+}
+
+const KTX2_TYPE: &str = "image/ktx2";
+const DDS_TYPE: &str = "image/vnd-ms.dds";
+
+fn cube_size(st: &AppState, q: &HashMap<String, String>) -> Result<usize, Problem> {
+    let max = st.0.config.max_cubemap_size as usize;
+    match q.get("size") {
+        None => Ok(16),
+        Some(v) => match v.parse::<usize>() {
+            Ok(n) if (1..=max).contains(&n) => Ok(n),
+            _ => {
+                Err(Problem::param("size", format!("`{v}` is not a whole number from 1 to {max}")))
+            }
+        },
+    }
+}
+
+/// Encodes a cube-map file (the CLI's own function) and answers it with a content-hash ETag.
+async fn cube_answer(
+    headers: &HeaderMap,
+    size: usize,
+    formats: CubeFormats,
+    pick: usize,
+    content_type: &'static str,
+) -> Answer {
+    let file = blocking(move || {
+        let mut files = crate::cli::cubemap::cube_files(size, formats)?;
+        if pick >= files.len() {
+            return Err(Error::Internal("cube map file missing".into()));
+        }
+        Ok(files.swap_remove(pick))
+    })
+    .await
+    .map_err(store_err)?;
+    let etag = format!("\"{}\"", blake3::hash(&file.bytes).to_hex());
+    let mut res = if etag_matches(headers, &etag) {
+        StatusCode::NOT_MODIFIED.into_response()
+    } else {
+        let mut r = Response::new(Body::from(file.bytes));
+        r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
+        if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"{}\"", file.name)) {
+            r.headers_mut().insert(header::CONTENT_DISPOSITION, v);
+        }
+        r
+    };
+    if let Ok(v) = HeaderValue::from_str(&etag) {
+        res.headers_mut().insert(header::ETAG, v);
+    }
+    Ok(res)
+}
+
+/// `GET /v1/cubemap/{face}?size=N`: one face of the channel-factor cube map, RGBA8 UNORM PNG.
+pub async fn cubemap_face(
+    State(st): State<AppState>,
+    Path(face): Path<String>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    let q = query_map(q, &["size"])?;
+    let face: usize = match face.parse::<usize>() {
+        Ok(f) if f < 6 && face.len() == 1 => f,
+        _ => return Err(Problem::param("face", format!("`{face}` is not a face index 0..5"))),
+    };
+    let size = cube_size(&st, &q)?;
+    let formats = CubeFormats { png8: true, ktx2: false, dds: false };
+    cube_answer(&headers, size, formats, face, "image/png").await
+}
+
+/// `GET /v1/cubemap.ktx2?size=N`: the six faces as one RGBA8 SNORM cube map.
+pub async fn cubemap_ktx2(
+    State(st): State<AppState>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    let q = query_map(q, &["size"])?;
+    let size = cube_size(&st, &q)?;
+    cube_answer(&headers, size, CubeFormats { png8: false, ktx2: true, dds: false }, 0, KTX2_TYPE)
+        .await
+}
+
+/// `GET /v1/cubemap.dds?size=N`: the six faces as one RGBA8 SNORM DDS cube map.
+pub async fn cubemap_dds(
+    State(st): State<AppState>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    let q = query_map(q, &["size"])?;
+    let size = cube_size(&st, &q)?;
+    cube_answer(&headers, size, CubeFormats { png8: false, ktx2: false, dds: true }, 0, DDS_TYPE)
+        .await
+}
+
+// ---------------------------------------------------------------------------------------------
+// Operations
+
+/// `GET /healthz`: the process is alive.
+pub async fn healthz() -> Response {
+    json_response(StatusCode::OK, &json!({"status": "ok"}))
+}
+
+/// `GET /readyz`: 200 while accepting work, 503 while draining.
+pub async fn readyz(State(st): State<AppState>) -> Answer {
+    if st.is_draining() {
+        return Err(Problem::shutting_down());
+    }
+    let (waiting, running) = st.0.queue.counts();
+    Ok(json_response(
+        StatusCode::OK,
+        &json!({"status": "ready", "queue_depth": waiting, "queue_capacity": st.0.queue.capacity(), "running": running}),
+    ))
+}
+
+/// `GET /metrics`: Prometheus text.
+pub async fn metrics(State(st): State<AppState>) -> Answer {
+    let store = st.0.bakes.clone();
+    let stored = blocking(move || {
+        let mut counts: HashMap<Status, u64> = HashMap::new();
+        let mut after: Option<String> = None;
+        loop {
+            let page = store.list(None, after.as_deref(), 1000)?;
+            for r in &page.items {
+                *counts.entry(r.status).or_insert(0) += 1;
+            }
+            match page.next {
+                Some(n) => after = Some(n),
+                None => break,
+            }
+        }
+        Ok(Status::ALL
+            .iter()
+            .map(|s| (*s, counts.get(s).copied().unwrap_or(0)))
+            .collect::<Vec<_>>())
+    })
+    .await
+    .map_err(store_err)?;
+    let (waiting, running) = st.0.queue.counts();
+    let text = st.0.metrics.render(&stored, waiting, running);
+    Ok(([(header::CONTENT_TYPE, "text/plain; version=0.0.4; charset=utf-8")], text).into_response())
+}
+
+/// `GET /openapi.yaml`.
+pub async fn openapi() -> Response {
+    ([(header::CONTENT_TYPE, "application/yaml")], OPENAPI_YAML).into_response()
+}
+
+/// Unknown routes.
+pub async fn fallback() -> Problem {
+    Problem::new(StatusCode::NOT_FOUND, "route_not_found", "no such route; see /openapi.yaml")
+}
+
+// ---------------------------------------------------------------------------------------------
+// Middleware
+
+fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+/// Bearer-token check on /v1 routes when an API key is configured.
+pub async fn auth(State(st): State<AppState>, req: Request, next: Next) -> Response {
+    if let Some(key) = &st.0.config.api_key {
+        let ok = req
+            .headers()
+            .get(header::AUTHORIZATION)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.strip_prefix("Bearer "))
+            .is_some_and(|t| constant_time_eq(t.trim().as_bytes(), key.as_bytes()));
+        if !ok {
+            return Problem::new(
+                StatusCode::UNAUTHORIZED,
+                "unauthorized",
+                "this route needs `Authorization: Bearer <api key>`",
+            )
+            .into_response();
+        }
+    }
+    next.run(req).await
+}
+
+/// Counts requests by matched route, method and status.
+pub async fn track(State(st): State<AppState>, req: Request, next: Next) -> Response {
+    let route = req
+        .extensions()
+        .get::<MatchedPath>()
+        .map(|m| m.as_str().to_owned())
+        .unwrap_or_else(|| "unmatched".into());
+    let method = req.method().clone();
+    let res = next.run(req).await;
+    let method = if [Method::GET, Method::POST, Method::DELETE, Method::HEAD].contains(&method) {
+        method.as_str().to_owned()
+    } else {
+        "OTHER".into()
+    };
+    st.0.metrics.http(&route, &method, res.status().as_u16());
+    res
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rfc3339_known_instants() {
+        assert_eq!(rfc3339(0), "1970-01-01T00:00:00.000Z");
+        assert_eq!(rfc3339(951_782_400_123), "2000-02-29T00:00:00.123Z");
+        assert_eq!(rfc3339(1_795_000_000_000), "2026-11-18T11:06:40.000Z");
+    }
+
+    #[test]
+    fn etag_lists_and_wildcards() {
+        let mut h = HeaderMap::new();
+        h.insert(header::IF_NONE_MATCH, HeaderValue::from_static("\"a\", W/\"b\""));
+        assert!(etag_matches(&h, "\"b\""));
+        assert!(!etag_matches(&h, "\"c\""));
+        h.insert(header::IF_NONE_MATCH, HeaderValue::from_static("*"));
+        assert!(etag_matches(&h, "\"c\""));
+    }
+
+    #[test]
+    fn overall_progress_is_monotonic_across_stages() {
+        let seq = [
+            overall(Stage::Queued, 0.0),
+            overall(Stage::Decode, 1.0),
+            overall(Stage::Bake, 0.5),
+            overall(Stage::Bake, 1.0),
+            overall(Stage::Encode, 1.0),
+            overall(Stage::Store, 1.0),
+            overall(Stage::Done, 1.0),
+        ];
+        assert!(seq.windows(2).all(|w| w[0] <= w[1]), "{seq:?}");
+        assert_eq!(seq[6], 1.0);
+    }
+}

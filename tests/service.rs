@@ -1,0 +1,535 @@
+//! The HTTP API against real servers on 127.0.0.1:0 (and `app(state)` via `oneshot` where a
+//! dispatcher must stay idle): submit → poll → download byte-identical to the library, dedup,
+//! ETag/304, SSE, every SPEC §5 rejection leaving nothing behind, 429, auth, retention, metrics,
+//! and the openapi.yaml ⇔ router check.
+
+mod service_common;
+
+use axum::body::Body;
+use axum::http::{Request, StatusCode};
+use horizon_bake::service::{self, handlers, ROUTES};
+use serde_json::Value;
+use service_common::*;
+use std::time::{Duration, Instant};
+use tower::ServiceExt;
+
+const PAIRS: &[(&str, &str)] = &[("radius", "8"), ("height_scale", "24"), ("y_axis", "down")];
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn submit_poll_download_is_byte_identical_to_the_library() {
+    let srv = Server::start(|_| {}).await;
+    let c = client();
+    let png = terrain_png16(67, 45, 7);
+    let want = library_files(&png, PAIRS);
+    assert_eq!(want.len(), 8);
+
+    let res = c
+        .post(srv.url("/v1/bakes?radius=8&height_scale=24&y_axis=down"))
+        .header("content-type", "image/png")
+        .body(png.clone())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(res.status(), 202);
+    let loc = res.headers()["location"].to_str().unwrap().to_owned();
+    let bake: Value = res.json().await.unwrap();
+    assert_eq!(loc, format!("/v1/bakes/{}", bake["id"].as_str().unwrap()));
+    assert_eq!(bake["status"], "queued");
+    assert_eq!(bake["input"]["width"], 67);
+    assert_eq!(bake["input"]["content_hash"], blake3::hash(&png).to_hex().as_str());
+
+    // SSE: progress events, then one `done` carrying the final resource.
+    let events = c.get(srv.url(&format!("{loc}/events"))).send().await.unwrap();
+    assert_eq!(events.headers()["content-type"], "text/event-stream");
+    let text = tokio::time::timeout(Duration::from_secs(60), events.text()).await.unwrap().unwrap();
+    let done = text.split("\n\n").find(|e| e.contains("event: done")).expect(&text);
+    let data = done.lines().find_map(|l| l.strip_prefix("data: ")).unwrap();
+    let final_res: Value = serde_json::from_str(data).unwrap();
+    assert_eq!(final_res["status"], "succeeded", "{text}");
+
+    let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
+    assert_eq!(v["status"], "succeeded", "{v}");
+    assert_eq!(v["progress"]["fraction"], 1.0);
+    assert_eq!(v["params"]["resolved_radius"]["texels"], 8);
+    assert_eq!(v["input"]["bit_depth"], 16);
+    assert!(v["timings_ms"]["bake"].as_f64().unwrap() > 0.0);
+    assert_eq!(v["attempts"], 1);
+
+    for (name, bytes) in &want {
+        let url = srv.url(&format!("{loc}{}", result_path(name)));
+        let res = c.get(&url).send().await.unwrap();
+        assert_eq!(res.status(), 200, "{url}");
+        let etag = res.headers()["etag"].to_str().unwrap().to_owned();
+        let body = res.bytes().await.unwrap();
+        assert!(body[..] == bytes[..], "{name} differs from the library's");
+        assert_eq!(etag, format!("\"{}\"", blake3::hash(&body).to_hex()));
+        let res = c.get(&url).header("if-none-match", &etag).send().await.unwrap();
+        assert_eq!(res.status(), 304);
+        assert_eq!(res.headers()["etag"].to_str().unwrap(), etag);
+        assert!(res.bytes().await.unwrap().is_empty());
+    }
+    // Default format is png8.
+    let b =
+        c.get(srv.url(&format!("{loc}/horizon/1"))).send().await.unwrap().bytes().await.unwrap();
+    assert!(b[..] == want["horizon_1.png8"][..]);
+    let res = c.get(srv.url(&format!("{loc}/horizon/0?format=jpeg"))).send().await.unwrap();
+    assert_eq!(res.status(), 422);
+
+    // The same input and resolved parameters by multipart: the existing bake, 200.
+    let form = reqwest::multipart::Form::new()
+        .part("heightmap", reqwest::multipart::Part::bytes(png.clone()).file_name("h.png"))
+        .text("params", r#"{"radius": 8, "height_scale": "24", "bins": 32}"#);
+    // The query and the JSON part merge, the JSON part winning (radius 8, not 3).
+    let res =
+        c.post(srv.url("/v1/bakes?y_axis=down&radius=3")).multipart(form).send().await.unwrap();
+    assert_eq!(res.status(), 200);
+    let again: Value = res.json().await.unwrap();
+    assert_eq!(again["id"], bake["id"]);
+
+    // Different parameters: a new bake.
+    let res = c
+        .post(srv.url("/v1/bakes?radius=4"))
+        .header("content-type", "image/png")
+        .body(png.clone())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(res.status(), 202);
+    let other: Value = res.json().await.unwrap();
+    assert_ne!(other["id"], bake["id"]);
+    wait_done(
+        &c,
+        &srv.url(&format!("/v1/bakes/{}", other["id"].as_str().unwrap())),
+        Duration::from_secs(60),
+    )
+    .await;
+
+    // Listing: two bakes, oldest first, paginated, filtered.
+    let page: Value =
+        c.get(srv.url("/v1/bakes?limit=1")).send().await.unwrap().json().await.unwrap();
+    assert_eq!(page["items"].as_array().unwrap().len(), 1);
+    assert_eq!(page["items"][0]["id"], bake["id"]);
+    let href = page["next"]["href"].as_str().unwrap();
+    let page2: Value = c.get(srv.url(href)).send().await.unwrap().json().await.unwrap();
+    assert_eq!(page2["items"][0]["id"], other["id"]);
+    assert!(page2["next"].is_null());
+    let queued: Value =
+        c.get(srv.url("/v1/bakes?status=queued")).send().await.unwrap().json().await.unwrap();
+    assert_eq!(queued["items"].as_array().unwrap().len(), 0);
+
+    // Metrics saw it.
+    let m = c.get(srv.url("/metrics")).send().await.unwrap().text().await.unwrap();
+    assert!(m.contains("horizon_bakes{status=\"succeeded\"} 2\n"), "{m}");
+    assert!(m.contains("horizon_bakes_finished_total{status=\"succeeded\"} 2\n"), "{m}");
+    assert!(m.contains("horizon_bakes_deduplicated_total 1\n"), "{m}");
+    assert!(m.contains("horizon_texels_baked_total 6030\n"), "{m}");
+    assert!(
+        m.contains("route=\"/v1/bakes/{id}/horizon/{layer}\",method=\"GET\",status=\"304\"} 6"),
+        "{m}"
+    );
+
+    // Delete a finished bake: 204, then 404, and its results are gone.
+    let res = c.delete(srv.url(&loc)).send().await.unwrap();
+    assert_eq!(res.status(), 204);
+    let res = c.get(srv.url(&loc)).send().await.unwrap();
+    assert_eq!(res.status(), 404);
+    let dir = srv.stop().await;
+    // The input blob is shared with the other bake and stays; the deleted bake's own results go.
+    let files = blob_files(dir.path());
+    assert_eq!(files.len(), 1 + 8, "{files:?}");
+}
+
+async fn problem(res: reqwest::Response) -> (u16, Value) {
+    let status = res.status().as_u16();
+    assert_eq!(res.headers()["content-type"], "application/problem+json");
+    (status, res.json().await.unwrap())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_rejection_is_a_problem_and_leaves_nothing_behind() {
+    let srv = Server::start(|c| c.max_body_bytes = 64 * 1024).await;
+    let c = client();
+    let post = |body: Vec<u8>, q: &str, ct: &str| {
+        c.post(srv.url(&format!("/v1/bakes{q}"))).header("content-type", ct).body(body).send()
+    };
+
+    // A decompression bomb: the header claims 100000×100000. Rejected from the header alone.
+    let bomb = bomb_png(100_000, 100_000);
+    let mut best = Duration::MAX;
+    for _ in 0..3 {
+        let t = Instant::now();
+        let (status, p) = problem(post(bomb.clone(), "", "image/png").await.unwrap()).await;
+        best = best.min(t.elapsed());
+        assert_eq!((status, p["code"].as_str().unwrap()), (422, "dimensions_too_large"));
+    }
+    assert!(best < Duration::from_millis(100), "bomb took {best:?}");
+
+    let (s, p) = problem(post(vec![7u8; 100 * 1024], "", "image/png").await.unwrap()).await;
+    assert_eq!((s, p["code"].as_str().unwrap()), (413, "payload_too_large"));
+    // Chunked (no Content-Length) is cut off by the limit too (72 KiB: small enough that the
+    // client has sent it all before the answer, so the 413 is read rather than a reset).
+    let chunks =
+        futures_util::stream::iter((0..9).map(|_| Ok::<_, std::io::Error>(vec![0u8; 8192])));
+    let res = c
+        .post(srv.url("/v1/bakes"))
+        .header("content-type", "image/png")
+        .body(reqwest::Body::wrap_stream(chunks))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(problem(res).await.0, 413);
+
+    let jpeg =
+        [0xFF, 0xD8, 0xFF, 0xE0, 0, 16, b'J', b'F', b'I', b'F', 0, 1, 1, 0, 0, 1, 0, 1, 0, 0];
+    let (s, p) = problem(post(jpeg.to_vec(), "", "image/png").await.unwrap()).await;
+    assert_eq!((s, p["code"].as_str().unwrap()), (415, "unsupported_media_type"));
+    let (s, _) = problem(post(jpeg.to_vec(), "", "image/jpeg").await.unwrap()).await;
+    assert_eq!(s, 415);
+    let (s, _) = problem(post(Vec::new(), "", "image/png").await.unwrap()).await;
+    assert_eq!(s, 415);
+
+    let png = terrain_png16(8, 8, 1);
+    for (q, field) in [
+        ("?bins=24", "bins"),
+        ("?radius=0", "radius"),
+        ("?edge=clamp", "edge"),
+        ("?bogus=1", "bogus"),
+        ("?outputs=normals", "outputs"),
+    ] {
+        let (s, p) = problem(post(png.clone(), q, "image/png").await.unwrap()).await;
+        assert_eq!((s, p["field"].as_str().unwrap()), (422, field), "{q}: {p}");
+        assert_eq!(p["code"], "invalid_parameter");
+    }
+    let form = reqwest::multipart::Form::new()
+        .part("heightmap", reqwest::multipart::Part::bytes(png.clone()))
+        .text("params", r#"{"height_scale": -1}"#);
+    let (s, p) = problem(c.post(srv.url("/v1/bakes")).multipart(form).send().await.unwrap()).await;
+    assert_eq!((s, p["field"].as_str().unwrap()), (422, "height_scale"));
+    let form = reqwest::multipart::Form::new().text("params", "{}");
+    let (s, p) = problem(c.post(srv.url("/v1/bakes")).multipart(form).send().await.unwrap()).await;
+    assert_eq!((s, p["field"].as_str().unwrap()), (422, "heightmap"));
+
+    let (s, p) =
+        problem(c.get(srv.url("/v1/bakes/0123456789abcdef0123")).send().await.unwrap()).await;
+    assert_eq!((s, p["code"].as_str().unwrap()), (404, "bake_not_found"));
+    let (s, p) = problem(c.get(srv.url("/v1/bakes/nope/horizon/0")).send().await.unwrap()).await;
+    assert_eq!((s, p["code"].as_str().unwrap()), (404, "bake_not_found"));
+    let (s, p) = problem(c.get(srv.url("/v1/nothing")).send().await.unwrap()).await;
+    assert_eq!((s, p["code"].as_str().unwrap()), (404, "route_not_found"));
+    let (s, p) = problem(c.put(srv.url("/v1/bakes")).send().await.unwrap()).await;
+    assert_eq!((s, p["code"].as_str().unwrap()), (405, "method_not_allowed"));
+    let (s, p) = problem(c.get(srv.url("/v1/bakes?limit=0")).send().await.unwrap()).await;
+    assert_eq!((s, p["field"].as_str().unwrap()), (422, "limit"));
+    let (s, p) = problem(c.get(srv.url("/v1/bakes?status=done")).send().await.unwrap()).await;
+    assert_eq!((s, p["field"].as_str().unwrap()), (422, "status"));
+
+    let list: Value = c.get(srv.url("/v1/bakes")).send().await.unwrap().json().await.unwrap();
+    assert_eq!(list["items"].as_array().unwrap().len(), 0, "a rejection left a record");
+    let dir = srv.stop().await;
+    assert!(blob_files(dir.path()).is_empty(), "a rejection left a file");
+}
+
+async fn oneshot(
+    app: &axum::Router,
+    req: Request<Body>,
+) -> (StatusCode, axum::http::HeaderMap, Vec<u8>) {
+    let res = app.clone().oneshot(req).await.unwrap();
+    let (parts, body) = res.into_parts();
+    let bytes = axum::body::to_bytes(body, usize::MAX).await.unwrap();
+    (parts.status, parts.headers, bytes.to_vec())
+}
+
+fn submit_req(png: &[u8]) -> Request<Body> {
+    Request::post("/v1/bakes")
+        .header("content-type", "image/png")
+        .body(Body::from(png.to_vec()))
+        .unwrap()
+}
+
+#[tokio::test]
+async fn not_ready_409_queue_full_429_and_cancel_of_a_queued_bake() {
+    // No dispatcher: bakes stay queued.
+    let (st, _dir) = idle_state(|c| c.queue_capacity = 2);
+    let app = service::app(st);
+    let mut ids = Vec::new();
+    for seed in 0..2 {
+        let (s, h, body) = oneshot(&app, submit_req(&terrain_png16(8, 8, seed))).await;
+        assert_eq!(s, 202);
+        let v: Value = serde_json::from_slice(&body).unwrap();
+        assert_eq!(
+            h["location"].to_str().unwrap(),
+            format!("/v1/bakes/{}", v["id"].as_str().unwrap())
+        );
+        ids.push(v["id"].as_str().unwrap().to_owned());
+    }
+    let (s, h, body) = oneshot(&app, submit_req(&terrain_png16(8, 8, 99))).await;
+    assert_eq!(s, 429);
+    let retry: u64 = h["retry-after"].to_str().unwrap().parse().unwrap();
+    assert!(retry >= 1);
+    let p: Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(p["code"], "queue_full");
+    // A duplicate of a queued bake is still answered 200 when the queue is full.
+    let (s, _, body) = oneshot(&app, submit_req(&terrain_png16(8, 8, 0))).await;
+    assert_eq!(s, 200);
+    assert_eq!(serde_json::from_slice::<Value>(&body).unwrap()["id"], ids[0].as_str());
+
+    let (s, _, body) = oneshot(
+        &app,
+        Request::get(format!("/v1/bakes/{}/horizon/0", ids[0])).body(Body::empty()).unwrap(),
+    )
+    .await;
+    assert_eq!(s, 409);
+    assert_eq!(serde_json::from_slice::<Value>(&body).unwrap()["code"], "result_not_ready");
+    let (s, _, body) = oneshot(
+        &app,
+        Request::get(format!("/v1/bakes/{}/horizon/2", ids[0])).body(Body::empty()).unwrap(),
+    )
+    .await;
+    assert_eq!(s, 422);
+    assert_eq!(serde_json::from_slice::<Value>(&body).unwrap()["field"], "layer");
+
+    // Cancel a queued bake: 200, `canceled`, and the queue has room again.
+    let (s, _, body) = oneshot(
+        &app,
+        Request::delete(format!("/v1/bakes/{}", ids[0])).body(Body::empty()).unwrap(),
+    )
+    .await;
+    assert_eq!(s, 200);
+    assert_eq!(serde_json::from_slice::<Value>(&body).unwrap()["status"], "canceled");
+    let (s, _, _) = oneshot(&app, submit_req(&terrain_png16(8, 8, 99))).await;
+    assert_eq!(s, 202);
+    // Resubmitting the canceled bake's input makes a new bake rather than returning the canceled one.
+    let (s, _, _) = oneshot(&app, submit_req(&terrain_png16(8, 8, 0))).await;
+    assert_eq!(s, 429, "queue is full again (2 waiting)");
+}
+
+#[tokio::test]
+async fn draining_answers_503_on_readyz_and_submit() {
+    let (st, _dir) = idle_state(|_| {});
+    let app = service::app(st.clone());
+    let (s, _, body) = oneshot(&app, Request::get("/readyz").body(Body::empty()).unwrap()).await;
+    assert_eq!(s, 200);
+    assert_eq!(serde_json::from_slice::<Value>(&body).unwrap()["status"], "ready");
+    st.drain().await;
+    let (s, h, body) = oneshot(&app, Request::get("/readyz").body(Body::empty()).unwrap()).await;
+    assert_eq!(s, 503);
+    assert!(h.contains_key("retry-after"));
+    assert_eq!(serde_json::from_slice::<Value>(&body).unwrap()["code"], "shutting_down");
+    let (s, _, _) = oneshot(&app, submit_req(&terrain_png16(8, 8, 0))).await;
+    assert_eq!(s, 503);
+    let (s, _, _) = oneshot(&app, Request::get("/healthz").body(Body::empty()).unwrap()).await;
+    assert_eq!(s, 200);
+}
+
+#[tokio::test]
+async fn api_key_guards_v1_but_not_health() {
+    let (st, _dir) = idle_state(|c| c.api_key = Some("s3cret".into()));
+    let app = service::app(st);
+    let get = |path: &str, auth: Option<&str>| {
+        let mut r = Request::get(path);
+        if let Some(a) = auth {
+            r = r.header("authorization", a);
+        }
+        r.body(Body::empty()).unwrap()
+    };
+    let (s, h, body) = oneshot(&app, get("/v1/bakes", None)).await;
+    assert_eq!(s, 401);
+    assert_eq!(h["www-authenticate"], "Bearer");
+    assert_eq!(serde_json::from_slice::<Value>(&body).unwrap()["code"], "unauthorized");
+    assert_eq!(oneshot(&app, get("/v1/bakes", Some("Bearer wrong"))).await.0, 401);
+    assert_eq!(oneshot(&app, get("/v1/bakes", Some("Bearer s3cret"))).await.0, 200);
+    assert_eq!(oneshot(&app, get("/v1/cubemap/0", None)).await.0, 401);
+    for open in ["/healthz", "/readyz", "/metrics", "/openapi.yaml"] {
+        assert_eq!(oneshot(&app, get(open, None)).await.0, 200, "{open}");
+    }
+}
+
+#[tokio::test]
+async fn cubemap_faces_match_the_library() {
+    let (st, _dir) = idle_state(|_| {});
+    let app = service::app(st);
+    let size = 8;
+    let all = horizon_bake::kernels::cubemap::cube_factors(size);
+    for face in 0..6 {
+        let (s, h, body) = oneshot(
+            &app,
+            Request::get(format!("/v1/cubemap/{face}?size={size}")).body(Body::empty()).unwrap(),
+        )
+        .await;
+        assert_eq!(s, 200);
+        let img = image::load_from_memory(&body).unwrap().to_rgba8();
+        let n = size * size * 4;
+        let want: Vec<u8> = all[face * n..(face + 1) * n]
+            .iter()
+            .map(|&f| horizon_bake::kernels::cubemap::unorm8(f))
+            .collect();
+        assert_eq!(img.as_raw(), &want, "face {face}");
+        let etag = h["etag"].to_str().unwrap().to_owned();
+        let (s, _, _) = oneshot(
+            &app,
+            Request::get(format!("/v1/cubemap/{face}?size={size}"))
+                .header("if-none-match", etag)
+                .body(Body::empty())
+                .unwrap(),
+        )
+        .await;
+        assert_eq!(s, 304);
+    }
+    for (path, file) in
+        [("/v1/cubemap.ktx2?size=8", "cubemap.ktx2"), ("/v1/cubemap.dds?size=8", "cubemap.dds")]
+    {
+        let (s, _, body) = oneshot(&app, Request::get(path).body(Body::empty()).unwrap()).await;
+        assert_eq!(s, 200);
+        let formats =
+            horizon_bake::cli::cubemap::CubeFormats { png8: false, ktx2: true, dds: true };
+        let files = horizon_bake::cli::cubemap::cube_files(8, formats).unwrap();
+        let want = files.iter().find(|f| f.name == file).unwrap();
+        assert!(body == want.bytes, "{path}");
+    }
+    let (_, _, body) =
+        oneshot(&app, Request::get("/v1/cubemap/0").body(Body::empty()).unwrap()).await;
+    assert_eq!(image::load_from_memory(&body).unwrap().width(), 16, "default size");
+    for (path, field) in [
+        ("/v1/cubemap/6", "face"),
+        ("/v1/cubemap/0?size=0", "size"),
+        ("/v1/cubemap/0?size=99999", "size"),
+        ("/v1/cubemap/0?sise=4", "sise"),
+    ] {
+        let (s, _, body) = oneshot(&app, Request::get(path).body(Body::empty()).unwrap()).await;
+        assert_eq!(s, 422, "{path}");
+        assert_eq!(serde_json::from_slice::<Value>(&body).unwrap()["field"], field);
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn finished_bakes_are_removed_after_the_retention() {
+    let srv = Server::start(|c| {
+        c.retention = Duration::ZERO;
+        c.sweep_interval = Duration::from_millis(200);
+    })
+    .await;
+    let c = client();
+    let res = c
+        .post(srv.url("/v1/bakes?radius=2"))
+        .header("content-type", "image/png")
+        .body(terrain_png16(16, 16, 3))
+        .send()
+        .await
+        .unwrap();
+    let loc = res.headers()["location"].to_str().unwrap().to_owned();
+    let t = Instant::now();
+    loop {
+        let res = c.get(srv.url(&loc)).send().await.unwrap();
+        if res.status() == 404 {
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(30), "not removed");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let dir = srv.stop().await;
+    assert!(blob_files(dir.path()).is_empty(), "{:?}", blob_files(dir.path()));
+}
+
+#[test]
+fn openapi_matches_the_router() {
+    let doc: Value = serde_yaml_ng::from_str(handlers::OPENAPI_YAML).unwrap();
+    assert_eq!(doc["openapi"], "3.1.0");
+    let paths = doc["paths"].as_object().unwrap();
+    let methods = ["get", "post", "put", "patch", "delete", "head", "options"];
+    let mut spec: Vec<(String, Vec<String>)> = paths
+        .iter()
+        .map(|(p, item)| {
+            let mut m: Vec<String> = methods
+                .iter()
+                .filter(|m| item.get(**m).is_some())
+                .map(|m| m.to_uppercase())
+                .collect();
+            m.sort();
+            (p.clone(), m)
+        })
+        .collect();
+    spec.sort();
+    let mut routes: Vec<(String, Vec<String>)> = ROUTES
+        .iter()
+        .map(|(p, ms)| {
+            let mut m: Vec<String> = ms.iter().map(|s| s.to_string()).collect();
+            m.sort();
+            (p.to_string(), m)
+        })
+        .collect();
+    routes.sort();
+    assert_eq!(spec, routes, "openapi.yaml and service::ROUTES differ");
+}
+
+#[tokio::test]
+async fn router_serves_exactly_the_declared_routes() {
+    // Every ROUTES entry answers its methods (anything but route_not_found / 405) and refuses the
+    // others with 405, so ROUTES (checked against openapi.yaml above) is the router's truth.
+    let (st, _dir) = idle_state(|_| {});
+    let app = service::app(st);
+    for (path, methods) in ROUTES {
+        let concrete = path
+            .replace("{id}", "0123456789abcdef0123")
+            .replace("{layer}", "0")
+            .replace("{face}", "0");
+        for m in ["GET", "POST", "PUT", "PATCH", "DELETE"] {
+            let req = Request::builder().method(m).uri(&concrete).body(Body::empty()).unwrap();
+            let (s, _, body) = oneshot(&app, req).await;
+            let code = serde_json::from_slice::<Value>(&body)
+                .ok()
+                .and_then(|v| v["code"].as_str().map(str::to_owned))
+                .unwrap_or_default();
+            if methods.contains(&m) {
+                assert!(s != 405 && code != "route_not_found", "{m} {path}: {s} {code}");
+            } else {
+                assert_eq!(s, 405, "{m} {path} should not be routed");
+            }
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn fourier_outputs_match_the_cli_function() {
+    use horizon_bake::params::BakeParams;
+    let srv = Server::start(|_| {}).await;
+    let c = client();
+    let png = terrain_png16(40, 33, 21);
+    let pairs = [("radius", "6"), ("outputs", "fourier"), ("fourier_terms", "7")];
+    let params = BakeParams::from_pairs(pairs).unwrap();
+    let (map, _) =
+        horizon_bake::heightmap::decode(&png, params.channel, &Default::default()).unwrap();
+    let (want, _) = horizon_bake::cli::bake::fourier_files(
+        &map,
+        &params,
+        &horizon_bake::progress::Progress::new(),
+    )
+    .unwrap();
+    assert_eq!(want.len(), 3);
+    let res = c
+        .post(srv.url("/v1/bakes?radius=6&outputs=fourier&fourier_terms=7"))
+        .header("content-type", "image/png")
+        .body(png)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(res.status(), 202);
+    let loc = res.headers()["location"].to_str().unwrap().to_owned();
+    let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
+    assert_eq!(v["status"], "succeeded", "{v}");
+    assert_eq!(v["links"]["fourier_2"], format!("{loc}/fourier/2"));
+    assert!(v["links"].get("horizon_0").is_none());
+    for (k, f) in want.iter().enumerate() {
+        let res = c.get(srv.url(&format!("{loc}/fourier/{k}"))).send().await.unwrap();
+        assert_eq!(res.status(), 200);
+        let body = res.bytes().await.unwrap();
+        assert!(body[..] == f.bytes[..], "{} differs", f.name);
+    }
+    // Not asked for: 409 with a code that says so.
+    let res = c.get(srv.url(&format!("{loc}/horizon/0"))).send().await.unwrap();
+    assert_eq!(res.status(), 409);
+    let p: Value = res.json().await.unwrap();
+    assert_eq!(p["code"], "result_not_requested");
+    let res = c.get(srv.url(&format!("{loc}/fourier/3"))).send().await.unwrap();
+    assert_eq!(res.status(), 422);
+    srv.stop().await;
+}

@@ -1,0 +1,217 @@
+//! Helpers for the service tests: synthetic height maps, a server on 127.0.0.1:0, polling.
+#![allow(dead_code)]
+
+use horizon_bake::bake::{self, Precisions};
+use horizon_bake::encode::png::{encode16, encode8, PngColor};
+use horizon_bake::encode::{self, Formats, TexturePrecision};
+use horizon_bake::heightmap::{self, Limits};
+use horizon_bake::params::BakeParams;
+use horizon_bake::progress::Progress;
+use horizon_bake::service::{self, AppState, Config};
+use serde_json::Value;
+use std::collections::BTreeMap;
+use std::time::{Duration, Instant};
+
+/// SplitMix64, as tests/common does.
+pub struct Rng(pub u64);
+impl Rng {
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+}
+
+/// A 16-bit gray PNG of smooth random terrain (a few summed waves plus noise).
+pub fn terrain_png16(w: usize, h: usize, seed: u64) -> Vec<u8> {
+    let mut rng = Rng(seed);
+    let waves: Vec<(f64, f64, f64)> = (0..4)
+        .map(|_| {
+            let a = (rng.next_u64() % 1000) as f64 / 1000.0 * std::f64::consts::TAU;
+            let f = 1.0 + (rng.next_u64() % 6) as f64;
+            let p = (rng.next_u64() % 1000) as f64 / 1000.0 * std::f64::consts::TAU;
+            (a, f, p)
+        })
+        .collect();
+    let mut data = Vec::with_capacity(w * h);
+    for y in 0..h {
+        for x in 0..w {
+            let (u, v) = (x as f64 / w as f64, y as f64 / h as f64);
+            let mut s = 0.0;
+            for &(a, f, p) in &waves {
+                s += (std::f64::consts::TAU * f * (u * a.cos() + v * a.sin()) + p).sin();
+            }
+            let noise = (rng.next_u64() % 1000) as f64 / 1000.0 - 0.5;
+            let val = ((s / 4.0 + 1.0) * 0.5 * 0.95 + noise * 0.05).clamp(0.0, 1.0);
+            data.push((val * 65535.0) as u16);
+        }
+    }
+    encode16(w, h, PngColor::Gray, &data).unwrap()
+}
+
+/// An 8-bit gray PNG of white noise (cheap to make at 4096²).
+pub fn noise_png8(w: usize, h: usize, seed: u64) -> Vec<u8> {
+    let mut rng = Rng(seed);
+    let data: Vec<u8> = (0..w * h).map(|_| (rng.next_u64() >> 56) as u8).collect();
+    encode8(w, h, PngColor::Gray, &data).unwrap()
+}
+
+/// What the library produces for `png` and `pairs`, by the service's result name:
+/// `horizon_{0,1}.png8`, `horizon_{0,1}.png16`, `horizon_{0,1}.exr`, `horizon.ktx2`, `horizon.dds`.
+pub fn library_files(png: &[u8], pairs: &[(&str, &str)]) -> BTreeMap<String, Vec<u8>> {
+    let params = BakeParams::from_pairs(pairs.iter().copied()).unwrap();
+    let (map, _) = heightmap::decode(png, params.channel, &Limits::default()).unwrap();
+    let (layers, _) = bake::bake_horizon(&map, &params, Precisions::ALL, &Progress::new()).unwrap();
+    let mut out = BTreeMap::new();
+    let all = Formats::parse("png8,exr,ktx2,dds", TexturePrecision::Unorm8).unwrap();
+    let wide = Formats::parse("png16", TexturePrecision::Unorm8).unwrap();
+    for (f, suffix) in [(all, "png8"), (wide, "png16")] {
+        for file in encode::horizon_files(&layers, &f).unwrap() {
+            let name = match file.name.strip_suffix(".png") {
+                Some(stem) => format!("{stem}.{suffix}"),
+                None => file.name.to_owned(),
+            };
+            out.insert(name, file.bytes);
+        }
+    }
+    out
+}
+
+/// The download URL path (after `/v1/bakes/{id}`) of a result name.
+pub fn result_path(name: &str) -> String {
+    match name {
+        "horizon.ktx2" | "horizon.dds" => format!("/{name}"),
+        _ => {
+            let (stem, fmt) = name.split_once('.').unwrap();
+            let layer = stem.trim_start_matches("horizon_");
+            format!("/horizon/{layer}?format={fmt}")
+        }
+    }
+}
+
+/// A server running in this process on 127.0.0.1:0.
+pub struct Server {
+    pub base: String,
+    pub dir: tempfile::TempDir,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    handle: Option<tokio::task::JoinHandle<horizon_bake::Result<()>>>,
+}
+
+impl Server {
+    /// Starts a server on a fresh data directory, `tweak`ing the default config first.
+    pub async fn start(tweak: impl FnOnce(&mut Config)) -> Server {
+        let dir = tempfile::tempdir().unwrap();
+        Self::start_in(dir, tweak).await
+    }
+
+    /// Starts a server on `dir`.
+    pub async fn start_in(dir: tempfile::TempDir, tweak: impl FnOnce(&mut Config)) -> Server {
+        let mut config = Config::for_dir(dir.path()).unwrap();
+        config.bake_threads = 2;
+        tweak(&mut config);
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let base = format!("http://{}", listener.local_addr().unwrap());
+        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+        let handle = tokio::spawn(service::run(config, listener, async move {
+            let _ = rx.await;
+        }));
+        Server { base, dir, stop: Some(tx), handle: Some(handle) }
+    }
+
+    /// Shuts down gracefully and returns the data directory.
+    pub async fn stop(mut self) -> tempfile::TempDir {
+        if let Some(tx) = self.stop.take() {
+            let _ = tx.send(());
+        }
+        if let Some(h) = self.handle.take() {
+            h.await.unwrap().unwrap();
+        }
+        let dir = tempfile::tempdir().unwrap();
+        std::mem::replace(&mut self.dir, dir)
+    }
+
+    pub fn url(&self, path: &str) -> String {
+        format!("{}{}", self.base, path)
+    }
+}
+
+/// An AppState on a fresh directory whose dispatcher is NOT started: bakes stay queued.
+pub fn idle_state(tweak: impl FnOnce(&mut Config)) -> (AppState, tempfile::TempDir) {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = Config::for_dir(dir.path()).unwrap();
+    config.bake_threads = 1;
+    tweak(&mut config);
+    (AppState::open(config).unwrap(), dir)
+}
+
+pub fn client() -> reqwest::Client {
+    reqwest::Client::builder().timeout(Duration::from_secs(120)).build().unwrap()
+}
+
+/// Polls `GET url` until `status` is terminal; returns the resource.
+pub async fn wait_done(c: &reqwest::Client, url: &str, limit: Duration) -> Value {
+    let t = Instant::now();
+    loop {
+        let v: Value = c.get(url).send().await.unwrap().json().await.unwrap();
+        let s = v["status"].as_str().unwrap().to_owned();
+        if matches!(s.as_str(), "succeeded" | "failed" | "canceled") {
+            return v;
+        }
+        assert!(t.elapsed() < limit, "bake not finished after {limit:?}: {v}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// Files under `dir` (recursively), excluding the redb file.
+pub fn blob_files(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.join("blobs")];
+    while let Some(d) = stack.pop() {
+        let Ok(rd) = std::fs::read_dir(&d) else { continue };
+        for e in rd.flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                out.push(p);
+            }
+        }
+    }
+    out
+}
+
+/// A PNG whose IHDR claims `w`×`h` (valid CRC) with no pixel data: a decompression bomb header.
+pub fn bomb_png(w: u32, h: u32) -> Vec<u8> {
+    let mut ihdr = Vec::new();
+    ihdr.extend_from_slice(b"IHDR");
+    ihdr.extend_from_slice(&w.to_be_bytes());
+    ihdr.extend_from_slice(&h.to_be_bytes());
+    ihdr.extend_from_slice(&[8, 0, 0, 0, 0]);
+    let crc = crc32(&ihdr);
+    let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
+    png.extend_from_slice(&13u32.to_be_bytes());
+    png.extend_from_slice(&ihdr);
+    png.extend_from_slice(&crc.to_be_bytes());
+    // A tiny IDAT (an empty zlib stream): whatever it claims, the header alone must reject it.
+    let idat: &[u8] = b"IDAT\x78\x9c\x03\x00\x00\x00\x00\x01";
+    png.extend_from_slice(&((idat.len() - 4) as u32).to_be_bytes());
+    png.extend_from_slice(idat);
+    png.extend_from_slice(&crc32(idat).to_be_bytes());
+    png.extend_from_slice(&0u32.to_be_bytes());
+    png.extend_from_slice(b"IEND");
+    png.extend_from_slice(&crc32(b"IEND").to_be_bytes());
+    png
+}
+
+fn crc32(data: &[u8]) -> u32 {
+    let mut crc = 0xffff_ffffu32;
+    for &b in data {
+        crc ^= b as u32;
+        for _ in 0..8 {
+            crc = if crc & 1 != 0 { (crc >> 1) ^ 0xedb8_8320 } else { crc >> 1 };
+        }
+    }
+    !crc
+}
