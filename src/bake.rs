@@ -4,6 +4,10 @@
 //! requested output formats need. The kernel's rows are streamed band by band straight into the
 //! 8-bit, 16-bit or f32 layer buffers that were asked for, so the f32 working set is one band per
 //! thread (SPEC §3, issue "fast kernels": an 8192² bake never holds eight f32 planes).
+//!
+//! [`stream_horizon`] goes one step further for outputs that can be written row by row (PNG):
+//! bands are handed to a sink in row order, a window at a time, so not even the quantised layers
+//! exist whole, and the height map is scaled in place instead of copied.
 
 use crate::error::Result;
 use crate::heightmap::HeightMap;
@@ -268,7 +272,6 @@ struct Window<T> {
 
 /// Runs `kernel` over a window of bands in parallel and quantises them into `win`. Checks for a
 /// cancel before and after each band as [`kernels::run_bands`] does.
-#[allow(clippy::too_many_arguments)]
 fn compute_window<T: Sample, K: HorizonRows + ?Sized>(
     kernel: &K,
     sqrt: bool,

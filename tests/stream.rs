@@ -20,12 +20,11 @@ fn random_map(rng: &mut Rng, w: usize, h: usize) -> HeightMap {
     HeightMap::from_values(w, h, (0..w * h).map(|_| rng.f32()).collect()).unwrap()
 }
 
-/// Streams `map` into two in-memory PNGs; returns them, the y0 of each band handed on and the
-/// final progress counts.
-fn stream<T: Sample + PngSample>(
-    map: &HeightMap,
-    params: &BakeParams,
-) -> ([Vec<u8>; 2], Vec<(usize, usize)>, (u64, u64)) {
+/// What [`stream`] saw: the two PNGs, (y0, rows) of each band handed on, final progress counts.
+type Streamed = ([Vec<u8>; 2], Vec<(usize, usize)>, (u64, u64));
+
+/// Streams `map` into two in-memory PNGs.
+fn stream<T: Sample + PngSample>(map: &HeightMap, params: &BakeParams) -> Streamed {
     let (w, h) = (map.width, map.height);
     let progress = Progress::new();
     let mut writers = [
@@ -247,9 +246,9 @@ fn cli_png16_stream_matches_the_library_bake() {
     let p16 = Precisions { u8: false, u16: true, f32: false };
     let (layers, _) = bake::bake_horizon(&map, &params, p16, &Progress::new()).unwrap();
     let l16 = layers.u16.unwrap();
-    for k in 0..2 {
+    for (k, want) in l16.iter().enumerate() {
         let got = decode16(&std::fs::read(out.join(format!("horizon_{k}.png"))).unwrap());
-        assert!(got == l16[k], "CLI horizon_{k}.png differs from bake_horizon");
+        assert!(got == *want, "CLI horizon_{k}.png differs from bake_horizon");
     }
     let report: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("bake.json")).unwrap()).unwrap();

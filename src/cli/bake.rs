@@ -6,6 +6,13 @@
 //! directory beside DIR (same file system) and only renamed into DIR once all of them were
 //! written: a failed bake leaves DIR exactly as it was. A progress bar is drawn on stderr only
 //! when stderr is a terminal.
+//!
+//! When the only horizon files asked for are PNGs, the bake is streamed ([`stream_png_files`]):
+//! bands of quantised rows go straight into row-streaming PNG writers on the staged files, so an
+//! 8192² png16 bake never holds a whole layer or a whole encoded PNG (peak RSS ≈ the decoded
+//! input; see benches/kernels.rs). Kernel and encoding then overlap, so `timings_ms.bake` covers
+//! both and `encode` only what is left (Fourier outputs). EXR, KTX2 and DDS need whole layers
+//! and take the whole-layer path.
 
 use crate::bake::{self, LayerRows, ResolvedRadius};
 use crate::encode::png::{PngColor, PngRowWriter, PngSample};
@@ -179,8 +186,11 @@ fn stream_png<T: bake::Sample + PngSample>(
         PngRowWriter::<_, T>::new(files[1].try_clone()?, w, h, PngColor::Rgba)?,
     ];
     let radius = bake::stream_horizon(map, params, progress, |rows: LayerRows<'_, T>| {
-        writers[0].write_rows(rows.layers[0])?;
-        writers[1].write_rows(rows.layers[1])
+        // Deflate is single-threaded and as slow as the kernel: the two layers in parallel.
+        let [w0, w1] = &mut writers;
+        let (a, b) =
+            rayon::join(|| w0.write_rows(rows.layers[0]), || w1.write_rows(rows.layers[1]));
+        a.and(b)
     })?;
     for ((writer, file), name) in writers.into_iter().zip(files).zip(NAMES) {
         drop(writer.finish()?);

@@ -187,7 +187,7 @@ impl<W: std::io::Write + 'static, T: PngSample> PngRowWriter<W, T> {
     /// [`Error::Internal`] for a partial row or more rows than the image has; [`Error::Io`].
     pub fn write_rows(&mut self, rows: &[T]) -> Result<()> {
         let n = rows.len() / self.row_samples;
-        if rows.len() % self.row_samples != 0 || n > self.rows_left {
+        if !rows.len().is_multiple_of(self.row_samples) || n > self.rows_left {
             return Err(Error::Internal(format!(
                 "png rows: {} samples are not whole rows of {} within the {} rows left",
                 rows.len(),
@@ -242,5 +242,94 @@ mod tests {
         let img = image::load_from_memory(&png16).unwrap().to_luma16();
         assert_eq!(img.as_raw(), &d16);
         assert!(encode8(3, 3, PngColor::Rgba, &d8).is_err());
+    }
+}
+
+#[cfg(test)]
+mod stream_tests {
+    use super::*;
+
+    /// Accepts `budget` bytes, then fails every write (a full disk).
+    struct Failing {
+        budget: usize,
+    }
+    impl std::io::Write for Failing {
+        fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+            if buf.len() > self.budget {
+                return Err(std::io::Error::new(std::io::ErrorKind::StorageFull, "disk full"));
+            }
+            self.budget -= buf.len();
+            Ok(buf.len())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn rows_in_uneven_chunks_decode_to_the_samples() {
+        let (w, h) = (5, 7);
+        let d16: Vec<u16> = (0..w * h * 4).map(|v| (v * 977 % 65536) as u16).collect();
+        let mut wr = PngRowWriter::<_, u16>::new(Vec::new(), w, h, PngColor::Rgba).unwrap();
+        let row = w * 4;
+        for (a, b) in [(0, 1), (1, 4), (4, 4), (4, 7)] {
+            wr.write_rows(&d16[a * row..b * row]).unwrap();
+        }
+        let png = wr.finish().unwrap();
+        let img = image::load_from_memory(&png).unwrap().to_rgba16();
+        assert_eq!(img.as_raw(), &d16);
+
+        let d8: Vec<u8> = (0..w * h).map(|v| (v * 37) as u8).collect();
+        let mut wr = PngRowWriter::<_, u8>::new(Vec::new(), w, h, PngColor::Gray).unwrap();
+        wr.write_rows(&d8[..2 * w]).unwrap();
+        wr.write_rows(&d8[2 * w..]).unwrap();
+        let png = wr.finish().unwrap();
+        let img = image::load_from_memory(&png).unwrap();
+        assert!(matches!(img, image::DynamicImage::ImageLuma8(_)));
+        assert_eq!(img.to_luma8().as_raw(), &d8);
+    }
+
+    #[test]
+    fn partial_extra_and_missing_rows_are_errors() {
+        let mut wr = PngRowWriter::<_, u8>::new(Vec::new(), 3, 2, PngColor::Rgba).unwrap();
+        assert!(matches!(wr.write_rows(&[0; 5]), Err(Error::Internal(_))));
+        assert!(matches!(wr.write_rows(&[0; 36]), Err(Error::Internal(_))));
+        wr.write_rows(&[0; 12]).unwrap();
+        match wr.finish() {
+            Err(Error::Internal(m)) => assert!(m.contains("1 rows never written"), "{m}"),
+            other => panic!("{:?}", other.map(|_| ())),
+        }
+        assert!(PngRowWriter::<_, u8>::new(Vec::new(), 0, 2, PngColor::Rgba).is_err());
+    }
+
+    #[test]
+    fn write_errors_surface_even_from_the_final_writes() {
+        // Fails on the header, in the data, and only at the very end (last IDAT / IEND, which
+        // the png crate writes in destructors): each must come back as Error::Io.
+        let (w, h) = (64, 64);
+        let rows = vec![7u16; w * h * 4];
+        let full = {
+            let mut wr = PngRowWriter::<_, u16>::new(Vec::new(), w, h, PngColor::Rgba).unwrap();
+            wr.write_rows(&rows).unwrap();
+            wr.finish().unwrap().len()
+        };
+        assert!(matches!(
+            PngRowWriter::<_, u16>::new(Failing { budget: 10 }, w, h, PngColor::Rgba),
+            Err(Error::Io(_))
+        ));
+        for budget in [100, full - 20, full - 1] {
+            let res = PngRowWriter::<_, u16>::new(Failing { budget }, w, h, PngColor::Rgba)
+                .and_then(|mut wr| {
+                    wr.write_rows(&rows)?;
+                    wr.finish().map(|_| ())
+                });
+            assert!(matches!(res, Err(Error::Io(_))), "budget {budget}: {:?}", res);
+        }
+        let ok = PngRowWriter::<_, u16>::new(Failing { budget: full }, w, h, PngColor::Rgba)
+            .and_then(|mut wr| {
+                wr.write_rows(&rows)?;
+                wr.finish().map(|_| ())
+            });
+        assert!(ok.is_ok(), "{ok:?}");
     }
 }
