@@ -19,8 +19,7 @@
 //! 16-bit PNG (peak sampled from /proc/PID/status while it runs). `--write-terrain PATH N` writes
 //! that input alone. `--quick` (or `HORIZON_BENCH_QUICK=1`) shrinks everything for a smoke run.
 
-use horizon_bake::bake::LayerRows;
-use horizon_bake::bake::{self, Precisions};
+use horizon_bake::bake::{self, LayerRows, Precisions};
 use horizon_bake::encode::png::{encode16, PngColor, PngRowWriter};
 use horizon_bake::heightmap::HeightMap;
 use horizon_bake::kernels::lengyel::LengyelNaive;
@@ -222,8 +221,11 @@ fn memory_child_stream(n: usize) {
         &BakeParams::default(),
         &Progress::new(),
         |rows: LayerRows<'_, u16>| {
-            writers[0].write_rows(rows.layers[0])?;
-            writers[1].write_rows(rows.layers[1])
+            // As the CLI does: the two layers' deflate streams in parallel.
+            let [w0, w1] = &mut writers;
+            let (a, b) =
+                rayon::join(|| w0.write_rows(rows.layers[0]), || w1.write_rows(rows.layers[1]));
+            a.and(b)
         },
     )
     .expect("bake");
