@@ -9,13 +9,18 @@
 //! The plain oracle is far too slow for a 2048² map (minutes), so it is timed on a crop at the
 //! same radius and bins and its time scaled by texel count to the full size; the table says so.
 //! Fast rows run through the band driver with a sink that only reads the result, so they time
-//! the kernel, not output buffers. The last row bakes 8192² through `bake::bake_horizon` with
-//! 16-bit precision and encodes both layers with `encode::png::encode16`, in a child process so
-//! its peak resident memory (VmHWM) is its own. `--quick` (or `HORIZON_BENCH_QUICK=1`) shrinks
-//! everything for a smoke run.
+//! the kernel, not output buffers.
+//!
+//! The memory table bakes 8192² at defaults with 16-bit outputs three ways, each in its own
+//! process so its peak resident memory is its own: the whole-layer baseline
+//! (`bake::bake_horizon` + `encode::png::encode16` ×2 in memory), the streaming path
+//! (`bake::stream_horizon` into two `PngRowWriter` files) and the real CLI
+//! (`horizon-bake bake terrain.png --format png16`) on a ridged fractal terrain written as a
+//! 16-bit PNG (peak sampled from /proc/PID/status while it runs). `--write-terrain PATH N` writes
+//! that input alone. `--quick` (or `HORIZON_BENCH_QUICK=1`) shrinks everything for a smoke run.
 
-use horizon_bake::bake::{self, Precisions};
-use horizon_bake::encode::png::{encode16, PngColor};
+use horizon_bake::bake::{self, LayerRows, Precisions};
+use horizon_bake::encode::png::{encode16, PngColor, PngRowWriter};
 use horizon_bake::heightmap::HeightMap;
 use horizon_bake::kernels::lengyel::LengyelNaive;
 use horizon_bake::kernels::lengyel_fast::{Isa, LengyelFast};
@@ -37,6 +42,53 @@ fn terrain(w: usize, h: usize) -> Vec<f32> {
             4.0 * smooth + 0.8 * noise
         })
         .collect()
+}
+
+/// A ridged multifractal terrain (value noise, 8 octaves) as 16-bit samples spanning 0..65535:
+/// sharp crests and smooth valleys, with detail at every scale, like an exported DEM. It does
+/// not compress the way a smooth test pattern would.
+fn ridged_terrain(n: usize) -> Vec<u16> {
+    fn hash(x: i64, y: i64, o: u64) -> f32 {
+        let mut z = (x as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+            ^ (y as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F)
+            ^ o.wrapping_mul(0x1656_67B1_9E37_79F9);
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
+    }
+    fn noise(x: f32, y: f32, o: u64) -> f32 {
+        let (xi, yi) = (x.floor() as i64, y.floor() as i64);
+        let (fx, fy) = (x - x.floor(), y - y.floor());
+        let (sx, sy) = (fx * fx * (3.0 - 2.0 * fx), fy * fy * (3.0 - 2.0 * fy));
+        let a = hash(xi, yi, o) + (hash(xi + 1, yi, o) - hash(xi, yi, o)) * sx;
+        let b = hash(xi, yi + 1, o) + (hash(xi + 1, yi + 1, o) - hash(xi, yi + 1, o)) * sx;
+        a + (b - a) * sy
+    }
+    let mut v: Vec<f32> = (0..n * n)
+        .map(|k| {
+            let (x, y) = ((k % n) as f32, (k / n) as f32);
+            let (mut sum, mut amp, mut freq, mut weight) = (0.0f32, 0.5f32, 4.0 / n as f32, 1.0);
+            for o in 0..8 {
+                let r = 1.0 - (2.0 * noise(x * freq, y * freq, o) - 1.0).abs();
+                let r = r * r * weight;
+                weight = r.clamp(0.0, 1.0);
+                sum += r * amp;
+                amp *= 0.5;
+                freq *= 2.0;
+            }
+            sum
+        })
+        .collect();
+    let (lo, hi) = v.iter().fold((f32::MAX, f32::MIN), |(l, h), &x| (l.min(x), h.max(x)));
+    let span = (hi - lo).max(1e-6);
+    v.iter_mut().for_each(|x| *x = (*x - lo) / span);
+    v.into_iter().map(|x| (x * 65535.0).round() as u16).collect()
+}
+
+/// Writes [`ridged_terrain`] as a 16-bit gray PNG.
+fn write_terrain(path: &std::path::Path, n: usize) -> std::io::Result<()> {
+    let png = encode16(n, n, PngColor::Gray, &ridged_terrain(n)).map_err(std::io::Error::other)?;
+    std::fs::write(path, png)
 }
 
 /// CPU seconds (user + system, all threads) this process has used, from /proc/self/stat; 0
@@ -151,11 +203,108 @@ fn memory_child(n: usize) {
     println!("MEM {bake_ms:.1} {total_ms:.1} {hwm_bake:.1} {hwm:.1} {png_bytes}");
 }
 
+/// The streaming memory bake, run in a child process: `stream_horizon` into two PNG files in a
+/// temporary directory. Prints the same `MEM` line as [`memory_child`] (bake and encoding are
+/// one pass here, so both peaks are the same reading).
+fn memory_child_stream(n: usize) {
+    let map = HeightMap::from_values(n, n, terrain(n, n)).expect("valid map");
+    let dir = tempfile::tempdir().expect("temp dir");
+    let t = Instant::now();
+    let file =
+        |k: usize| std::fs::File::create(dir.path().join(format!("h{k}.png"))).expect("file");
+    let mut writers = [
+        PngRowWriter::<_, u16>::new(file(0), n, n, PngColor::Rgba).expect("png"),
+        PngRowWriter::<_, u16>::new(file(1), n, n, PngColor::Rgba).expect("png"),
+    ];
+    bake::stream_horizon(
+        map,
+        &BakeParams::default(),
+        &Progress::new(),
+        |rows: LayerRows<'_, u16>| {
+            // As the CLI does: the two layers' deflate streams in parallel.
+            let [w0, w1] = &mut writers;
+            let (a, b) =
+                rayon::join(|| w0.write_rows(rows.layers[0]), || w1.write_rows(rows.layers[1]));
+            a.and(b)
+        },
+    )
+    .expect("bake");
+    let mut png_bytes = 0;
+    for w in writers {
+        let f = w.finish().expect("png finish");
+        png_bytes += f.metadata().map(|m| m.len() as usize).unwrap_or(0);
+    }
+    let ms = t.elapsed().as_secs_f64() * 1e3;
+    let hwm = proc_status_mib("VmHWM:").unwrap_or(f64::NAN);
+    println!("MEM {ms:.1} {ms:.1} {hwm:.1} {hwm:.1} {png_bytes}");
+}
+
+/// Runs this bench binary with `args` and parses its `MEM` line.
+fn run_child(args: &[&str]) -> Result<Vec<f64>, String> {
+    let exe = std::env::current_exe().map_err(|e| e.to_string())?;
+    let out = std::process::Command::new(exe).args(args).output().map_err(|e| e.to_string())?;
+    let text = String::from_utf8_lossy(&out.stdout);
+    let line = text.lines().find(|l| l.starts_with("MEM ")).unwrap_or("");
+    let f: Vec<f64> = line.split_whitespace().skip(1).filter_map(|x| x.parse().ok()).collect();
+    if f.len() == 5 {
+        Ok(f)
+    } else {
+        Err(format!("{}: {}", out.status, String::from_utf8_lossy(&out.stderr)))
+    }
+}
+
+/// Peak RSS in MiB of the real CLI baking `input` to png16, sampled from /proc/PID/status every
+/// 5 ms while it runs (VmHWM only grows, so the last reading is the peak up to then), and the
+/// wall time in ms.
+fn cli_peak(input: &std::path::Path, out: &std::path::Path) -> Result<(f64, f64), String> {
+    let t = Instant::now();
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
+        .arg("bake")
+        .arg(input)
+        .arg("-o")
+        .arg(out)
+        .args(["--format", "png16"])
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .map_err(|e| e.to_string())?;
+    let status_path = format!("/proc/{}/status", child.id());
+    let mut peak = 0.0f64;
+    loop {
+        if let Ok(s) = std::fs::read_to_string(&status_path) {
+            if let Some(kb) = s
+                .lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1))
+                .and_then(|v| v.parse::<f64>().ok())
+            {
+                peak = peak.max(kb / 1024.0);
+            }
+        }
+        match child.try_wait() {
+            Ok(Some(st)) if st.success() => return Ok((peak, t.elapsed().as_secs_f64() * 1e3)),
+            Ok(Some(st)) => return Err(format!("CLI failed: {st}")),
+            Ok(None) => std::thread::sleep(std::time::Duration::from_millis(5)),
+            Err(e) => return Err(e.to_string()),
+        }
+    }
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     if let Some(k) = args.iter().position(|a| a == "--memory-child") {
         let n = args.get(k + 1).and_then(|s| s.parse().ok()).unwrap_or(8192);
         memory_child(n);
+        return;
+    }
+    if let Some(k) = args.iter().position(|a| a == "--memory-child-stream") {
+        let n = args.get(k + 1).and_then(|s| s.parse().ok()).unwrap_or(8192);
+        memory_child_stream(n);
+        return;
+    }
+    if let Some(k) = args.iter().position(|a| a == "--write-terrain") {
+        let path = args.get(k + 1).map(String::as_str).unwrap_or("terrain.png");
+        let n = args.get(k + 2).and_then(|s| s.parse().ok()).unwrap_or(8192);
+        write_terrain(std::path::Path::new(path), n).expect("write terrain");
         return;
     }
     if let Some(k) = args.iter().position(|a| a == "--profile") {
@@ -233,52 +382,66 @@ fn main() {
     }
     print_table(&rows);
 
-    // Peak memory of a full bake + PNG16 encode, in a fresh process.
+    // Peak memory of a full 16-bit bake + PNG encode, each way in a fresh process.
     let mem_n = if quick { 2048 } else { 8192 };
-    println!();
-    match std::env::current_exe().and_then(|exe| {
-        std::process::Command::new(exe).args(["--memory-child", &mem_n.to_string()]).output()
-    }) {
-        Ok(out) => {
-            let text = String::from_utf8_lossy(&out.stdout);
-            let line = text.lines().find(|l| l.starts_with("MEM ")).unwrap_or("");
-            let f: Vec<&str> = line.split_whitespace().collect();
-            if f.len() == 6 {
-                let bake_ms: f64 = f[1].parse().unwrap_or(f64::NAN);
-                let png_mib = f[5].parse::<f64>().unwrap_or(0.0) / 1048576.0;
-                println!(
-                    "| what | size | threads | bake ms \
-                     | bake + PNG ms | Mtexel/s (bake) | peak RSS after bake MiB \
-                     | peak RSS after PNG MiB | PNG MiB |"
-                );
-                println!("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |");
-                println!(
-                    "| bake_horizon (defaults, u16) + encode16 ×2 | {mem_n}² | {threads} | {bake_ms:.0} | {} | {:.2} \
-                     | {} | {} | {png_mib:.1} |",
-                    f[2],
-                    (mem_n * mem_n) as f64 / bake_ms / 1e3,
-                    f[3],
-                    f[4],
-                );
-                let mib = |bytes: usize| bytes as f64 / 1048576.0;
-                let texels = mem_n * mem_n;
-                println!(
-                    "\nwhere it goes: input heights {:.0} MiB + scaled copy {:.0} MiB + two u16 \
-                     layers {:.0} MiB during the bake; encode16 adds a big-endian copy of a layer \
-                     ({:.0} MiB) and the PNGs themselves.",
-                    mib(texels * 4),
-                    mib(texels * 4),
-                    mib(texels * 8 * 2),
-                    mib(texels * 4 * 2)
-                );
-            } else {
-                println!(
-                    "memory bench failed: {}\n{}",
-                    out.status,
-                    String::from_utf8_lossy(&out.stderr)
-                );
-            }
+    let n_arg = mem_n.to_string();
+    println!(
+        "\n| what | size | threads | bake ms | bake + PNG ms | Mtexel/s (bake + PNG) \
+         | peak RSS after bake MiB | peak RSS after PNG MiB | PNG MiB |"
+    );
+    println!("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |");
+    let texels = (mem_n * mem_n) as f64;
+    let children = [
+        ("baseline, whole layers: bake_horizon (u16) + encode16 ×2 in memory", "--memory-child"),
+        ("streamed: stream_horizon (u16) → PngRowWriter ×2 → files", "--memory-child-stream"),
+    ];
+    for (what, flag) in children {
+        match run_child(&[flag, &n_arg]) {
+            Ok(f) => println!(
+                "| {what} | {mem_n}² | {threads} | {:.0} | {:.0} | {:.2} | {:.0} | {:.0} | {:.1} |",
+                f[0],
+                f[1],
+                texels / f[1] / 1e3,
+                f[2],
+                f[3],
+                f[4] / 1048576.0
+            ),
+            Err(e) => println!("| {what} | {mem_n}² | {threads} | failed: {e} | | | | | |"),
         }
-        Err(e) => println!("memory bench could not start: {e}"),
     }
+    // The real CLI on a 16-bit PNG of ridged fractal terrain (defaults, --format png16).
+    let cli_row = tempfile::tempdir().map_err(|e| e.to_string()).and_then(|dir| {
+        let input = dir.path().join("terrain.png");
+        write_terrain(&input, mem_n).map_err(|e| e.to_string())?;
+        let (peak, ms) = cli_peak(&input, &dir.path().join("out"))?;
+        let png: u64 = ["horizon_0.png", "horizon_1.png"]
+            .iter()
+            .filter_map(|f| std::fs::metadata(dir.path().join("out").join(f)).ok())
+            .map(|m| m.len())
+            .sum();
+        Ok((peak, ms, png))
+    });
+    let what = "CLI: horizon-bake bake terrain.png --format png16 (decode + stream)";
+    match cli_row {
+        Ok((peak, ms, png)) => println!(
+            "| {what} | {mem_n}² | {threads} | | {ms:.0} | | {peak:.0} | {peak:.0} | {:.1} |",
+            png as f64 / 1048576.0
+        ),
+        Err(e) => println!("| {what} | {mem_n}² | {threads} | failed: {e} | | | | | |"),
+    }
+    let mib = |bytes: usize| bytes as f64 / 1048576.0;
+    let t = mem_n * mem_n;
+    println!(
+        "\nbaseline: input heights {:.0} MiB + scaled copy {:.0} MiB + two u16 layers {:.0} MiB \
+         during the bake; encode16 adds a big-endian copy of a layer ({:.0} MiB) and the PNGs \
+         themselves. streamed: the heights scaled in place ({:.0} MiB) plus a few windows of \
+         bands. The CLI row includes decoding the input (its bytes, the decoded 16-bit image and \
+         the f32 heights are alive together for a moment); its time includes decoding and \
+         writing bake.json.",
+        mib(t * 4),
+        mib(t * 4),
+        mib(t * 8 * 2),
+        mib(t * 4 * 2),
+        mib(t * 4),
+    );
 }

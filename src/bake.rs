@@ -4,6 +4,10 @@
 //! requested output formats need. The kernel's rows are streamed band by band straight into the
 //! 8-bit, 16-bit or f32 layer buffers that were asked for, so the f32 working set is one band per
 //! thread (SPEC §3, issue "fast kernels": an 8192² bake never holds eight f32 planes).
+//!
+//! [`stream_horizon`] goes one step further for outputs that can be written row by row (PNG):
+//! bands are handed to a sink in row order, a window at a time, so not even the quantised layers
+//! exist whole, and the height map is scaled in place instead of copied.
 
 use crate::error::Result;
 use crate::heightmap::HeightMap;
@@ -214,6 +218,213 @@ pub fn run_into_layers<K: HorizonRows + ?Sized>(
         })?;
     }
     Ok(HorizonLayers { width: w, height: h, u8: u8s, u16: u16s, f32: f32s })
+}
+
+/// A sample type horizon layers are quantised to (SPEC §2 rounding): `u8`, `u16` or `f32`.
+pub trait Sample: Copy + Default + Send + Sync + 'static {
+    /// The sample of a value in [0, 1].
+    fn quantize(v: f32) -> Self;
+}
+
+impl Sample for u8 {
+    #[inline]
+    fn quantize(v: f32) -> Self {
+        crate::encode::quantize8(v)
+    }
+}
+
+impl Sample for u16 {
+    #[inline]
+    fn quantize(v: f32) -> Self {
+        crate::encode::quantize16(v)
+    }
+}
+
+impl Sample for f32 {
+    #[inline]
+    fn quantize(v: f32) -> Self {
+        v
+    }
+}
+
+/// One finished band as [`stream_rows`] hands it on: image rows `y0 .. y0 + rows` of both RGBA
+/// layers, `rows · width · 4` samples each, row-major.
+#[derive(Debug, Clone, Copy)]
+pub struct LayerRows<'a, T> {
+    pub y0: usize,
+    pub rows: usize,
+    pub layers: [&'a [T]; 2],
+}
+
+/// Bakes `map` like [`bake_horizon`] but hands the quantised rows of both layers to `sink` band
+/// by band, in row order, instead of collecting whole layers: with a sink that encodes as it goes
+/// (a row-streaming PNG writer) the only full-size buffer alive is the height map itself, which
+/// is taken by value and scaled in place.
+///
+/// # Errors
+/// [`crate::Error::Canceled`] when `progress` is canceled; whatever `sink` returns.
+pub fn stream_horizon<T, S>(
+    map: HeightMap,
+    params: &BakeParams,
+    progress: &Progress,
+    sink: S,
+) -> Result<ResolvedRadius>
+where
+    T: Sample,
+    S: FnMut(LayerRows<'_, T>) -> Result<()> + Send,
+{
+    let (w, h) = (map.width, map.height);
+    let heights = map.into_scaled(params.height_scale);
+    let radius = resolve_radius(params, w, h, &heights);
+    let grid = Grid::new(w, h, &heights, params.edge, params.y_axis);
+    let kernel = make_kernel(params, grid, radius.texels, progress);
+    progress.start(Stage::Bake, h as u64);
+    stream_rows(kernel.as_ref(), params.encoding, progress, sink)?;
+    Ok(radius)
+}
+
+/// Quantised rows of a window of consecutive bands, both layers: band `i` of the window owns
+/// `2 · band · width · 4` samples (layer 0 rows, then layer 1 rows).
+struct Window<T> {
+    samples: Vec<T>,
+    /// First band of the window and how many bands it holds.
+    first: usize,
+    count: usize,
+}
+
+/// Runs `kernel` over a window of bands in parallel and quantises them into `win`. Checks for a
+/// cancel before and after each band as [`kernels::run_bands`] does.
+fn compute_window<T: Sample, K: HorizonRows + ?Sized>(
+    kernel: &K,
+    sqrt: bool,
+    band: usize,
+    first: usize,
+    scratch: &mut [f32],
+    win: &mut Window<T>,
+    progress: &Progress,
+) -> Result<()> {
+    use rayon::prelude::*;
+    let (w, h) = (kernel.width(), kernel.height());
+    let nbands = h.div_ceil(band);
+    let count = (scratch.len() / (band * w * 8)).min(nbands - first);
+    win.first = first;
+    win.count = count;
+    let per_band = 2 * band * w * 4;
+    scratch
+        .par_chunks_mut(band * w * 8)
+        .zip(win.samples.par_chunks_mut(per_band))
+        .take(count)
+        .enumerate()
+        .try_for_each(|(i, (ch, out))| {
+            if progress.is_canceled() {
+                return Err(crate::Error::Canceled);
+            }
+            let y0 = (first + i) * band;
+            let rows = band.min(h - y0);
+            let ch = &mut ch[..rows * w * 8];
+            kernel.rows(y0, ch, None);
+            // A kernel may return early on cancel; never hand its partial band on.
+            if progress.is_canceled() {
+                return Err(crate::Error::Canceled);
+            }
+            let (l0, l1) = out.split_at_mut(band * w * 4);
+            for ((t, a), b) in
+                ch.chunks_exact(8).zip(l0.chunks_exact_mut(4)).zip(l1.chunks_exact_mut(4))
+            {
+                for k in 0..4 {
+                    let (v0, v1) = if sqrt {
+                        (t[k].max(0.0).sqrt(), t[4 + k].max(0.0).sqrt())
+                    } else {
+                        (t[k], t[4 + k])
+                    };
+                    a[k] = T::quantize(v0);
+                    b[k] = T::quantize(v1);
+                }
+            }
+            Ok(())
+        })
+}
+
+/// Hands the bands of `win` to `sink` in order, advancing `progress` by each band's rows.
+fn drain_window<T: Sample, S>(
+    win: &Window<T>,
+    band: usize,
+    (w, h): (usize, usize),
+    progress: &Progress,
+    sink: &mut S,
+) -> Result<()>
+where
+    S: FnMut(LayerRows<'_, T>) -> Result<()>,
+{
+    let per_band = 2 * band * w * 4;
+    for i in 0..win.count {
+        if progress.is_canceled() {
+            return Err(crate::Error::Canceled);
+        }
+        let y0 = (win.first + i) * band;
+        let rows = band.min(h - y0);
+        let out = &win.samples[i * per_band..(i + 1) * per_band];
+        let n = rows * w * 4;
+        let layers = [&out[..n], &out[band * w * 4..band * w * 4 + n]];
+        sink(LayerRows { y0, rows, layers })?;
+        progress.advance(rows as u64);
+    }
+    Ok(())
+}
+
+/// Streams `kernel` into `sink` in row order: windows of `2 × threads` bands are computed in
+/// parallel, then handed on band by band while the next window is being computed (so a
+/// single-threaded encoder in the sink overlaps the kernel). Memory: two windows of quantised
+/// rows and one window of f32 channels, whatever the map size.
+///
+/// Progress advances by a band's rows once the sink has taken it; a cancel is checked before
+/// and after each band is computed and before each is handed on.
+///
+/// # Errors
+/// [`crate::Error::Canceled`]; whatever `sink` returns (no band is handed on after an error).
+pub fn stream_rows<T, K, S>(
+    kernel: &K,
+    encoding: Encoding,
+    progress: &Progress,
+    mut sink: S,
+) -> Result<()>
+where
+    T: Sample,
+    K: HorizonRows + ?Sized,
+    S: FnMut(LayerRows<'_, T>) -> Result<()> + Send,
+{
+    let (w, h) = (kernel.width(), kernel.height());
+    if w == 0 || h == 0 {
+        return Ok(());
+    }
+    let band = kernels::band_rows(w, h);
+    let nbands = h.div_ceil(band);
+    let window = (2 * rayon::current_num_threads()).clamp(1, nbands);
+    let sqrt = encoding == Encoding::Sqrt;
+    let mut scratch = vec![0f32; window * band * w * 8];
+    let new_window =
+        || Window { samples: vec![T::default(); window * 2 * band * w * 4], first: 0, count: 0 };
+    let (mut front, mut back) = (new_window(), new_window());
+    compute_window(kernel, sqrt, band, 0, &mut scratch, &mut front, progress)?;
+    loop {
+        let next = front.first + front.count;
+        let (drained, computed) = rayon::join(
+            || drain_window(&front, band, (w, h), progress, &mut sink),
+            || {
+                if next < nbands {
+                    compute_window(kernel, sqrt, band, next, &mut scratch, &mut back, progress)
+                        .map(|()| true)
+                } else {
+                    Ok(false)
+                }
+            },
+        );
+        drained?;
+        if !computed? {
+            return Ok(());
+        }
+        std::mem::swap(&mut front, &mut back);
+    }
 }
 
 /// Interleaves two RGBA f32 layers back into `H·W·8` channel order (golden-file layout).

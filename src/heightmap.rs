@@ -60,6 +60,16 @@ impl HeightMap {
         self.values.iter().map(|&v| (v as f64 * height_scale) as f32).collect()
     }
 
+    /// Heights in texel units, scaled in place: the same values as [`HeightMap::scaled`] without
+    /// a second full-size buffer (an 8192² map is 256 MiB of f32).
+    pub fn into_scaled(self, height_scale: f64) -> Vec<f32> {
+        let mut values = self.values;
+        for v in &mut values {
+            *v = (*v as f64 * height_scale) as f32;
+        }
+        values
+    }
+
     /// A height map from raw values (tests, synthetic inputs).
     ///
     /// # Errors

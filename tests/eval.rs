@@ -252,3 +252,43 @@ fn cli_eval_writes_every_output_and_the_dump() {
         assert_eq!(l0.dimensions(), (24, 24));
     }
 }
+
+#[test]
+fn outputs_fourier_alone_bakes_no_horizon_layers() {
+    // `outputs=fourier` must not quantise or encode horizon layers: only the Fourier files and
+    // bake.json are written, and bake.json lists exactly those.
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("in.png");
+    let px: Vec<u8> = (0..16 * 12).map(|k| ((k * 37) % 251) as u8).collect();
+    std::fs::write(
+        &input,
+        horizon_bake::encode::png::encode8(16, 12, horizon_bake::encode::png::PngColor::Gray, &px)
+            .unwrap(),
+    )
+    .unwrap();
+    let run = |outputs: &str, out: &std::path::Path| {
+        let st = std::process::Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
+            .arg("bake")
+            .arg(&input)
+            .arg("-o")
+            .arg(out)
+            .args(["--outputs", outputs, "--format", "png16,exr"])
+            .output()
+            .unwrap();
+        assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
+        let mut names: Vec<String> = std::fs::read_dir(out)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        names.sort();
+        names
+    };
+    let only = run("fourier", &dir.path().join("f"));
+    assert_eq!(only, ["bake.json", "fourier_0.png", "fourier_1.png"]);
+    let both = run("horizon,fourier", &dir.path().join("hf"));
+    assert!(both.iter().any(|n| n == "horizon_0.png") && both.iter().any(|n| n == "horizon_0.exr"));
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("f/bake.json")).unwrap()).unwrap();
+    let listed = json.to_string();
+    assert!(!listed.contains("horizon_0"), "bake.json lists horizon files: {listed}");
+}

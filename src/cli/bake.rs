@@ -6,8 +6,16 @@
 //! directory beside DIR (same file system) and only renamed into DIR once all of them were
 //! written: a failed bake leaves DIR exactly as it was. A progress bar is drawn on stderr only
 //! when stderr is a terminal.
+//!
+//! When the only horizon files asked for are PNGs, the bake is streamed ([`stream_png_files`]):
+//! bands of quantised rows go straight into row-streaming PNG writers on the staged files, so an
+//! 8192² png16 bake never holds a whole layer or a whole encoded PNG (peak RSS ≈ the decoded
+//! input; see benches/kernels.rs). Kernel and encoding then overlap, so `timings_ms.bake` covers
+//! both and `encode` only what is left (Fourier outputs). EXR, KTX2 and DDS need whole layers
+//! and take the whole-layer path.
 
-use crate::bake::{self, HorizonLayers, ResolvedRadius};
+use crate::bake::{self, LayerRows, ResolvedRadius};
+use crate::encode::png::{PngColor, PngRowWriter, PngSample};
 use crate::encode::{self, Formats, OutFile, TexturePrecision};
 use crate::error::{Error, Result};
 use crate::heightmap::{self, HeightMap, InputInfo, Limits};
@@ -137,6 +145,60 @@ pub fn fourier_files(
     Ok((files, radius))
 }
 
+/// Whether the horizon files can be streamed: only PNGs asked for (EXR, KTX2 and DDS need whole
+/// layers).
+pub fn streamable(formats: &Formats) -> bool {
+    (formats.png8 || formats.png16) && !(formats.exr || formats.ktx2 || formats.dds)
+}
+
+/// Bakes `map` straight into `horizon_0.png` and `horizon_1.png` in `staging`, band by band in
+/// row order ([`bake::stream_horizon`] into [`PngRowWriter`]s): no layer and no encoded PNG is
+/// ever whole in memory. 16-bit with `formats.png16`, else 8-bit.
+///
+/// # Errors
+/// [`Error::Canceled`], [`Error::Io`]; the staged files are then incomplete, and dropping
+/// `staging` removes them.
+pub fn stream_png_files(
+    map: HeightMap,
+    params: &BakeParams,
+    formats: &Formats,
+    progress: &Progress,
+    staging: &mut Staging,
+) -> Result<ResolvedRadius> {
+    if formats.png16 {
+        stream_png::<u16>(map, params, progress, staging)
+    } else {
+        stream_png::<u8>(map, params, progress, staging)
+    }
+}
+
+fn stream_png<T: bake::Sample + PngSample>(
+    map: HeightMap,
+    params: &BakeParams,
+    progress: &Progress,
+    staging: &mut Staging,
+) -> Result<ResolvedRadius> {
+    const NAMES: [&str; 2] = ["horizon_0.png", "horizon_1.png"];
+    let (w, h) = (map.width, map.height);
+    let files = [staging.create(NAMES[0])?, staging.create(NAMES[1])?];
+    let mut writers = [
+        PngRowWriter::<_, T>::new(files[0].try_clone()?, w, h, PngColor::Rgba)?,
+        PngRowWriter::<_, T>::new(files[1].try_clone()?, w, h, PngColor::Rgba)?,
+    ];
+    let radius = bake::stream_horizon(map, params, progress, |rows: LayerRows<'_, T>| {
+        // Deflate is single-threaded and as slow as the kernel: the two layers in parallel.
+        let [w0, w1] = &mut writers;
+        let (a, b) =
+            rayon::join(|| w0.write_rows(rows.layers[0]), || w1.write_rows(rows.layers[1]));
+        a.and(b)
+    })?;
+    for ((writer, file), name) in writers.into_iter().zip(files).zip(NAMES) {
+        drop(writer.finish()?);
+        staging.add(name, file)?;
+    }
+    Ok(radius)
+}
+
 /// Milliseconds of a duration, for `timings_ms`.
 fn ms(d: Duration) -> f64 {
     (d.as_secs_f64() * 1e6).round() / 1e3
@@ -163,45 +225,79 @@ pub fn run(args: BakeArgs) -> Result<()> {
     drop(bytes);
     let decode_ms = ms(t.elapsed());
 
-    let t = Instant::now();
-    let (layers, radius) =
-        with_progress_bar(&progress, format!("{}×{}", map.width, map.height), || {
-            if params.outputs.horizon {
-                bake::bake_horizon(&map, &params, formats.precisions(), &progress).map(Some)
-            } else {
-                Ok(None)
-            }
-        })?
-        .map(|(l, r)| (Some(l), Some(r)))
-        .unwrap_or((None, None));
-    let bake_ms = ms(t.elapsed());
-
-    // Encoding includes writing the files (to the staging directory): both are the cost of
-    // producing the outputs. `total` ends before bake.json itself and the final renames.
-    let t = Instant::now();
-    progress.start(Stage::Encode, 1);
+    // PNG-only horizon outputs stream straight into the staged files; everything else bakes
+    // whole layers first. Streaming consumes the map, so Fourier outputs are baked before it.
     let mut staging = Staging::new(&args.out)?;
-    let mut files = match &layers {
-        Some(l) => encode::horizon_files(l, &formats)?,
-        None => Vec::new(),
+    let mut names: Vec<&'static str> = Vec::new();
+    let mut radius: Option<ResolvedRadius> = None;
+    let size = params.outputs.horizon.then_some((map.width, map.height));
+    let (bake_ms, encode_ms) = if params.outputs.horizon && streamable(&formats) {
+        let t = Instant::now();
+        let fourier = if params.outputs.fourier {
+            let (files, r) = fourier_files(&map, &params, &progress)?;
+            staging.write(&files)?;
+            Some((files.iter().map(|f| f.name).collect::<Vec<_>>(), r))
+        } else {
+            None
+        };
+        let fourier_ms = ms(t.elapsed());
+        // Kernel and PNG encoding overlap here, so both count as the bake; `encode` is what
+        // cannot overlap: finishing and flushing the files, and the Fourier outputs.
+        let t = Instant::now();
+        let label = format!("{}×{}", map.width, map.height);
+        let r = with_progress_bar(&progress, label, || {
+            stream_png_files(map, &params, &formats, &progress, &mut staging)
+        })?;
+        let bake_ms = ms(t.elapsed());
+        names.extend(["horizon_0.png", "horizon_1.png"]);
+        radius = Some(r);
+        if let Some((fnames, r)) = fourier {
+            names.extend(fnames);
+            radius.get_or_insert(r);
+        }
+        (bake_ms, fourier_ms)
+    } else {
+        let t = Instant::now();
+        let layers =
+            with_progress_bar(&progress, format!("{}×{}", map.width, map.height), || {
+                if params.outputs.horizon {
+                    bake::bake_horizon(&map, &params, formats.precisions(), &progress).map(Some)
+                } else {
+                    Ok(None)
+                }
+            })?;
+        let bake_ms = ms(t.elapsed());
+
+        // Encoding includes writing the files (to the staging directory): both are the cost of
+        // producing the outputs. `total` ends before bake.json itself and the final renames.
+        let t = Instant::now();
+        progress.start(Stage::Encode, 1);
+        let mut files = match &layers {
+            Some((l, r)) => {
+                radius = Some(r.clone());
+                encode::horizon_files(l, &formats)?
+            }
+            None => Vec::new(),
+        };
+        drop(layers);
+        if params.outputs.fourier {
+            let (fourier, r) = fourier_files(&map, &params, &progress)?;
+            files.extend(fourier);
+            radius.get_or_insert(r);
+        }
+        staging.write(&files)?;
+        names.extend(files.iter().map(|f| f.name));
+        (bake_ms, ms(t.elapsed()))
     };
-    let mut radius = radius;
-    if params.outputs.fourier {
-        let (fourier, r) = fourier_files(&map, &params, &progress)?;
-        files.extend(fourier);
-        radius.get_or_insert(r);
-    }
-    staging.write(&files)?;
-    let encode_ms = ms(t.elapsed());
     let report = BakeReport {
         params: &params,
         resolved_radius: radius.as_ref(),
         formats: &formats,
         input: &info,
         input_path: &args.input,
-        files: files.iter().map(|f| f.name).collect(),
+        files: names,
         timings: [decode_ms, bake_ms, encode_ms, ms(total.elapsed())],
-        layers: layers.as_ref(),
+        size,
     };
     staging.write(&[OutFile { name: "bake.json", bytes: report.to_json()? }])?;
     staging.commit()
@@ -217,7 +313,8 @@ struct BakeReport<'a> {
     files: Vec<&'static str>,
     /// decode, bake, encode, total (ms).
     timings: [f64; 4],
-    layers: Option<&'a HorizonLayers>,
+    /// Width and height of the horizon layers, when baked.
+    size: Option<(usize, usize)>,
 }
 
 impl BakeReport<'_> {
@@ -238,8 +335,8 @@ impl BakeReport<'_> {
             "input": input,
             "output": {
                 "formats": self.formats,
-                "width": self.layers.map(|l| l.width),
-                "height": self.layers.map(|l| l.height),
+                "width": self.size.map(|s| s.0),
+                "height": self.size.map(|s| s.1),
                 "files": self.files,
             },
             "timings_ms": { "decode": decode, "bake": bake, "encode": encode, "total": total },
@@ -348,6 +445,25 @@ impl Staging {
             file.sync_all()?;
             self.names.push(f.name);
         }
+        Ok(())
+    }
+
+    /// Creates `name` in the temporary directory for the caller to write (streamed outputs);
+    /// it becomes part of the commit once handed back to [`Staging::add`].
+    ///
+    /// # Errors
+    /// [`Error::Io`].
+    pub fn create(&self, name: &str) -> Result<std::fs::File> {
+        Ok(std::fs::File::create(self.tmp.path().join(name))?)
+    }
+
+    /// Flushes a file made by [`Staging::create`] to disk and stages it for the commit.
+    ///
+    /// # Errors
+    /// [`Error::Io`].
+    pub fn add(&mut self, name: &'static str, file: std::fs::File) -> Result<()> {
+        file.sync_all()?;
+        self.names.push(name);
         Ok(())
     }
 

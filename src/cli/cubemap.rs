@@ -78,7 +78,7 @@ fn parse_size(value: &str) -> Result<usize> {
 pub fn cube_files(size: usize, formats: CubeFormats) -> Result<Vec<OutFile>> {
     const NAMES: [&str; 6] =
         ["cube_0.png", "cube_1.png", "cube_2.png", "cube_3.png", "cube_4.png", "cube_5.png"];
-    let factors = cubemap::cube_factors(size);
+    let factors = cubemap::cube_factors_shared(size);
     let face_len = size * size * 4;
     let mut out = Vec::new();
     if formats.png8 {

@@ -93,8 +93,9 @@ pub fn fractal(n: usize, seed: u64) -> Map {
 /// faces 3 texels up with a 1-texel bevel and a per-brick tilt, so walls run along the 0° and
 /// 90° channels and the bevels catch the diagonals.
 pub fn bricks(n: usize) -> Map {
-    let bw = (n / 4).max(4);
-    let bh = (n / 8).max(2);
+    // At least 8×4 so that small maps still have brick faces between the joints.
+    let bw = (n / 4).max(8);
+    let bh = (n / 8).max(4);
     let mut rng = Rng(0xB51C);
     let rows = n.div_ceil(bh) + 1;
     let tilts: Vec<f64> = (0..rows * 8).map(|_| rng.unit() - 0.5).collect();

@@ -121,7 +121,9 @@ impl CubeMap {
     /// The cube map the bake writes at `size` (≥ 1) texels per side, quantised to UNORM8.
     pub fn new(size: usize) -> Self {
         let size = size.max(1);
-        let texels = cubemap::cube_factors(size).into_iter().map(cubemap::unorm8).collect();
+        // Shared per size: every preview of one size reuses the same table.
+        let texels =
+            cubemap::cube_factors_shared(size).iter().map(|&f| cubemap::unorm8(f)).collect();
         CubeMap { size, texels }
     }
 
