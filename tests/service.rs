@@ -533,3 +533,121 @@ async fn fourier_outputs_match_the_cli_function() {
     assert_eq!(res.status(), 422);
     srv.stop().await;
 }
+
+/// Decodes a PNG answer to (width, height, RGBA8).
+fn rgba_of(png: &[u8]) -> (usize, usize, Vec<u8>) {
+    let img = image::load_from_memory_with_format(png, image::ImageFormat::Png).unwrap().to_rgba8();
+    (img.width() as usize, img.height() as usize, img.into_raw())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn preview_renders_the_bake_like_the_library() {
+    use horizon_bake::params::BakeParams;
+    use horizon_bake::preview::{self, PreviewParams};
+    use horizon_bake::progress::Progress;
+    let srv = Server::start(|_| {}).await;
+    let c = client();
+    let (s, p) = problem(
+        c.get(srv.url("/v1/bakes/0123456789abcdef0123/preview?azimuth=30")).send().await.unwrap(),
+    )
+    .await;
+    assert_eq!((s, p["code"].as_str().unwrap()), (404, "bake_not_found"));
+
+    let (w, h) = (40, 30);
+    let png = terrain_png16(w, h, 5);
+    let res = c
+        .post(srv.url("/v1/bakes?radius=8&height_scale=24&y_axis=down"))
+        .header("content-type", "image/png")
+        .body(png.clone())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(res.status(), 202);
+    let loc = res.headers()["location"].to_str().unwrap().to_owned();
+    let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
+    assert_eq!(v["status"], "succeeded", "{v}");
+
+    let bake = BakeParams::from_pairs(PAIRS.iter().copied()).unwrap();
+    let (map, _) =
+        horizon_bake::heightmap::decode(&png, bake.channel, &Default::default()).unwrap();
+    let library = |pairs: &[(&str, &str)]| {
+        let pp = PreviewParams::from_pairs(pairs.iter().copied()).unwrap();
+        preview::render_baking(&map, &bake, &pp, &Progress::new()).unwrap()
+    };
+    let get = |query: &str| c.get(srv.url(&format!("{loc}/preview?{query}"))).send();
+
+    // Native size, then `size` scaling the longer side; pixels identical to the library's.
+    for (query, pairs, dims) in [
+        (
+            "azimuth=30&elevation=15&shading=horizon",
+            &[("azimuth", "30"), ("elevation", "15"), ("shading", "horizon")][..],
+            (w, h),
+        ),
+        (
+            "azimuth=200&elevation=25&shading=difference&size=80",
+            &[("azimuth", "200"), ("elevation", "25"), ("shading", "difference"), ("size", "80")][..],
+            (80, 60),
+        ),
+    ] {
+        let res = get(query).await.unwrap();
+        assert_eq!(res.status(), 200, "{query}");
+        assert_eq!(res.headers()["content-type"], "image/png");
+        let (gw, gh, got) = rgba_of(&res.bytes().await.unwrap());
+        assert_eq!((gw, gh), dims, "{query}");
+        let want = library(pairs);
+        assert_eq!((want.width, want.height), dims);
+        assert!(got == want.rgba, "{query}: pixels differ from preview::render_baking");
+    }
+    // Different light, different picture (the query is really applied).
+    let a = rgba_of(&get("azimuth=0").await.unwrap().bytes().await.unwrap()).2;
+    let b = rgba_of(&get("azimuth=180").await.unwrap().bytes().await.unwrap()).2;
+    assert_ne!(a, b);
+
+    // A contact sheet of 4 tiles of 20×15: 2×2 cells of (tile + 4 px gap) × (tile + label
+    // 7 px + 2×4 px + 4 px gap), plus the 4 px outer gap: 52×72.
+    let res = get("contact_sheet=4&size=20&elevation=20").await.unwrap();
+    assert_eq!(res.status(), 200);
+    let (sw, sh, sheet) = rgba_of(&res.bytes().await.unwrap());
+    assert_eq!((sw, sh), (4 + 2 * (20 + 4), 4 + 2 * (15 + 7 + 8 + 4)));
+    let want = library(&[("contact_sheet", "4"), ("size", "20"), ("elevation", "20")]);
+    assert_eq!((want.width, want.height), (sw, sh));
+    assert!(sheet == want.rgba, "the contact sheet differs from the library's");
+
+    // Bad parameters: 422 naming the field, unknown keys included.
+    for (query, field) in [
+        ("azimuth=abc", "azimuth"),
+        ("bogus=1", "bogus"),
+        ("elevation=95", "elevation"),
+        ("contact_sheet=65", "contact_sheet"),
+        ("size=4096&contact_sheet=64", "size"),
+        ("azimuth=1&azimuth=2", "azimuth"),
+    ] {
+        let (s, p) = problem(get(query).await.unwrap()).await;
+        assert_eq!((s, p["field"].as_str().unwrap()), (422, field), "{query}: {p}");
+        assert_eq!(p["code"], "invalid_parameter");
+    }
+    srv.stop().await;
+}
+
+#[tokio::test]
+async fn preview_of_an_unfinished_bake_is_409() {
+    let (st, _dir) = idle_state(|_| {});
+    let app = service::app(st);
+    let (s, _, body) = oneshot(&app, submit_req(&terrain_png16(8, 8, 3))).await;
+    assert_eq!(s, 202);
+    let id = serde_json::from_slice::<Value>(&body).unwrap()["id"].as_str().unwrap().to_owned();
+    let (s, h, body) = oneshot(
+        &app,
+        Request::get(format!("/v1/bakes/{id}/preview?azimuth=30")).body(Body::empty()).unwrap(),
+    )
+    .await;
+    assert_eq!(s, 409);
+    assert_eq!(h["content-type"], "application/problem+json");
+    assert_eq!(serde_json::from_slice::<Value>(&body).unwrap()["code"], "result_not_ready");
+    let (s, _, _) = oneshot(
+        &app,
+        Request::get("/v1/bakes/0123456789abcdef0123/preview").body(Body::empty()).unwrap(),
+    )
+    .await;
+    assert_eq!(s, 404);
+}

@@ -1,5 +1,6 @@
 //! HTTP handlers: validate, call the store or the queue, answer. No pixel arithmetic here; the
-//! only CPU work a handler starts (the cube map) runs on a blocking thread.
+//! only CPU work a handler starts runs off the async workers: the cube map on a blocking thread,
+//! a preview on the bake pool.
 
 // `Problem` is the error answer itself, built at most once per request on the way out; boxing it
 // would add an allocation to every error path for no gain.
@@ -9,7 +10,8 @@ use crate::cli::cubemap::CubeFormats;
 use crate::error::Error;
 use crate::heightmap;
 use crate::params::BakeParams;
-use crate::progress::Stage;
+use crate::preview::{self, PreviewParams};
+use crate::progress::{Progress, Stage};
 use crate::service::problem::Problem;
 use crate::service::store::{now_ms, BakeRecord, Status};
 use crate::service::worker::{blocking, params_of};
@@ -25,6 +27,7 @@ use futures_util::stream::Stream;
 use serde_json::{json, Value};
 use std::collections::HashMap;
 use std::convert::Infallible;
+use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::time::Duration;
 
 type Answer = Result<Response, Problem>;
@@ -946,6 +949,66 @@ pub async fn cubemap_dds(
     let size = cube_size(&st, &q)?;
     cube_answer(&headers, size, CubeFormats { png8: false, ktx2: false, dds: true }, 0, DDS_TYPE)
         .await
+}
+
+/// Cancels a preview render when its request future is dropped (the client went away), so the
+/// pool does not keep computing an image nobody will read.
+struct CancelOnDrop(Progress);
+
+impl Drop for CancelOnDrop {
+    fn drop(&mut self) {
+        self.0.cancel();
+    }
+}
+
+/// `GET /v1/bakes/{id}/preview?…`: the lit surface (SPEC §3.5 parameters; `contact_sheet=N` for
+/// the contact sheet) rendered from the bake's stored input with its resolved parameters, as PNG.
+///
+/// Rendering is CPU work, so it runs on the bake pool (never the async workers): that keeps the
+/// service's CPU use within `bake_threads`, and the renderer's own limits (`MAX_SIZE`,
+/// `MAX_TILES`, `MAX_PIXELS`) cap the cost of one request.
+pub async fn preview(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    Query(q): Query<Vec<(String, String)>>,
+) -> Answer {
+    let mut pp = PreviewParams::default();
+    let mut seen = std::collections::HashSet::new();
+    for (k, v) in &q {
+        if !seen.insert(k.as_str()) {
+            return Err(Problem::param(k.clone(), "given more than once"));
+        }
+        pp.set(k, v).map_err(Problem::from)?;
+    }
+    let rec = finished(&st, &id).await?;
+    let params = params_of(&rec).map_err(store_err)?;
+    let progress = Progress::new();
+    let _cancel = CancelOnDrop(progress.clone());
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    let pool_state = st.clone();
+    st.0.pool.spawn(move || {
+        let out = catch_unwind(AssertUnwindSafe(|| -> crate::Result<Vec<u8>> {
+            let bytes = pool_state.0.blobs.get(&rec.input_blob)?.ok_or_else(|| {
+                Error::Internal(format!("input blob {} is missing", rec.input_blob))
+            })?;
+            let (map, _) = heightmap::decode(&bytes, params.channel, &pool_state.0.config.limits)?;
+            drop(bytes);
+            preview::render_baking(&map, &params, &pp, &progress)?.to_png()
+        }));
+        let _ = tx.send(out);
+    });
+    let png = match rx.await {
+        Ok(Ok(r)) => r.map_err(Problem::from)?,
+        Ok(Err(_)) | Err(_) => {
+            return Err(Problem::internal(&format!("the preview of bake {id} panicked")))
+        }
+    };
+    let mut r = Response::new(Body::from(png));
+    r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static("image/png"));
+    if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"preview_{id}.png\"")) {
+        r.headers_mut().insert(header::CONTENT_DISPOSITION, v);
+    }
+    Ok(r)
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -52,6 +52,7 @@ pub const ROUTES: &[(&str, &[&str])] = &[
     ("/v1/bakes/{id}/horizon.ktx2", &["GET"]),
     ("/v1/bakes/{id}/horizon.dds", &["GET"]),
     ("/v1/bakes/{id}/fourier/{layer}", &["GET"]),
+    ("/v1/bakes/{id}/preview", &["GET"]),
     ("/v1/cubemap/{face}", &["GET"]),
     ("/v1/cubemap.ktx2", &["GET"]),
     ("/v1/cubemap.dds", &["GET"]),
@@ -228,6 +229,7 @@ pub fn app(st: AppState) -> Router {
         .route("/v1/bakes/{id}/horizon.ktx2", get(handlers::horizon_ktx2))
         .route("/v1/bakes/{id}/horizon.dds", get(handlers::horizon_dds))
         .route("/v1/bakes/{id}/fourier/{layer}", get(handlers::fourier_layer))
+        .route("/v1/bakes/{id}/preview", get(handlers::preview))
         .route("/v1/cubemap/{face}", get(handlers::cubemap_face))
         .route("/v1/cubemap.ktx2", get(handlers::cubemap_ktx2))
         .route("/v1/cubemap.dds", get(handlers::cubemap_dds))
