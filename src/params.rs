@@ -200,7 +200,7 @@ pub const PARAM_NAMES: &[&str] = &[
     "fourier_range",
 ];
 
-fn parse_enum<T: Copy>(field: &str, value: &str, options: &[(&str, T)]) -> Result<T> {
+pub(crate) fn parse_enum<T: Copy>(field: &str, value: &str, options: &[(&str, T)]) -> Result<T> {
     let v = value.trim().to_ascii_lowercase();
     options.iter().find(|(name, _)| *name == v).map(|(_, t)| *t).ok_or_else(|| {
         let names: Vec<&str> = options.iter().map(|(n, _)| *n).collect();
@@ -208,7 +208,8 @@ fn parse_enum<T: Copy>(field: &str, value: &str, options: &[(&str, T)]) -> Resul
     })
 }
 
-fn parse_f64(field: &str, value: &str) -> Result<f64> {
+/// A finite number, or a parameter error naming `field`.
+pub(crate) fn parse_f64(field: &str, value: &str) -> Result<f64> {
     let v: f64 = value
         .trim()
         .parse()
@@ -219,7 +220,8 @@ fn parse_f64(field: &str, value: &str) -> Result<f64> {
     Ok(v)
 }
 
-fn parse_u32(field: &str, value: &str) -> Result<u32> {
+/// A non-negative whole number ("16.0" accepted), or a parameter error naming `field`.
+pub(crate) fn parse_u32(field: &str, value: &str) -> Result<u32> {
     let t = value.trim();
     // Accept "16.0" from JSON clients that only have doubles, but not "16.5".
     if let Ok(v) = t.parse::<u32>() {

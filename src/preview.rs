@@ -145,29 +145,15 @@ pub const PREVIEW_PARAM_NAMES: &[&str] = &[
     "sheet_spread",
 ];
 
-fn num(field: &str, value: &str) -> Result<f64> {
-    let v: f64 = value
-        .trim()
-        .parse()
-        .map_err(|_| Error::param(field, format!("`{value}` is not a number")))?;
-    if !v.is_finite() {
-        return Err(Error::param(field, "must be a finite number"));
-    }
-    Ok(v)
-}
+use crate::params::parse_f64 as num;
 
+/// A whole number in `lo ..= hi`, or a parameter error naming `field`.
 fn whole(field: &str, value: &str, lo: u32, hi: u32) -> Result<u32> {
-    let t = value.trim();
-    let v = t.parse::<u32>().ok().or_else(|| {
-        t.parse::<f64>()
-            .ok()
-            .filter(|f| f.fract() == 0.0 && *f >= 0.0 && *f <= u32::MAX as f64)
-            .map(|f| f as u32)
-    });
-    match v {
-        Some(v) if (lo..=hi).contains(&v) => Ok(v),
-        Some(v) => Err(Error::param(field, format!("must be between {lo} and {hi}, got {v}"))),
-        None => Err(Error::param(field, format!("`{value}` is not a whole number"))),
+    let v = crate::params::parse_u32(field, value)?;
+    if (lo..=hi).contains(&v) {
+        Ok(v)
+    } else {
+        Err(Error::param(field, format!("must be between {lo} and {hi}, got {v}")))
     }
 }
 

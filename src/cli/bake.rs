@@ -97,29 +97,39 @@ pub struct ParamFlags {
     pub fourier_range: Option<String>,
 }
 
+impl ParamFlags {
+    /// The bake parameters these flags set (defaults elsewhere). Shared by `bake` and
+    /// `preview`, so a flag means the same in both.
+    ///
+    /// # Errors
+    /// [`Error::Param`] naming the first invalid field.
+    pub fn params(&self) -> Result<BakeParams> {
+        let pairs = [
+            ("height_scale", &self.height_scale),
+            ("channel", &self.channel),
+            ("edge", &self.edge),
+            ("y_axis", &self.y_axis),
+            ("method", &self.method),
+            ("radius", &self.radius),
+            ("bins", &self.bins),
+            ("reduce", &self.reduce),
+            ("min_elevation_deg", &self.min_elevation_deg),
+            ("encoding", &self.encoding),
+            ("outputs", &self.outputs),
+            ("fourier_terms", &self.fourier_terms),
+            ("fourier_range", &self.fourier_range),
+        ];
+        BakeParams::from_pairs(pairs.iter().filter_map(|(k, v)| v.as_deref().map(|v| (*k, v))))
+    }
+}
+
 impl BakeArgs {
     /// The bake parameters these flags set (defaults elsewhere).
     ///
     /// # Errors
     /// [`Error::Param`] naming the first invalid field.
     pub fn params(&self) -> Result<BakeParams> {
-        let f = &self.params;
-        let pairs = [
-            ("height_scale", &f.height_scale),
-            ("channel", &f.channel),
-            ("edge", &f.edge),
-            ("y_axis", &f.y_axis),
-            ("method", &f.method),
-            ("radius", &f.radius),
-            ("bins", &f.bins),
-            ("reduce", &f.reduce),
-            ("min_elevation_deg", &f.min_elevation_deg),
-            ("encoding", &f.encoding),
-            ("outputs", &f.outputs),
-            ("fourier_terms", &f.fourier_terms),
-            ("fourier_range", &f.fourier_range),
-        ];
-        BakeParams::from_pairs(pairs.iter().filter_map(|(k, v)| v.as_deref().map(|v| (*k, v))))
+        self.params.params()
     }
 
     fn limits(&self) -> Limits {

@@ -85,31 +85,9 @@ pub struct PreviewFlags {
     #[arg(long)]
     pub sheet_spread: Option<String>,
 
-    // Bake parameters (SPEC §5).
-    #[arg(long)]
-    pub height_scale: Option<String>,
-    #[arg(long)]
-    pub channel: Option<String>,
-    #[arg(long)]
-    pub edge: Option<String>,
-    #[arg(long)]
-    pub y_axis: Option<String>,
-    #[arg(long)]
-    pub method: Option<String>,
-    #[arg(long)]
-    pub radius: Option<String>,
-    #[arg(long)]
-    pub bins: Option<String>,
-    #[arg(long)]
-    pub reduce: Option<String>,
-    #[arg(long)]
-    pub min_elevation_deg: Option<String>,
-    #[arg(long)]
-    pub encoding: Option<String>,
-    #[arg(long)]
-    pub fourier_terms: Option<String>,
-    #[arg(long)]
-    pub fourier_range: Option<String>,
+    /// Bake parameters (SPEC §5), the same flags as `horizon-bake bake`.
+    #[command(flatten)]
+    pub bake: crate::cli::bake::ParamFlags,
 }
 
 impl PreviewFlags {
@@ -118,20 +96,6 @@ impl PreviewFlags {
     /// # Errors
     /// [`Error::Param`] naming the first invalid flag (as the API spells it).
     pub fn params(&self) -> Result<(BakeParams, PreviewParams)> {
-        let bake_flags = [
-            ("height_scale", &self.height_scale),
-            ("channel", &self.channel),
-            ("edge", &self.edge),
-            ("y_axis", &self.y_axis),
-            ("method", &self.method),
-            ("radius", &self.radius),
-            ("bins", &self.bins),
-            ("reduce", &self.reduce),
-            ("min_elevation_deg", &self.min_elevation_deg),
-            ("encoding", &self.encoding),
-            ("fourier_terms", &self.fourier_terms),
-            ("fourier_range", &self.fourier_range),
-        ];
         let preview_flags = [
             ("shading", &self.shading),
             ("azimuth", &self.azimuth),
@@ -152,12 +116,7 @@ impl PreviewFlags {
             ("contact_sheet", &self.contact_sheet),
             ("sheet_spread", &self.sheet_spread),
         ];
-        let mut bake = BakeParams::default();
-        for (k, v) in bake_flags {
-            if let Some(v) = v {
-                bake.set(k, v)?;
-            }
-        }
+        let bake = self.bake.params()?;
         let mut preview = PreviewParams::default();
         for (k, v) in preview_flags {
             if let Some(v) = v {

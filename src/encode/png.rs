@@ -25,24 +25,22 @@ impl PngColor {
     }
 }
 
-fn write(
+/// Encodes whole images through the same row writer the streaming bake uses, so a layer encoded
+/// in one piece and one streamed band by band are the same bytes (the service's downloads and
+/// the CLI's files are compared byte for byte).
+fn encode_whole<T: PngSample>(
     width: usize,
     height: usize,
     color: PngColor,
-    depth: png::BitDepth,
-    data: &[u8],
+    data: &[T],
 ) -> Result<Vec<u8>> {
-    let mut out = Vec::with_capacity(data.len() / 2 + 1024);
-    {
-        let mut enc = png::Encoder::new(&mut out, width as u32, height as u32);
-        enc.set_color(color.png());
-        enc.set_depth(depth);
-        enc.set_compression(png::Compression::Fast);
-        let mut w = enc.write_header().map_err(|e| Error::Internal(format!("png header: {e}")))?;
-        w.write_image_data(data).map_err(|e| Error::Internal(format!("png data: {e}")))?;
-        w.finish().map_err(|e| Error::Internal(format!("png finish: {e}")))?;
+    if data.len() != width * height * color.channels() {
+        return Err(Error::Internal(format!("png{}: buffer size mismatch", T::BITS)));
     }
-    Ok(out)
+    let out = Vec::with_capacity(data.len() * T::BITS as usize / 16 + 1024);
+    let mut w = PngRowWriter::<Vec<u8>, T>::new(out, width, height, color)?;
+    w.write_rows(data)?;
+    w.finish()
 }
 
 /// Encodes 8-bit samples (`width · height · channels` of them) as PNG.
@@ -50,10 +48,7 @@ fn write(
 /// # Errors
 /// [`Error::Internal`] on a size mismatch or an encoder failure.
 pub fn encode8(width: usize, height: usize, color: PngColor, data: &[u8]) -> Result<Vec<u8>> {
-    if data.len() != width * height * color.channels() {
-        return Err(Error::Internal("png8: buffer size mismatch".into()));
-    }
-    write(width, height, color, png::BitDepth::Eight, data)
+    encode_whole(width, height, color, data)
 }
 
 /// Encodes 16-bit samples as PNG (big-endian on disk).
@@ -61,11 +56,7 @@ pub fn encode8(width: usize, height: usize, color: PngColor, data: &[u8]) -> Res
 /// # Errors
 /// [`Error::Internal`] on a size mismatch or an encoder failure.
 pub fn encode16(width: usize, height: usize, color: PngColor, data: &[u16]) -> Result<Vec<u8>> {
-    if data.len() != width * height * color.channels() {
-        return Err(Error::Internal("png16: buffer size mismatch".into()));
-    }
-    let be: Vec<u8> = data.iter().flat_map(|v| v.to_be_bytes()).collect();
-    write(width, height, color, png::BitDepth::Sixteen, &be)
+    encode_whole(width, height, color, data)
 }
 
 /// A sample type the row-streaming writer takes: `u8` (8-bit PNG) or `u16` (16-bit PNG).
@@ -242,6 +233,25 @@ mod tests {
         let img = image::load_from_memory(&png16).unwrap().to_luma16();
         assert_eq!(img.as_raw(), &d16);
         assert!(encode8(3, 3, PngColor::Rgba, &d8).is_err());
+    }
+
+    #[test]
+    fn streamed_rows_are_the_same_bytes_as_one_piece() {
+        // The service encodes whole layers, the CLI streams bands: downloads must equal files.
+        let (w, h) = (7usize, 23usize);
+        let d16: Vec<u16> =
+            (0..w * h * 4).map(|v| (v as u64 * 2654435761 % 65536) as u16).collect();
+        let whole = encode16(w, h, PngColor::Rgba, &d16).unwrap();
+        let mut pw = PngRowWriter::<Vec<u8>, u16>::new(Vec::new(), w, h, PngColor::Rgba).unwrap();
+        for rows in [3usize, 1, 8, 11] {
+            let start = d16.len() - pw_rows_left(&pw) * w * 4;
+            pw.write_rows(&d16[start..start + rows * w * 4]).unwrap();
+        }
+        assert_eq!(pw.finish().unwrap(), whole);
+    }
+
+    fn pw_rows_left<W: std::io::Write + 'static, T: PngSample>(pw: &PngRowWriter<W, T>) -> usize {
+        pw.rows_left
     }
 }
 
