@@ -380,9 +380,8 @@ async fn cubemap_faces_match_the_library() {
     {
         let (s, _, body) = oneshot(&app, Request::get(path).body(Body::empty()).unwrap()).await;
         assert_eq!(s, 200);
-        let formats =
-            horizon_bake::cli::cubemap::CubeFormats { png8: false, ktx2: true, dds: true };
-        let files = horizon_bake::cli::cubemap::cube_files(8, formats).unwrap();
+        let formats = horizon_bake::encode::CubeFormats { png8: false, ktx2: true, dds: true };
+        let files = horizon_bake::encode::cube_files(8, formats).unwrap();
         let want = files.iter().find(|f| f.name == file).unwrap();
         assert!(body == want.bytes, "{path}");
     }
@@ -498,12 +497,9 @@ async fn fourier_outputs_match_the_cli_function() {
     let params = BakeParams::from_pairs(pairs).unwrap();
     let (map, _) =
         horizon_bake::heightmap::decode(&png, params.channel, &Default::default()).unwrap();
-    let (want, _) = horizon_bake::cli::bake::fourier_files(
-        &map,
-        &params,
-        &horizon_bake::progress::Progress::new(),
-    )
-    .unwrap();
+    let (want, _) =
+        horizon_bake::bake::fourier_files(&map, &params, &horizon_bake::progress::Progress::new())
+            .unwrap();
     assert_eq!(want.len(), 3);
     let res = c
         .post(srv.url("/v1/bakes?radius=6&outputs=fourier&fourier_terms=7"))

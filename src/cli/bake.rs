@@ -137,24 +137,6 @@ impl BakeArgs {
     }
 }
 
-/// Bakes the Fourier coefficients (SPEC §3.4) into `fourier_0.png`, `fourier_1.png` and, with
-/// 7 or 9 terms, `fourier_2.png`.
-///
-/// # Errors
-/// Whatever the bake or the PNG encoder fails with.
-pub fn fourier_files(
-    map: &HeightMap,
-    params: &BakeParams,
-    progress: &Progress,
-) -> Result<(Vec<OutFile>, bake::ResolvedRadius)> {
-    const NAMES: [&str; 3] = ["fourier_0.png", "fourier_1.png", "fourier_2.png"];
-    let (layers, radius) = bake::bake_fourier(map, params, progress)?;
-    let files = (0..layers.layer_count())
-        .map(|i| Ok(OutFile { name: NAMES[i], bytes: layers.png(i)? }))
-        .collect::<Result<Vec<_>>>()?;
-    Ok((files, radius))
-}
-
 /// Whether the horizon files can be streamed: only PNGs asked for (EXR, KTX2 and DDS need whole
 /// layers).
 pub fn streamable(formats: &Formats) -> bool {
@@ -244,7 +226,7 @@ pub fn run(args: BakeArgs) -> Result<()> {
     let (bake_ms, encode_ms) = if params.outputs.horizon && streamable(&formats) {
         let t = Instant::now();
         let fourier = if params.outputs.fourier {
-            let (files, r) = fourier_files(&map, &params, &progress)?;
+            let (files, r) = bake::fourier_files(&map, &params, &progress)?;
             staging.write(&files)?;
             Some((files.iter().map(|f| f.name).collect::<Vec<_>>(), r))
         } else {
@@ -291,7 +273,7 @@ pub fn run(args: BakeArgs) -> Result<()> {
         };
         drop(layers);
         if params.outputs.fourier {
-            let (fourier, r) = fourier_files(&map, &params, &progress)?;
+            let (fourier, r) = bake::fourier_files(&map, &params, &progress)?;
             files.extend(fourier);
             radius.get_or_insert(r);
         }

@@ -340,3 +340,56 @@ mod tests {
         assert!(horizon_files(&layers, &Formats::default()).is_err());
     }
 }
+
+/// Largest face size accepted: the factors of a 2048² cube already take 400 MB as f32, far more
+/// than a 2-texel-wide blend ever needs (the default is 16).
+pub const MAX_CUBE_SIZE: u32 = 2048;
+
+/// Which cube-map files to write.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct CubeFormats {
+    pub png8: bool,
+    pub ktx2: bool,
+    pub dds: bool,
+}
+
+/// The cube-map files for face size `size`: PNG faces, KTX2 and DDS as `formats` asks.
+///
+/// # Errors
+/// An encoder failure.
+pub fn cube_files(size: usize, formats: CubeFormats) -> Result<Vec<OutFile>> {
+    const NAMES: [&str; 6] =
+        ["cube_0.png", "cube_1.png", "cube_2.png", "cube_3.png", "cube_4.png", "cube_5.png"];
+    let factors = crate::kernels::cubemap::cube_factors_shared(size);
+    let face_len = size * size * 4;
+    let mut out = Vec::new();
+    if formats.png8 {
+        for (face, name) in NAMES.into_iter().enumerate() {
+            let bytes: Vec<u8> = factors[face * face_len..(face + 1) * face_len]
+                .iter()
+                .map(|&f| crate::kernels::cubemap::unorm8(f))
+                .collect();
+            out.push(OutFile {
+                name,
+                bytes: png::encode8(size, size, png::PngColor::Rgba, &bytes)?,
+            });
+        }
+    }
+    if formats.ktx2 || formats.dds {
+        let snorm: Vec<i8> = factors.iter().map(|&f| crate::kernels::cubemap::snorm8(f)).collect();
+        let faces: Vec<Texels<'_>> = snorm.chunks_exact(face_len).map(Texels::Snorm8).collect();
+        if formats.ktx2 {
+            out.push(OutFile {
+                name: "cubemap.ktx2",
+                bytes: ktx2::encode(size, size, Shape::Cube, &faces)?,
+            });
+        }
+        if formats.dds {
+            out.push(OutFile {
+                name: "cubemap.dds",
+                bytes: dds::encode(size, size, Shape::Cube, &faces)?,
+            });
+        }
+    }
+    Ok(out)
+}

@@ -131,10 +131,10 @@ impl Config {
         at_least_one("max_inflight_uploads", a.max_inflight_uploads as u64)?;
         at_least_one("sweep_interval_secs", a.sweep_interval_secs)?;
         at_least_one("max_cubemap_size", a.max_cubemap_size as u64)?;
-        if a.max_cubemap_size > crate::cli::cubemap::MAX_CUBE_SIZE {
+        if a.max_cubemap_size > crate::encode::MAX_CUBE_SIZE {
             return Err(Error::param(
                 "max_cubemap_size",
-                format!("must be at most {}", crate::cli::cubemap::MAX_CUBE_SIZE),
+                format!("must be at most {}", crate::encode::MAX_CUBE_SIZE),
             ));
         }
         if let Some(k) = &a.api_key {

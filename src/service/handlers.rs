@@ -6,7 +6,7 @@
 // would add an allocation to every error path for no gain.
 #![allow(clippy::result_large_err)]
 
-use crate::cli::cubemap::CubeFormats;
+use crate::encode::CubeFormats;
 use crate::error::Error;
 use crate::heightmap;
 use crate::params::BakeParams;
@@ -885,7 +885,7 @@ async fn cube_answer(
     content_type: &'static str,
 ) -> Answer {
     let file = blocking(move || {
-        let mut files = crate::cli::cubemap::cube_files(size, formats)?;
+        let mut files = crate::encode::cube_files(size, formats)?;
         if pick >= files.len() {
             return Err(Error::Internal("cube map file missing".into()));
         }

@@ -229,7 +229,7 @@ fn execute(st: &AppState, mut rec: BakeRecord, progress: &Progress) -> Result<Ba
     }
     if params.outputs.fourier {
         // The CLI's own function: the same files `horizon-bake bake --outputs fourier` writes.
-        let (files, r) = crate::cli::bake::fourier_files(&map, &params, progress)?;
+        let (files, r) = crate::bake::fourier_files(&map, &params, progress)?;
         radius.get_or_insert(r);
         for f in files {
             encoded.push((f.name.to_owned(), f.bytes));
