@@ -173,7 +173,7 @@ pub fn run_into_layers<K: HorizonRows + ?Sized>(
     let mut u8s = precisions.u8.then(|| [vec![0u8; n], vec![0u8; n]]);
     let mut u16s = precisions.u16.then(|| [vec![0u16; n], vec![0u16; n]]);
     let mut f32s = precisions.f32.then(|| [vec![0f32; n], vec![0f32; n]]);
-    let band = kernels::band_rows(w, h);
+    let band = kernels::band_rows_for(kernel);
     let per_band = band * w * 4;
     {
         let b8 = u8s.as_mut().map(|[a, b]| [split(a, per_band), split(b, per_band)]);
@@ -397,7 +397,7 @@ where
     if w == 0 || h == 0 {
         return Ok(());
     }
-    let band = kernels::band_rows(w, h);
+    let band = kernels::band_rows_for(kernel);
     let nbands = h.div_ceil(band);
     let window = (2 * rayon::current_num_threads()).clamp(1, nbands);
     let sqrt = encoding == Encoding::Sqrt;
@@ -462,7 +462,7 @@ pub fn bake_fourier(
     let mut bands = vec![0u8; w * h * 4];
     let mut constant = vec![0u8; w * h];
     let mut high = (terms > 5).then(|| vec![0u8; w * h * 4]);
-    let band = kernels::band_rows(w, h);
+    let band = kernels::band_rows_for(kernel.as_ref());
     progress.start(Stage::Fourier, h as u64);
     {
         let b4 = split(&mut bands, band * w * 4);

@@ -370,7 +370,7 @@ pub fn ground_truth(map: &Map, edge: Edge) -> Result<Vec<f32>> {
     let kernel = bake::make_kernel(&p, grid, r.texels, &Progress::new());
     let (w, h) = (map.width, map.height);
     let mut out = vec![0.0f32; w * h * TRUTH_BINS];
-    let band = kernels::band_rows(w, h);
+    let band = kernels::band_rows_for(kernel.as_ref());
     let chunks: Vec<std::sync::Mutex<&mut [f32]>> =
         out.chunks_mut(band * w * TRUTH_BINS).map(std::sync::Mutex::new).collect();
     kernels::run_bands(kernel.as_ref(), band, true, &Progress::new(), |b, band| {

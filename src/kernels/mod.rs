@@ -107,16 +107,35 @@ pub trait HorizonRows: Sync {
     /// When `bins_out` is given (`n * width * bins` f32), also writes the per-bin horizon
     /// s(φ_n), φ_n = n·2π/bins, before the reduction to channels.
     fn rows(&self, y0: usize, channels: &mut [f32], bins_out: Option<&mut [f32]>);
+
+    /// Cost of one texel relative to the default bake (`lengyel`, R = 16, 32 bins), so that
+    /// [`band_rows_for`] keeps bands short enough to cancel promptly at large radii. Kernels
+    /// that check for cancel inside a band can keep the default.
+    fn texel_cost(&self) -> f64 {
+        1.0
+    }
 }
 
-/// Rows per band: small enough to balance across threads and to cancel promptly, large enough
-/// to amortise per-band setup.
+/// Rows per band for a default-cost kernel: small enough to balance across threads and to
+/// cancel promptly, large enough to amortise per-band setup.
 pub fn band_rows(width: usize, height: usize) -> usize {
+    band_rows_weighted(width, height, 1.0)
+}
+
+/// Rows per band for `kernel`, weighing its [`HorizonRows::texel_cost`]: a band holds at most
+/// ~256k default-cost texels (≈ 25 ms of one thread), so a cancel is seen within that even at
+/// R = 128, where a texel costs 64 times as much. One row is the floor.
+pub fn band_rows_for<K: HorizonRows + ?Sized>(kernel: &K) -> usize {
+    band_rows_weighted(kernel.width(), kernel.height(), kernel.texel_cost())
+}
+
+fn band_rows_weighted(width: usize, height: usize, cost: f64) -> usize {
     let threads = rayon::current_num_threads().max(1);
-    // Aim for ~16 bands per thread and at most ~256k texels per band.
+    // Aim for ~16 bands per thread and at most ~256k default-cost texels per band.
     let by_balance = height.div_ceil(threads * 16).max(1);
-    let by_memory = (262_144 / width.max(1)).max(1);
-    by_balance.min(by_memory).min(height.max(1))
+    let budget = 262_144.0 / cost.max(1.0);
+    let by_work = ((budget / width.max(1) as f64) as usize).max(1);
+    by_balance.min(by_work).min(height.max(1))
 }
 
 /// One band's results handed to the sink: its first row and the f32 values.
@@ -187,7 +206,7 @@ where
 pub fn compute_all<K: HorizonRows + ?Sized>(kernel: &K, progress: &Progress) -> Result<Vec<f32>> {
     let (w, h) = (kernel.width(), kernel.height());
     let mut out = vec![0.0f32; w * h * 8];
-    let band = band_rows(w, h);
+    let band = band_rows_for(kernel);
     let chunks: Vec<std::sync::Mutex<&mut [f32]>> =
         out.chunks_mut(band * w * 8).map(std::sync::Mutex::new).collect();
     run_bands(kernel, band, false, progress, |b, band| {
@@ -224,5 +243,44 @@ pub fn reduce_point(bins: &[f32], out: &mut [f32; 8]) {
     let step = bins.len() / 8;
     for (c, o) in out.iter_mut().enumerate() {
         *o = bins[c * step];
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A kernel that only reports its size and cost.
+    struct Sized(usize, usize, f64);
+    impl HorizonRows for Sized {
+        fn width(&self) -> usize {
+            self.0
+        }
+        fn height(&self) -> usize {
+            self.1
+        }
+        fn bins(&self) -> usize {
+            32
+        }
+        fn rows(&self, _: usize, _: &mut [f32], _: Option<&mut [f32]>) {}
+        fn texel_cost(&self) -> f64 {
+            self.2
+        }
+    }
+
+    #[test]
+    fn bands_shrink_with_texel_cost_down_to_one_row() {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+        pool.install(|| {
+            // Default cost: balance decides (2048 / (2 · 16) = 64 rows of 2048 texels).
+            assert_eq!(band_rows_for(&Sized(2048, 2048, 1.0)), 64);
+            assert_eq!(band_rows(2048, 2048), 64);
+            // R = 128 costs 64×: 262144 / 64 / 2048 = 2 rows, the same work as 128 cheap rows.
+            assert_eq!(band_rows_for(&Sized(2048, 2048, 64.0)), 2);
+            // Anything dearer still makes progress a row at a time.
+            assert_eq!(band_rows_for(&Sized(8192, 8192, 4096.0)), 1);
+            // Costs below 1 never make bands larger than the default.
+            assert_eq!(band_rows_for(&Sized(2048, 2048, 0.01)), 64);
+        });
     }
 }
