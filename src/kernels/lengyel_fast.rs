@@ -41,7 +41,7 @@ use std::f64::consts::PI;
 /// accumulators per group, so the max() chains have enough independent work to hide latency.
 /// 64 lanes measured ~8% less CPU time with AVX-512 (within noise on this shared machine) but
 /// would run the AVX2 and SSE2 builds out of registers.
-pub const STRIP: usize = 32;
+pub const STRIP: usize = 64;
 
 /// Largest padded tile (floats, per thread) before falling back to the oracle (64 MiB).
 pub const MAX_TILE: usize = 1 << 24;
@@ -62,6 +62,15 @@ impl Isa {
     /// The best variant the running CPU supports.
     pub fn detect() -> Isa {
         [Isa::Avx512, Isa::Avx2].into_iter().find(|i| i.supported()).unwrap_or(Isa::Baseline)
+    }
+
+    /// Texels per strip in this variant's hot loop.
+    const fn lanes(self) -> usize {
+        match self {
+            Isa::Avx512 => 64,
+            Isa::Avx2 => 32,
+            Isa::Baseline => 16,
+        }
     }
 
     /// Whether the running CPU has every feature this variant was compiled for.
@@ -101,6 +110,8 @@ struct Tables {
     /// `cover[cover_start[n]..cover_start[n + 1]]`: the groups whose range includes bin n.
     cover_start: Vec<usize>,
     cover: Vec<u32>,
+    /// `groups[..ready[n]]` are every group bin n (and every earlier bin) reads.
+    ready: Vec<usize>,
     /// Largest entry offset + STRIP: the window of the tile one strip reads.
     reach: usize,
     /// Padding columns on each side and rows above/below.
@@ -216,8 +227,11 @@ fn build_tables(
             (lo, span, off, inv)
         })
         .collect();
-    // Stable: within a group, offsets stay in row-major order (memory locality).
-    keyed.sort_by_key(|&(lo, span, _, _)| (lo, span));
+    // Groups that wrap past bin B−1 first (bin 0 needs them), then by first bin: the hot loop
+    // computes groups just before the first bin that needs them, so a group's maximum is still
+    // in L1 when its bins read it. Stable: within a group, offsets stay in row-major order
+    // (memory locality).
+    keyed.sort_by_key(|&(lo, span, _, _)| (lo + span <= b, lo, span));
     let mut groups: Vec<Group> = Vec::new();
     let mut entries = Vec::with_capacity(keyed.len());
     for (k, &(lo, span, off, inv)) in keyed.iter().enumerate() {
@@ -247,7 +261,10 @@ fn build_tables(
             fill[n] += 1;
         }
     }
-    Tables { groups, entries, cover_start, cover, reach, pad_x, pad_y, stride, max_rows }
+    // Groups in that order needed by bins 0 ..= n: the wrapping ones and those starting ≤ n.
+    let ready =
+        (0..b).map(|n| groups.iter().filter(|g| g.lo + g.span > b || g.lo <= n).count()).collect();
+    Tables { groups, entries, cover_start, cover, ready, reach, pad_x, pad_y, stride, max_rows }
 }
 
 impl HorizonRows for LengyelFast<'_> {
@@ -280,7 +297,7 @@ impl HorizonRows for LengyelFast<'_> {
                 let m = t.max_rows.min(n - r0);
                 fill_tile(&self.grid, t, y0 + r0, m, &mut scratch.tile);
                 // Per-bin results, then per-group maxima.
-                scratch.acc.resize(b + t.groups.len(), [0.0; STRIP]);
+                scratch.acc.resize((b + t.groups.len()) * self.isa.lanes(), 0.0);
                 let ch = &mut channels[r0 * w * 8..(r0 + m) * w * 8];
                 let bo = bins_out.as_deref_mut().map(|bo| &mut bo[r0 * w * b..(r0 + m) * w * b]);
                 let job = Job { t, tile: &scratch.tile, rows: m, width: w, bins: b };
@@ -296,7 +313,7 @@ impl HorizonRows for LengyelFast<'_> {
 struct Scratch {
     tile: Vec<f32>,
     /// `bins` per-bin accumulators followed by one per group.
-    acc: Vec<[f32; STRIP]>,
+    acc: Vec<f32>,
 }
 
 thread_local! {
@@ -344,7 +361,7 @@ struct Job<'a> {
 fn run_job(
     isa: Isa,
     job: &Job<'_>,
-    acc: &mut [[f32; STRIP]],
+    acc: &mut [f32],
     channels: &mut [f32],
     bins_out: Option<&mut [f32]>,
 ) {
@@ -353,44 +370,99 @@ fn run_job(
         match isa {
             // SAFETY: a kernel holds Avx512 / Avx2 only when `Isa::supported` saw those features
             // on this CPU (`with_isa` replaces anything else), which is the one requirement of
-            // calling a `#[target_feature]` function. The bodies themselves are safe code.
+            // calling a `#[target_feature]` function.
             Isa::Avx512 => return unsafe { job_avx512(job, acc, channels, bins_out) },
             Isa::Avx2 => return unsafe { job_avx2(job, acc, channels, bins_out) },
             Isa::Baseline => {}
         }
     }
     let _ = isa;
-    job_body(job, acc, channels, bins_out)
+    // SAFETY: `Exact` uses no CPU feature beyond the compile target's.
+    unsafe { job_body::<{ Isa::Baseline.lanes() }, Exact>(job, acc, channels, bins_out) }
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
-fn job_avx512(
-    job: &Job<'_>,
-    acc: &mut [[f32; STRIP]],
-    channels: &mut [f32],
-    bins_out: Option<&mut [f32]>,
-) {
-    job_body(job, acc, channels, bins_out)
+fn job_avx512(job: &Job<'_>, acc: &mut [f32], channels: &mut [f32], bins_out: Option<&mut [f32]>) {
+    // SAFETY: this function only runs where avx512f is present, which `Rsqrt14` needs.
+    unsafe { job_body::<{ Isa::Avx512.lanes() }, Rsqrt14>(job, acc, channels, bins_out) }
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-fn job_avx2(
-    job: &Job<'_>,
-    acc: &mut [[f32; STRIP]],
-    channels: &mut [f32],
-    bins_out: Option<&mut [f32]>,
-) {
-    job_body(job, acc, channels, bins_out)
+fn job_avx2(job: &Job<'_>, acc: &mut [f32], channels: &mut [f32], bins_out: Option<&mut [f32]>) {
+    // SAFETY: `Exact` uses no CPU feature beyond the compile target's.
+    unsafe { job_body::<{ Isa::Avx2.lanes() }, Exact>(job, acc, channels, bins_out) }
 }
 
-/// The hot loop over one padded tile, inlined into each `#[target_feature]` variant so LLVM
-/// vectorises it for that instruction set.
+/// Turns a bin's max(tan) lanes into s = t/√(t²+1).
+trait Finish {
+    /// # Safety
+    /// The running CPU must have the features the implementation uses.
+    unsafe fn finish<const L: usize>(a: &mut [f32; L]);
+}
+
+/// Correctly rounded square root and divide: any CPU.
+struct Exact;
+
+impl Finish for Exact {
+    #[inline(always)]
+    unsafe fn finish<const L: usize>(a: &mut [f32; L]) {
+        for v in a.iter_mut() {
+            // t is capped so t² stays finite (s is 1.0 in f32 long before 1e18).
+            let tt = v.min(1e18);
+            *v = tt / (tt * tt + 1.0).sqrt();
+        }
+    }
+}
+
+/// AVX-512's 14-bit reciprocal square root and one Newton step.
+#[cfg(target_arch = "x86_64")]
+struct Rsqrt14;
+
+#[cfg(target_arch = "x86_64")]
+impl Finish for Rsqrt14 {
+    #[inline(always)]
+    unsafe fn finish<const L: usize>(a: &mut [f32; L]) {
+        // SAFETY: the caller guarantees avx512f (this trait's contract).
+        unsafe { finish_rsqrt14(a) }
+    }
+}
+
+/// s = t·rsqrt(t² + 1): a divide and a square root cost ~20% of the kernel on Zen 4 (their
+/// 512-bit forms issue every 5–6 cycles), this costs six pipelined operations. The 14-bit
+/// estimate after one Newton step is within ~2^-22 relative, far inside the 1e-5 the results
+/// promise, and is clamped so s never exceeds 1.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[inline]
+fn finish_rsqrt14<const L: usize>(a: &mut [f32; L]) {
+    use std::arch::x86_64::*;
+    let (one, half, three_halves, cap) =
+        (_mm512_set1_ps(1.0), _mm512_set1_ps(0.5), _mm512_set1_ps(1.5), _mm512_set1_ps(1e18));
+    for c in a.chunks_exact_mut(16) {
+        // SAFETY: `c` holds exactly 16 floats; unaligned loads and stores.
+        let t = _mm512_min_ps(unsafe { _mm512_loadu_ps(c.as_ptr()) }, cap);
+        let x = _mm512_fmadd_ps(t, t, one);
+        let y = _mm512_rsqrt14_ps(x);
+        let y = _mm512_mul_ps(
+            y,
+            _mm512_fnmadd_ps(_mm512_mul_ps(x, half), _mm512_mul_ps(y, y), three_halves),
+        );
+        let s = _mm512_min_ps(_mm512_mul_ps(t, y), one);
+        unsafe { _mm512_storeu_ps(c.as_mut_ptr(), s) };
+    }
+}
+
+/// The hot loop over one padded tile, for strips of `L` texels, inlined into each
+/// `#[target_feature]` variant so LLVM vectorises it for that instruction set.
+///
+/// # Safety
+/// The running CPU must have the features `F` uses.
 #[inline(always)]
-fn job_body(
+unsafe fn job_body<const L: usize, F: Finish>(
     job: &Job<'_>,
-    acc: &mut [[f32; STRIP]],
+    acc: &mut [f32],
     channels: &mut [f32],
     mut bins_out: Option<&mut [f32]>,
 ) {
@@ -399,43 +471,42 @@ fn job_body(
     let step = b / 8;
     let half = b / 16;
     let inv_count = 1.0 / (step + 1) as f32;
-    let (acc, gmax) = acc.split_at_mut(b);
+    let (acc, gmax) = acc.as_chunks_mut::<L>().0.split_at_mut(b);
     for r in 0..rows {
-        for x0 in (0..w).step_by(STRIP) {
+        for x0 in (0..w).step_by(L) {
             let base = r * t.stride + x0;
-            let Some(h0) = tile.get(base + centre..).and_then(<[f32]>::first_chunk::<STRIP>) else {
-                continue; // unreachable: the tile has STRIP spare columns
+            let Some(h0) = tile.get(base + centre..).and_then(<[f32]>::first_chunk::<L>) else {
+                continue; // unreachable: the tile has STRIP ≥ L spare columns
             };
             // The strip's whole neighbourhood, checked once here so the hot loop need not.
             let Some(win) = tile.get(base..base + t.reach) else {
                 continue; // unreachable: the tile holds every strip's neighbourhood
             };
-            for (g, gm) in t.groups.iter().zip(gmax.iter_mut()) {
-                // SAFETY: `win.len() == t.reach` and every entry's offset + STRIP ≤ t.reach
-                // (`reach` is that maximum, computed in `build_tables`).
-                *gm = unsafe { group_max(win, h0, &t.entries[g.start..g.end]) };
-            }
-            // Each bin is the max over the groups covering it, gathered into a register
-            // accumulator: scattering each group into its bins instead made LLVM emit masked
-            // read-modify-write stores, ~20% of the kernel's time (perf, Zen 4).
+            let mut done = 0;
             for (n, out) in acc.iter_mut().enumerate() {
-                let mut a = [0f32; STRIP];
+                // The groups bin n is the first to need, just before it reads them.
+                for (g, gm) in t.groups[done..t.ready[n]].iter().zip(&mut gmax[done..]) {
+                    // SAFETY: `win.len() == t.reach` and every entry's offset + STRIP ≤ t.reach
+                    // (`reach` is that maximum, computed in `build_tables`), with L ≤ STRIP.
+                    *gm = unsafe { group_max(win, h0, &t.entries[g.start..g.end]) };
+                }
+                done = done.max(t.ready[n]);
+                // Each bin is the max over the groups covering it, gathered into a register
+                // accumulator: scattering each group into its bins instead made LLVM emit masked
+                // read-modify-write stores, ~20% of the kernel's time (perf, Zen 4).
+                let mut a = [0f32; L];
                 for &gi in &t.cover[t.cover_start[n]..t.cover_start[n + 1]] {
                     let m = &gmax[gi as usize];
                     for (x, &y) in a.iter_mut().zip(m) {
                         *x = if y > *x { y } else { *x };
                     }
                 }
-                // s = t/√(t²+1) = √(t²/(t²+1)); t is capped so t² stays finite (s is 1.0 in
-                // f32 long before 1e18).
-                for v in a.iter_mut() {
-                    let tt = v.min(1e18);
-                    *v = tt / (tt * tt + 1.0).sqrt();
-                }
+                // SAFETY: the caller guarantees F's features.
+                unsafe { F::finish(&mut a) };
                 *out = a;
             }
-            let lanes = STRIP.min(w - x0);
-            let mut ch = [[0f32; STRIP]; 8];
+            let lanes = L.min(w - x0);
+            let mut ch = [[0f32; L]; 8];
             for (c, chc) in ch.iter_mut().enumerate() {
                 for k in 0..=2 * half {
                     let n = (c * step + b + k - half) % b;
@@ -465,28 +536,32 @@ fn job_body(
     }
 }
 
-/// max(0, max over `entries` of (h − h0)·(1/r)) for the STRIP texels whose neighbourhood is
+/// max(0, max over `entries` of (h − h0)·(1/r)) for the L texels whose neighbourhood is
 /// `win`. Two accumulators so consecutive max() operations do not wait on each other.
 ///
 /// # Safety
-/// Every entry's offset + STRIP must be ≤ `win.len()`. The loads are unchecked because the
+/// Every entry's offset + L must be ≤ `win.len()`. The loads are unchecked because the
 /// two bounds checks per neighbour (and the register they cost) took ~10% of the kernel's time;
 /// the caller checks the whole window once per strip instead.
 #[inline(always)]
-unsafe fn group_max(win: &[f32], h0: &[f32; STRIP], entries: &[(u32, f32)]) -> [f32; STRIP] {
-    debug_assert!(entries.iter().all(|&(off, _)| off as usize + STRIP <= win.len()));
-    let load = |off: u32| -> &[f32; STRIP] {
-        // SAFETY: off + STRIP ≤ win.len() (this function's contract), so the STRIP floats
-        // starting at `off` are inside `win`; [f32; STRIP] has the alignment of f32.
-        unsafe { &*win.as_ptr().add(off as usize).cast::<[f32; STRIP]>() }
+unsafe fn group_max<const L: usize>(
+    win: &[f32],
+    h0: &[f32; L],
+    entries: &[(u32, f32)],
+) -> [f32; L] {
+    debug_assert!(entries.iter().all(|&(off, _)| off as usize + L <= win.len()));
+    let load = |off: u32| -> &[f32; L] {
+        // SAFETY: off + L ≤ win.len() (this function's contract), so the L floats
+        // starting at `off` are inside `win`; [f32; L] has the alignment of f32.
+        unsafe { &*win.as_ptr().add(off as usize).cast::<[f32; L]>() }
     };
-    let mut a0 = [0f32; STRIP];
-    let mut a1 = [0f32; STRIP];
+    let mut a0 = [0f32; L];
+    let mut a1 = [0f32; L];
     let mut pairs = entries.chunks_exact(2);
     for p in &mut pairs {
         let (s0, s1) = (load(p[0].0), load(p[1].0));
         let (i0, i1) = (p[0].1, p[1].1);
-        for k in 0..STRIP {
+        for k in 0..L {
             let v0 = (s0[k] - h0[k]) * i0;
             let v1 = (s1[k] - h0[k]) * i1;
             a0[k] = if v0 > a0[k] { v0 } else { a0[k] };
@@ -495,12 +570,12 @@ unsafe fn group_max(win: &[f32], h0: &[f32; STRIP], entries: &[(u32, f32)]) -> [
     }
     for &(off, inv) in pairs.remainder() {
         let s0 = load(off);
-        for k in 0..STRIP {
+        for k in 0..L {
             let v0 = (s0[k] - h0[k]) * inv;
             a0[k] = if v0 > a0[k] { v0 } else { a0[k] };
         }
     }
-    for k in 0..STRIP {
+    for k in 0..L {
         a0[k] = if a1[k] > a0[k] { a1[k] } else { a0[k] };
     }
     a0
