@@ -99,6 +99,9 @@ struct Group {
     /// `entries[start..end]`.
     start: usize,
     end: usize,
+    /// Whether the previous group has the same `lo` (and a wider span): the running maximum
+    /// carries on from it.
+    continues: bool,
 }
 
 /// Per-(radius, bins, edge, y_axis, map size) tables: the neighbours, grouped by bin range.
@@ -107,7 +110,7 @@ struct Tables {
     groups: Vec<Group>,
     /// (offset from the strip's top-left corner in the padded tile, 1/r), grouped.
     entries: Vec<(u32, f32)>,
-    /// `cover[cover_start[n]..cover_start[n + 1]]`: the groups whose range includes bin n.
+    /// `cover[cover_start[n]..cover_start[n + 1]]`: one group (snapshot) per run covering bin n.
     cover_start: Vec<usize>,
     cover: Vec<u32>,
     /// `groups[..ready[n]]` are every group bin n (and every earlier bin) reads.
@@ -227,26 +230,43 @@ fn build_tables(
             (lo, span, off, inv)
         })
         .collect();
-    // Groups that wrap past bin B−1 first (bin 0 needs them), then by first bin: the hot loop
-    // computes groups just before the first bin that needs them, so a group's maximum is still
-    // in L1 when its bins read it. Stable: within a group, offsets stay in row-major order
-    // (memory locality).
-    keyed.sort_by_key(|&(lo, span, _, _)| (lo + span <= b, lo, span));
+    // Groups with the same first bin form a run, widest first: the hot loop carries one
+    // running maximum through a run and snapshots it at the end of each group, so a snapshot
+    // is the maximum over every neighbour covering bins lo .. lo + span − 1 of that run. A bin
+    // then merges one snapshot per run instead of one per group (R=16, B=32: 164 merges per
+    // strip instead of 368).
+    let mut widest = vec![0usize; b];
+    for &(lo, span, _, _) in &keyed {
+        widest[lo] = widest[lo].max(span);
+    }
+    // Runs that wrap past bin B−1 first (bin 0 needs them), then by first bin: the hot loop
+    // computes runs just before the first bin that needs them, so their snapshots are still in
+    // L1 when read. Stable: within a group, offsets stay in row-major order (memory locality).
+    keyed.sort_by_key(|&(lo, span, _, _)| (lo + widest[lo] <= b, lo, std::cmp::Reverse(span)));
     let mut groups: Vec<Group> = Vec::new();
     let mut entries = Vec::with_capacity(keyed.len());
     for (k, &(lo, span, off, inv)) in keyed.iter().enumerate() {
         match groups.last_mut() {
             Some(g) if g.lo == lo && g.span == span => g.end = k + 1,
-            _ => groups.push(Group { lo, span, start: k, end: k + 1 }),
+            last => {
+                let continues = last.is_some_and(|g| g.lo == lo);
+                groups.push(Group { lo, span, start: k, end: k + 1, continues })
+            }
         }
         entries.push((off, inv));
     }
     let reach = entries.iter().map(|&(off, _)| off as usize).max().unwrap_or(0) + STRIP;
-    // For each bin, the groups covering it (CSR layout, counted first).
+    // The snapshot bin n reads from each run: that of the narrowest group still covering n,
+    // i.e. group k covers bins lo + (span of group k + 1) .. lo + span − 1 for its run.
+    let own = |gi: usize| {
+        let g = &groups[gi];
+        let next = groups.get(gi + 1).filter(|h| h.continues).map_or(0, |h| h.span);
+        (next..g.span).map(move |k| (g.lo + k) % b)
+    };
     let mut cover_start = vec![0usize; b + 1];
-    for g in &groups {
-        for k in 0..g.span {
-            cover_start[(g.lo + k) % b + 1] += 1;
+    for gi in 0..groups.len() {
+        for n in own(gi) {
+            cover_start[n + 1] += 1;
         }
     }
     for n in 0..b {
@@ -254,16 +274,16 @@ fn build_tables(
     }
     let mut fill = cover_start.clone();
     let mut cover = vec![0u32; cover_start[b]];
-    for (gi, g) in groups.iter().enumerate() {
-        for k in 0..g.span {
-            let n = (g.lo + k) % b;
+    for gi in 0..groups.len() {
+        for n in own(gi) {
             cover[fill[n]] = gi as u32;
             fill[n] += 1;
         }
     }
-    // Groups in that order needed by bins 0 ..= n: the wrapping ones and those starting ≤ n.
-    let ready =
-        (0..b).map(|n| groups.iter().filter(|g| g.lo + g.span > b || g.lo <= n).count()).collect();
+    // Groups in that order needed by bins 0 ..= n: the wrapping runs and those starting ≤ n.
+    let ready = (0..b)
+        .map(|n| groups.iter().filter(|g| g.lo + widest[g.lo] > b || g.lo <= n).count())
+        .collect();
     Tables { groups, entries, cover_start, cover, ready, reach, pad_x, pad_y, stride, max_rows }
 }
 
@@ -377,55 +397,98 @@ fn run_job(
         }
     }
     let _ = isa;
-    // SAFETY: `Exact` uses no CPU feature beyond the compile target's.
-    unsafe { job_body::<{ Isa::Baseline.lanes() }, Exact>(job, acc, channels, bins_out) }
+    // SAFETY: `Portable` uses no CPU feature beyond the compile target's.
+    unsafe { job_body::<{ Isa::Baseline.lanes() }, Portable>(job, acc, channels, bins_out) }
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 fn job_avx512(job: &Job<'_>, acc: &mut [f32], channels: &mut [f32], bins_out: Option<&mut [f32]>) {
-    // SAFETY: this function only runs where avx512f is present, which `Rsqrt14` needs.
-    unsafe { job_body::<{ Isa::Avx512.lanes() }, Rsqrt14>(job, acc, channels, bins_out) }
+    // SAFETY: this function only runs where avx512f is present, which `Avx512` needs.
+    unsafe { job_body::<{ Isa::Avx512.lanes() }, Avx512>(job, acc, channels, bins_out) }
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 fn job_avx2(job: &Job<'_>, acc: &mut [f32], channels: &mut [f32], bins_out: Option<&mut [f32]>) {
-    // SAFETY: `Exact` uses no CPU feature beyond the compile target's.
-    unsafe { job_body::<{ Isa::Avx2.lanes() }, Exact>(job, acc, channels, bins_out) }
+    // SAFETY: `Avx2` uses no CPU feature beyond those of `job_avx2`.
+    unsafe { job_body::<{ Isa::Avx2.lanes() }, Avx2>(job, acc, channels, bins_out) }
 }
 
-/// Turns a bin's max(tan) lanes into s = t/√(t²+1).
-trait Finish {
+/// What differs between the compiled variants besides the instruction set LLVM targets.
+trait Variant {
+    /// Take maxima as signed integers over the f32 bits (see [`raise`]); a constant, so the
+    /// choice folds away in each variant.
+    const INT_MAX: bool;
+    /// Turns a bin's max(tan) lanes into s = t/√(t²+1).
+    ///
     /// # Safety
     /// The running CPU must have the features the implementation uses.
     unsafe fn finish<const L: usize>(a: &mut [f32; L]);
 }
 
-/// Correctly rounded square root and divide: any CPU.
-struct Exact;
+/// SSE2: float maxima (it has no 32-bit integer max), correctly rounded square root and
+/// divide.
+struct Portable;
 
-impl Finish for Exact {
+impl Variant for Portable {
+    const INT_MAX: bool = false;
     #[inline(always)]
     unsafe fn finish<const L: usize>(a: &mut [f32; L]) {
-        for v in a.iter_mut() {
-            // t is capped so t² stays finite (s is 1.0 in f32 long before 1e18).
-            let tt = v.min(1e18);
-            *v = tt / (tt * tt + 1.0).sqrt();
-        }
+        finish_exact(a)
     }
 }
 
-/// AVX-512's 14-bit reciprocal square root and one Newton step.
-#[cfg(target_arch = "x86_64")]
-struct Rsqrt14;
+/// AVX2: integer maxima, correctly rounded square root and divide.
+struct Avx2;
 
-#[cfg(target_arch = "x86_64")]
-impl Finish for Rsqrt14 {
+impl Variant for Avx2 {
+    const INT_MAX: bool = true;
     #[inline(always)]
     unsafe fn finish<const L: usize>(a: &mut [f32; L]) {
+        finish_exact(a)
+    }
+}
+
+/// AVX-512: integer maxima, 14-bit reciprocal square root and one Newton step.
+struct Avx512;
+
+impl Variant for Avx512 {
+    const INT_MAX: bool = true;
+    #[inline(always)]
+    unsafe fn finish<const L: usize>(a: &mut [f32; L]) {
+        #[cfg(target_arch = "x86_64")]
         // SAFETY: the caller guarantees avx512f (this trait's contract).
-        unsafe { finish_rsqrt14(a) }
+        unsafe {
+            finish_rsqrt14(a)
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        finish_exact(a)
+    }
+}
+
+/// s = t/√(t²+1) with t capped so t² stays finite (s is 1.0 in f32 long before 1e18).
+#[inline(always)]
+fn finish_exact<const L: usize>(a: &mut [f32; L]) {
+    for v in a.iter_mut() {
+        let tt = v.min(1e18);
+        *v = tt / (tt * tt + 1.0).sqrt();
+    }
+}
+
+/// `*acc = max(*acc, v)` where the accumulator starts at +0 and only its final value if
+/// positive matters. With `int` the f32 bits are compared as i32: for non-negative floats
+/// (+∞ included) that is the same order, and every negative float is a negative integer, so
+/// it never beats the +0 start, as in max(·, 0). That matters on Zen 4: float max shares the
+/// two add pipes with the subtraction (2 cycles per 512-bit neighbour), integer max issues on
+/// any of the four (measured ~1.4× on the three-operation chain). NaN cannot occur: heights
+/// are finite, so h − h0 is finite or ±∞ and 1/r is finite and positive.
+#[inline(always)]
+fn raise(int: bool, acc: &mut f32, v: f32) {
+    if int {
+        *acc = f32::from_bits((acc.to_bits() as i32).max(v.to_bits() as i32) as u32);
+    } else {
+        *acc = if v > *acc { v } else { *acc };
     }
 }
 
@@ -458,9 +521,9 @@ fn finish_rsqrt14<const L: usize>(a: &mut [f32; L]) {
 /// `#[target_feature]` variant so LLVM vectorises it for that instruction set.
 ///
 /// # Safety
-/// The running CPU must have the features `F` uses.
+/// The running CPU must have the features `V` uses.
 #[inline(always)]
-unsafe fn job_body<const L: usize, F: Finish>(
+unsafe fn job_body<const L: usize, V: Variant>(
     job: &Job<'_>,
     acc: &mut [f32],
     channels: &mut [f32],
@@ -483,12 +546,22 @@ unsafe fn job_body<const L: usize, F: Finish>(
                 continue; // unreachable: the tile holds every strip's neighbourhood
             };
             let mut done = 0;
+            let mut run = [[0f32; L]; 2];
             for (n, out) in acc.iter_mut().enumerate() {
                 // The groups bin n is the first to need, just before it reads them.
                 for (g, gm) in t.groups[done..t.ready[n]].iter().zip(&mut gmax[done..]) {
+                    if !g.continues {
+                        run = [[0f32; L]; 2];
+                    }
                     // SAFETY: `win.len() == t.reach` and every entry's offset + STRIP ≤ t.reach
                     // (`reach` is that maximum, computed in `build_tables`), with L ≤ STRIP.
-                    *gm = unsafe { group_max(win, h0, &t.entries[g.start..g.end]) };
+                    unsafe {
+                        accumulate(V::INT_MAX, win, h0, &t.entries[g.start..g.end], &mut run)
+                    };
+                    *gm = run[0];
+                    for (m, &y) in gm.iter_mut().zip(&run[1]) {
+                        raise(V::INT_MAX, m, y);
+                    }
                 }
                 done = done.max(t.ready[n]);
                 // Each bin is the max over the groups covering it, gathered into a register
@@ -498,11 +571,11 @@ unsafe fn job_body<const L: usize, F: Finish>(
                 for &gi in &t.cover[t.cover_start[n]..t.cover_start[n + 1]] {
                     let m = &gmax[gi as usize];
                     for (x, &y) in a.iter_mut().zip(m) {
-                        *x = if y > *x { y } else { *x };
+                        raise(V::INT_MAX, x, y);
                     }
                 }
-                // SAFETY: the caller guarantees F's features.
-                unsafe { F::finish(&mut a) };
+                // SAFETY: the caller guarantees V's features.
+                unsafe { V::finish(&mut a) };
                 *out = a;
             }
             let lanes = L.min(w - x0);
@@ -536,27 +609,29 @@ unsafe fn job_body<const L: usize, F: Finish>(
     }
 }
 
-/// max(0, max over `entries` of (h − h0)·(1/r)) for the L texels whose neighbourhood is
-/// `win`. Two accumulators so consecutive max() operations do not wait on each other.
+/// Raises `acc` (two interleaved partial maxima) to the max of (h − h0)·(1/r) over `entries`
+/// for the L texels whose neighbourhood is `win`. Two accumulators so consecutive max()
+/// operations do not wait on each other.
 ///
 /// # Safety
 /// Every entry's offset + L must be ≤ `win.len()`. The loads are unchecked because the
 /// two bounds checks per neighbour (and the register they cost) took ~10% of the kernel's time;
 /// the caller checks the whole window once per strip instead.
 #[inline(always)]
-unsafe fn group_max<const L: usize>(
+unsafe fn accumulate<const L: usize>(
+    int: bool,
     win: &[f32],
     h0: &[f32; L],
     entries: &[(u32, f32)],
-) -> [f32; L] {
+    acc: &mut [[f32; L]; 2],
+) {
     debug_assert!(entries.iter().all(|&(off, _)| off as usize + L <= win.len()));
     let load = |off: u32| -> &[f32; L] {
         // SAFETY: off + L ≤ win.len() (this function's contract), so the L floats
         // starting at `off` are inside `win`; [f32; L] has the alignment of f32.
         unsafe { &*win.as_ptr().add(off as usize).cast::<[f32; L]>() }
     };
-    let mut a0 = [0f32; L];
-    let mut a1 = [0f32; L];
+    let [a0, a1] = acc;
     let mut pairs = entries.chunks_exact(2);
     for p in &mut pairs {
         let (s0, s1) = (load(p[0].0), load(p[1].0));
@@ -564,21 +639,17 @@ unsafe fn group_max<const L: usize>(
         for k in 0..L {
             let v0 = (s0[k] - h0[k]) * i0;
             let v1 = (s1[k] - h0[k]) * i1;
-            a0[k] = if v0 > a0[k] { v0 } else { a0[k] };
-            a1[k] = if v1 > a1[k] { v1 } else { a1[k] };
+            raise(int, &mut a0[k], v0);
+            raise(int, &mut a1[k], v1);
         }
     }
     for &(off, inv) in pairs.remainder() {
         let s0 = load(off);
         for k in 0..L {
             let v0 = (s0[k] - h0[k]) * inv;
-            a0[k] = if v0 > a0[k] { v0 } else { a0[k] };
+            raise(int, &mut a0[k], v0);
         }
     }
-    for k in 0..L {
-        a0[k] = if a1[k] > a0[k] { a1[k] } else { a0[k] };
-    }
-    a0
 }
 
 #[cfg(test)]
