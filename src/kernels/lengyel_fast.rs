@@ -110,7 +110,11 @@ struct Tables {
     groups: Vec<Group>,
     /// (offset from the strip's top-left corner in the padded tile, 1/r), grouped.
     entries: Vec<(u32, f32)>,
-    /// `cover[cover_start[n]..cover_start[n + 1]]`: one group (snapshot) per run covering bin n.
+    /// Where each group's snapshot is kept, `0..slots`.
+    slot: Vec<u32>,
+    slots: usize,
+    /// `cover[cover_start[n]..cover_start[n + 1]]`: the slots of the snapshots bin n merges,
+    /// one per run covering it.
     cover_start: Vec<usize>,
     cover: Vec<u32>,
     /// `groups[..ready[n]]` are every group bin n (and every earlier bin) reads.
@@ -281,10 +285,45 @@ fn build_tables(
         }
     }
     // Groups in that order needed by bins 0 ..= n: the wrapping runs and those starting ≤ n.
-    let ready = (0..b)
+    let ready: Vec<usize> = (0..b)
         .map(|n| groups.iter().filter(|g| g.lo + widest[g.lo] > b || g.lo <= n).count())
         .collect();
-    Tables { groups, entries, cover_start, cover, ready, reach, pad_x, pad_y, stride, max_rows }
+    // Snapshot slots, reused once the last bin reading a snapshot is done: one slot per group
+    // made the strip's snapshots 26 KB at 64 lanes, which with the tile window overflowed the
+    // 32 KB L1 (~10% of the time); live snapshots are a fraction of them.
+    let last_read = |gi: usize| own(gi).max().unwrap_or(0);
+    let mut slot = vec![0u32; groups.len()];
+    let mut free: Vec<u32> = Vec::new();
+    let mut slots = 0u32;
+    let mut made = 0;
+    for n in 0..b {
+        for (gi, sl) in slot.iter_mut().enumerate().take(ready[n]).skip(made) {
+            *sl = free.pop().unwrap_or_else(|| {
+                slots += 1;
+                slots - 1
+            });
+            debug_assert!(last_read(gi) >= n);
+        }
+        made = made.max(ready[n]);
+        free.extend((0..made).filter(|&gi| last_read(gi) == n).map(|gi| slot[gi]));
+    }
+    for c in &mut cover {
+        *c = slot[*c as usize];
+    }
+    Tables {
+        groups,
+        slot,
+        slots: slots as usize,
+        entries,
+        cover_start,
+        cover,
+        ready,
+        reach,
+        pad_x,
+        pad_y,
+        stride,
+        max_rows,
+    }
 }
 
 impl HorizonRows for LengyelFast<'_> {
@@ -317,7 +356,7 @@ impl HorizonRows for LengyelFast<'_> {
                 let m = t.max_rows.min(n - r0);
                 fill_tile(&self.grid, t, y0 + r0, m, &mut scratch.tile);
                 // Per-bin results, then per-group maxima.
-                scratch.acc.resize((b + t.groups.len()) * self.isa.lanes(), 0.0);
+                scratch.acc.resize((b + t.slots) * self.isa.lanes(), 0.0);
                 let ch = &mut channels[r0 * w * 8..(r0 + m) * w * 8];
                 let bo = bins_out.as_deref_mut().map(|bo| &mut bo[r0 * w * b..(r0 + m) * w * b]);
                 let job = Job { t, tile: &scratch.tile, rows: m, width: w, bins: b };
@@ -332,7 +371,7 @@ impl HorizonRows for LengyelFast<'_> {
 #[derive(Default)]
 struct Scratch {
     tile: Vec<f32>,
-    /// `bins` per-bin accumulators followed by one per group.
+    /// `bins` per-bin results followed by the snapshot slots, each one strip wide.
     acc: Vec<f32>,
 }
 
@@ -549,7 +588,8 @@ unsafe fn job_body<const L: usize, V: Variant>(
             let mut run = [[0f32; L]; 2];
             for (n, out) in acc.iter_mut().enumerate() {
                 // The groups bin n is the first to need, just before it reads them.
-                for (g, gm) in t.groups[done..t.ready[n]].iter().zip(&mut gmax[done..]) {
+                for (g, &sl) in t.groups[done..t.ready[n]].iter().zip(&t.slot[done..]) {
+                    let gm = &mut gmax[sl as usize];
                     if !g.continues {
                         run = [[0f32; L]; 2];
                     }
@@ -568,8 +608,8 @@ unsafe fn job_body<const L: usize, V: Variant>(
                 // accumulator: scattering each group into its bins instead made LLVM emit masked
                 // read-modify-write stores, ~20% of the kernel's time (perf, Zen 4).
                 let mut a = [0f32; L];
-                for &gi in &t.cover[t.cover_start[n]..t.cover_start[n + 1]] {
-                    let m = &gmax[gi as usize];
+                for &sl in &t.cover[t.cover_start[n]..t.cover_start[n + 1]] {
+                    let m = &gmax[sl as usize];
                     for (x, &y) in a.iter_mut().zip(m) {
                         raise(V::INT_MAX, x, y);
                     }
