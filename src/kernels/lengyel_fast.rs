@@ -13,13 +13,22 @@
 //! - Each band of rows is first copied into a padded tile (wrapped, or filled with `f32::MIN`
 //!   for `edge=none`, which never occludes), so the hot loop never clamps or wraps, even when the
 //!   radius exceeds the map (the padding then wraps several times).
-//! - For a strip of [`STRIP`] consecutive texels: group → offset → lane, keeping
-//!   max(tan) with tan = (h − h0)/r and the maximum starting at 0, then merging the group's
-//!   maximum into each bin of its range. Each neighbour is thus evaluated once, not once per bin
-//!   it touches (2.2–3.6× on average; R=16, B=32: 792 offsets in 104 groups instead of 2200
-//!   bin entries). Since the oracle skips h < h0 and keeps the largest tan² ≥ 0, max(tan, 0)² is
-//!   exactly its value, without a sign branch, and a max is the same in any merge order.
-//! - The finalize (s = t/√(t²+1), the B/8+1-bin averages) also runs over the strip's lanes.
+//! - For a strip of consecutive texels (128 with AVX-512, 32 AVX2, 16 SSE2; see
+//!   [`Isa::lanes`]): group → offset → lane, keeping max(tan) with tan = (h − h0)/r and the
+//!   maximum starting at 0. Each neighbour is thus evaluated once, not once per bin it touches
+//!   (2.2–3.6× on average; R=16, B=32: 792 offsets in 104 groups instead of 2200 bin entries).
+//!   Since the oracle skips h < h0 and keeps the largest tan² ≥ 0, max(tan, 0)² is exactly its
+//!   value, without a sign branch, and a max is the same in any merge order.
+//! - Groups sharing a first bin form a run, widest first; one running maximum goes through the
+//!   run and is snapshotted after each group, so a bin merges one snapshot per run covering it
+//!   (164 merges per strip instead of 368 at the defaults). Bins are finished in order, each
+//!   right after the runs it is the first to need, so snapshots are read while still in L1
+//!   and their slots are reused.
+//! - Where the ISA has a 32-bit integer max, maxima compare the f32 bits as integers (see
+//!   [`raise`]): on Zen 4 a float max competes with the subtraction for the two add pipes.
+//! - The finalize is vectorised too (done scalar it would cost more than the accumulation):
+//!   s = t/√(t²+1) (with AVX-512, t·rsqrt14 plus a Newton step), the B/8+1-bin averages from
+//!   a table, and the channel-major → texel-major packing with 8×8 AVX transposes.
 //!
 //! The hot function is compiled three times (AVX-512, AVX2+FMA, baseline) and the variant is
 //! chosen once per kernel with `is_x86_feature_detected!`, so the release binary needs no
@@ -37,11 +46,12 @@ use crate::params::Edge;
 use std::cell::RefCell;
 use std::f64::consts::PI;
 
-/// Texels per strip. 32 lanes = two AVX-512 vectors (four AVX2 ones) per accumulator, and two
-/// accumulators per group, so the max() chains have enough independent work to hide latency.
-/// 64 lanes measured ~8% less CPU time with AVX-512 (within noise on this shared machine) but
-/// would run the AVX2 and SSE2 builds out of registers.
-pub const STRIP: usize = 64;
+/// The widest strip of any variant ([`Isa::lanes`]): the tile keeps this many spare columns
+/// and every strip's window is checked against it.
+pub const STRIP: usize = 128;
+
+/// Strips this wide (AVX-512's) use one running maximum per group instead of two.
+const WIDE: usize = 128;
 
 /// Largest padded tile (floats, per thread) before falling back to the oracle (64 MiB).
 pub const MAX_TILE: usize = 1 << 24;
@@ -64,10 +74,14 @@ impl Isa {
         [Isa::Avx512, Isa::Avx2].into_iter().find(|i| i.supported()).unwrap_or(Isa::Baseline)
     }
 
-    /// Texels per strip in this variant's hot loop.
+    /// Texels per strip in this variant's hot loop. Wider strips spread the per-group and
+    /// per-strip work (table walking, snapshots, the finish) over more texels, up to what the
+    /// registers hold: AVX-512 keeps h0 and the running maximum of 128 lanes in 16 of its 32
+    /// vector registers (~10% faster than 64 lanes with two interleaved maxima, ~25% than 32);
+    /// AVX2 and SSE2 have 16 registers, so 32 and 16 lanes with two maxima each.
     const fn lanes(self) -> usize {
         match self {
-            Isa::Avx512 => 64,
+            Isa::Avx512 => 128,
             Isa::Avx2 => 32,
             Isa::Baseline => 16,
         }
@@ -291,22 +305,22 @@ fn build_tables(
         .map(|n| groups.iter().filter(|g| g.lo + widest[g.lo] > b || g.lo <= n).count())
         .collect();
     // Snapshot slots, reused once the last bin reading a snapshot is done: one slot per group
-    // made the strip's snapshots 26 KB at 64 lanes, which with the tile window overflowed the
-    // 32 KB L1 (~10% of the time); live snapshots are a fraction of them.
+    // would make the strip's snapshots 52 KB at 128 lanes, beside a 32 KB L1; live snapshots are
+    // a fraction of them (R=16, B=32: 20 slots for 104 groups).
     let last_read = |gi: usize| own(gi).max().unwrap_or(0);
     let mut slot = vec![0u32; groups.len()];
     let mut free: Vec<u32> = Vec::new();
     let mut slots = 0u32;
     let mut made = 0;
-    for n in 0..b {
-        for (gi, sl) in slot.iter_mut().enumerate().take(ready[n]).skip(made) {
+    for (n, &rdy) in ready.iter().enumerate() {
+        for (gi, sl) in slot.iter_mut().enumerate().take(rdy).skip(made) {
             *sl = free.pop().unwrap_or_else(|| {
                 slots += 1;
                 slots - 1
             });
             debug_assert!(last_read(gi) >= n);
         }
-        made = made.max(ready[n]);
+        made = made.max(rdy);
         free.extend((0..made).filter(|&gi| last_read(gi) == n).map(|gi| slot[gi]));
     }
     for c in &mut cover {
@@ -694,8 +708,10 @@ unsafe fn job_body<const L: usize, V: Variant>(
                         accumulate(V::INT_MAX, win, h0, &t.entries[g.start..g.end], &mut run)
                     };
                     *gm = run[0];
-                    for (m, &y) in gm.iter_mut().zip(&run[1]) {
-                        raise(V::INT_MAX, m, y);
+                    if L < WIDE {
+                        for (m, &y) in gm.iter_mut().zip(&run[1]) {
+                            raise(V::INT_MAX, m, y);
+                        }
                     }
                 }
                 done = done.max(t.ready[n]);
@@ -743,9 +759,9 @@ unsafe fn job_body<const L: usize, V: Variant>(
     }
 }
 
-/// Raises `acc` (two interleaved partial maxima) to the max of (h − h0)·(1/r) over `entries`
-/// for the L texels whose neighbourhood is `win`. Two accumulators so consecutive max()
-/// operations do not wait on each other.
+/// Raises `acc` (two interleaved partial maxima, only the first from [`WIDE`] lanes on) to the
+/// max of (h − h0)·(1/r) over `entries` for the L texels whose neighbourhood is `win`. Two
+/// accumulators for narrow strips so consecutive max() operations do not wait on each other.
 ///
 /// # Safety
 /// Every entry's offset + L must be ≤ `win.len()`. The loads are unchecked because the
@@ -766,6 +782,18 @@ unsafe fn accumulate<const L: usize>(
         unsafe { &*win.as_ptr().add(off as usize).cast::<[f32; L]>() }
     };
     let [a0, a1] = acc;
+    if L >= WIDE {
+        // Eight or more vectors per neighbour already make enough independent max() chains;
+        // a second set of accumulators would not fit in the registers.
+        for &(off, inv) in entries {
+            let s0 = load(off);
+            for k in 0..L {
+                let v0 = (s0[k] - h0[k]) * inv;
+                raise(int, &mut a0[k], v0);
+            }
+        }
+        return;
+    }
     let mut pairs = entries.chunks_exact(2);
     for p in &mut pairs {
         let (s0, s1) = (load(p[0].0), load(p[1].0));
