@@ -13,13 +13,22 @@
 //! - Each band of rows is first copied into a padded tile (wrapped, or filled with `f32::MIN`
 //!   for `edge=none`, which never occludes), so the hot loop never clamps or wraps, even when the
 //!   radius exceeds the map (the padding then wraps several times).
-//! - For a strip of [`STRIP`] consecutive texels: group → offset → lane, keeping
-//!   max(tan) with tan = (h − h0)/r and the maximum starting at 0, then merging the group's
-//!   maximum into each bin of its range. Each neighbour is thus evaluated once, not once per bin
-//!   it touches (2.2–3.6× on average; R=16, B=32: 792 offsets in 104 groups instead of 2200
-//!   bin entries). Since the oracle skips h < h0 and keeps the largest tan² ≥ 0, max(tan, 0)² is
-//!   exactly its value, without a sign branch, and a max is the same in any merge order.
-//! - The finalize (s = t/√(t²+1), the B/8+1-bin averages) also runs over the strip's lanes.
+//! - For a strip of consecutive texels (128 with AVX-512, 32 AVX2, 16 SSE2; see
+//!   [`Isa::lanes`]): group → offset → lane, keeping max(tan) with tan = (h − h0)/r and the
+//!   maximum starting at 0. Each neighbour is thus evaluated once, not once per bin it touches
+//!   (2.2–3.6× on average; R=16, B=32: 792 offsets in 104 groups instead of 2200 bin entries).
+//!   Since the oracle skips h < h0 and keeps the largest tan² ≥ 0, max(tan, 0)² is exactly its
+//!   value, without a sign branch, and a max is the same in any merge order.
+//! - Groups sharing a first bin form a run, widest first; one running maximum goes through the
+//!   run and is snapshotted after each group, so a bin merges one snapshot per run covering it
+//!   (164 merges per strip instead of 368 at the defaults). Bins are finished in order, each
+//!   right after the runs it is the first to need, so snapshots are read while still in L1
+//!   and their slots are reused.
+//! - Where the ISA has a 32-bit integer max, maxima compare the f32 bits as integers (see
+//!   [`raise`]): on Zen 4 a float max competes with the subtraction for the two add pipes.
+//! - The finalize is vectorised too (done scalar it would cost more than the accumulation):
+//!   s = t/√(t²+1) (with AVX-512, t·rsqrt14 plus a Newton step), the B/8+1-bin averages from
+//!   a table, and the channel-major → texel-major packing with 8×8 AVX transposes.
 //!
 //! The hot function is compiled three times (AVX-512, AVX2+FMA, baseline) and the variant is
 //! chosen once per kernel with `is_x86_feature_detected!`, so the release binary needs no
@@ -37,11 +46,12 @@ use crate::params::Edge;
 use std::cell::RefCell;
 use std::f64::consts::PI;
 
-/// Texels per strip. 32 lanes = two AVX-512 vectors (four AVX2 ones) per accumulator, and two
-/// accumulators per group, so the max() chains have enough independent work to hide latency.
-/// 64 lanes measured ~8% less CPU time with AVX-512 (within noise on this shared machine) but
-/// would run the AVX2 and SSE2 builds out of registers.
-pub const STRIP: usize = 32;
+/// The widest strip of any variant ([`Isa::lanes`]): the tile keeps this many spare columns
+/// and every strip's window is checked against it.
+pub const STRIP: usize = 128;
+
+/// Strips this wide (AVX-512's) use one running maximum per group instead of two.
+const WIDE: usize = 128;
 
 /// Largest padded tile (floats, per thread) before falling back to the oracle (64 MiB).
 pub const MAX_TILE: usize = 1 << 24;
@@ -62,6 +72,19 @@ impl Isa {
     /// The best variant the running CPU supports.
     pub fn detect() -> Isa {
         [Isa::Avx512, Isa::Avx2].into_iter().find(|i| i.supported()).unwrap_or(Isa::Baseline)
+    }
+
+    /// Texels per strip in this variant's hot loop. Wider strips spread the per-group and
+    /// per-strip work (table walking, snapshots, the finish) over more texels, up to what the
+    /// registers hold: AVX-512 keeps h0 and the running maximum of 128 lanes in 16 of its 32
+    /// vector registers (~10% faster than 64 lanes with two interleaved maxima, ~25% than 32);
+    /// AVX2 and SSE2 have 16 registers, so 32 and 16 lanes with two maxima each.
+    const fn lanes(self) -> usize {
+        match self {
+            Isa::Avx512 => 128,
+            Isa::Avx2 => 32,
+            Isa::Baseline => 16,
+        }
     }
 
     /// Whether the running CPU has every feature this variant was compiled for.
@@ -90,6 +113,9 @@ struct Group {
     /// `entries[start..end]`.
     start: usize,
     end: usize,
+    /// Whether the previous group has the same `lo` (and a wider span): the running maximum
+    /// carries on from it.
+    continues: bool,
 }
 
 /// Per-(radius, bins, edge, y_axis, map size) tables: the neighbours, grouped by bin range.
@@ -98,9 +124,17 @@ struct Tables {
     groups: Vec<Group>,
     /// (offset from the strip's top-left corner in the padded tile, 1/r), grouped.
     entries: Vec<(u32, f32)>,
-    /// `cover[cover_start[n]..cover_start[n + 1]]`: the groups whose range includes bin n.
+    /// For each channel, the B/8 + 1 bins it averages.
+    average: Vec<u32>,
+    /// Where each group's snapshot is kept, `0..slots`.
+    slot: Vec<u32>,
+    slots: usize,
+    /// `cover[cover_start[n]..cover_start[n + 1]]`: the slots of the snapshots bin n merges,
+    /// one per run covering it.
     cover_start: Vec<usize>,
     cover: Vec<u32>,
+    /// `groups[..ready[n]]` are every group bin n (and every earlier bin) reads.
+    ready: Vec<usize>,
     /// Largest entry offset + STRIP: the window of the tile one strip reads.
     reach: usize,
     /// Padding columns on each side and rows above/below.
@@ -216,23 +250,43 @@ fn build_tables(
             (lo, span, off, inv)
         })
         .collect();
-    // Stable: within a group, offsets stay in row-major order (memory locality).
-    keyed.sort_by_key(|&(lo, span, _, _)| (lo, span));
+    // Groups with the same first bin form a run, widest first: the hot loop carries one
+    // running maximum through a run and snapshots it at the end of each group, so a snapshot
+    // is the maximum over every neighbour covering bins lo .. lo + span − 1 of that run. A bin
+    // then merges one snapshot per run instead of one per group (R=16, B=32: 164 merges per
+    // strip instead of 368).
+    let mut widest = vec![0usize; b];
+    for &(lo, span, _, _) in &keyed {
+        widest[lo] = widest[lo].max(span);
+    }
+    // Runs that wrap past bin B−1 first (bin 0 needs them), then by first bin: the hot loop
+    // computes runs just before the first bin that needs them, so their snapshots are still in
+    // L1 when read. Stable: within a group, offsets stay in row-major order (memory locality).
+    keyed.sort_by_key(|&(lo, span, _, _)| (lo + widest[lo] <= b, lo, std::cmp::Reverse(span)));
     let mut groups: Vec<Group> = Vec::new();
     let mut entries = Vec::with_capacity(keyed.len());
     for (k, &(lo, span, off, inv)) in keyed.iter().enumerate() {
         match groups.last_mut() {
             Some(g) if g.lo == lo && g.span == span => g.end = k + 1,
-            _ => groups.push(Group { lo, span, start: k, end: k + 1 }),
+            last => {
+                let continues = last.is_some_and(|g| g.lo == lo);
+                groups.push(Group { lo, span, start: k, end: k + 1, continues })
+            }
         }
         entries.push((off, inv));
     }
     let reach = entries.iter().map(|&(off, _)| off as usize).max().unwrap_or(0) + STRIP;
-    // For each bin, the groups covering it (CSR layout, counted first).
+    // The snapshot bin n reads from each run: that of the narrowest group still covering n,
+    // i.e. group k covers bins lo + (span of group k + 1) .. lo + span − 1 for its run.
+    let own = |gi: usize| {
+        let g = &groups[gi];
+        let next = groups.get(gi + 1).filter(|h| h.continues).map_or(0, |h| h.span);
+        (next..g.span).map(move |k| (g.lo + k) % b)
+    };
     let mut cover_start = vec![0usize; b + 1];
-    for g in &groups {
-        for k in 0..g.span {
-            cover_start[(g.lo + k) % b + 1] += 1;
+    for gi in 0..groups.len() {
+        for n in own(gi) {
+            cover_start[n + 1] += 1;
         }
     }
     for n in 0..b {
@@ -240,14 +294,58 @@ fn build_tables(
     }
     let mut fill = cover_start.clone();
     let mut cover = vec![0u32; cover_start[b]];
-    for (gi, g) in groups.iter().enumerate() {
-        for k in 0..g.span {
-            let n = (g.lo + k) % b;
+    for gi in 0..groups.len() {
+        for n in own(gi) {
             cover[fill[n]] = gi as u32;
             fill[n] += 1;
         }
     }
-    Tables { groups, entries, cover_start, cover, reach, pad_x, pad_y, stride, max_rows }
+    // Groups in that order needed by bins 0 ..= n: the wrapping runs and those starting ≤ n.
+    let ready: Vec<usize> = (0..b)
+        .map(|n| groups.iter().filter(|g| g.lo + widest[g.lo] > b || g.lo <= n).count())
+        .collect();
+    // Snapshot slots, reused once the last bin reading a snapshot is done: one slot per group
+    // would make the strip's snapshots 52 KB at 128 lanes, beside a 32 KB L1; live snapshots are
+    // a fraction of them (R=16, B=32: 20 slots for 104 groups).
+    let last_read = |gi: usize| own(gi).max().unwrap_or(0);
+    let mut slot = vec![0u32; groups.len()];
+    let mut free: Vec<u32> = Vec::new();
+    let mut slots = 0u32;
+    let mut made = 0;
+    for (n, &rdy) in ready.iter().enumerate() {
+        for (gi, sl) in slot.iter_mut().enumerate().take(rdy).skip(made) {
+            *sl = free.pop().unwrap_or_else(|| {
+                slots += 1;
+                slots - 1
+            });
+            debug_assert!(last_read(gi) >= n);
+        }
+        made = made.max(rdy);
+        free.extend((0..made).filter(|&gi| last_read(gi) == n).map(|gi| slot[gi]));
+    }
+    for c in &mut cover {
+        *c = slot[*c as usize];
+    }
+    // Channel c averages the B/8 + 1 bins centred on bin c·B/8 (mod B).
+    let (step, half) = (b / 8, b / 16);
+    let average = (0..8)
+        .flat_map(|c| (0..=2 * half).map(move |k| ((c * step + b + k - half) % b) as u32))
+        .collect();
+    Tables {
+        average,
+        groups,
+        slot,
+        slots: slots as usize,
+        entries,
+        cover_start,
+        cover,
+        ready,
+        reach,
+        pad_x,
+        pad_y,
+        stride,
+        max_rows,
+    }
 }
 
 impl HorizonRows for LengyelFast<'_> {
@@ -280,7 +378,7 @@ impl HorizonRows for LengyelFast<'_> {
                 let m = t.max_rows.min(n - r0);
                 fill_tile(&self.grid, t, y0 + r0, m, &mut scratch.tile);
                 // Per-bin results, then per-group maxima.
-                scratch.acc.resize(b + t.groups.len(), [0.0; STRIP]);
+                scratch.acc.resize((b + t.slots) * self.isa.lanes(), 0.0);
                 let ch = &mut channels[r0 * w * 8..(r0 + m) * w * 8];
                 let bo = bins_out.as_deref_mut().map(|bo| &mut bo[r0 * w * b..(r0 + m) * w * b]);
                 let job = Job { t, tile: &scratch.tile, rows: m, width: w, bins: b };
@@ -295,8 +393,8 @@ impl HorizonRows for LengyelFast<'_> {
 #[derive(Default)]
 struct Scratch {
     tile: Vec<f32>,
-    /// `bins` per-bin accumulators followed by one per group.
-    acc: Vec<[f32; STRIP]>,
+    /// `bins` per-bin results followed by the snapshot slots, each one strip wide.
+    acc: Vec<f32>,
 }
 
 thread_local! {
@@ -321,11 +419,14 @@ fn fill_tile(g: &Grid<'_>, t: &Tables, y0: usize, m: usize, tile: &mut Vec<f32>)
         let px = t.pad_x;
         dst[px..px + g.width].copy_from_slice(src);
         if g.edge == Edge::Wrap {
-            for (tc, d) in dst.iter_mut().enumerate() {
-                let ix = tc as i64 - px as i64;
-                if ix < 0 || ix >= w {
-                    *d = src[ix.rem_euclid(w) as usize];
-                }
+            // Only the padding columns: a test per column of the whole row cost ~1.5%.
+            let (left, right) = dst.split_at_mut(px);
+            let right = &mut right[g.width..];
+            for (tc, d) in left.iter_mut().enumerate() {
+                *d = src[(tc as i64 - px as i64).rem_euclid(w) as usize];
+            }
+            for (tc, d) in right.iter_mut().enumerate() {
+                *d = src[((g.width + tc) as i64).rem_euclid(w) as usize];
             }
         }
     }
@@ -344,7 +445,7 @@ struct Job<'a> {
 fn run_job(
     isa: Isa,
     job: &Job<'_>,
-    acc: &mut [[f32; STRIP]],
+    acc: &mut [f32],
     channels: &mut [f32],
     bins_out: Option<&mut [f32]>,
 ) {
@@ -353,106 +454,299 @@ fn run_job(
         match isa {
             // SAFETY: a kernel holds Avx512 / Avx2 only when `Isa::supported` saw those features
             // on this CPU (`with_isa` replaces anything else), which is the one requirement of
-            // calling a `#[target_feature]` function. The bodies themselves are safe code.
+            // calling a `#[target_feature]` function.
             Isa::Avx512 => return unsafe { job_avx512(job, acc, channels, bins_out) },
             Isa::Avx2 => return unsafe { job_avx2(job, acc, channels, bins_out) },
             Isa::Baseline => {}
         }
     }
     let _ = isa;
-    job_body(job, acc, channels, bins_out)
+    // SAFETY: `Portable` uses no CPU feature beyond the compile target's.
+    unsafe { job_body::<{ Isa::Baseline.lanes() }, Portable>(job, acc, channels, bins_out) }
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
-fn job_avx512(
-    job: &Job<'_>,
-    acc: &mut [[f32; STRIP]],
-    channels: &mut [f32],
-    bins_out: Option<&mut [f32]>,
-) {
-    job_body(job, acc, channels, bins_out)
+fn job_avx512(job: &Job<'_>, acc: &mut [f32], channels: &mut [f32], bins_out: Option<&mut [f32]>) {
+    // SAFETY: this function only runs where avx512f is present, which `Avx512` needs.
+    unsafe { job_body::<{ Isa::Avx512.lanes() }, Avx512>(job, acc, channels, bins_out) }
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-fn job_avx2(
-    job: &Job<'_>,
-    acc: &mut [[f32; STRIP]],
-    channels: &mut [f32],
-    bins_out: Option<&mut [f32]>,
-) {
-    job_body(job, acc, channels, bins_out)
+fn job_avx2(job: &Job<'_>, acc: &mut [f32], channels: &mut [f32], bins_out: Option<&mut [f32]>) {
+    // SAFETY: `Avx2` uses no CPU feature beyond those of `job_avx2`.
+    unsafe { job_body::<{ Isa::Avx2.lanes() }, Avx2>(job, acc, channels, bins_out) }
 }
 
-/// The hot loop over one padded tile, inlined into each `#[target_feature]` variant so LLVM
-/// vectorises it for that instruction set.
+/// What differs between the compiled variants besides the instruction set LLVM targets.
+trait Variant {
+    /// Take maxima as signed integers over the f32 bits (see [`raise`]); a constant, so the
+    /// choice folds away in each variant.
+    const INT_MAX: bool;
+    /// Turns a bin's max(tan) lanes into s = t/√(t²+1).
+    ///
+    /// # Safety
+    /// The running CPU must have the features the implementation uses.
+    unsafe fn finish<const L: usize>(a: &mut [f32; L]);
+    /// Writes channel-major `ch` texel-major into `dst` (8 floats per texel, up to L texels).
+    ///
+    /// # Safety
+    /// The running CPU must have the features the implementation uses.
+    #[inline(always)]
+    unsafe fn pack<const L: usize>(ch: &[[f32; L]; 8], dst: &mut [f32]) {
+        pack_scalar(ch, dst, 0)
+    }
+}
+
+/// [`Variant::pack`] from texel `from` on, one float at a time.
 #[inline(always)]
-fn job_body(
+fn pack_scalar<const L: usize>(ch: &[[f32; L]; 8], dst: &mut [f32], from: usize) {
+    for (k, d) in dst.chunks_exact_mut(8).enumerate().skip(from) {
+        for (c, v) in d.iter_mut().enumerate() {
+            *v = ch[c][k];
+        }
+    }
+}
+
+/// [`Variant::pack`] with 8×8 AVX transposes (24 shuffles per 8 texels): done one float at a
+/// time, LLVM emitted 64 scalar loads and stores per 8 texels, ~5% of the kernel.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx")]
+#[inline]
+fn pack_avx<const L: usize>(ch: &[[f32; L]; 8], dst: &mut [f32]) {
+    use std::arch::x86_64::*;
+    let full = dst.len() / 64;
+    for (blk, out) in dst.chunks_exact_mut(64).enumerate().take(full) {
+        let k = blk * 8;
+        // SAFETY: k + 8 ≤ dst.len() / 8 ≤ L, so each row's 8 floats at k are in bounds.
+        let r: [__m256; 8] =
+            std::array::from_fn(|c| unsafe { _mm256_loadu_ps(ch[c][k..].as_ptr()) });
+        let t0 = _mm256_unpacklo_ps(r[0], r[1]);
+        let t1 = _mm256_unpackhi_ps(r[0], r[1]);
+        let t2 = _mm256_unpacklo_ps(r[2], r[3]);
+        let t3 = _mm256_unpackhi_ps(r[2], r[3]);
+        let t4 = _mm256_unpacklo_ps(r[4], r[5]);
+        let t5 = _mm256_unpackhi_ps(r[4], r[5]);
+        let t6 = _mm256_unpacklo_ps(r[6], r[7]);
+        let t7 = _mm256_unpackhi_ps(r[6], r[7]);
+        let u0 = _mm256_shuffle_ps::<0x44>(t0, t2);
+        let u1 = _mm256_shuffle_ps::<0xEE>(t0, t2);
+        let u2 = _mm256_shuffle_ps::<0x44>(t1, t3);
+        let u3 = _mm256_shuffle_ps::<0xEE>(t1, t3);
+        let u4 = _mm256_shuffle_ps::<0x44>(t4, t6);
+        let u5 = _mm256_shuffle_ps::<0xEE>(t4, t6);
+        let u6 = _mm256_shuffle_ps::<0x44>(t5, t7);
+        let u7 = _mm256_shuffle_ps::<0xEE>(t5, t7);
+        let o = [
+            _mm256_permute2f128_ps::<0x20>(u0, u4),
+            _mm256_permute2f128_ps::<0x20>(u1, u5),
+            _mm256_permute2f128_ps::<0x20>(u2, u6),
+            _mm256_permute2f128_ps::<0x20>(u3, u7),
+            _mm256_permute2f128_ps::<0x31>(u0, u4),
+            _mm256_permute2f128_ps::<0x31>(u1, u5),
+            _mm256_permute2f128_ps::<0x31>(u2, u6),
+            _mm256_permute2f128_ps::<0x31>(u3, u7),
+        ];
+        for (d, v) in out.chunks_exact_mut(8).zip(o) {
+            // SAFETY: `d` holds exactly 8 floats.
+            unsafe { _mm256_storeu_ps(d.as_mut_ptr(), v) };
+        }
+    }
+    pack_scalar(ch, dst, full * 8);
+}
+
+/// SSE2: float maxima (it has no 32-bit integer max), correctly rounded square root and
+/// divide.
+struct Portable;
+
+impl Variant for Portable {
+    const INT_MAX: bool = false;
+    #[inline(always)]
+    unsafe fn finish<const L: usize>(a: &mut [f32; L]) {
+        finish_exact(a)
+    }
+}
+
+/// AVX2: integer maxima, correctly rounded square root and divide.
+struct Avx2;
+
+impl Variant for Avx2 {
+    const INT_MAX: bool = true;
+    #[inline(always)]
+    unsafe fn pack<const L: usize>(ch: &[[f32; L]; 8], dst: &mut [f32]) {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: the caller guarantees this variant's features, which include AVX.
+        unsafe {
+            pack_avx(ch, dst)
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        pack_scalar(ch, dst, 0)
+    }
+    #[inline(always)]
+    unsafe fn finish<const L: usize>(a: &mut [f32; L]) {
+        finish_exact(a)
+    }
+}
+
+/// AVX-512: integer maxima, 14-bit reciprocal square root and one Newton step.
+struct Avx512;
+
+impl Variant for Avx512 {
+    const INT_MAX: bool = true;
+    #[inline(always)]
+    unsafe fn pack<const L: usize>(ch: &[[f32; L]; 8], dst: &mut [f32]) {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: the caller guarantees this variant's features, which include AVX.
+        unsafe {
+            pack_avx(ch, dst)
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        pack_scalar(ch, dst, 0)
+    }
+    #[inline(always)]
+    unsafe fn finish<const L: usize>(a: &mut [f32; L]) {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: the caller guarantees avx512f (this trait's contract).
+        unsafe {
+            finish_rsqrt14(a)
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        finish_exact(a)
+    }
+}
+
+/// s = t/√(t²+1) with t capped so t² stays finite (s is 1.0 in f32 long before 1e18).
+#[inline(always)]
+fn finish_exact<const L: usize>(a: &mut [f32; L]) {
+    for v in a.iter_mut() {
+        let tt = v.min(1e18);
+        *v = tt / (tt * tt + 1.0).sqrt();
+    }
+}
+
+/// `*acc = max(*acc, v)` where the accumulator starts at +0 and only its final value if
+/// positive matters. With `int` the f32 bits are compared as i32: for non-negative floats
+/// (+∞ included) that is the same order, and every negative float is a negative integer, so
+/// it never beats the +0 start, as in max(·, 0). That matters on Zen 4: float max shares the
+/// two add pipes with the subtraction (2 cycles per 512-bit neighbour), integer max issues on
+/// any of the four (measured ~1.4× on the three-operation chain). NaN cannot occur: heights
+/// are finite, so h − h0 is finite or ±∞ and 1/r is finite and positive.
+#[inline(always)]
+fn raise(int: bool, acc: &mut f32, v: f32) {
+    if int {
+        *acc = f32::from_bits((acc.to_bits() as i32).max(v.to_bits() as i32) as u32);
+    } else {
+        *acc = if v > *acc { v } else { *acc };
+    }
+}
+
+/// s = t·rsqrt(t² + 1): a divide and a square root cost ~20% of the kernel on Zen 4 (their
+/// 512-bit forms issue every 5–6 cycles), this costs six pipelined operations. The 14-bit
+/// estimate after one Newton step is within ~2^-22 relative, far inside the 1e-5 the results
+/// promise, and is clamped so s never exceeds 1.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[inline]
+fn finish_rsqrt14<const L: usize>(a: &mut [f32; L]) {
+    use std::arch::x86_64::*;
+    let (one, half, three_halves, cap) =
+        (_mm512_set1_ps(1.0), _mm512_set1_ps(0.5), _mm512_set1_ps(1.5), _mm512_set1_ps(1e18));
+    for c in a.chunks_exact_mut(16) {
+        // SAFETY: `c` holds exactly 16 floats; unaligned loads and stores.
+        let t = _mm512_min_ps(unsafe { _mm512_loadu_ps(c.as_ptr()) }, cap);
+        let x = _mm512_fmadd_ps(t, t, one);
+        let y = _mm512_rsqrt14_ps(x);
+        let y = _mm512_mul_ps(
+            y,
+            _mm512_fnmadd_ps(_mm512_mul_ps(x, half), _mm512_mul_ps(y, y), three_halves),
+        );
+        let s = _mm512_min_ps(_mm512_mul_ps(t, y), one);
+        unsafe { _mm512_storeu_ps(c.as_mut_ptr(), s) };
+    }
+}
+
+/// The hot loop over one padded tile, for strips of `L` texels, inlined into each
+/// `#[target_feature]` variant so LLVM vectorises it for that instruction set.
+///
+/// # Safety
+/// The running CPU must have the features `V` uses.
+#[inline(always)]
+unsafe fn job_body<const L: usize, V: Variant>(
     job: &Job<'_>,
-    acc: &mut [[f32; STRIP]],
+    acc: &mut [f32],
     channels: &mut [f32],
     mut bins_out: Option<&mut [f32]>,
 ) {
     let Job { t, tile, rows, width: w, bins: b } = *job;
     let centre = t.pad_y * t.stride + t.pad_x;
     let step = b / 8;
-    let half = b / 16;
     let inv_count = 1.0 / (step + 1) as f32;
-    let (acc, gmax) = acc.split_at_mut(b);
+    let (acc, gmax) = acc.as_chunks_mut::<L>().0.split_at_mut(b);
     for r in 0..rows {
-        for x0 in (0..w).step_by(STRIP) {
+        for x0 in (0..w).step_by(L) {
             let base = r * t.stride + x0;
-            let Some(h0) = tile.get(base + centre..).and_then(<[f32]>::first_chunk::<STRIP>) else {
-                continue; // unreachable: the tile has STRIP spare columns
+            let Some(h0) = tile.get(base + centre..).and_then(<[f32]>::first_chunk::<L>) else {
+                continue; // unreachable: the tile has STRIP ≥ L spare columns
             };
             // The strip's whole neighbourhood, checked once here so the hot loop need not.
             let Some(win) = tile.get(base..base + t.reach) else {
                 continue; // unreachable: the tile holds every strip's neighbourhood
             };
-            for (g, gm) in t.groups.iter().zip(gmax.iter_mut()) {
-                // SAFETY: `win.len() == t.reach` and every entry's offset + STRIP ≤ t.reach
-                // (`reach` is that maximum, computed in `build_tables`).
-                *gm = unsafe { group_max(win, h0, &t.entries[g.start..g.end]) };
-            }
-            // Each bin is the max over the groups covering it, gathered into a register
-            // accumulator: scattering each group into its bins instead made LLVM emit masked
-            // read-modify-write stores, ~20% of the kernel's time (perf, Zen 4).
+            let mut done = 0;
+            let mut run = [[0f32; L]; 2];
             for (n, out) in acc.iter_mut().enumerate() {
-                let mut a = [0f32; STRIP];
-                for &gi in &t.cover[t.cover_start[n]..t.cover_start[n + 1]] {
-                    let m = &gmax[gi as usize];
-                    for (x, &y) in a.iter_mut().zip(m) {
-                        *x = if y > *x { y } else { *x };
+                // The groups bin n is the first to need, just before it reads them.
+                for (g, &sl) in t.groups[done..t.ready[n]].iter().zip(&t.slot[done..]) {
+                    let gm = &mut gmax[sl as usize];
+                    if !g.continues {
+                        run = [[0f32; L]; 2];
+                    }
+                    // SAFETY: `win.len() == t.reach` and every entry's offset + STRIP ≤ t.reach
+                    // (`reach` is that maximum, computed in `build_tables`), with L ≤ STRIP.
+                    unsafe {
+                        accumulate(V::INT_MAX, win, h0, &t.entries[g.start..g.end], &mut run)
+                    };
+                    *gm = run[0];
+                    if L < WIDE {
+                        for (m, &y) in gm.iter_mut().zip(&run[1]) {
+                            raise(V::INT_MAX, m, y);
+                        }
                     }
                 }
-                // s = t/√(t²+1) = √(t²/(t²+1)); t is capped so t² stays finite (s is 1.0 in
-                // f32 long before 1e18).
-                for v in a.iter_mut() {
-                    let tt = v.min(1e18);
-                    *v = tt / (tt * tt + 1.0).sqrt();
+                done = done.max(t.ready[n]);
+                // Each bin is the max over the groups covering it, gathered into a register
+                // accumulator: scattering each group into its bins instead made LLVM emit masked
+                // read-modify-write stores, ~20% of the kernel's time (perf, Zen 4).
+                let mut a = [0f32; L];
+                for &sl in &t.cover[t.cover_start[n]..t.cover_start[n + 1]] {
+                    let m = &gmax[sl as usize];
+                    for (x, &y) in a.iter_mut().zip(m) {
+                        raise(V::INT_MAX, x, y);
+                    }
                 }
+                // SAFETY: the caller guarantees V's features.
+                unsafe { V::finish(&mut a) };
                 *out = a;
             }
-            let lanes = STRIP.min(w - x0);
-            let mut ch = [[0f32; STRIP]; 8];
-            for (c, chc) in ch.iter_mut().enumerate() {
-                for k in 0..=2 * half {
-                    let n = (c * step + b + k - half) % b;
-                    for (o, &s) in chc.iter_mut().zip(&acc[n]) {
+            let lanes = L.min(w - x0);
+            let mut ch = [[0f32; L]; 8];
+            for (chc, bins) in ch.iter_mut().zip(t.average.chunks_exact(step + 1)) {
+                // Summed in a local so it stays in registers: summed in place, each add waited
+                // on the store of the previous one (~6% of the kernel).
+                let mut sum = [0f32; L];
+                for &n in bins {
+                    for (o, &s) in sum.iter_mut().zip(&acc[n as usize]) {
                         *o += s;
                     }
                 }
-                for o in chc.iter_mut() {
-                    *o *= inv_count;
+                for (o, s) in chc.iter_mut().zip(sum) {
+                    *o = s * inv_count;
                 }
             }
             let row0 = (r * w + x0) * 8;
-            for (k, dst) in channels[row0..row0 + lanes * 8].chunks_exact_mut(8).enumerate() {
-                for (c, d) in dst.iter_mut().enumerate() {
-                    *d = ch[c][k];
-                }
-            }
+            // SAFETY: the caller guarantees V's features.
+            unsafe { V::pack(&ch, &mut channels[row0..row0 + lanes * 8]) };
             if let Some(bo) = bins_out.as_deref_mut() {
                 let row0 = (r * w + x0) * b;
                 for (k, dst) in bo[row0..row0 + lanes * b].chunks_exact_mut(b).enumerate() {
@@ -465,45 +759,59 @@ fn job_body(
     }
 }
 
-/// max(0, max over `entries` of (h − h0)·(1/r)) for the STRIP texels whose neighbourhood is
-/// `win`. Two accumulators so consecutive max() operations do not wait on each other.
+/// Raises `acc` (two interleaved partial maxima, only the first from [`WIDE`] lanes on) to the
+/// max of (h − h0)·(1/r) over `entries` for the L texels whose neighbourhood is `win`. Two
+/// accumulators for narrow strips so consecutive max() operations do not wait on each other.
 ///
 /// # Safety
-/// Every entry's offset + STRIP must be ≤ `win.len()`. The loads are unchecked because the
+/// Every entry's offset + L must be ≤ `win.len()`. The loads are unchecked because the
 /// two bounds checks per neighbour (and the register they cost) took ~10% of the kernel's time;
 /// the caller checks the whole window once per strip instead.
 #[inline(always)]
-unsafe fn group_max(win: &[f32], h0: &[f32; STRIP], entries: &[(u32, f32)]) -> [f32; STRIP] {
-    debug_assert!(entries.iter().all(|&(off, _)| off as usize + STRIP <= win.len()));
-    let load = |off: u32| -> &[f32; STRIP] {
-        // SAFETY: off + STRIP ≤ win.len() (this function's contract), so the STRIP floats
-        // starting at `off` are inside `win`; [f32; STRIP] has the alignment of f32.
-        unsafe { &*win.as_ptr().add(off as usize).cast::<[f32; STRIP]>() }
+unsafe fn accumulate<const L: usize>(
+    int: bool,
+    win: &[f32],
+    h0: &[f32; L],
+    entries: &[(u32, f32)],
+    acc: &mut [[f32; L]; 2],
+) {
+    debug_assert!(entries.iter().all(|&(off, _)| off as usize + L <= win.len()));
+    let load = |off: u32| -> &[f32; L] {
+        // SAFETY: off + L ≤ win.len() (this function's contract), so the L floats
+        // starting at `off` are inside `win`; [f32; L] has the alignment of f32.
+        unsafe { &*win.as_ptr().add(off as usize).cast::<[f32; L]>() }
     };
-    let mut a0 = [0f32; STRIP];
-    let mut a1 = [0f32; STRIP];
+    let [a0, a1] = acc;
+    if L >= WIDE {
+        // Eight or more vectors per neighbour already make enough independent max() chains;
+        // a second set of accumulators would not fit in the registers.
+        for &(off, inv) in entries {
+            let s0 = load(off);
+            for k in 0..L {
+                let v0 = (s0[k] - h0[k]) * inv;
+                raise(int, &mut a0[k], v0);
+            }
+        }
+        return;
+    }
     let mut pairs = entries.chunks_exact(2);
     for p in &mut pairs {
         let (s0, s1) = (load(p[0].0), load(p[1].0));
         let (i0, i1) = (p[0].1, p[1].1);
-        for k in 0..STRIP {
+        for k in 0..L {
             let v0 = (s0[k] - h0[k]) * i0;
             let v1 = (s1[k] - h0[k]) * i1;
-            a0[k] = if v0 > a0[k] { v0 } else { a0[k] };
-            a1[k] = if v1 > a1[k] { v1 } else { a1[k] };
+            raise(int, &mut a0[k], v0);
+            raise(int, &mut a1[k], v1);
         }
     }
     for &(off, inv) in pairs.remainder() {
         let s0 = load(off);
-        for k in 0..STRIP {
+        for k in 0..L {
             let v0 = (s0[k] - h0[k]) * inv;
-            a0[k] = if v0 > a0[k] { v0 } else { a0[k] };
+            raise(int, &mut a0[k], v0);
         }
     }
-    for k in 0..STRIP {
-        a0[k] = if a1[k] > a0[k] { a1[k] } else { a0[k] };
-    }
-    a0
 }
 
 #[cfg(test)]
