@@ -157,6 +157,7 @@ enum Mode<'a> {
 #[derive(Debug, Clone)]
 pub struct LengyelFast<'a> {
     grid: Grid<'a>,
+    radius: usize,
     bins: usize,
     isa: Isa,
     mode: Mode<'a>,
@@ -190,7 +191,7 @@ impl<'a> LengyelFast<'a> {
             let max_rows = (MAX_TILE / stride - 2 * pad_y).max(1);
             Mode::Fast(build_tables(r, b, pad_x, pad_y, stride, max_rows, grid.row_step()))
         };
-        LengyelFast { grid, bins: b, isa, mode }
+        LengyelFast { grid, radius: r, bins: b, isa, mode }
     }
 
     /// The CPU variant in use.
@@ -357,6 +358,16 @@ impl HorizonRows for LengyelFast<'_> {
     }
     fn bins(&self) -> usize {
         self.bins
+    }
+    fn texel_cost(&self) -> f64 {
+        // The work per texel grows with the neighbours in the disc (∝ R²) and, past 32, with
+        // the bins each spans; the oracle fallback does the same work without SIMD (~100×).
+        let r = self.radius as f64 / 16.0;
+        let cost = r * r * (self.bins as f64 / 32.0).max(1.0);
+        match self.mode {
+            Mode::Fast(_) => cost,
+            Mode::Oracle(_) => cost * 100.0,
+        }
     }
     fn rows(&self, y0: usize, channels: &mut [f32], mut bins_out: Option<&mut [f32]>) {
         let t = match &self.mode {

@@ -283,4 +283,14 @@ mod tests {
             assert_eq!(band_rows_for(&Sized(2048, 2048, 0.01)), 64);
         });
     }
+
+    #[test]
+    fn lengyel_cost_grows_with_the_disc() {
+        let h = vec![0f32; 64 * 64];
+        let g = Grid::new(64, 64, &h, Edge::Wrap, YAxis::Up);
+        let cost = |r, b| lengyel_fast::LengyelFast::new(g, r, b).texel_cost();
+        assert_eq!(cost(16, 32), 1.0);
+        assert_eq!(cost(64, 32), 16.0);
+        assert_eq!(cost(128, 64), 128.0);
+    }
 }
