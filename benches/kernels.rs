@@ -308,12 +308,19 @@ fn main() {
         return;
     }
     if let Some(k) = args.iter().position(|a| a == "--profile") {
-        // A loop of the default fast configuration only, for `perf record`.
+        // A loop of the default fast configuration only, for `perf record`:
+        // `--profile [REPS] [avx512|avx2|baseline]` (the CPU's best variant by default).
         let reps = args.get(k + 1).and_then(|s| s.parse().ok()).unwrap_or(10);
+        let isa = match args.get(k + 2).map(String::as_str) {
+            Some("avx2") => Isa::Avx2,
+            Some("baseline") => Isa::Baseline,
+            _ => Isa::detect(),
+        };
         let hs = terrain(2048, 2048);
         let grid = Grid::new(2048, 2048, &hs, Edge::Wrap, YAxis::Up);
-        let (secs, cpu) = time_kernel(&LengyelFast::new(grid, 16, 32), reps);
-        println!("best {:.1} ms, {:.0} CPU ms", secs * 1e3, cpu * 1e3);
+        let kernel = LengyelFast::with_isa(grid, 16, 32, isa);
+        let (secs, cpu) = time_kernel(&kernel, reps);
+        println!("best {:.1} ms, {:.0} CPU ms ({:?})", secs * 1e3, cpu * 1e3, kernel.isa());
         return;
     }
     let quick = args.iter().any(|a| a == "--quick")

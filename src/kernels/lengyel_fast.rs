@@ -13,7 +13,7 @@
 //! - Each band of rows is first copied into a padded tile (wrapped, or filled with `f32::MIN`
 //!   for `edge=none`, which never occludes), so the hot loop never clamps or wraps, even when the
 //!   radius exceeds the map (the padding then wraps several times).
-//! - For a strip of consecutive texels (128 with AVX-512, 32 AVX2, 16 SSE2; see
+//! - For a strip of consecutive texels (128 with AVX-512, 64 AVX2, 16 SSE2; see
 //!   [`Isa::lanes`]): group → offset → lane, keeping max(tan) with tan = (h − h0)/r and the
 //!   maximum starting at 0. Each neighbour is thus evaluated once, not once per bin it touches
 //!   (2.2–3.6× on average; R=16, B=32: 792 offsets in 104 groups instead of 2200 bin entries).
@@ -50,9 +50,6 @@ use std::f64::consts::PI;
 /// and every strip's window is checked against it.
 pub const STRIP: usize = 128;
 
-/// Strips this wide (AVX-512's) use one running maximum per group instead of two.
-const WIDE: usize = 128;
-
 /// Largest padded tile (floats, per thread) before falling back to the oracle (64 MiB).
 pub const MAX_TILE: usize = 1 << 24;
 
@@ -77,12 +74,14 @@ impl Isa {
     /// Texels per strip in this variant's hot loop. Wider strips spread the per-group and
     /// per-strip work (table walking, snapshots, the finish) over more texels, up to what the
     /// registers hold: AVX-512 keeps h0 and the running maximum of 128 lanes in 16 of its 32
-    /// vector registers (~10% faster than 64 lanes with two interleaved maxima, ~25% than 32);
-    /// AVX2 and SSE2 have 16 registers, so 32 and 16 lanes with two maxima each.
+    /// vector registers (~10% faster than 64 lanes with two interleaved maxima, ~25% than 32).
+    /// AVX2 has 16: 64 lanes with one maximum (h0 then comes from memory operands) measured
+    /// ~1.4× faster than 32 lanes with two, and than 128; SSE2 (whose arithmetic takes only
+    /// aligned memory operands) stays at 16 lanes with two maxima.
     const fn lanes(self) -> usize {
         match self {
             Isa::Avx512 => 128,
-            Isa::Avx2 => 32,
+            Isa::Avx2 => 64,
             Isa::Baseline => 16,
         }
     }
@@ -492,6 +491,10 @@ fn job_avx2(job: &Job<'_>, acc: &mut [f32], channels: &mut [f32], bins_out: Opti
 
 /// What differs between the compiled variants besides the instruction set LLVM targets.
 trait Variant {
+    /// Keep one running maximum per group rather than two interleaved ones: enough when a
+    /// strip is 8 or more vectors wide (that many independent max() chains), and the second
+    /// set would not fit in the registers.
+    const ONE_MAX: bool = false;
     /// Take maxima as signed integers over the f32 bits (see [`raise`]); a constant, so the
     /// choice folds away in each variant.
     const INT_MAX: bool;
@@ -584,6 +587,7 @@ struct Avx2;
 
 impl Variant for Avx2 {
     const INT_MAX: bool = true;
+    const ONE_MAX: bool = true;
     #[inline(always)]
     unsafe fn pack<const L: usize>(ch: &[[f32; L]; 8], dst: &mut [f32]) {
         #[cfg(target_arch = "x86_64")]
@@ -605,6 +609,7 @@ struct Avx512;
 
 impl Variant for Avx512 {
     const INT_MAX: bool = true;
+    const ONE_MAX: bool = true;
     #[inline(always)]
     unsafe fn pack<const L: usize>(ch: &[[f32; L]; 8], dst: &mut [f32]) {
         #[cfg(target_arch = "x86_64")]
@@ -716,10 +721,17 @@ unsafe fn job_body<const L: usize, V: Variant>(
                     // SAFETY: `win.len() == t.reach` and every entry's offset + STRIP ≤ t.reach
                     // (`reach` is that maximum, computed in `build_tables`), with L ≤ STRIP.
                     unsafe {
-                        accumulate(V::INT_MAX, win, h0, &t.entries[g.start..g.end], &mut run)
+                        accumulate(
+                            V::INT_MAX,
+                            V::ONE_MAX,
+                            win,
+                            h0,
+                            &t.entries[g.start..g.end],
+                            &mut run,
+                        )
                     };
                     *gm = run[0];
-                    if L < WIDE {
+                    if !V::ONE_MAX {
                         for (m, &y) in gm.iter_mut().zip(&run[1]) {
                             raise(V::INT_MAX, m, y);
                         }
@@ -770,7 +782,7 @@ unsafe fn job_body<const L: usize, V: Variant>(
     }
 }
 
-/// Raises `acc` (two interleaved partial maxima, only the first from [`WIDE`] lanes on) to the
+/// Raises `acc` (two interleaved partial maxima, or only the first with `one`) to the
 /// max of (h − h0)·(1/r) over `entries` for the L texels whose neighbourhood is `win`. Two
 /// accumulators for narrow strips so consecutive max() operations do not wait on each other.
 ///
@@ -781,6 +793,7 @@ unsafe fn job_body<const L: usize, V: Variant>(
 #[inline(always)]
 unsafe fn accumulate<const L: usize>(
     int: bool,
+    one: bool,
     win: &[f32],
     h0: &[f32; L],
     entries: &[(u32, f32)],
@@ -793,7 +806,7 @@ unsafe fn accumulate<const L: usize>(
         unsafe { &*win.as_ptr().add(off as usize).cast::<[f32; L]>() }
     };
     let [a0, a1] = acc;
-    if L >= WIDE {
+    if one {
         // Eight or more vectors per neighbour already make enough independent max() chains;
         // a second set of accumulators would not fit in the registers.
         for &(off, inv) in entries {
