@@ -503,12 +503,21 @@ trait Variant {
     /// # Safety
     /// The running CPU must have the features the implementation uses.
     unsafe fn finish<const L: usize>(a: &mut [f32; L]);
+    /// Whether the variant's features include AVX, for the transposing [`Variant::pack`].
+    const AVX: bool = false;
     /// Writes channel-major `ch` texel-major into `dst` (8 floats per texel, up to L texels).
     ///
     /// # Safety
     /// The running CPU must have the features the implementation uses.
     #[inline(always)]
     unsafe fn pack<const L: usize>(ch: &[[f32; L]; 8], dst: &mut [f32]) {
+        #[cfg(target_arch = "x86_64")]
+        if Self::AVX {
+            // SAFETY: `AVX` is only set by variants whose features include AVX, and the
+            // caller guarantees those features (this trait's contract).
+            unsafe { pack_avx(ch, dst) };
+            return;
+        }
         pack_scalar(ch, dst, 0)
     }
 }
@@ -588,16 +597,7 @@ struct Avx2;
 impl Variant for Avx2 {
     const INT_MAX: bool = true;
     const ONE_MAX: bool = true;
-    #[inline(always)]
-    unsafe fn pack<const L: usize>(ch: &[[f32; L]; 8], dst: &mut [f32]) {
-        #[cfg(target_arch = "x86_64")]
-        // SAFETY: the caller guarantees this variant's features, which include AVX.
-        unsafe {
-            pack_avx(ch, dst)
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        pack_scalar(ch, dst, 0)
-    }
+    const AVX: bool = true;
     #[inline(always)]
     unsafe fn finish<const L: usize>(a: &mut [f32; L]) {
         finish_exact(a)
@@ -610,16 +610,7 @@ struct Avx512;
 impl Variant for Avx512 {
     const INT_MAX: bool = true;
     const ONE_MAX: bool = true;
-    #[inline(always)]
-    unsafe fn pack<const L: usize>(ch: &[[f32; L]; 8], dst: &mut [f32]) {
-        #[cfg(target_arch = "x86_64")]
-        // SAFETY: the caller guarantees this variant's features, which include AVX.
-        unsafe {
-            pack_avx(ch, dst)
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        pack_scalar(ch, dst, 0)
-    }
+    const AVX: bool = true;
     #[inline(always)]
     unsafe fn finish<const L: usize>(a: &mut [f32; L]) {
         #[cfg(target_arch = "x86_64")]

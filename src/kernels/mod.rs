@@ -251,8 +251,8 @@ mod tests {
     use super::*;
 
     /// A kernel that only reports its size and cost.
-    struct Sized(usize, usize, f64);
-    impl HorizonRows for Sized {
+    struct Costed(usize, usize, f64);
+    impl HorizonRows for Costed {
         fn width(&self) -> usize {
             self.0
         }
@@ -273,14 +273,14 @@ mod tests {
         let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
         pool.install(|| {
             // Default cost: balance decides (2048 / (2 · 16) = 64 rows of 2048 texels).
-            assert_eq!(band_rows_for(&Sized(2048, 2048, 1.0)), 64);
+            assert_eq!(band_rows_for(&Costed(2048, 2048, 1.0)), 64);
             assert_eq!(band_rows(2048, 2048), 64);
             // R = 128 costs 64×: 262144 / 64 / 2048 = 2 rows, the same work as 128 cheap rows.
-            assert_eq!(band_rows_for(&Sized(2048, 2048, 64.0)), 2);
+            assert_eq!(band_rows_for(&Costed(2048, 2048, 64.0)), 2);
             // Anything dearer still makes progress a row at a time.
-            assert_eq!(band_rows_for(&Sized(8192, 8192, 4096.0)), 1);
+            assert_eq!(band_rows_for(&Costed(8192, 8192, 4096.0)), 1);
             // Costs below 1 never make bands larger than the default.
-            assert_eq!(band_rows_for(&Sized(2048, 2048, 0.01)), 64);
+            assert_eq!(band_rows_for(&Costed(2048, 2048, 0.01)), 64);
         });
     }
 
