@@ -166,18 +166,29 @@ async fn every_rejection_is_a_problem_and_leaves_nothing_behind() {
 
     let (s, p) = problem(post(vec![7u8; 100 * 1024], "", "image/png").await.unwrap()).await;
     assert_eq!((s, p["code"].as_str().unwrap()), (413, "payload_too_large"));
-    // Chunked (no Content-Length) is cut off by the limit too (72 KiB: small enough that the
-    // client has sent it all before the answer, so the 413 is read rather than a reset).
-    let chunks =
-        futures_util::stream::iter((0..9).map(|_| Ok::<_, std::io::Error>(vec![0u8; 8192])));
-    let res = c
-        .post(srv.url("/v1/bakes"))
-        .header("content-type", "image/png")
-        .body(reqwest::Body::wrap_stream(chunks))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(problem(res).await.0, 413);
+    // Chunked (no Content-Length) is cut off by the limit too. The server answers 413 and
+    // closes without reading the rest, so on a loaded machine the client may still be sending
+    // and see the connection reset instead of the answer (a race of the transport, not of the
+    // server): every answer that arrives must be the 413, and at least one must arrive.
+    let mut answered = 0;
+    for _ in 0..5 {
+        let chunks =
+            futures_util::stream::iter((0..9).map(|_| Ok::<_, std::io::Error>(vec![0u8; 8192])));
+        let sent = c
+            .post(srv.url("/v1/bakes"))
+            .header("content-type", "image/png")
+            .body(reqwest::Body::wrap_stream(chunks))
+            .send()
+            .await;
+        match sent {
+            Ok(res) => {
+                assert_eq!(problem(res).await.0, 413);
+                answered += 1;
+            }
+            Err(e) => assert!(e.is_request(), "not a transport reset: {e}"),
+        }
+    }
+    assert!(answered >= 1, "no chunked upload got its 413");
 
     let jpeg =
         [0xFF, 0xD8, 0xFF, 0xE0, 0, 16, b'J', b'F', b'I', b'F', 0, 1, 1, 0, 0, 1, 0, 1, 0, 0];
