@@ -98,9 +98,10 @@ pub fn make_kernel<'a>(
     progress: &Progress,
 ) -> Box<dyn HorizonRows + 'a> {
     match params.method {
-        Method::Lengyel => {
-            Box::new(kernels::lengyel_fast::LengyelFast::new(grid, radius, params.bins))
-        }
+        Method::Lengyel => Box::new(
+            kernels::lengyel_fast::LengyelFast::new(grid, radius, params.bins)
+                .with_cancel(progress),
+        ),
         Method::Exact => {
             // Unlimited means "to the map edge" with edge=none, which can be longer than
             // max(W, H) on a diagonal; the kernel resolves it itself.

@@ -12,6 +12,7 @@
 //! Then s_n = √(tan² / (tan² + 1)) and channel c is the mean of the B/8 + 1 bins centred on c·B/8.
 
 use super::{reduce_average, Grid, HorizonRows};
+use crate::progress::Progress;
 use std::f64::consts::PI;
 
 /// The plain Lengyel kernel for one grid.
@@ -20,15 +21,29 @@ pub struct LengyelNaive<'a> {
     grid: Grid<'a>,
     radius: u32,
     bins: usize,
+    /// Watched between neighbour rows: at a radius of thousands one texel alone takes seconds.
+    cancel: Option<Progress>,
 }
 
 impl<'a> LengyelNaive<'a> {
     /// Prepares the kernel. `radius ≥ 1`, `bins` a multiple of 16 (validated by `params`).
     pub fn new(grid: Grid<'a>, radius: u32, bins: u32) -> Self {
-        LengyelNaive { grid, radius, bins: bins as usize }
+        LengyelNaive { grid, radius, bins: bins as usize, cancel: None }
     }
 
-    /// The per-bin s values of texel (x, y), written into `s` (`bins` long).
+    /// Makes [`HorizonRows::rows`] return early (leaving the rest of its rows unspecified) once
+    /// `progress` is canceled; the band driver then discards the band.
+    pub fn with_cancel(mut self, progress: &Progress) -> Self {
+        self.cancel = Some(progress.clone());
+        self
+    }
+
+    fn canceled(&self) -> bool {
+        self.cancel.as_ref().is_some_and(Progress::is_canceled)
+    }
+
+    /// The per-bin s values of texel (x, y), written into `s` (`bins` long); unspecified if
+    /// the kernel's progress is canceled meanwhile.
     pub fn texel_bins(&self, x: usize, y: usize, s: &mut [f32]) {
         let b = self.bins;
         let r = self.radius as i64;
@@ -36,6 +51,10 @@ impl<'a> LengyelNaive<'a> {
         let mut tan2 = vec![0.0f64; b];
         let scale = b as f64 / (2.0 * PI);
         for j in (1 - r)..r {
+            // One relaxed load per neighbour row (2R − 1 loads against (2R − 1)² neighbours).
+            if self.canceled() {
+                return;
+            }
             for i in (1 - r)..r {
                 let d2 = (i * i + j * j) as f64;
                 if d2 == 0.0 || d2 >= (r * r) as f64 {
@@ -84,6 +103,9 @@ impl HorizonRows for LengyelNaive<'_> {
         for (k, out) in channels.chunks_exact_mut(8).enumerate() {
             let (x, y) = (k % w, y0 + k / w);
             self.texel_bins(x, y, &mut s);
+            if self.canceled() {
+                return;
+            }
             let mut ch = [0.0f32; 8];
             reduce_average(&s, &mut ch);
             out.copy_from_slice(&ch);

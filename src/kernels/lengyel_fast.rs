@@ -43,6 +43,7 @@
 use super::lengyel::LengyelNaive;
 use super::{Grid, HorizonRows};
 use crate::params::Edge;
+use crate::progress::Progress;
 use std::cell::RefCell;
 use std::f64::consts::PI;
 
@@ -160,6 +161,9 @@ pub struct LengyelFast<'a> {
     bins: usize,
     isa: Isa,
     mode: Mode<'a>,
+    /// Watched between strips: a band is one row at large radii, and one row can still take
+    /// seconds (R ≈ 700 on an 8192-wide map).
+    cancel: Option<Progress>,
 }
 
 impl<'a> LengyelFast<'a> {
@@ -190,7 +194,19 @@ impl<'a> LengyelFast<'a> {
             let max_rows = (MAX_TILE / stride - 2 * pad_y).max(1);
             Mode::Fast(build_tables(r, b, pad_x, pad_y, stride, max_rows, grid.row_step()))
         };
-        LengyelFast { grid, radius: r, bins: b, isa, mode }
+        LengyelFast { grid, radius: r, bins: b, isa, mode, cancel: None }
+    }
+
+    /// Makes [`HorizonRows::rows`] return early (leaving the rest of its rows unspecified) once
+    /// `progress` is canceled, checking between strips of one row (and between neighbour rows
+    /// on the oracle fallback); the band driver then discards the band.
+    pub fn with_cancel(mut self, progress: &Progress) -> Self {
+        self.mode = match self.mode {
+            Mode::Oracle(k) => Mode::Oracle(k.with_cancel(progress)),
+            fast => fast,
+        };
+        self.cancel = Some(progress.clone());
+        self
     }
 
     /// The CPU variant in use.
@@ -386,12 +402,22 @@ impl HorizonRows for LengyelFast<'_> {
             let mut r0 = 0;
             while r0 < n {
                 let m = t.max_rows.min(n - r0);
+                if self.cancel.as_ref().is_some_and(Progress::is_canceled) {
+                    return;
+                }
                 fill_tile(&self.grid, t, y0 + r0, m, &mut scratch.tile);
                 // Per-bin results, then per-group maxima.
                 scratch.acc.resize((b + t.slots) * self.isa.lanes(), 0.0);
                 let ch = &mut channels[r0 * w * 8..(r0 + m) * w * 8];
                 let bo = bins_out.as_deref_mut().map(|bo| &mut bo[r0 * w * b..(r0 + m) * w * b]);
-                let job = Job { t, tile: &scratch.tile, rows: m, width: w, bins: b };
+                let job = Job {
+                    t,
+                    tile: &scratch.tile,
+                    rows: m,
+                    width: w,
+                    bins: b,
+                    cancel: self.cancel.as_ref(),
+                };
                 run_job(self.isa, &job, &mut scratch.acc, ch, bo);
                 r0 += m;
             }
@@ -449,6 +475,7 @@ struct Job<'a> {
     rows: usize,
     width: usize,
     bins: usize,
+    cancel: Option<&'a Progress>,
 }
 
 /// Runs the variant of [`job_body`] compiled for `isa`.
@@ -685,13 +712,17 @@ unsafe fn job_body<const L: usize, V: Variant>(
     channels: &mut [f32],
     mut bins_out: Option<&mut [f32]>,
 ) {
-    let Job { t, tile, rows, width: w, bins: b } = *job;
+    let Job { t, tile, rows, width: w, bins: b, cancel } = *job;
     let centre = t.pad_y * t.stride + t.pad_x;
     let step = b / 8;
     let inv_count = 1.0 / (step + 1) as f32;
     let (acc, gmax) = acc.as_chunks_mut::<L>().0.split_at_mut(b);
     for r in 0..rows {
         for x0 in (0..w).step_by(L) {
+            // One relaxed load per strip, against L·πR² neighbours of work.
+            if cancel.is_some_and(Progress::is_canceled) {
+                return;
+            }
             let base = r * t.stride + x0;
             let Some(h0) = tile.get(base + centre..).and_then(<[f32]>::first_chunk::<L>) else {
                 continue; // unreachable: the tile has STRIP ≥ L spare columns
@@ -903,5 +934,49 @@ mod tests {
         for (a, b) in got.iter().zip(&want) {
             assert!((a - b).abs() < 1e-5);
         }
+    }
+    /// Runs `k.rows` over its whole map on this thread, cancels from another after 50 ms, and
+    /// returns how long `rows` took and whether the last texel was left unwritten.
+    fn cancel_mid_band(k: &LengyelFast<'_>, progress: &Progress) -> (std::time::Duration, bool) {
+        let mut ch = vec![f32::NAN; k.width() * k.height() * 8];
+        let p = progress.clone();
+        let canceller = std::thread::spawn(move || {
+            std::thread::sleep(std::time::Duration::from_millis(50));
+            p.cancel();
+        });
+        let t = std::time::Instant::now();
+        k.rows(0, &mut ch, None);
+        let took = t.elapsed();
+        canceller.join().unwrap();
+        (took, ch.last().unwrap().is_nan())
+    }
+
+    #[test]
+    fn a_cancel_stops_a_band_between_strips() {
+        // R = 600 on a 4096-wide map: ~90 µs per texel, so the 32-row band is ~10 s of one
+        // thread and a single row ~0.4 s; the check between strips of 128 texels answers in ms.
+        let (w, h) = (4096, 32);
+        let hs: Vec<f32> = (0..w * h).map(|k| ((k * 7919) % 101) as f32 * 0.13).collect();
+        let g = Grid::new(w, h, &hs, Edge::Wrap, YAxis::Up);
+        let progress = Progress::new();
+        let k = LengyelFast::new(g, 600, 32).with_cancel(&progress);
+        assert!(!k.is_fallback());
+        let (took, untouched) = cancel_mid_band(&k, &progress);
+        assert!(untouched, "the band ran to its end despite the cancel");
+        assert!(took.as_secs_f64() < 3.0, "cancel took {took:?}");
+    }
+
+    #[test]
+    fn a_cancel_stops_the_oracle_fallback_inside_a_texel() {
+        // R = 4000 forces the oracle: (2R)² = 64 M neighbours, about a second per texel.
+        let (w, h) = (64, 4);
+        let hs: Vec<f32> = (0..w * h).map(|k| ((k * 31) % 17) as f32 * 0.4).collect();
+        let g = Grid::new(w, h, &hs, Edge::Wrap, YAxis::Up);
+        let progress = Progress::new();
+        let k = LengyelFast::new(g, 4000, 32).with_cancel(&progress);
+        assert!(k.is_fallback());
+        let (took, untouched) = cancel_mid_band(&k, &progress);
+        assert!(untouched, "the band ran to its end despite the cancel");
+        assert!(took.as_secs_f64() < 3.0, "cancel took {took:?}");
     }
 }
