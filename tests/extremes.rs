@@ -152,12 +152,10 @@ fn negative_float_heights_are_shift_invariant() {
         let (a, _) = run(&p, w, h, &base);
         let (b, _) = run(&p, w, h, &shifted);
         assert_in_range("negative heights", &b);
-        // Lengyel takes differences of texel heights directly: exact to f32 rounding. The
-        // exact kernel's f32 near field interpolates absolute heights and then subtracts h0,
-        // so at |h| ≈ 1e4 (f32 step 1e-3) it loses up to ~1.1e-4 in s (measured): a quarter of
-        // an 8-bit step, but several 16-bit steps. Known limitation, bounded here so it cannot
-        // grow unseen; subtracting h0 from the corners before interpolating would remove it.
-        let tol = if m == Method::Lengyel { 1e-6 } else { 1e-3 };
+        // Both kernels work on height differences, the exact one relative to the middle of the
+        // map's range: the shift costs nothing beyond f32 rounding of the inputs. (The exact
+        // kernel used to interpolate absolute heights in f32 and lost ~1.1e-4 here.)
+        let tol = 1e-6;
         for (k, (x, y)) in a.iter().zip(&b).enumerate() {
             assert!((x - y).abs() < tol, "{m:?} value {k}: {x} vs {y}");
         }

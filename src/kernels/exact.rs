@@ -454,6 +454,11 @@ struct Near {
     pad: usize,
     pw: usize,
     padded: Vec<f32>,
+    /// Subtracted from every height in `padded` (and from the lanes' h0): the middle of the
+    /// map's range. The f32 lanes interpolate heights before subtracting h0, so absolute
+    /// heights of 1e4 (a DEM in metres) would cost 1e-3 of precision; centred, the error
+    /// scales with the range instead.
+    reference: f64,
     avx2: bool,
     avx512: bool,
 }
@@ -465,6 +470,8 @@ impl Near {
         let pw = w + 2 * pad + LANES + 1;
         let ph = h + 2 * pad + 1;
         let mut padded = vec![0f32; pw * ph];
+        let (lo, hi) = grid.range();
+        let reference = 0.5 * (f64::from(lo) + f64::from(hi));
         for r in 0..ph {
             for c in 0..pw {
                 let (x, y) = (c as i64 - pad as i64, r as i64 - pad as i64);
@@ -472,7 +479,8 @@ impl Near {
                     Edge::Wrap => (x.rem_euclid(w as i64), y.rem_euclid(h as i64)),
                     Edge::None => (x.clamp(0, w as i64 - 1), y.clamp(0, h as i64 - 1)),
                 };
-                padded[r * pw + c] = grid.heights[y as usize * w + x as usize];
+                padded[r * pw + c] =
+                    (f64::from(grid.heights[y as usize * w + x as usize]) - reference) as f32;
             }
         }
         let segs = dirs.iter().map(|&(dx, dy)| Self::pieces(dx, dy, s_cut)).collect();
@@ -485,7 +493,7 @@ impl Near {
         let avx512 = std::arch::is_x86_feature_detected!("avx512f");
         #[cfg(not(target_arch = "x86_64"))]
         let avx512 = false;
-        Near { segs, s_cut, pad, pw, padded, avx2, avx512 }
+        Near { segs, s_cut, pad, pw, padded, reference, avx2, avx512 }
     }
 
     /// How many pieces of direction `n` end at or before `s_end` (a lane's own end with
@@ -942,7 +950,9 @@ impl HorizonRows for ExactHorizon<'_> {
             Edge::Wrap => self.radius.unwrap_or(w.max(self.grid.height) as f64),
             Edge::None => f64::INFINITY,
         };
-        let hmax = self.hmax as f32;
+        // The near field works relative to `near.reference` (see [`Near`]).
+        let reference = near.reference;
+        let hmax = (self.hmax - reference) as f32;
         for r in 0..n_rows {
             let y = y0 + r;
             for x in (0..w).step_by(LANES) {
@@ -954,7 +964,7 @@ impl HorizonRows for ExactHorizon<'_> {
                 let lanes = LANES.min(w - x);
                 let mut h0 = [f32::INFINITY; LANES];
                 for (i, v) in h0.iter_mut().enumerate().take(lanes) {
-                    *v = self.grid.heights[y * w + x + i];
+                    *v = (f64::from(self.grid.heights[y * w + x + i]) - reference) as f32;
                 }
                 for (n, &(dx, dy)) in self.dirs.iter().enumerate() {
                     // Each lane's end: shared when wrapping, at its own border otherwise.
@@ -973,7 +983,8 @@ impl HorizonRows for ExactHorizon<'_> {
                             let t = best[i].max(0.0) as f64;
                             // The ray goes on past the near field and something there could
                             // still beat it: continue with the scalar walk, seeded.
-                            if s_end[i] > near.s_cut && self.hmax - h0[i] as f64 > t * near.s_cut {
+                            let rise = self.hmax - reference - f64::from(h0[i]);
+                            if s_end[i] > near.s_cut && rise > t * near.s_cut {
                                 let ray = Ray::new(&self.grid, x + i, y, dx, dy, self.radius);
                                 best[i] = self.walk(&ray, near.s_cut, t).0 as f32;
                             }
