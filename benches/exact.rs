@@ -7,11 +7,14 @@
 //! default), a terrain-like map; a white-noise map is timed too, the worst case for skipping.
 //!
 //! Build once with `cargo bench --bench exact --no-run`, then run the binary it names.
-//! Arguments: `[size] [radius]` (default 2048, every radius). The "cpu ms" column is the process
+//! Arguments: `[size] [radius]` (default 2048, every radius; a radius outside the usual set
+//! runs alone). Finite radii also time the fast Lengyel kernel on the same map: the last
+//! column is its CPU time over exact's (≥ 1 means exact is no slower). The "cpu ms" column is the process
 //! CPU time (all threads, from /proc/self/stat): on a shared machine it is the fairer figure.
 //! At the current speed the `unlimited` rows take minutes at 2048²; `1024 unlimited` is quicker.
 
 use horizon_bake::kernels::exact::{ExactHorizon, ExactMarch};
+use horizon_bake::kernels::lengyel_fast::LengyelFast;
 use horizon_bake::kernels::{compute_all, Grid};
 use horizon_bake::params::{Edge, Reduce, YAxis};
 use horizon_bake::progress::Progress;
@@ -96,17 +99,23 @@ fn main() {
     let only: Option<String> = std::env::args().nth(2);
     let threads = rayon::current_num_threads();
     let scale = 8.0f32;
-    println!("| map | method | size | radius | bins | threads | ms | cpu ms | Mtexel/s | Mtexel/s per cpu-s | × plain march |");
-    println!("|---|---|---|---|---|---|---|---|---|---|---|");
+    println!("| map | method | size | radius | bins | threads | ms | cpu ms | Mtexel/s | Mtexel/s per cpu-s | × plain march | × fast lengyel, same R (cpu) |");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
     for (map_name, values) in [("fbm", fbm(n)), ("white", white(n))] {
         let heights: Vec<f32> = values.iter().map(|v| v * scale).collect();
         let grid = Grid::new(n, n, &heights, Edge::Wrap, YAxis::Up);
-        let radii: &[Option<u32>] = if map_name == "fbm" {
-            &[None, Some(16), Some(32), Some(64)]
+        let mut radii: Vec<Option<u32>> = if map_name == "fbm" {
+            vec![None, Some(16), Some(32), Some(64)]
         } else {
-            &[None, Some(32)]
+            vec![None, Some(32)]
         };
-        for &radius in radii {
+        // Any other radius asked for on the command line runs on its own.
+        if let Some(r) = only.as_deref().and_then(|o| o.parse::<u32>().ok()) {
+            if !radii.contains(&Some(r)) {
+                radii = vec![Some(r)];
+            }
+        }
+        for &radius in &radii {
             let r = radius.map_or("unlimited".to_string(), |r| r.to_string());
             if only.as_ref().is_some_and(|o| *o != r) {
                 continue;
@@ -118,10 +127,23 @@ fn main() {
             let secs = t.elapsed().as_secs_f64();
             let cpu = cpu_secs() - c0;
             std::hint::black_box(&out);
+            // The finite-radius target is "no slower than lengyel at the same radius": the fast
+            // Lengyel kernel on the same map, in the same run.
+            let vs_lengyel = match radius {
+                Some(r) => {
+                    let c0 = cpu_secs();
+                    let l = LengyelFast::new(grid, r, bins);
+                    let out = compute_all(&l, &Progress::new()).expect("not canceled");
+                    std::hint::black_box(&out);
+                    let lc = cpu_secs() - c0;
+                    format!("{:.2} (lengyel: {:.0} cpu ms)", lc / cpu.max(1e-3), lc * 1e3)
+                }
+                None => "–".to_string(),
+            };
             let crop = if radius.is_none() { 16 } else { 48 };
             let plain = plain_scaled(grid, radius, bins, crop);
             println!(
-                "| {map_name} | exact | {n}² | {r} | {bins} | {threads} | {:.0} | {:.0} | {:.2} | {:.2} | {:.1} (plain: {crop}² crop, 1 thread, scaled: {:.0} ms) |",
+                "| {map_name} | exact | {n}² | {r} | {bins} | {threads} | {:.0} | {:.0} | {:.2} | {:.2} | {:.1} (plain: {crop}² crop, 1 thread, scaled: {:.0} ms) | {vs_lengyel} |",
                 secs * 1e3,
                 cpu * 1e3,
                 (n * n) as f64 / secs / 1e6,
