@@ -686,38 +686,39 @@ fn piece<const FIRST: bool>(
     let (row0, row1) = (&row0[..LANES + 1], &row1[..LANES + 1]);
     let s_a2 = s_a * s_a;
     let mut out = *best;
-    // The interior stationary point is a maximum inside the piece only where d2 < 0 and
-    // 0 < N = d1·s_a − a < (s_b² − s_a²)·(−d2) (g = A/s + B + E·s is concave iff A, E < 0).
-    // Checked without a division first: most pieces have none, and then the divisions and
-    // the square root of the general path are skipped.
-    let interior = !FIRST && {
+    if !FIRST {
+        // The end value for every lane first. Then the interior: along the piece the surface
+        // is its chord plus a bulge −d2·t·(len − t) ≤ −d2·len²/4, and the chord's ratio is
+        // monotone in t, so g ≤ max(g(s_a), g(s_b)) − d2·len²/(4·s_a). Only where that bound
+        // can beat the best value, d2 < 0 and the stationary point
+        // 0 < N = d1·s_a − a < (s_b² − s_a²)·(−d2) lies inside (g = A/s + B + E·s is concave
+        // iff A, E < 0), is the general path with its divisions and square root needed.
         let l2 = (s_a + len) * (s_a + len) - s_a2;
-        let mut any = false;
+        let (inv_sa, q) = (1.0 / s_a, len * len / (4.0 * s_a));
+        let mut interior = false;
         for i in 0..LANES {
             let (k0, k1, k2, k3) = (row0[i], row0[i + 1], row1[i], row1[i + 1]);
             let (bx, by, bxy) = (k1 - k0, k2 - k0, k3 - k1 - k2 + k0);
             let d0 = k0 + bx * fx + by * fy + bxy * fx * fy;
             let d1 = bx * dx + by * dy + bxy * (fx * dy + fy * dx);
             let d2 = bxy * dx * dy;
-            let nn = d1 * s_a - (d0 - h0[i]);
-            // Generous margins: a false positive only costs time.
-            any |= d2 < 0.0 && nn > -1e-3 * l2 * -d2 && nn < 1.001 * l2 * -d2 && valid(i);
-        }
-        any
-    };
-    if !FIRST && !interior {
-        for i in 0..LANES {
-            let (k0, k1, k2, k3) = (row0[i], row0[i + 1], row1[i], row1[i + 1]);
-            let (bx, by, bxy) = (k1 - k0, k2 - k0, k3 - k1 - k2 + k0);
-            let d0 = k0 + bx * fx + by * fy + bxy * fx * fy;
-            let d1 = bx * dx + by * dy + bxy * (fx * dy + fy * dx);
-            let d2 = bxy * dx * dy;
-            let v = (d0 - h0[i] + (d1 + d2 * len) * len) * inv_sb;
+            let a = d0 - h0[i];
+            let v = (a + (d1 + d2 * len) * len) * inv_sb;
             let v = if valid(i) { v } else { f32::NEG_INFINITY };
             out[i] = fmax(v, out[i]);
+            let nn = d1 * s_a - a;
+            let bound = fmax(a * inv_sa, v) - d2 * q;
+            // Generous margins: a false positive only costs time.
+            interior |= d2 < 0.0
+                && nn > -1e-3 * l2 * -d2
+                && nn < 1.001 * l2 * -d2
+                && bound + 1e-6 * (1.0 + bound.abs()) > out[i]
+                && valid(i);
         }
-        *best = out;
-        return;
+        if !interior {
+            *best = out;
+            return;
+        }
     }
     for i in 0..LANES {
         let (k0, k1, k2, k3) = (row0[i], row0[i + 1], row1[i], row1[i + 1]);
