@@ -525,11 +525,15 @@ trait Variant {
     /// Take maxima as signed integers over the f32 bits (see [`raise`]); a constant, so the
     /// choice folds away in each variant.
     const INT_MAX: bool;
-    /// Turns a bin's max(tan) lanes into s = t/√(t²+1).
+    /// Turns a bin's max(tan) lanes into s = t/√(t²+1); correctly rounded unless a variant
+    /// has something faster.
     ///
     /// # Safety
     /// The running CPU must have the features the implementation uses.
-    unsafe fn finish<const L: usize>(a: &mut [f32; L]);
+    #[inline(always)]
+    unsafe fn finish<const L: usize>(a: &mut [f32; L]) {
+        finish_exact(a)
+    }
     /// Whether the variant's features include AVX, for the transposing [`Variant::pack`].
     const AVX: bool = false;
     /// Writes channel-major `ch` texel-major into `dst` (8 floats per texel, up to L texels).
@@ -612,10 +616,6 @@ struct Portable;
 
 impl Variant for Portable {
     const INT_MAX: bool = false;
-    #[inline(always)]
-    unsafe fn finish<const L: usize>(a: &mut [f32; L]) {
-        finish_exact(a)
-    }
 }
 
 /// AVX2: integer maxima, correctly rounded square root and divide.
@@ -625,10 +625,6 @@ impl Variant for Avx2 {
     const INT_MAX: bool = true;
     const ONE_MAX: bool = true;
     const AVX: bool = true;
-    #[inline(always)]
-    unsafe fn finish<const L: usize>(a: &mut [f32; L]) {
-        finish_exact(a)
-    }
 }
 
 /// AVX-512: integer maxima, 14-bit reciprocal square root and one Newton step.
