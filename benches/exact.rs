@@ -9,8 +9,9 @@
 //! Build once with `cargo bench --bench exact --no-run`, then run the binary it names.
 //! Arguments: `[size] [radius]` (default 2048, every radius; a radius outside the usual set
 //! runs alone). Finite radii also time the fast Lengyel kernel on the same map: the last
-//! column is its CPU time over exact's (≥ 1 means exact is no slower). The "cpu ms" column is the process
-//! CPU time (all threads, from /proc/self/stat): on a shared machine it is the fairer figure.
+//! column is its CPU time over exact's (≥ 1 means exact is no slower). The "cpu ms" column is
+//! the process CPU time (all threads, from /proc/self/stat): on a shared machine it is the
+//! fairer figure.
 //! At the current speed the `unlimited` rows take minutes at 2048²; `1024 unlimited` is quicker.
 
 use horizon_bake::kernels::exact::{ExactHorizon, ExactMarch};
