@@ -7,9 +7,10 @@
 //! default), a terrain-like map; a white-noise map is timed too, the worst case for skipping.
 //!
 //! Build once with `cargo bench --bench exact --no-run`, then run the binary it names.
-//! Arguments: `[size] [radius]` (default 2048, every radius; a radius outside the usual set
-//! runs alone). Finite radii also time the fast Lengyel kernel on the same map: the last
-//! column is its CPU time over exact's (≥ 1 means exact is no slower). The "cpu ms" column is
+//! Arguments: `[size] [radius] [point]` (default 2048, every radius; a radius outside the
+//! usual set runs alone; `point` times `reduce=point`, which casts 8 of the 32 azimuths).
+//! Finite radii also time the fast Lengyel kernel on the same map: the last column is its CPU
+//! time over exact's (≥ 1 means exact is no slower). The "cpu ms" column is
 //! the process CPU time (all threads, from /proc/self/stat): on a shared machine it is the
 //! fairer figure.
 //! At the current speed the `unlimited` rows take minutes at 2048²; `1024 unlimited` is quicker.
@@ -98,6 +99,12 @@ fn main() {
     let n: usize = std::env::args().nth(1).and_then(|a| a.parse().ok()).unwrap_or(2048);
     // Optional second argument: only the rows whose radius is this ("unlimited" or a number).
     let only: Option<String> = std::env::args().nth(2);
+    // Optional third argument `point`: `reduce=point`, which casts only the 8 channel azimuths.
+    let reduce = match std::env::args().nth(3).as_deref() {
+        Some("point") => Reduce::Point,
+        _ => Reduce::Average,
+    };
+    let method = if reduce == Reduce::Point { "exact, reduce=point" } else { "exact" };
     let threads = rayon::current_num_threads();
     let scale = 8.0f32;
     println!("| map | method | size | radius | bins | threads | ms | cpu ms | Mtexel/s | Mtexel/s per cpu-s | × plain march | × fast lengyel, same R (cpu) |");
@@ -123,7 +130,7 @@ fn main() {
             }
             let bins = 32u32;
             let (t, c0) = (Instant::now(), cpu_secs());
-            let k = ExactHorizon::new(grid, radius, bins, Reduce::Average);
+            let k = ExactHorizon::new(grid, radius, bins, reduce);
             let out = compute_all(&k, &Progress::new()).expect("not canceled");
             let secs = t.elapsed().as_secs_f64();
             let cpu = cpu_secs() - c0;
@@ -142,14 +149,17 @@ fn main() {
                 None => "–".to_string(),
             };
             let crop = if radius.is_none() { 16 } else { 48 };
-            let plain = plain_scaled(grid, radius, bins, crop);
+            // The plain march always casts every bin; with `point` only 8 of them count.
+            let cast = if reduce == Reduce::Point { 8.0 / bins as f64 } else { 1.0 };
+            let plain = plain_scaled(grid, radius, bins, crop) * cast;
             println!(
-                "| {map_name} | exact | {n}² | {r} | {bins} | {threads} | {:.0} | {:.0} | {:.2} | {:.2} | {:.1} (plain: {crop}² crop, 1 thread, scaled: {:.0} ms) | {vs_lengyel} |",
+                "| {map_name} | {method} | {n}² | {r} | {bins} | {threads} | {:.0} | {:.0} | {:.2} | {:.2} | {:.1} (plain: {crop}² crop, 1 thread, scaled{}: {:.0} ms) | {vs_lengyel} |",
                 secs * 1e3,
                 cpu * 1e3,
                 (n * n) as f64 / secs / 1e6,
                 (n * n) as f64 / cpu.max(1e-3) / 1e6,
                 plain / secs,
+                if cast < 1.0 { " to 8 bins" } else { "" },
                 plain * 1e3
             );
         }

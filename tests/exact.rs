@@ -423,6 +423,39 @@ fn unlimited_edge_none_reaches_the_far_corner() {
 }
 
 #[test]
+fn point_without_bins_casts_only_the_channel_azimuths_and_keeps_their_values() {
+    // `reduce=point` with no per-bin output skips the bins between channels; the 8 channels
+    // must be bit-for-bit those of the full computation, and match the plain march.
+    let mut rng = Rng(4242);
+    for (w, h, edge, radius, bins) in [
+        (23, 9, Edge::Wrap, None, 32u32),
+        (19, 12, Edge::None, None, 32),
+        (40, 6, Edge::Wrap, Some(7), 64),
+        (17, 17, Edge::None, Some(30), 48),
+    ] {
+        let heights = random_map(&mut rng, w, h, true);
+        let g = Grid::new(w, h, &heights, edge, YAxis::Down);
+        let k = ExactHorizon::new(g, radius, bins, Reduce::Point);
+        let plain = ExactMarch::new(g, radius, bins, Reduce::Point);
+        let nb = bins as usize;
+        let (mut skip, mut full) = (vec![f32::NAN; w * 8], vec![f32::NAN; w * 8]);
+        let (mut all_bins, mut b) = (vec![0f32; w * nb], vec![0f32; nb]);
+        for y in 0..h {
+            k.rows(y, &mut skip, None);
+            k.rows(y, &mut full, Some(&mut all_bins));
+            assert_eq!(skip, full, "{w}x{h} {edge:?} {radius:?} {bins} bins: row {y}");
+            for x in 0..w {
+                plain.texel_bins(x, y, &mut b);
+                for c in 0..8 {
+                    let (got, want) = (skip[x * 8 + c], b[c * nb / 8]);
+                    assert!((got - want).abs() <= 1e-5, "({x},{y}) channel {c}: {got} vs {want}");
+                }
+            }
+        }
+    }
+}
+
+#[test]
 fn reduce_point_and_average_follow_the_bins() {
     let mut rng = Rng(99);
     let heights = random_map(&mut rng, 10, 7, true);

@@ -957,6 +957,10 @@ impl HorizonRows for ExactHorizon<'_> {
         // The near field works relative to `near.reference` (see [`Near`]).
         let reference = near.reference;
         let hmax = (self.hmax - reference) as f32;
+        // `reduce=point` reads one bin per channel: unless the per-bin values are asked for
+        // (Fourier), the other bins are never looked at, so their rays are not cast (a quarter
+        // of the work at 32 bins, an eighth at 64).
+        let step = if self.reduce == Reduce::Point && bins_out.is_none() { nb / 8 } else { 1 };
         for r in 0..n_rows {
             let y = y0 + r;
             for x in (0..w).step_by(LANES) {
@@ -970,7 +974,7 @@ impl HorizonRows for ExactHorizon<'_> {
                 for (i, v) in h0.iter_mut().enumerate().take(lanes) {
                     *v = (f64::from(self.grid.heights[y * w + x + i]) - reference) as f32;
                 }
-                for (n, &(dx, dy)) in self.dirs.iter().enumerate() {
+                for (n, &(dx, dy)) in self.dirs.iter().enumerate().step_by(step) {
                     // Each lane's end: shared when wrapping, at its own border otherwise.
                     let mut s_end = [r_all; LANES];
                     let mut count = [near.segs[n].len() as u32; LANES];
