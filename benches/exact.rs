@@ -10,9 +10,8 @@
 //! Arguments: `[size] [radius] [point]` (default 2048, every radius; a radius outside the
 //! usual set runs alone; `point` times `reduce=point`, which casts 8 of the 32 azimuths).
 //! Finite radii also time the fast Lengyel kernel on the same map: the last column is its CPU
-//! time over exact's (≥ 1 means exact is no slower). The "cpu ms" column is
-//! the process CPU time (all threads, from /proc/self/stat): on a shared machine it is the
-//! fairer figure.
+//! time over exact's (≥ 1 means exact is no slower). The "cpu ms" column is the process CPU
+//! time (all threads, from /proc/self/stat): on a shared machine it is the fairer figure.
 //! At the current speed the `unlimited` rows take minutes at 2048²; `1024 unlimited` is quicker.
 
 use horizon_bake::kernels::exact::{ExactHorizon, ExactMarch};
