@@ -1,0 +1,1144 @@
+// The page of horizon-bake (GET /): upload, parameters, progress, the list of bakes, downloads,
+// and the WebGL2 viewer (viewer.js). Plain ES module, no bundler, no dependency.
+//
+// Sections: the HTTP client (API key, problem+json, the event stream read with fetch), the
+// height-map header probe, then the page itself. `window.__horizon` is a small hook for the
+// browser test and for automation (read the canvas, set the light).
+
+import { Viewer, decodeImage, fromAngles, DEFAULTS } from './viewer.js';
+
+// ---------------------------------------------------------------------------------------------
+// HTTP client: every request goes through `api()`, which sends the API key (when the server runs
+// with --api-key) as `Authorization: Bearer …`; a non-2xx answer becomes an `ApiError` with the
+// problem+json `code`, `detail` and `field`. The event stream is read with fetch and a streaming
+// reader and parsed here: EventSource cannot send an Authorization header.
+
+const KEY_STORAGE = 'horizon-bake.api-key';
+
+function getApiKey() {
+  try {
+    return localStorage.getItem(KEY_STORAGE) || '';
+  } catch {
+    return '';
+  }
+}
+
+function setApiKey(key) {
+  try {
+    if (key) localStorage.setItem(KEY_STORAGE, key);
+    else localStorage.removeItem(KEY_STORAGE);
+  } catch {
+    // Storage can be disabled (private mode): the key then lives only in the field.
+  }
+}
+
+/** An HTTP answer that was not 2xx, with the problem+json fields when the body had them. */
+class ApiError extends Error {
+  constructor(status, problem, retryAfter) {
+    const detail = (problem && problem.detail) || `HTTP ${status}`;
+    super(detail);
+    this.status = status;
+    this.code = (problem && problem.code) || `http_${status}`;
+    this.detail = detail;
+    this.field = (problem && problem.field) || null;
+    this.title = (problem && problem.title) || '';
+    this.retryAfter = retryAfter;
+  }
+}
+
+function authHeaders(extra) {
+  const h = new Headers(extra || {});
+  const key = getApiKey();
+  if (key) h.set('Authorization', `Bearer ${key}`);
+  return h;
+}
+
+async function problemOf(res) {
+  const type = res.headers.get('content-type') || '';
+  let problem = null;
+  try {
+    if (type.includes('json')) problem = await res.json();
+    else {
+      const text = await res.text();
+      problem = { detail: text.slice(0, 300) || res.statusText };
+    }
+  } catch {
+    problem = null;
+  }
+  const ra = res.headers.get('retry-after');
+  return new ApiError(res.status, problem, ra === null ? null : Number(ra));
+}
+
+/** fetch() with the API key; throws ApiError for a non-2xx answer. */
+async function api(path, options = {}) {
+  const res = await fetch(path, { ...options, headers: authHeaders(options.headers) });
+  if (!res.ok) throw await problemOf(res);
+  return res;
+}
+
+async function apiJson(path, options = {}) {
+  const res = await api(path, options);
+  return { status: res.status, body: await res.json(), headers: res.headers };
+}
+
+/** A blob: URL of an authenticated GET (for <img> and downloads, which cannot send headers). */
+async function blobUrl(path, signal) {
+  const res = await api(path, { signal });
+  return URL.createObjectURL(await res.blob());
+}
+
+/**
+ * Reads a Server-Sent Events stream with fetch and calls `onEvent(name, data)` for every event
+ * (data parsed as JSON when it is JSON). Resolves when the stream ends; rejects on a network or
+ * HTTP error (ApiError). `signal` aborts it.
+ */
+async function readEvents(path, onEvent, signal) {
+  const res = await api(path, { signal, headers: { Accept: 'text/event-stream' } });
+  const reader = res.body.getReader();
+  const decoder = new TextDecoder();
+  let buffer = '';
+  let name = '';
+  let data = [];
+  const dispatch = () => {
+    if (data.length) {
+      const text = data.join('\n');
+      let value = text;
+      try {
+        value = JSON.parse(text);
+      } catch {
+        // not JSON: pass the text on
+      }
+      onEvent(name || 'message', value);
+    }
+    name = '';
+    data = [];
+  };
+  for (;;) {
+    const { value, done } = await reader.read();
+    if (done) break;
+    buffer += decoder.decode(value, { stream: true });
+    // Lines end with \n, \r\n or \r (the SSE grammar allows all three).
+    let m;
+    while ((m = /\r\n|\n|\r/.exec(buffer)) !== null) {
+      // A lone \r at the very end may be the first half of \r\n: wait for more bytes.
+      if (m[0] === '\r' && m.index === buffer.length - 1) break;
+      const line = buffer.slice(0, m.index);
+      buffer = buffer.slice(m.index + m[0].length);
+      if (line === '') {
+        dispatch();
+        continue;
+      }
+      if (line.startsWith(':')) continue; // comment / keep-alive
+      const colon = line.indexOf(':');
+      const field = colon < 0 ? line : line.slice(0, colon);
+      let val = colon < 0 ? '' : line.slice(colon + 1);
+      if (val.startsWith(' ')) val = val.slice(1);
+      if (field === 'event') name = val;
+      else if (field === 'data') data.push(val);
+    }
+  }
+  dispatch();
+}
+
+// ---------------------------------------------------------------------------------------------
+// Height-map header probe
+
+const PNG_COLORS = { 0: 'gray', 2: 'rgb', 3: 'palette', 4: 'gray+alpha', 6: 'rgba' };
+
+/** The media type to send the bytes with, from their magic number ('' when unknown). */
+function sniffType(bytes) {
+  const b = bytes;
+  if (b.length >= 8 && b[0] === 0x89 && b[1] === 0x50 && b[2] === 0x4e && b[3] === 0x47) {
+    return 'image/png';
+  }
+  if (b.length >= 4 && ((b[0] === 0x49 && b[1] === 0x49 && b[2] === 0x2a && b[3] === 0) ||
+      (b[0] === 0x4d && b[1] === 0x4d && b[2] === 0 && b[3] === 0x2a))) {
+    return 'image/tiff';
+  }
+  if (b.length >= 4 && b[0] === 0x76 && b[1] === 0x2f && b[2] === 0x31 && b[3] === 0x01) {
+    return 'image/x-exr';
+  }
+  return '';
+}
+
+function png(dv) {
+  if (dv.byteLength < 29) throw new Error('truncated PNG header');
+  const tag = String.fromCharCode(dv.getUint8(12), dv.getUint8(13), dv.getUint8(14), dv.getUint8(15));
+  if (tag !== 'IHDR') throw new Error('PNG without IHDR');
+  return {
+    format: 'png',
+    width: dv.getUint32(16),
+    height: dv.getUint32(20),
+    bitDepth: dv.getUint8(24),
+    color: PNG_COLORS[dv.getUint8(25)] || `type ${dv.getUint8(25)}`,
+    float: false,
+  };
+}
+
+async function tiff(file, dv) {
+  const le = dv.getUint8(0) === 0x49;
+  const u16 = (v, o) => v.getUint16(o, le);
+  const u32 = (v, o) => v.getUint32(o, le);
+  const ifdOffset = u32(dv, 4);
+  // The IFD may sit anywhere in the file: read it (and the values it points to) on demand.
+  const read = async (off, len) => new DataView(await file.slice(off, off + len).arrayBuffer());
+  const head = await read(ifdOffset, 2);
+  if (head.byteLength < 2) throw new Error('truncated TIFF');
+  const n = u16(head, 0);
+  const ifd = await read(ifdOffset + 2, n * 12);
+  if (ifd.byteLength < n * 12) throw new Error('truncated TIFF directory');
+  const info = { format: 'tiff', width: 0, height: 0, bitDepth: 0, color: 'gray', float: false };
+  let spp = 1;
+  for (let i = 0; i < n; i++) {
+    const o = i * 12;
+    const tag = u16(ifd, o);
+    const type = u16(ifd, o + 2);
+    const value = type === 3 ? u16(ifd, o + 8) : u32(ifd, o + 8);
+    if (tag === 256) info.width = value;
+    else if (tag === 257) info.height = value;
+    else if (tag === 258) {
+      // Inline when the SHORTs fit in 4 bytes, else at an offset: the first sample's depth.
+      if (u32(ifd, o + 4) <= 2) info.bitDepth = u16(ifd, o + 8);
+      else {
+        const at = await read(u32(ifd, o + 8), 2);
+        if (at.byteLength === 2) info.bitDepth = u16(at, 0);
+      }
+    } else if (tag === 277) spp = value;
+    else if (tag === 339) info.float = value === 3;
+  }
+  info.color = { 1: 'gray', 2: 'gray+alpha', 3: 'rgb', 4: 'rgba' }[spp] || `${spp} samples`;
+  return info;
+}
+
+function exr(dv) {
+  let o = 8;
+  const str = () => {
+    let s = '';
+    while (o < dv.byteLength) {
+      const c = dv.getUint8(o++);
+      if (c === 0) return s;
+      s += String.fromCharCode(c);
+    }
+    throw new Error('truncated EXR header');
+  };
+  const info = { format: 'exr', width: 0, height: 0, bitDepth: 0, color: '', float: true };
+  for (;;) {
+    const name = str();
+    if (name === '') break;
+    const type = str();
+    const size = dv.getInt32(o, true);
+    o += 4;
+    if (name === 'dataWindow' && type === 'box2i') {
+      const [x0, y0, x1, y1] = [0, 4, 8, 12].map((k) => dv.getInt32(o + k, true));
+      info.width = x1 - x0 + 1;
+      info.height = y1 - y0 + 1;
+    } else if (name === 'channels' && type === 'chlist') {
+      let p = o;
+      const names = [];
+      let bits = 0;
+      while (p < o + size) {
+        let s = '';
+        while (dv.getUint8(p) !== 0) s += String.fromCharCode(dv.getUint8(p++));
+        p++;
+        if (s === '') break;
+        const pt = dv.getInt32(p, true);
+        bits = Math.max(bits, pt === 1 ? 16 : 32);
+        names.push(s);
+        p += 16;
+      }
+      info.color = names.join(',');
+      info.bitDepth = bits;
+    }
+    o += size;
+  }
+  return info;
+}
+
+/**
+ * The header of `file` (a File or Blob): {format, width, height, bitDepth, color, float, type}.
+ * Throws an Error with a readable message when the bytes are none of PNG, TIFF, OpenEXR.
+ */
+async function probe(file) {
+  const head = new Uint8Array(await file.slice(0, 65536).arrayBuffer());
+  const type = sniffType(head);
+  const dv = new DataView(head.buffer, head.byteOffset, head.byteLength);
+  let info;
+  if (type === 'image/png') info = png(dv);
+  else if (type === 'image/tiff') info = await tiff(file, dv);
+  else if (type === 'image/x-exr') info = exr(dv);
+  else throw new Error('not a PNG, TIFF or OpenEXR file');
+  return { ...info, type };
+}
+
+// ---------------------------------------------------------------------------------------------
+// The page
+
+const $ = (id) => document.getElementById(id);
+
+function readConfig() {
+  const fallback = { version: '?', auth_required: false, max_body_bytes: 0, max_dim: 0, max_texels: 0 };
+  try {
+    return { ...fallback, ...JSON.parse($('config').textContent) };
+  } catch {
+    return fallback; // the file opened without the server's substitution
+  }
+}
+
+const config = readConfig();
+
+const DEFAULT_PARAMS = {
+  method: 'lengyel',
+  radius: '16',
+  min_elevation_deg: '5',
+  bins: '32',
+  reduce: 'average',
+  height_scale: '8',
+  channel: 'luma',
+  edge: 'wrap',
+  y_axis: 'up',
+  encoding: 'linear',
+  outputs: 'horizon',
+  fourier_terms: '5',
+  fourier_range: 'standard',
+};
+const FIELDS = Object.keys(DEFAULT_PARAMS);
+const TERMINAL = new Set(['succeeded', 'failed', 'canceled']);
+const CUBE_SIZE = DEFAULTS.cubeSize;
+
+const state = {
+  file: null,
+  bake: null,          // the bake resource shown
+  watch: null,         // AbortController of the event stream
+  viewer: null,
+  viewerError: '',
+  loadToken: 0,
+  loadedId: null,      // id whose textures the viewer holds
+  cube: null,          // decoded cube faces (shared by every bake)
+  light: { azimuth: DEFAULTS.azimuth, elevation: DEFAULTS.elevation, hardness: DEFAULTS.hardness },
+  progressLog: [],
+  previewTimer: 0,
+  previewAbort: null,
+  previewUrl: '',
+  previewFor: '',
+  retryTimer: 0,
+};
+
+// --- formatting ---------------------------------------------------------------------------
+
+function fmtBytes(n) {
+  if (!Number.isFinite(n) || n <= 0) return '—';
+  const u = ['B', 'KiB', 'MiB', 'GiB'];
+  let i = 0;
+  while (n >= 1024 && i < u.length - 1) {
+    n /= 1024;
+    i++;
+  }
+  return `${n.toFixed(i ? 1 : 0)} ${u[i]}`;
+}
+
+const fmtDeg = (v) => `${Number(v.toFixed(2))}°`;
+
+function el(tag, attrs = {}, ...children) {
+  const e = document.createElement(tag);
+  for (const [k, v] of Object.entries(attrs)) {
+    if (v === undefined || v === null || v === false) continue;
+    if (k === 'class') e.className = v;
+    else if (k === 'text') e.textContent = v;
+    else if (k.startsWith('on')) e.addEventListener(k.slice(2), v);
+    else e.setAttribute(k, v === true ? '' : v);
+  }
+  for (const c of children) e.append(c);
+  return e;
+}
+
+// --- errors -------------------------------------------------------------------------------
+
+function clearErrors() {
+  $('error').hidden = true;
+  $('error').textContent = '';
+  for (const f of [...FIELDS]) {
+    const e = $(`err-${f}`);
+    if (e) e.textContent = '';
+  }
+  for (const i of document.querySelectorAll('#params [aria-invalid]')) i.removeAttribute('aria-invalid');
+}
+
+/** Shows an API error: code and detail in the alert, and next to the field it names. */
+function showError(err, context) {
+  const box = $('error');
+  box.textContent = '';
+  const code = err.code || 'error';
+  const msg = err.detail || err.message || String(err);
+  box.append(el('strong', { text: context ? `${context}: ` : '' }), el('code', { class: 'code', text: code }),
+    ' — ', el('span', { class: 'detail', text: msg }));
+  if (err.status === 401) {
+    box.append(el('br'), 'Enter the server\'s API key at the top right.');
+  }
+  if (err.retryAfter !== null && err.retryAfter !== undefined && err.status === 429) {
+    box.append(el('br'), el('span', { class: 'retry', text: `Retry-After: ${err.retryAfter} s` }));
+  }
+  box.hidden = false;
+  if (err.field) {
+    const slot = $(`err-${err.field}`);
+    if (slot) {
+      slot.textContent = msg;
+      const input = err.field === 'outputs' ? $('p-out-horizon')
+        : err.field === 'radius' ? ($('p-radius-mode').value === 'texels' ? $('p-radius') : $('p-radius-mode'))
+          : $(`p-${err.field}`);
+      if (input) {
+        input.setAttribute('aria-invalid', 'true');
+        input.focus({ preventScroll: true });
+      }
+    }
+  }
+}
+
+// --- API key --------------------------------------------------------------------------------
+
+function showKeyState() {
+  const has = !!getApiKey();
+  $('api-key').placeholder = config.auth_required ? 'required by this server' : 'not needed';
+  $('key-state').textContent = has ? 'key saved' : config.auth_required ? 'needs a key' : '';
+}
+
+$('api-key').value = getApiKey();
+$('key-form').addEventListener('submit', (ev) => {
+  ev.preventDefault();
+  setApiKey($('api-key').value.trim());
+  showKeyState();
+  clearErrors();
+  refreshRecent();
+  route();
+});
+
+// --- parameters ---------------------------------------------------------------------------
+
+function syncForm() {
+  const mode = $('p-radius-mode').value;
+  $('p-radius').disabled = mode !== 'texels';
+  $('p-min_elevation_deg').disabled = mode !== 'auto';
+  $('p-reduce').disabled = $('p-method').value !== 'exact';
+  const fourier = $('p-out-fourier').checked;
+  $('p-fourier_terms').disabled = !fourier;
+  $('p-fourier_range').disabled = !fourier;
+}
+
+/** The form's parameters as strings, only the enabled fields. */
+function formParams() {
+  const p = {};
+  for (const f of FIELDS) {
+    const input = $(`p-${f}`);
+    if (f === 'radius') {
+      const mode = $('p-radius-mode').value;
+      p.radius = mode === 'texels' ? $('p-radius').value.trim() : mode;
+    } else if (f === 'outputs') {
+      p.outputs = [['horizon', 'p-out-horizon'], ['fourier', 'p-out-fourier']]
+        .filter(([, id]) => $(id).checked).map(([n]) => n).join(',');
+    } else if (input && !input.disabled) {
+      p[f] = String(input.value).trim();
+    }
+  }
+  return p;
+}
+
+/** The query string of the non-default parameters. */
+function paramQuery(p) {
+  const q = new URLSearchParams();
+  for (const f of FIELDS) {
+    if (p[f] !== undefined && p[f] !== DEFAULT_PARAMS[f]) q.set(f, p[f]);
+  }
+  const s = q.toString();
+  return s ? `?${s}` : '';
+}
+
+function resetForm() {
+  $('p-method').value = DEFAULT_PARAMS.method;
+  $('p-radius-mode').value = 'texels';
+  $('p-radius').value = DEFAULT_PARAMS.radius;
+  for (const f of ['min_elevation_deg', 'bins', 'reduce', 'height_scale', 'channel', 'edge', 'y_axis',
+    'encoding', 'fourier_terms', 'fourier_range']) {
+    $(`p-${f}`).value = DEFAULT_PARAMS[f];
+  }
+  $('p-out-horizon').checked = true;
+  $('p-out-fourier').checked = false;
+  syncForm();
+  clearErrors();
+}
+
+for (const id of ['p-radius-mode', 'p-method', 'p-out-fourier', 'p-out-horizon']) {
+  $(id).addEventListener('change', syncForm);
+}
+$('reset').addEventListener('click', resetForm);
+syncForm();
+
+// --- the file -----------------------------------------------------------------------------
+
+function showLimits() {
+  const parts = [];
+  if (config.max_dim) parts.push(`each side ≤ ${config.max_dim} texels`);
+  if (config.max_texels) parts.push(`≤ ${config.max_texels.toLocaleString('en')} texels`);
+  if (config.max_body_bytes) parts.push(`≤ ${fmtBytes(config.max_body_bytes)} per upload`);
+  $('limits').textContent = parts.length ? `Server limits: ${parts.join(', ')}.` : '';
+}
+
+async function chooseFile(file) {
+  state.file = file;
+  const info = $('file-info');
+  info.className = 'muted';
+  info.textContent = `${file.name} — ${fmtBytes(file.size)}…`;
+  try {
+    const h = await probe(file);
+    state.fileInfo = h;
+    const depth = h.bitDepth ? `${h.bitDepth}-bit${h.float ? ' float' : ''}` : '';
+    const over = [];
+    if (config.max_dim && (h.width > config.max_dim || h.height > config.max_dim)) {
+      over.push(`a side exceeds ${config.max_dim}`);
+    }
+    if (config.max_texels && h.width * h.height > config.max_texels) {
+      over.push(`more than ${config.max_texels} texels`);
+    }
+    if (config.max_body_bytes && file.size > config.max_body_bytes) {
+      over.push(`larger than ${fmtBytes(config.max_body_bytes)}`);
+    }
+    info.textContent = `${file.name}: ${h.width} × ${h.height}, ${h.format.toUpperCase()} ${h.color} ${depth}, ${fmtBytes(file.size)}`;
+    info.dataset.width = h.width;
+    info.dataset.height = h.height;
+    if (over.length) {
+      info.className = 'err';
+      info.textContent += ` — over the server's limits (${over.join('; ')}): it will be refused.`;
+    }
+  } catch (e) {
+    state.fileInfo = null;
+    info.className = 'err';
+    info.textContent = `${file.name} (${fmtBytes(file.size)}): ${e.message}; the server will refuse it.`;
+  }
+}
+
+const drop = $('drop');
+drop.addEventListener('dragover', (ev) => {
+  ev.preventDefault();
+  drop.classList.add('over');
+});
+drop.addEventListener('dragleave', () => drop.classList.remove('over'));
+drop.addEventListener('drop', (ev) => {
+  ev.preventDefault();
+  drop.classList.remove('over');
+  const f = ev.dataTransfer && ev.dataTransfer.files[0];
+  if (f) chooseFile(f);
+});
+drop.addEventListener('keydown', (ev) => {
+  if (ev.key === 'Enter' || ev.key === ' ') {
+    ev.preventDefault();
+    $('file').click();
+  }
+});
+$('file').addEventListener('change', () => {
+  const f = $('file').files[0];
+  if (f) chooseFile(f);
+});
+
+// --- submit, progress, cancel --------------------------------------------------------------
+
+async function submit(ev) {
+  ev.preventDefault();
+  clearErrors();
+  if (!state.file) {
+    showError({ code: 'no_file', detail: 'choose a height map first' });
+    return;
+  }
+  const head = new Uint8Array(await state.file.slice(0, 16).arrayBuffer());
+  const type = sniffType(head) || 'application/octet-stream';
+  const url = `/v1/bakes${paramQuery(formParams())}`;
+  $('bake').disabled = true;
+  $('status').textContent = 'Uploading…';
+  try {
+    const { status, body } = await apiJson(url, { method: 'POST', body: state.file, headers: { 'Content-Type': type } });
+    $('status').textContent = status === 200 ? 'Identical bake found: showing it.' : 'Accepted.';
+    state.progressLog.push({ fraction: body.progress.fraction, stage: body.progress.stage, status: body.status });
+    openResource(body);
+    refreshRecent();
+  } catch (e) {
+    $('status').textContent = '';
+    showError(e, 'upload');
+    if (e.status === 429) retryCountdown(e.retryAfter || 1);
+  } finally {
+    if (!state.retryTimer) $('bake').disabled = false;
+  }
+}
+
+function retryCountdown(secs) {
+  clearInterval(state.retryTimer);
+  let left = Math.max(1, Math.ceil(secs));
+  const btn = $('bake');
+  btn.disabled = true;
+  const tick = () => {
+    if (left <= 0) {
+      clearInterval(state.retryTimer);
+      state.retryTimer = 0;
+      btn.disabled = false;
+      btn.textContent = 'Bake';
+      return;
+    }
+    btn.textContent = `Retry in ${left} s`;
+    $('status').textContent = `Queue full: retry after ${left} s.`;
+    left--;
+  };
+  tick();
+  state.retryTimer = setInterval(tick, 1000);
+}
+
+$('params').addEventListener('submit', submit);
+
+function showProgress(fraction, stage, status) {
+  const f = Math.max(0, Math.min(1, Number(fraction) || 0));
+  $('progress').value = f;
+  $('progress').dataset.stage = stage;
+  $('progress-text').textContent = `${(f * 100).toFixed(1)}% ${stage}`;
+  $('status').textContent = status;
+  $('cancel').disabled = TERMINAL.has(status);
+  state.progressLog.push({ fraction: f, stage, status });
+}
+
+/** Follows a bake's event stream until it ends, reconnecting when the stream breaks. */
+async function watch(id) {
+  if (state.watch) state.watch.abort();
+  const ctrl = new AbortController();
+  state.watch = ctrl;
+  let finished = false;
+  for (let attempt = 0; !finished && !ctrl.signal.aborted; attempt++) {
+    try {
+      await readEvents(`/v1/bakes/${encodeURIComponent(id)}/events`, (name, data) => {
+        if (ctrl.signal.aborted) return;
+        if (name === 'progress') {
+          showProgress(data.progress.fraction, data.progress.stage, data.status);
+        } else if (name === 'done') {
+          finished = true;
+          showBake(data);
+          refreshRecent();
+        } else if (name === 'deleted') {
+          finished = true;
+          $('status').textContent = `bake ${id} was deleted`;
+          $('cancel').disabled = true;
+          refreshRecent();
+        }
+      }, ctrl.signal);
+    } catch (e) {
+      if (ctrl.signal.aborted) return;
+      if (e.status === 404 || e.status === 401) {
+        showError(e, 'events');
+        return;
+      }
+    }
+    if (finished || ctrl.signal.aborted) break;
+    // The stream ended without a final event: ask for the resource, then listen again.
+    try {
+      const { body } = await apiJson(`/v1/bakes/${encodeURIComponent(id)}`, { signal: ctrl.signal });
+      if (TERMINAL.has(body.status)) {
+        finished = true;
+        showBake(body);
+        break;
+      }
+    } catch (e) {
+      if (ctrl.signal.aborted) return;
+    }
+    await new Promise((r) => setTimeout(r, Math.min(5000, 500 * (attempt + 1))));
+  }
+  if (state.watch === ctrl) state.watch = null;
+}
+
+$('cancel').addEventListener('click', async () => {
+  const b = state.bake;
+  if (!b) return;
+  try {
+    const res = await api(`/v1/bakes/${encodeURIComponent(b.id)}`, { method: 'DELETE' });
+    $('status').textContent = res.status === 202 ? 'Cancel requested…' : res.status === 204 ? 'Deleted.' : 'Canceled.';
+    if (res.status === 200) showBake(await res.json());
+  } catch (e) {
+    showError(e, 'cancel');
+  }
+});
+
+// --- one bake: metadata, downloads, viewer --------------------------------------------------
+
+function openResource(res) {
+  if (location.hash.slice(1) !== res.id) history.replaceState(null, '', `#${res.id}`);
+  showBake(res);
+  if (!TERMINAL.has(res.status)) watch(res.id);
+}
+
+async function openBake(id) {
+  try {
+    const { body } = await apiJson(`/v1/bakes/${encodeURIComponent(id)}`);
+    openResource(body);
+  } catch (e) {
+    showError(e, `bake ${id}`);
+  }
+}
+
+function route() {
+  const id = decodeURIComponent(location.hash.slice(1));
+  if (id && (!state.bake || state.bake.id !== id || state.loadedId !== id)) openBake(id);
+}
+
+window.addEventListener('hashchange', route);
+
+function showMeta(res) {
+  const meta = $('meta');
+  meta.textContent = '';
+  const row = (k, v) => meta.append(el('dt', { text: k }), el('dd', { text: v }));
+  const p = res.params || {};
+  const i = res.input || {};
+  row('id', res.id);
+  row('status', res.status + (res.error ? ` — ${res.error.code || ''} ${res.error.detail || res.error.message || JSON.stringify(res.error)}` : ''));
+  if (i.width) {
+    row('input', `${i.width} × ${i.height} ${i.format || ''} ${i.color || ''} ${i.bit_depth ? `${i.bit_depth}-bit` : ''}${i.float ? ' float' : ''}, ${fmtBytes(i.bytes)}`);
+  }
+  row('method', `${p.method || '?'}, bins ${p.bins ?? '?'}, reduce ${p.reduce ?? '?'}`);
+  const rr = p.resolved_radius;
+  row('radius', rr ? `${rr.texels} texels (asked: ${p.radius}) — ${rr.reason}` : String(p.radius ?? '?'));
+  row('surface', `height_scale ${p.height_scale}, channel ${p.channel}, edge ${p.edge}, y_axis ${p.y_axis}`);
+  row('encoding', `${p.encoding}, outputs ${Array.isArray(p.outputs) ? p.outputs.join(',') : JSON.stringify(p.outputs)}`);
+  if (res.timings_ms) {
+    row('timings', Object.entries(res.timings_ms).map(([k, v]) => `${k} ${Number(v).toFixed(1)} ms`).join(', '));
+  }
+  row('created', res.created_at || '—');
+  if (res.finished_at) row('finished', res.finished_at);
+}
+
+function outputsOf(p) {
+  const o = p.outputs;
+  if (typeof o === 'string') return o.split(',');
+  if (Array.isArray(o)) return o;
+  if (o && typeof o === 'object') return Object.entries(o).filter(([, v]) => v).map(([k]) => k);
+  return ['horizon'];
+}
+
+function currentLightQuery(shading) {
+  const l = state.light;
+  const q = new URLSearchParams({ shading, azimuth: String(l.azimuth), elevation: String(l.elevation),
+    hardness: String(l.hardness) });
+  return q.toString();
+}
+
+function showDownloads(res) {
+  const ul = $('downloads');
+  ul.textContent = '';
+  const add = (label, href, type, filename) => {
+    ul.append(el('li', {}, el('a', { class: 'dl', href, download: filename, 'data-type': type, text: label })));
+  };
+  const base = `/v1/bakes/${encodeURIComponent(res.id)}`;
+  add('bake.json (resource)', base, 'application/json', `bake_${res.id}.json`);
+  if (res.status !== 'succeeded') return;
+  const links = res.links || {};
+  if (links.horizon_0) {
+    for (const layer of [0, 1]) {
+      add(`horizon_${layer}.png (8-bit)`, `${base}/horizon/${layer}?format=png8`, 'image/png', `horizon_${layer}.png`);
+      add(`horizon_${layer}.png (16-bit)`, `${base}/horizon/${layer}?format=png16`, 'image/png', `horizon_${layer}_16.png`);
+      add(`horizon_${layer}.exr`, `${base}/horizon/${layer}?format=exr`, 'image/x-exr', `horizon_${layer}.exr`);
+    }
+    add('horizon.ktx2', `${base}/horizon.ktx2`, 'image/ktx2', 'horizon.ktx2');
+    add('horizon.dds', `${base}/horizon.dds`, 'image/vnd-ms.dds', 'horizon.dds');
+  }
+  for (const k of [0, 1, 2]) {
+    if (links[`fourier_${k}`]) add(`fourier_${k}.png`, `${base}/fourier/${k}`, 'image/png', `fourier_${k}.png`);
+  }
+  for (let f = 0; f < 6; f++) {
+    add(`cube_${f}.png (${['+X', '−X', '+Y', '−Y', '+Z', '−Z'][f]})`, `/v1/cubemap/${f}?size=${CUBE_SIZE}`, 'image/png', `cube_${f}.png`);
+  }
+  add('cubemap.ktx2', `/v1/cubemap.ktx2?size=${CUBE_SIZE}`, 'image/ktx2', 'cubemap.ktx2');
+  add('cubemap.dds', `/v1/cubemap.dds?size=${CUBE_SIZE}`, 'image/vnd-ms.dds', 'cubemap.dds');
+  add('heights (f32 LE)', `${base}/heights`, 'application/octet-stream', `heights_${res.id}.f32`);
+  const shading = links.horizon_0 ? 'horizon' : 'fourier';
+  const prev = el('a', { class: 'dl', id: 'dl-preview', href: `${base}/preview?${currentLightQuery(shading)}`,
+    download: `preview_${res.id}.png`, 'data-type': 'image/png', text: 'CPU preview at this light' });
+  ul.append(el('li', {}, prev));
+}
+
+// Downloads cannot send headers: with a key, fetch the file and hand the browser a blob.
+$('downloads').addEventListener('click', async (ev) => {
+  const a = ev.target.closest('a.dl');
+  if (!a || !getApiKey()) return;
+  ev.preventDefault();
+  try {
+    const url = await blobUrl(a.getAttribute('href'));
+    const tmp = el('a', { href: url, download: a.getAttribute('download') });
+    document.body.append(tmp);
+    tmp.click();
+    tmp.remove();
+    setTimeout(() => URL.revokeObjectURL(url), 30000);
+  } catch (e) {
+    showError(e, 'download');
+  }
+});
+
+function showBake(res) {
+  const changed = !state.bake || state.bake.id !== res.id;
+  state.bake = res;
+  $('bake-id').textContent = `#${res.id}`;
+  showMeta(res);
+  showDownloads(res);
+  if (TERMINAL.has(res.status)) {
+    showProgress(res.status === 'succeeded' ? 1 : res.progress.fraction, res.status === 'succeeded' ? 'done' : res.status, res.status);
+  } else {
+    showProgress(res.progress.fraction, res.progress.stage, res.status);
+  }
+  for (const li of document.querySelectorAll('#recent li')) {
+    li.classList.toggle('current', li.dataset.id === res.id);
+  }
+  if (res.status === 'succeeded' && (changed || state.loadedId !== res.id)) loadViewer(res);
+  if (res.status === 'failed' && res.error) {
+    showError({ code: res.error.code || 'failed', detail: res.error.detail || res.error.message || JSON.stringify(res.error) }, `bake ${res.id} failed`);
+  }
+}
+
+// --- recent bakes ---------------------------------------------------------------------------
+
+async function refreshRecent() {
+  const ol = $('recent');
+  let items = [];
+  try {
+    let url = '/v1/bakes?limit=1000';
+    for (let page = 0; url && page < 10; page++) {
+      const { body } = await apiJson(url);
+      items = items.concat(body.items);
+      url = body.next ? body.next.href : null;
+    }
+  } catch (e) {
+    ol.textContent = '';
+    ol.append(el('li', { class: 'muted', text: e.status === 401 ? 'needs the API key' : `cannot list: ${e.message}` }));
+    return;
+  }
+  ol.textContent = '';
+  const recent = items.slice(-40).reverse();
+  if (!recent.length) ol.append(el('li', { class: 'muted', text: 'no bakes yet' }));
+  for (const b of recent) {
+    const i = b.input || {};
+    const p = b.params || {};
+    const li = el('li', { 'data-id': b.id, class: state.bake && state.bake.id === b.id ? 'current' : '' },
+      el('a', { href: `#${b.id}`, class: 'mono', text: b.id.slice(0, 14) }),
+      el('span', { class: `st ${b.status}`, text: b.status }),
+      el('span', { class: 'muted', text: `${i.width || '?'}×${i.height || '?'} ${p.method || ''} r=${p.resolved_radius ? p.resolved_radius.texels : p.radius}` }));
+    ol.append(li);
+  }
+}
+
+$('refresh').addEventListener('click', refreshRecent);
+
+// --- the viewer -----------------------------------------------------------------------------
+
+function setupViewer() {
+  try {
+    state.viewer = Viewer.create($('canvas'));
+  } catch (e) {
+    state.viewer = null;
+    state.viewerError = e.message;
+  }
+  if (state.viewer) {
+    $('renderer').textContent = `WebGL2: ${state.viewer.rendererName()}`;
+  } else {
+    $('renderer').textContent = 'no WebGL2';
+    $('viewer-note').textContent = `WebGL2 is not available${state.viewerError ? ` (${state.viewerError})` : ''}: showing the server's CPU preview instead.`;
+    $('canvas').hidden = true;
+    $('cpu-fig').hidden = false;
+    $('layout').disabled = true;
+    $('debug').disabled = true;
+  }
+}
+
+async function fetchImage(path) {
+  const res = await api(path);
+  return decodeImage(await res.blob());
+}
+
+async function loadCube() {
+  if (!state.cube) {
+    state.cube = Promise.all([0, 1, 2, 3, 4, 5].map((f) => fetchImage(`/v1/cubemap/${f}?size=${CUBE_SIZE}`)));
+  }
+  try {
+    return await state.cube;
+  } catch (e) {
+    state.cube = null;
+    throw e;
+  }
+}
+
+async function loadViewer(res) {
+  const token = ++state.loadToken;
+  state.loadedId = null;
+  const v = state.viewer;
+  const p = res.params || {};
+  const outs = outputsOf(p);
+  const hasHorizon = !!(res.links && res.links.horizon_0);
+  const hasFourier = !!(res.links && res.links.fourier_0);
+  for (const opt of $('shading').options) {
+    if (opt.value === 'horizon' || opt.value === 'difference') opt.disabled = !hasHorizon;
+    if (opt.value === 'fourier') opt.disabled = !hasFourier;
+  }
+  if ($('shading').selectedOptions[0].disabled) $('shading').value = hasHorizon ? 'horizon' : 'fourier';
+  for (const opt of $('layout').options) {
+    if (opt.value === 'tiled') opt.disabled = p.edge !== 'wrap';
+  }
+  if ($('layout').value === 'tiled' && p.edge !== 'wrap') $('layout').value = 'single';
+  if (!v) {
+    update();
+    return;
+  }
+  $('viewer-note').textContent = 'Loading the baked layers…';
+  try {
+    const base = `/v1/bakes/${encodeURIComponent(res.id)}`;
+    const hres = await api(`${base}/heights`);
+    const w = Number(hres.headers.get('x-width')) || res.input.width;
+    const h = Number(hres.headers.get('x-height')) || res.input.height;
+    const buf = await hres.arrayBuffer();
+    if (buf.byteLength !== w * h * 4) throw new Error(`heights: ${buf.byteLength} bytes for ${w}×${h}`);
+    const max = v.maxTextureSize();
+    if (w > max || h > max) throw new Error(`the map (${w}×${h}) exceeds this GPU's texture size ${max}`);
+    const heights = new Float32Array(w * h);
+    const dv = new DataView(buf);
+    for (let k = 0; k < w * h; k++) heights[k] = dv.getFloat32(k * 4, true);
+    const terms = Number(p.fourier_terms) || 5;
+    const [layers, fourier, cube] = await Promise.all([
+      hasHorizon ? Promise.all([fetchImage(`${base}/horizon/0`), fetchImage(`${base}/horizon/1`)]) : null,
+      hasFourier ? Promise.all([fetchImage(`${base}/fourier/0`), fetchImage(`${base}/fourier/1`),
+        terms >= 7 && res.links.fourier_2 ? fetchImage(`${base}/fourier/2`) : null]) : null,
+      loadCube(),
+    ]);
+    if (token !== state.loadToken) return;
+    v.setMap({ width: w, height: h, heights, edge: p.edge, yAxis: p.y_axis, encoding: p.encoding });
+    if (layers) v.setLayers(layers[0], layers[1]);
+    if (fourier) v.setFourier(fourier[0], fourier[1], fourier[2], terms, p.fourier_range);
+    v.setCube(cube);
+    state.loadedId = res.id;
+    $('viewer-note').textContent = `${w} × ${h}, ${outs.join(' + ')}; GPU decodes the layers with the cube map (${CUBE_SIZE}² per face).`;
+    update();
+  } catch (e) {
+    if (token !== state.loadToken) return;
+    $('viewer-note').textContent = `The viewer could not load this bake: ${e.message}`;
+    showError(e, 'viewer');
+  }
+}
+
+function debugOptions() {
+  const d = $('debug').value;
+  if (d === 'layer0' || d === 'layer1') return { mode: 'layer', layer: Number(d[5]) };
+  if (d.startsWith('ch')) return { mode: 'channel', channel: Number(d.slice(2)) };
+  return { mode: d };
+}
+
+function viewOptions(extra = {}) {
+  const l = state.light;
+  const sh = $('shading').value;
+  return {
+    light: fromAngles(l.azimuth, l.elevation),
+    hardness: l.hardness,
+    shading: sh === 'fourier' || sh === 'none' ? sh : 'horizon',
+    tiled: $('layout').value === 'tiled',
+    ...debugOptions(),
+    ...extra,
+  };
+}
+
+function displaySize(w, h) {
+  const zoom = $('zoom').value;
+  if (zoom !== 'fit') return [w * Number(zoom), h * Number(zoom)];
+  const stage = $('stage').getBoundingClientRect();
+  const side = $('layout').value === 'side' ? 2 : 1;
+  const maxW = Math.max(64, (stage.width - (side - 1) * 10) / side);
+  const maxH = Math.max(128, window.innerHeight * 0.72);
+  const s = Math.min(maxW / w, maxH / h);
+  return [Math.max(1, Math.floor(w * s)), Math.max(1, Math.floor(h * s))];
+}
+
+function showLight() {
+  const l = state.light;
+  $('light').textContent = `azimuth ${fmtDeg(l.azimuth)}, elevation ${fmtDeg(l.elevation)}, hardness ${l.hardness}`;
+  $('azimuth').value = ((l.azimuth + 180) % 360 + 360) % 360 - 180;
+  $('elevation').value = l.elevation;
+  $('hardness').value = l.hardness;
+  $('azimuth-v').textContent = fmtDeg(l.azimuth);
+  $('elevation-v').textContent = fmtDeg(l.elevation);
+  $('hardness-v').textContent = String(l.hardness);
+  const prev = $('dl-preview');
+  if (prev && state.bake) {
+    const shading = state.bake.links && state.bake.links.horizon_0 ? 'horizon' : 'fourier';
+    prev.href = `/v1/bakes/${encodeURIComponent(state.bake.id)}/preview?${currentLightQuery(shading)}`;
+  }
+}
+
+/** The sun marker: centre = overhead, the image's edge = the horizon. */
+function placeSun(cssW, cssH) {
+  const sun = $('sun');
+  const l = state.light;
+  const up = !state.bake || (state.bake.params || {}).y_axis !== 'down';
+  const r = Math.max(0, Math.min(1, 1 - l.elevation / 90));
+  const a = (l.azimuth * Math.PI) / 180;
+  const dx = r * Math.cos(a);
+  const dy = r * Math.sin(a) * (up ? -1 : 1);
+  sun.style.left = `${cssW / 2 + (dx * cssW) / 2}px`;
+  sun.style.top = `${cssH / 2 + (dy * cssH) / 2}px`;
+  sun.hidden = debugOptions().mode !== 'shaded';
+}
+
+function update() {
+  showLight();
+  const v = state.viewer;
+  const bake = state.bake;
+  const layout = $('layout').value;
+  const sh = $('shading').value;
+  const serverOnly = sh === 'raytraced' || sh === 'difference';
+  const ready = v && state.loadedId && bake && state.loadedId === bake.id;
+  let w = bake && bake.input ? bake.input.width : 256;
+  let h = bake && bake.input ? bake.input.height : 256;
+  if (ready) {
+    const opts = viewOptions();
+    v.draw(opts);
+    [w, h] = [v.canvas.width, v.canvas.height];
+  }
+  const [cw, ch] = displaySize(w, h);
+  for (const e of [$('canvas'), $('overlay'), $('server-image'), $('cpu-image')]) {
+    e.style.width = `${cw}px`;
+    e.style.height = `${ch}px`;
+  }
+  const cmpShading = serverOnly ? sh : viewOptions().shading;
+  const wantCpu = !v || serverOnly || ((layout === 'split' || layout === 'side') && debugOptions().mode === 'shaded');
+  $('server-image').hidden = !(v && serverOnly);
+  $('canvas').style.visibility = v && serverOnly ? 'hidden' : '';
+  $('overlay').hidden = !(v && !serverOnly && layout === 'split' && debugOptions().mode === 'shaded');
+  $('split-line').hidden = $('overlay').hidden;
+  $('split').hidden = $('overlay').hidden;
+  $('cpu-fig').hidden = !(!v || (layout === 'side' && debugOptions().mode === 'shaded'));
+  if (!$('overlay').hidden) {
+    const pct = Number($('split').value);
+    $('overlay').style.clipPath = `inset(0 0 0 ${pct}%)`;
+    $('split-line').style.left = `${(pct / 100) * cw}px`;
+  }
+  placeSun(cw, ch);
+  if (wantCpu && bake && bake.status === 'succeeded' && layout !== 'tiled') schedulePreview(cmpShading);
+}
+
+/** Fetches the server's CPU preview at the current light (debounced, stale requests aborted). */
+function schedulePreview(shading) {
+  const key = `${state.bake.id}?${currentLightQuery(shading)}`;
+  if (key === state.previewFor) return;
+  clearTimeout(state.previewTimer);
+  state.previewTimer = setTimeout(async () => {
+    if (state.previewAbort) state.previewAbort.abort();
+    const ctrl = new AbortController();
+    state.previewAbort = ctrl;
+    try {
+      const url = await blobUrl(`/v1/bakes/${encodeURIComponent(state.bake.id)}/preview?${currentLightQuery(shading)}`, ctrl.signal);
+      if (ctrl.signal.aborted) return;
+      if (state.previewUrl) URL.revokeObjectURL(state.previewUrl);
+      state.previewUrl = url;
+      state.previewFor = key;
+      for (const id of ['overlay', 'cpu-image', 'server-image']) $(id).src = url;
+    } catch (e) {
+      if (!ctrl.signal.aborted) $('viewer-note').textContent = `CPU preview: ${e.code || ''} ${e.message}`;
+    }
+  }, 150);
+}
+
+function setLight(l) {
+  if (l.azimuth !== undefined) state.light.azimuth = Number(l.azimuth);
+  if (l.elevation !== undefined) state.light.elevation = Math.max(-90, Math.min(90, Number(l.elevation)));
+  if (l.hardness !== undefined) state.light.hardness = Number(l.hardness);
+  update();
+}
+
+for (const id of ['azimuth', 'elevation', 'hardness']) {
+  $(id).addEventListener('input', () => setLight({ [id]: Number($(id).value) }));
+}
+for (const id of ['shading', 'layout', 'debug', 'zoom']) $(id).addEventListener('change', update);
+$('split').addEventListener('input', update);
+window.addEventListener('resize', update);
+
+// Drag the light: the pointer's offset from the image centre is the light's direction in the
+// tangent plane (image up = +y for y_axis=up), its distance the elevation (centre = 90°).
+function lightFromPointer(ev) {
+  const rect = $('canvas').getBoundingClientRect();
+  const dx = (ev.clientX - (rect.left + rect.width / 2)) / (rect.width / 2);
+  const dy = (ev.clientY - (rect.top + rect.height / 2)) / (rect.height / 2);
+  const up = !state.bake || (state.bake.params || {}).y_axis !== 'down';
+  const tx = dx;
+  const ty = up ? -dy : dy;
+  const r = Math.min(1, Math.hypot(tx, ty));
+  const azimuth = Math.round((Math.atan2(ty, tx) * 180) / Math.PI * 10) / 10;
+  const elevation = Math.max(0.5, Math.round(90 * (1 - r) * 10) / 10);
+  setLight({ azimuth, elevation });
+}
+
+const wrap = $('gpu-wrap');
+wrap.addEventListener('pointerdown', (ev) => {
+  if (ev.button !== 0) return;
+  wrap.setPointerCapture(ev.pointerId);
+  wrap.dataset.dragging = '1';
+  lightFromPointer(ev);
+});
+wrap.addEventListener('pointermove', (ev) => {
+  if (wrap.dataset.dragging) lightFromPointer(ev);
+});
+for (const t of ['pointerup', 'pointercancel']) {
+  wrap.addEventListener(t, () => delete wrap.dataset.dragging);
+}
+
+// --- copy as curl ---------------------------------------------------------------------------
+
+$('curl').addEventListener('click', async () => {
+  const name = state.file ? state.file.name : 'height.png';
+  const type = (state.fileInfo && state.fileInfo.type) || 'image/png';
+  const q = (s) => `'${String(s).replace(/'/g, "'\\''")}'`;
+  const parts = ['curl -sS -X POST', `--data-binary @${q(name)}`, `-H ${q(`Content-Type: ${type}`)}`];
+  if (config.auth_required || getApiKey()) parts.push('-H "Authorization: Bearer $HORIZON_API_KEY"');
+  parts.push(q(`${location.origin}/v1/bakes${paramQuery(formParams())}`));
+  const text = parts.join(' \\\n  ');
+  const ta = $('curl-text');
+  ta.value = text;
+  ta.hidden = false;
+  try {
+    await navigator.clipboard.writeText(text);
+    $('status').textContent = 'curl command copied.';
+  } catch {
+    ta.select();
+    $('status').textContent = 'Copy the curl command from the box.';
+  }
+});
+
+// --- test and automation hook ---------------------------------------------------------------
+
+function base64(bytes) {
+  let s = '';
+  for (let i = 0; i < bytes.length; i += 0x8000) s += String.fromCharCode(...bytes.subarray(i, i + 0x8000));
+  return btoa(s);
+}
+
+window.__horizon = {
+  config,
+  progressLog: state.progressLog,
+  get loadedId() { return state.loadedId; },
+  get bake() { return state.bake; },
+  get light() { return { ...state.light }; },
+  get webgl2() { return !!state.viewer; },
+  setLight(l) { setLight(l); return { ...state.light }; },
+  /** The visible canvas, RGBA rows from the top, base64. */
+  readCanvas() {
+    const px = state.viewer.readCanvas();
+    return { width: px.width, height: px.height, rgba: base64(px.rgba) };
+  },
+  /** An off-screen render at the native size (defaults: the current light, shading horizon). */
+  render(o = {}) {
+    const l = { ...state.light, ...o };
+    const px = state.viewer.renderPixels(viewOptions({ light: fromAngles(l.azimuth, l.elevation),
+      hardness: l.hardness, shading: o.shading || 'horizon', mode: 'shaded', tiled: false }));
+    return { width: px.width, height: px.height, rgba: base64(px.rgba) };
+  },
+};
+
+// --- start ----------------------------------------------------------------------------------
+
+$('version').textContent = `v${config.version}`;
+showKeyState();
+showLimits();
+setupViewer();
+showLight();
+refreshRecent();
+route();
