@@ -697,7 +697,7 @@ function showMeta(res) {
   const rr = p.resolved_radius;
   row('radius', rr ? `${rr.texels} texels (asked: ${p.radius}) — ${rr.reason}` : String(p.radius ?? '?'));
   row('surface', `height_scale ${p.height_scale}, channel ${p.channel}, edge ${p.edge}, y_axis ${p.y_axis}`);
-  row('encoding', `${p.encoding}, outputs ${Array.isArray(p.outputs) ? p.outputs.join(',') : JSON.stringify(p.outputs)}`);
+  row('encoding', `${p.encoding}, outputs ${outputsOf(p).join(', ')}`);
   if (res.timings_ms) {
     row('timings', Object.entries(res.timings_ms).map(([k, v]) => `${k} ${Number(v).toFixed(1)} ms`).join(', '));
   }

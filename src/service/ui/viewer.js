@@ -74,7 +74,7 @@ uniform samplerCube u_cube;
 
 uniform ivec2 u_size;          // map W, H
 uniform vec2 u_scale;          // texels per output pixel
-uniform float u_outHeight;     // output height in pixels
+uniform vec2 u_out;            // output width, height in pixels
 uniform bool u_wrap;           // edge=wrap
 uniform int u_rowStep;         // -1 for y_axis=up, +1 for down
 uniform bool u_sqrt;           // encoding=sqrt
@@ -95,7 +95,9 @@ uniform vec2 u_hrange;
 out vec4 outColor;
 
 ivec2 texel(ivec2 p) {
-  if (u_wrap) return ((p % u_size) + u_size) % u_size;
+  // GLSL's % is undefined for negative operands: p >= -2 here (a bilinear footprint's
+  // neighbours), so shift by a whole number of periods first.
+  if (u_wrap) return (p + 4 * u_size) % u_size;
   return clamp(p, ivec2(0), u_size - 1);
 }
 
@@ -185,20 +187,20 @@ vec3 faceDirection(int face, vec2 st) {
 
 void main() {
   // Pixel centre, rows counted from the top as in the CPU image.
-  vec2 pc = vec2(gl_FragCoord.x, u_outHeight - gl_FragCoord.y);
+  vec2 pc = vec2(gl_FragCoord.x, u_out.y - gl_FragCoord.y);
   vec2 t = pc * u_scale - 0.5;
   vec2 uv = (t + 0.5) / vec2(u_size);
 
   if (u_mode == 4) {
     // The six faces as their PNG files look (row 0 = t = -1 at the top): +X -X +Y / -Y +Z -Z.
-    vec2 g = pc / (vec2(u_size) / u_scale) * vec2(3.0, 2.0);
+    vec2 g = pc / u_out * vec2(3.0, 2.0);
     ivec2 cell = ivec2(floor(g));
     int face = clamp(cell.y, 0, 1) * 3 + clamp(cell.x, 0, 2);
     vec3 d = faceDirection(face, fract(g));
     vec4 f = textureLod(u_cube, d, 0.0);
     vec3 c = f.rgb;
     if (dot(normalize(d), u_light) > 0.9994) c = vec3(1.0, 1.0, 0.0);   // the light, ~2 deg
-    vec2 e = min(fract(g), 1.0 - fract(g)) * (vec2(u_size) / u_scale) / vec2(3.0, 2.0);
+    vec2 e = min(fract(g), 1.0 - fract(g)) * u_out / vec2(3.0, 2.0);
     if (min(e.x, e.y) < 0.75) c = vec3(0.1);
     outColor = vec4(c, 1.0);
     return;
@@ -460,7 +462,7 @@ export class Viewer {
     };
     set('u_size', 'uniform2i', m.width, m.height);
     set('u_scale', 'uniform2f', (m.width * k) / width, (m.height * k) / height);
-    set('u_outHeight', 'uniform1f', height);
+    set('u_out', 'uniform2f', width, height);
     set('u_wrap', 'uniform1i', m.wrap ? 1 : 0);
     set('u_rowStep', 'uniform1i', m.yAxis === 'down' ? 1 : -1);
     set('u_sqrt', 'uniform1i', m.encoding === 'sqrt' ? 1 : 0);
