@@ -1054,8 +1054,8 @@ window.addEventListener('resize', update);
 
 // Drag the light: the pointer's offset from the image centre is the light's direction in the
 // tangent plane (image up = +y for y_axis=up), its distance the elevation (centre = 90°).
-function lightFromPointer(ev) {
-  const rect = $('canvas').getBoundingClientRect();
+function lightFromPointer(ev, target) {
+  const rect = target.getBoundingClientRect();
   const dx = (ev.clientX - (rect.left + rect.width / 2)) / (rect.width / 2);
   const dy = (ev.clientY - (rect.top + rect.height / 2)) / (rect.height / 2);
   const up = !state.bake || (state.bake.params || {}).y_axis !== 'down';
@@ -1067,18 +1067,21 @@ function lightFromPointer(ev) {
   setLight({ azimuth, elevation });
 }
 
-const wrap = $('gpu-wrap');
-wrap.addEventListener('pointerdown', (ev) => {
-  if (ev.button !== 0) return;
-  wrap.setPointerCapture(ev.pointerId);
-  wrap.dataset.dragging = '1';
-  lightFromPointer(ev);
-});
-wrap.addEventListener('pointermove', (ev) => {
-  if (wrap.dataset.dragging) lightFromPointer(ev);
-});
-for (const t of ['pointerup', 'pointercancel']) {
-  wrap.addEventListener(t, () => delete wrap.dataset.dragging);
+// The GPU image, and the CPU image (the only one without WebGL2), take the drag.
+for (const [area, image] of [[$('gpu-wrap'), $('canvas')], [$('cpu-fig'), $('cpu-image')]]) {
+  area.addEventListener('pointerdown', (ev) => {
+    if (ev.button !== 0) return;
+    ev.preventDefault();
+    area.setPointerCapture(ev.pointerId);
+    area.dataset.dragging = '1';
+    lightFromPointer(ev, image);
+  });
+  area.addEventListener('pointermove', (ev) => {
+    if (area.dataset.dragging) lightFromPointer(ev, image);
+  });
+  for (const t of ['pointerup', 'pointercancel']) {
+    area.addEventListener(t, () => delete area.dataset.dragging);
+  }
 }
 
 // --- copy as curl ---------------------------------------------------------------------------
