@@ -1,0 +1,429 @@
+"""Browser test of the web page (issue 13): the real server binary, Debian's chromium driven by
+Python playwright, WebGL2 on SwiftShader.
+
+What it checks: the page and its modules load without errors; an upload through the file input
+is accepted (202), shows a progress value strictly between 0 and 1 and then `succeeded`; the
+WebGL2 canvas matches the server's CPU preview within 2 levels on >= 99.9% of pixels at lights
+near cube-face edges; dragging the light changes the readout and the image, which still
+matches; error answers are shown (415 code and detail in an alert, a parameter's message next to
+its field, 429 with Retry-After); Cancel stops a bake; every download link answers 200 with its
+content type; the list links to bakes by `#id`; with --api-key the page works once the key is
+entered, progress included.
+
+Run: HORIZON_BIN=target/debug/horizon-bake python -m pytest -q tests/browser
+"""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+from playwright.sync_api import sync_playwright
+
+from harness import TERRAIN, chromium_or_skip, compare, decode_rgba, launch, server
+
+# The terrain at its true scale (metres / 90 m per texel, scripts/extract_terrain.py): about 6
+# texels of relief, so low lights cast real shadows.
+TRUE_SCALE = "728.2"
+# A bake slow enough that the 250 ms event stream reports it mid-way: the exact kernel to the
+# edge of the map on one thread.
+SLOW = {"method": "exact", "radius": "unlimited", "height_scale": TRUE_SCALE}
+# Lights for the GPU/CPU comparison: within 2° of the cube's face edges (azimuth 45°+k·90° is
+# the edge between side faces; elevation 45° at azimuth 0°/-90°/180° the edge with +Z), away
+# from the cube corners (elevation 35.26° at azimuth 45°+k·90°), plus a low and a high light.
+LIGHTS = [
+    (44.0, 30.0),
+    (46.0, 20.0),
+    (134.5, 25.0),
+    (0.0, 44.5),
+    (-90.0, 45.8),
+    (180.0, 46.5),
+    (200.0, 12.0),
+    (300.0, 65.0),
+]
+MIN_MATCH = 0.999
+TOLERANCE = 2
+# Chromium logs every non-2xx fetch as a console error; tests that provoke one allow these.
+HTTP_ERROR_LOG = re.compile(r"Failed to load resource: the server responded with a status of 4\d\d")
+
+
+@pytest.fixture(scope="session")
+def browser():
+    exe = chromium_or_skip()
+    with sync_playwright() as p:
+        b = launch(p, exe)
+        try:
+            yield b
+        finally:
+            b.close()
+
+
+@pytest.fixture(scope="module")
+def srv():
+    with server(extra=["--bake-threads", "1"]) as s:
+        yield s
+
+
+class Page:
+    """A page with its errors recorded."""
+
+    def __init__(self, browser, url: str):
+        self.context = browser.new_context(viewport={"width": 1280, "height": 900})
+        self.page = self.context.new_page()
+        self.errors: list[str] = []
+        self.page.on("pageerror", lambda e: self.errors.append(f"pageerror: {e}"))
+        self.page.on(
+            "console",
+            lambda m: self.errors.append(f"console.{m.type}: {m.text}") if m.type == "error" else None,
+        )
+        self.page.goto(url)
+        self.page.wait_for_function("() => window.__horizon !== undefined")
+
+    def assert_no_errors(self, allow_http_errors: bool = False):
+        errs = [e for e in self.errors if not (allow_http_errors and HTTP_ERROR_LOG.search(e))]
+        assert not errs, errs
+
+    def close(self):
+        self.context.close()
+
+
+def set_params(page, params: dict):
+    for k, v in params.items():
+        if k == "radius" and v in ("auto", "unlimited"):
+            page.select_option("#p-radius-mode", v)
+        elif k == "radius":
+            page.select_option("#p-radius-mode", "texels")
+            page.fill("#p-radius", str(v))
+        elif k == "outputs":
+            page.set_checked("#p-out-horizon", "horizon" in v)
+            page.set_checked("#p-out-fourier", "fourier" in v)
+        elif page.locator(f"select#p-{k}").count():
+            page.select_option(f"#p-{k}", str(v))
+        else:
+            page.fill(f"#p-{k}", str(v))
+
+
+def upload(page, path_or_payload, params: dict | None = None):
+    """Chooses a file, sets parameters, clicks Bake; returns the POST's playwright Response."""
+    page.set_input_files("#file", path_or_payload)
+    name = path_or_payload["name"] if isinstance(path_or_payload, dict) else path_or_payload.rsplit("/", 1)[-1]
+    page.wait_for_function(
+        "name => { const t = document.getElementById('file-info').textContent;"
+        " return t.includes(name) && !t.endsWith('…'); }", arg=name)
+    if params:
+        set_params(page, params)
+    with page.expect_response(
+        lambda r: r.request.method == "POST" and "/v1/bakes" in r.url
+    ) as info:
+        page.click("#bake")
+    return info.value
+
+
+def bake_id_of(response) -> str:
+    """The bake id from a POST's Location header (the page changes its URL's #fragment at once,
+    after which playwright no longer has the response body)."""
+    return response.header_value("location").rsplit("/", 1)[1]
+
+
+def wait_loaded(page, bake_id: str, timeout_ms: int = 600_000):
+    page.wait_for_function(
+        "id => window.__horizon.loadedId === id", arg=bake_id, timeout=timeout_ms
+    )
+
+
+@pytest.fixture(scope="module")
+def baked(browser, srv):
+    """One page that uploaded the terrain through the file input and shows the finished bake."""
+    p = Page(browser, srv.url + "/")
+    res = upload(p.page, str(TERRAIN), SLOW)
+    bake_id = bake_id_of(res)
+    wait_loaded(p.page, bake_id)
+    p.post_status = res.status
+    p.bake_id = bake_id
+    yield p
+    p.close()
+
+
+def light_matches(p: Page, srv, azimuth: float, elevation: float, hardness: float = 8):
+    """Sets the light on the page; (fraction within tolerance, max diff) of the visible canvas."""
+    p.page.evaluate("l => window.__horizon.setLight(l)",
+                    {"azimuth": azimuth, "elevation": elevation, "hardness": hardness})
+    gpu = decode_rgba(p.page.evaluate("() => window.__horizon.readCanvas()"))
+    cpu = srv.preview(p.bake_id, azimuth, elevation, hardness)
+    return compare(gpu, cpu, TOLERANCE)
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def test_page_and_modules_are_served(srv):
+    status, headers, body = srv.request("/")
+    assert status == 200
+    assert headers["content-type"].startswith("text/html")
+    html = body.decode()
+    assert "__HORIZON_CONFIG__" not in html
+    cfg = json.loads(re.search(r'<script type="application/json" id="config">(.*?)</script>', html, re.S)[1])
+    assert {"version", "auth_required", "max_body_bytes", "max_dim", "max_texels"} <= cfg.keys()
+    assert cfg["auth_required"] is False
+    for name in re.findall(r'(?:src|href)="/ui/([^"]+)"', html):
+        status, headers, _ = srv.request(f"/ui/{name}")
+        assert status == 200, name
+        want = "text/css" if name.endswith(".css") else "text/javascript"
+        assert headers["content-type"].startswith(want), (name, headers["content-type"])
+    # viewer.js is imported by app.js, not by the page
+    status, headers, _ = srv.request("/ui/viewer.js")
+    assert status == 200 and headers["content-type"].startswith("text/javascript")
+
+
+def test_upload_shows_progress_then_succeeds(baked):
+    assert baked.post_status == 202
+    page = baked.page
+    log = page.evaluate("() => window.__horizon.progressLog")
+    fractions = [e["fraction"] for e in log]
+    assert any(0 < f < 1 for f in fractions), log
+    assert log[-1]["status"] == "succeeded"
+    assert page.locator("#progress").get_attribute("value") in ("1", "1.0")
+    assert "succeeded" in page.text_content("#meta")
+    # the map's size was read from the file before the upload
+    assert "128 × 128" in page.text_content("#file-info")
+    # the resolved radius and its reason, and the timings, are shown
+    meta = page.text_content("#meta")
+    assert re.search(r"radius\s*128 texels \(asked: unlimited\)", meta), meta
+    assert "timings" in meta
+    assert page.evaluate("() => window.__horizon.webgl2")
+    assert page.text_content("#renderer").startswith("WebGL2: ")
+    baked.assert_no_errors()
+
+
+def test_canvas_matches_cpu_preview_near_cube_edges(baked, srv):
+    gpu = decode_rgba(baked.page.evaluate("() => window.__horizon.readCanvas()"))
+    assert gpu.shape == (128, 128, 4)
+    assert gpu[..., :3].std() > 10 and len(np.unique(gpu[..., 0])) > 50, "blank canvas"
+    results = []
+    for az, el in LIGHTS:
+        frac, worst = light_matches(baked, srv, az, el)
+        results.append((az, el, frac, worst))
+    print("\nGPU vs CPU preview (azimuth, elevation, fraction within 2 levels, max diff):")
+    for r in results:
+        print(f"  az {r[0]:7.2f} el {r[1]:6.2f}: {r[2]:.5f}  max {r[3]}")
+    bad = [r for r in results if r[2] < MIN_MATCH]
+    assert not bad, results
+    baked.assert_no_errors()
+
+
+def test_offscreen_render_hook_matches_too(baked, srv):
+    shot = baked.page.evaluate("() => window.__horizon.render({azimuth: 45.5, elevation: 33})")
+    frac, worst = compare(decode_rgba(shot), srv.preview(baked.bake_id, 45.5, 33), TOLERANCE)
+    assert frac >= MIN_MATCH, (frac, worst)
+
+
+def test_dragging_moves_the_light(baked, srv):
+    page = baked.page
+    baked.page.evaluate("() => window.__horizon.setLight({azimuth: 135, elevation: 30, hardness: 8})")
+    before_text = page.text_content("#light")
+    before = decode_rgba(page.evaluate("() => window.__horizon.readCanvas()"))
+    box = page.locator("#canvas").bounding_box()
+    cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    page.mouse.move(cx - box["width"] * 0.1, cy + box["height"] * 0.1)
+    page.mouse.down()
+    page.mouse.move(cx + box["width"] * 0.35, cy + box["height"] * 0.25, steps=8)
+    page.mouse.up()
+    after_text = page.text_content("#light")
+    assert after_text != before_text
+    light = page.evaluate("() => window.__horizon.light")
+    # right and down on the image: +x and -y (y_axis=up), low above the horizon
+    assert -90 < light["azimuth"] < 0, light
+    assert 0 < light["elevation"] < 60, light
+    after = decode_rgba(page.evaluate("() => window.__horizon.readCanvas()"))
+    assert np.abs(after.astype(int) - before.astype(int)).max() > 10, "the image did not change"
+    cpu = srv.preview(baked.bake_id, light["azimuth"], light["elevation"], light["hardness"])
+    frac, worst = compare(after, cpu, TOLERANCE)
+    print(f"\ndragged light {light}: {frac:.5f} within 2 levels, max {worst}")
+    assert frac >= MIN_MATCH, (light, frac, worst)
+    baked.assert_no_errors()
+
+
+def test_every_download_answers_with_its_content_type(baked, srv):
+    links = baked.page.eval_on_selector_all(
+        "a.dl", "as => as.map(a => [a.getAttribute('href'), a.dataset.type, a.textContent])"
+    )
+    hrefs = [h for h, _, _ in links]
+    base = f"/v1/bakes/{baked.bake_id}"
+    for want in (f"{base}/horizon/0?format=png8", f"{base}/horizon/1?format=png16",
+                 f"{base}/horizon/0?format=exr", f"{base}/horizon.ktx2", f"{base}/horizon.dds",
+                 "/v1/cubemap/5?size=16", base):
+        assert want in hrefs, (want, hrefs)
+    for href, ctype, label in links:
+        status, headers, body = srv.request(href)
+        assert status == 200, (label, href, status, body[:200])
+        assert headers["content-type"].split(";")[0] == ctype, (label, headers["content-type"])
+        assert body, label
+
+
+def test_recent_list_links_to_the_bake(baked, browser, srv):
+    page = baked.page
+    page.click("#refresh")
+    link = page.locator(f'#recent a[href="#{baked.bake_id}"]')
+    link.wait_for()
+    other = Page(browser, f"{srv.url}/#{baked.bake_id}")
+    try:
+        wait_loaded(other.page, baked.bake_id, 60_000)
+        assert baked.bake_id in other.page.text_content("#bake-id")
+        other.assert_no_errors()
+    finally:
+        other.close()
+
+
+def test_bad_file_shows_the_415_code_and_detail(browser, srv):
+    payload = b"this is not an image, just text\n" * 4
+    status, problem = srv.json("/v1/bakes", method="POST", body=payload,
+                               headers={"Content-Type": "application/octet-stream"})
+    assert status == 415
+    p = Page(browser, srv.url + "/")
+    try:
+        res = upload(p.page, {"name": "notes.txt", "mimeType": "text/plain", "buffer": payload})
+        assert res.status == 415
+        alert = p.page.locator("[role=alert]").filter(has_text=problem["code"])
+        alert.wait_for()
+        text = alert.text_content()
+        assert problem["code"] in text and problem["detail"] in text, text
+        assert "not a PNG, TIFF or OpenEXR" in p.page.text_content("#file-info")
+        p.assert_no_errors(allow_http_errors=True)
+    finally:
+        p.close()
+
+
+def test_bad_parameter_is_shown_next_to_its_field(browser, srv):
+    status, problem = srv.json("/v1/bakes?bins=17", method="POST", body=TERRAIN.read_bytes(),
+                               headers={"Content-Type": "image/png"})
+    assert status == 422 and problem["field"] == "bins", problem
+    p = Page(browser, srv.url + "/")
+    try:
+        res = upload(p.page, str(TERRAIN), {"bins": "17"})
+        assert res.status == 422
+        assert res.url.endswith("/v1/bakes?bins=17"), res.url
+        err = p.page.locator("#err-bins")
+        err.wait_for()
+        assert problem["detail"] in err.text_content()
+        assert p.page.get_attribute("#p-bins", "aria-invalid") == "true"
+        # the message sits beside the field, in the same form row
+        assert p.page.evaluate(
+            "() => document.getElementById('err-bins').parentElement.contains(document.getElementById('p-bins'))"
+        )
+        p.assert_no_errors(allow_http_errors=True)
+    finally:
+        p.close()
+
+
+def test_queue_full_shows_retry_after(browser, srv):
+    p = Page(browser, srv.url + "/")
+    try:
+        problem = {"type": "urn:horizon-bake:problem:queue_full", "title": "Too Many Requests",
+                   "status": 429, "code": "queue_full",
+                   "detail": "the bake queue is full (64 waiting); retry later"}
+        def full(route):
+            if route.request.method != "POST":
+                return route.continue_()
+            return route.fulfill(status=429, body=json.dumps(problem), headers={
+                "Retry-After": "7", "Content-Type": "application/problem+json"})
+
+        p.page.route(lambda url: "/v1/bakes" in url, full)
+        upload(p.page, str(TERRAIN), {"radius": "17"})
+        alert = p.page.locator("[role=alert]")
+        alert.wait_for()
+        assert "queue_full" in alert.text_content() and "Retry-After: 7 s" in alert.text_content()
+        assert p.page.locator("#bake").is_disabled()
+        assert re.search(r"Retry in [67] s", p.page.text_content("#bake"))
+        p.assert_no_errors(allow_http_errors=True)
+    finally:
+        p.close()
+
+
+def test_cancel_stops_a_running_bake(browser, srv):
+    # A map no earlier test baked (no deduplication), slow on one thread.
+    rng = np.random.default_rng(13)
+    import io
+
+    from PIL import Image
+
+    img = (rng.random((192, 192)) * 65535).astype(np.uint16)
+    buf = io.BytesIO()
+    Image.fromarray(img).save(buf, format="PNG")
+    p = Page(browser, srv.url + "/")
+    try:
+        res = upload(p.page, {"name": "noise.png", "mimeType": "image/png", "buffer": buf.getvalue()},
+                     {"method": "exact", "radius": "unlimited", "bins": "64"})
+        assert res.status == 202
+        p.page.wait_for_function("() => !document.getElementById('cancel').disabled")
+        with p.page.expect_response(lambda r: r.request.method == "DELETE") as info:
+            p.page.click("#cancel")
+        assert info.value.status in (200, 202)
+        p.page.wait_for_function(
+            "() => window.__horizon.bake && window.__horizon.bake.status === 'canceled'", timeout=120_000)
+        assert p.page.locator("#cancel").is_disabled()
+        p.assert_no_errors()
+    finally:
+        p.close()
+
+
+def test_api_key_makes_the_page_work(browser):
+    key = "s3cret-ui-key"
+    with server(api_key=key, extra=["--bake-threads", "1"]) as s:
+        status, _, _ = s.request("/v1/bakes", auth=False)
+        assert status == 401
+        p = Page(browser, s.url + "/")
+        try:
+            assert p.page.evaluate("() => window.__horizon.config.auth_required") is True
+            p.page.fill("#api-key", key)
+            p.page.click("#key-form button")
+            assert p.page.evaluate("() => localStorage.getItem('horizon-bake.api-key')") == key
+            res = upload(p.page, str(TERRAIN), SLOW)
+            assert res.status == 202
+            bake_id = bake_id_of(res)
+            wait_loaded(p.page, bake_id)
+            log = p.page.evaluate("() => window.__horizon.progressLog")
+            assert any(0 < e["fraction"] < 1 for e in log), log
+            frac, worst = light_matches_on(p, s, bake_id, 46.0, 20.0)
+            assert frac >= MIN_MATCH, (frac, worst)
+            # the key survives a reload
+            p.page.reload()
+            p.page.wait_for_function("() => window.__horizon !== undefined")
+            assert p.page.input_value("#api-key") == key
+            # the page answered 401 before the key was entered: allow only that
+            p.assert_no_errors(allow_http_errors=True)
+            assert not [e for e in p.errors if "status of 4" in e and "401" not in e], p.errors
+        finally:
+            p.close()
+
+
+def light_matches_on(p: Page, s, bake_id: str, azimuth: float, elevation: float):
+    p.page.evaluate("l => window.__horizon.setLight(l)", {"azimuth": azimuth, "elevation": elevation})
+    gpu = decode_rgba(p.page.evaluate("() => window.__horizon.readCanvas()"))
+    return compare(gpu, s.preview(bake_id, azimuth, elevation), TOLERANCE)
+
+
+def test_without_webgl2_the_cpu_preview_is_shown(baked, browser, srv):
+    ctx = browser.new_context()
+    page = ctx.new_page()
+    errors = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    # A browser without WebGL2: getContext('webgl2') answers null.
+    page.add_init_script(
+        "const g = HTMLCanvasElement.prototype.getContext;"
+        "HTMLCanvasElement.prototype.getContext = function (t, o) {"
+        " return t === 'webgl2' ? null : g.call(this, t, o); };")
+    try:
+        page.goto(f"{srv.url}/#{baked.bake_id}")
+        page.wait_for_function(
+            "() => { const i = document.getElementById('cpu-image');"
+            " return i.src.startsWith('blob:') && i.complete && i.naturalWidth === 128; }",
+            timeout=120_000)
+        assert page.is_visible("#cpu-image")
+        assert not page.is_visible("#canvas")
+        assert "WebGL2 is not available" in page.text_content("#viewer-note")
+        assert page.evaluate("() => window.__horizon.webgl2") is False
+        assert not errors, errors
+    finally:
+        ctx.close()
