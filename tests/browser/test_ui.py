@@ -427,3 +427,65 @@ def test_without_webgl2_the_cpu_preview_is_shown(baked, browser, srv):
         assert not errors, errors
     finally:
         ctx.close()
+
+
+def test_tiled_split_and_side_by_side_views(baked):
+    page = baked.page
+    page.evaluate("() => window.__horizon.setLight({azimuth: 150, elevation: 14, hardness: 8})")
+    single = decode_rgba(page.evaluate("() => window.__horizon.readCanvas()"))
+    page.select_option("#layout", "tiled")
+    tiled = decode_rgba(page.evaluate("() => window.__horizon.readCanvas()"))
+    assert tiled.shape == (256, 256, 4)
+    for ty in (0, 128):
+        for tx in (0, 128):
+            assert np.array_equal(tiled[ty:ty + 128, tx:tx + 128], single), (tx, ty)
+    for layout, image in (("split", "#overlay"), ("side", "#cpu-image")):
+        page.select_option("#layout", layout)
+        page.wait_for_function(
+            "sel => { const i = document.querySelector(sel);"
+            " return !i.closest('[hidden]') && !i.hidden && i.src.startsWith('blob:')"
+            " && i.complete && i.naturalWidth === 128; }", arg=image, timeout=60_000)
+    page.select_option("#layout", "single")
+    baked.assert_no_errors()
+
+
+@pytest.mark.parametrize("params", [
+    {"edge": "none", "y_axis": "down", "encoding": "sqrt", "outputs": "horizon,fourier",
+     "fourier_terms": "7", "radius": "24"},
+    {"outputs": "horizon,fourier", "fourier_terms": "9", "fourier_range": "expanded",
+     "radius": "12"},
+    {"outputs": "fourier", "fourier_terms": "3", "bins": "64"},
+], ids=["none-down-sqrt-f7", "wrap-f9-expanded", "fourier-only-f3"])
+def test_other_conventions_match_the_cpu(browser, srv, params):
+    """The other conventions: CLAMP_TO_EDGE layers and clamped normals, the row step of
+    y_axis=down, encoding=sqrt squared on decode, and SPEC §3.4's Fourier shader for both
+    `fourier_range`s and every term count, also when only the Fourier layers were baked."""
+    p = Page(browser, srv.url + "/")
+    try:
+        res = upload(p.page, str(TERRAIN), {**params, "height_scale": TRUE_SCALE})
+        assert res.status == 202
+        bake_id = bake_id_of(res)
+        wait_loaded(p.page, bake_id)
+        shadings = ["fourier", "none"] if params["outputs"] == "fourier" else ["horizon", "fourier", "none"]
+        results = []
+        for shading in shadings:
+            p.page.select_option("#shading", shading)
+            for az, el in ((46.0, 20.0), (225.5, 10.0), (90.0, 44.0)):
+                p.page.evaluate("l => window.__horizon.setLight(l)", {"azimuth": az, "elevation": el})
+                gpu = decode_rgba(p.page.evaluate("() => window.__horizon.readCanvas()"))
+                cpu = srv.preview(bake_id, az, el, shading=shading)
+                results.append((shading, az, el, *compare(gpu, cpu, TOLERANCE)))
+        print(f"\n{params}:")
+        for r in results:
+            print(f"  {r[0]:8s} az {r[1]:6.1f} el {r[2]:5.1f}: {r[3]:.5f}  max {r[4]}")
+        assert all(r[3] >= MIN_MATCH for r in results), results
+        # the tiled view is only offered for edge=wrap
+        assert p.page.evaluate(
+            "() => document.querySelector('#layout option[value=tiled]').disabled") is (
+                params.get("edge") == "none")
+        if params["outputs"] == "fourier":
+            assert p.page.evaluate(
+                "() => document.querySelector('#shading option[value=horizon]').disabled") is True
+        p.assert_no_errors()
+    finally:
+        p.close()

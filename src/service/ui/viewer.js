@@ -13,7 +13,8 @@
 //    are always filtered seamlessly across faces), f = t·2 − 1 (the UNORM zero offset included);
 //    s = Σ max(f,0)·h0 + max(−f,0)·h1 (Lengyel eq. 5.3); F = clamp(k·(L_z − s) + 1, 0, 1), 0 for
 //    L_z ≤ 0 (SPEC §3.3);
-//  - fourier: SPEC §3.4's decoder, at the light's normalised tangent-plane direction;
+//  - fourier: SPEC §3.4's shader (both `fourier_range`s), at the light's normalised
+//    tangent-plane direction;
 //  - colour = albedo·(ambient + F·max(N·L, 0)) + (F·ks·(N·H)^24 + env)·HO with HO = saturate(1 +
 //    fade·R.z), R = reflect(−V, N), then sRGB as floor(s·255 + 0.5) into an RGBA8 target.
 
@@ -84,6 +85,7 @@ uniform int u_layerIndex;
 uniform int u_channel;
 uniform int u_terms;
 uniform float u_fourierScale;  // 1 (standard) or 2/pi (expanded)
+uniform bool u_fourierExpanded;
 uniform vec3 u_light;
 uniform vec3 u_half;
 uniform vec3 u_view;
@@ -146,20 +148,26 @@ float horizonS(vec2 uv) {
   return ((p.x + p.y) + p.z) + p.w;
 }
 
+// SPEC §3.4's shader. fourier_range=standard: lq = t·4 − 2 and c = t·2 − 1 for the constant,
+// each then v·|v|; expanded (the two changed lines): v = t·2 − 1, C = v·|v|·2/π, C_0 = t².
 float fourierS(vec2 uv) {
   float x = u_lightXY.x;
   float y = u_lightXY.y;
-  float c0 = textureLod(u_four1, uv, 0.0).r;
-  vec4 v = textureLod(u_four0, uv, 0.0) * 2.0 - 1.0;
-  vec4 c = v * abs(v) * u_fourierScale;
-  float s = c0 * c0 + c.x * x + c.y * y;
-  if (u_terms >= 5) s += c.z * 2.0 * x * y + c.w * (y * y - x * x);
+  float t0 = textureLod(u_four1, uv, 0.0).r;
+  vec4 t = textureLod(u_four0, uv, 0.0);
+  vec4 lq = u_fourierExpanded ? t * 2.0 - 1.0 : t * 4.0 - 2.0;
+  float c = u_fourierExpanded ? t0 : t0 * 2.0 - 1.0;
+  lq = lq * abs(lq) * u_fourierScale;
+  c = c * abs(c);
+  float s = c + lq.x * x + lq.y * y;
+  if (u_terms >= 5) s += lq.z * 2.0 * x * y + lq.w * (y * y - x * x);
   if (u_terms >= 7) {
-    vec4 w = textureLod(u_four2, uv, 0.0) * 2.0 - 1.0;
-    vec4 d = w * abs(w) * u_fourierScale;
+    vec4 th = textureLod(u_four2, uv, 0.0);
+    vec4 hq = u_fourierExpanded ? th * 2.0 - 1.0 : th * 4.0 - 2.0;
+    hq = hq * abs(hq) * u_fourierScale;
     float c2 = x * x - y * y;
-    s += d.x * x * (x * x - 3.0 * y * y) + d.y * y * (3.0 * x * x - y * y);
-    if (u_terms >= 9) s += d.z * 4.0 * x * y * c2 + d.w * (c2 * c2 - 4.0 * x * x * y * y);
+    s += hq.x * x * (x * x - 3.0 * y * y) + hq.y * y * (3.0 * x * x - y * y);
+    if (u_terms >= 9) s += hq.z * 4.0 * x * y * c2 + hq.w * (c2 * c2 - 4.0 * x * x * y * y);
   }
   return s;
 }
@@ -473,6 +481,7 @@ export class Viewer {
     const f = this.fourier || { terms: 5, range: 'standard' };
     set('u_terms', 'uniform1i', f.terms);
     set('u_fourierScale', 'uniform1f', f.range === 'expanded' ? 2 / Math.PI : 1);
+    set('u_fourierExpanded', 'uniform1i', f.range === 'expanded' ? 1 : 0);
     set('u_light', 'uniform3f', light[0], light[1], light[2]);
     set('u_half', 'uniform3f', half[0], half[1], half[2]);
     set('u_view', 'uniform3f', view[0], view[1], view[2]);
