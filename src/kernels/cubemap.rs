@@ -42,6 +42,12 @@ pub fn factors_for_direction(d: [f64; 3]) -> [f32; 4] {
 pub fn texel_direction(face: usize, u: usize, v: usize, size: usize) -> [f64; 3] {
     let sc = (2.0 * (u as f64 + 0.5)) / size as f64 - 1.0;
     let tc = (2.0 * (v as f64 + 0.5)) / size as f64 - 1.0;
+    face_direction(face, sc, tc)
+}
+
+/// The unnormalised direction through face coordinates (`sc`, `tc`) ∈ [−1, 1]² of `face` (0..6);
+/// coordinates past ±1 continue the face's plane (how seamless filtering finds a neighbour face).
+pub fn face_direction(face: usize, sc: f64, tc: f64) -> [f64; 3] {
     // Inverse of the OpenGL table: (major axis, sc, tc) per face.
     match face {
         0 => [1.0, -tc, -sc],

@@ -3,10 +3,9 @@
 //!
 //! The preview must show what a shader will show, so the horizon path decodes exactly what a GPU
 //! is given: the 8- or 16-bit layers sampled bilinearly (wrap = REPEAT, none = CLAMP_TO_EDGE), the
-//! channel-factor cube map as UNORM8 texels filtered bilinearly *within the selected face* and
-//! clamped at its edges (a GPU with seamless cube filtering off; with it on, the ≤ ½-texel band
-//! along each face edge would blend across the seam instead), decoded f = t·2 − 1 — so a stored
-//! 128 gives +1/255, not 0, exactly the UNORM zero offset a shader sees. Bilinear weights are f32
+//! channel-factor cube map as UNORM8 texels filtered bilinearly and seamlessly across faces (as
+//! WebGL2, Direct3D 11+ and Vulkan always do), decoded f = t·2 − 1 — so a stored 128 gives
+//! +1/255, not 0, exactly the UNORM zero offset a shader sees. Bilinear weights are f32
 //! (real GPUs quantise them to ~8 bits; that difference is below one output LSB).
 //!
 //! The ground truth is a ray on the bilinear surface h̃ through the texel centres (SPEC §3.2),
@@ -109,22 +108,72 @@ impl Texture<'_> {
     }
 }
 
-/// The channel-factor cube map as a shader receives it: UNORM8 texels (SPEC §2).
+/// The channel-factor cube map as a shader receives it: UNORM8 texels (SPEC §2), filtered
+/// seamlessly across faces (SPEC §3.5).
+///
+/// Each face is kept with a one-texel border taken from its neighbours, so a bilinear footprint
+/// that crosses an edge reads the adjacent face's texels, as WebGL2, Direct3D 11+ and Vulkan
+/// always filter cube maps. A border texel is the neighbour-face texel its centre falls in when
+/// the face's plane is continued past the edge (less than half a texel from that texel's centre,
+/// so it is the texel along the shared edge that the GL rule names). A corner of the border has
+/// no unique neighbour: it is the mean of the three texels that exist, the rule the GL ES 3.0
+/// specification recommends (§3.8.9.1) and SwiftShader follows.
 #[derive(Debug, Clone)]
 pub struct CubeMap {
     size: usize,
-    /// `6 · size · size · 4` bytes, faces +X, −X, +Y, −Y, +Z, −Z, row 0 = t = −1.
-    texels: Vec<u8>,
+    /// `6 · (size + 2)² · 4` decoded UNORM values t ∈ [0, 1], faces +X, −X, +Y, −Y, +Z, −Z, each
+    /// with its border; bordered row 1 = face row 0 = t = −1.
+    texels: Vec<f32>,
 }
 
 impl CubeMap {
     /// The cube map the bake writes at `size` (≥ 1) texels per side, quantised to UNORM8.
     pub fn new(size: usize) -> Self {
-        let size = size.max(1);
+        let n = size.max(1);
         // Shared per size: every preview of one size reuses the same table.
-        let texels =
-            cubemap::cube_factors_shared(size).iter().map(|&f| cubemap::unorm8(f)).collect();
-        CubeMap { size, texels }
+        let unorm: Vec<u8> =
+            cubemap::cube_factors_shared(n).iter().map(|&f| cubemap::unorm8(f)).collect();
+        let b = n + 2;
+        let mut texels = vec![0.0f32; 6 * b * b * 4];
+        let inside = |face: usize, u: usize, v: usize| ((face * n + v) * n + u) * 4;
+        for face in 0..6 {
+            for bv in 0..b {
+                for bu in 0..b {
+                    let (u, v) = (bu as i64 - 1, bv as i64 - 1);
+                    let out_u = u < 0 || u >= n as i64;
+                    let out_v = v < 0 || v >= n as i64;
+                    if out_u && out_v {
+                        continue; // corners below, once the edges are in
+                    }
+                    let src = if !out_u && !out_v {
+                        inside(face, u as usize, v as usize)
+                    } else {
+                        let sc = 2.0 * (u as f64 + 0.5) / n as f64 - 1.0;
+                        let tc = 2.0 * (v as f64 + 0.5) / n as f64 - 1.0;
+                        let (f2, s, t) =
+                            cubemap::select_face(cubemap::face_direction(face, sc, tc));
+                        let pick = |c: f64| ((c * n as f64).floor() as i64).clamp(0, n as i64 - 1);
+                        inside(f2, pick(s) as usize, pick(t) as usize)
+                    };
+                    let dst = ((face * b + bv) * b + bu) * 4;
+                    for c in 0..4 {
+                        texels[dst + c] = unorm[src + c] as f32 / 255.0;
+                    }
+                }
+            }
+            // Each corner: the mean of the three texels of its footprint that exist.
+            for (cu, cv, du, dv) in [(0, 0, 1i64, 1i64), (b - 1, 0, -1, 1), (0, b - 1, 1, -1), (b - 1, b - 1, -1, -1)]
+            {
+                let at = |u: usize, v: usize| ((face * b + v) * b + u) * 4;
+                let nu = (cu as i64 + du) as usize;
+                let nv = (cv as i64 + dv) as usize;
+                let (a, e, d) = (at(nu, cv), at(cu, nv), at(nu, nv));
+                for c in 0..4 {
+                    texels[at(cu, cv) + c] = (texels[a + c] + texels[e + c] + texels[d + c]) / 3.0;
+                }
+            }
+        }
+        CubeMap { size: n, texels }
     }
 
     /// Face size in texels.
@@ -133,27 +182,26 @@ impl CubeMap {
     }
 
     /// The signed factors for tangent-space direction `d` (need not be normalised, must not be
-    /// zero): bilinear within the selected face, clamped at its edges, decoded f = t·2 − 1.
+    /// zero): bilinear, seamless across faces, decoded f = t·2 − 1.
     #[inline]
     pub fn factors(&self, d: [f64; 3]) -> [f32; 4] {
         let (face, s, t) = cubemap::select_face(d);
-        let n = self.size as i64;
-        let x = s * self.size as f64 - 0.5;
-        let y = t * self.size as f64 - 0.5;
+        let n = self.size;
+        let b = n + 2;
+        // Texel coordinates in the bordered face: the face's texel 0 is bordered texel 1.
+        let x = (s * n as f64 - 0.5).clamp(-0.5, n as f64 - 0.5) + 1.0;
+        let y = (t * n as f64 - 0.5).clamp(-0.5, n as f64 - 0.5) + 1.0;
         let (x0, y0) = (x.floor(), y.floor());
         let (fx, fy) = ((x - x0) as f32, (y - y0) as f32);
-        let (xi, yi) = (x0 as i64, y0 as i64);
-        let base = face * self.size * self.size;
-        let at = |u: i64, v: i64| -> usize {
-            (base + (v.clamp(0, n - 1) * n + u.clamp(0, n - 1)) as usize) * 4
-        };
+        let (xi, yi) = ((x0 as usize).min(b - 2), (y0 as usize).min(b - 2));
+        let at = |u: usize, v: usize| ((face * b + v) * b + u) * 4;
         let (i00, i10, i01, i11) = (at(xi, yi), at(xi + 1, yi), at(xi, yi + 1), at(xi + 1, yi + 1));
         let mut f = [0.0f32; 4];
         for (c, o) in f.iter_mut().enumerate() {
-            let g = |i: usize| self.texels[i + c] as f32 / 255.0;
+            let g = |i: usize| self.texels[i + c];
             let a = g(i00) + (g(i10) - g(i00)) * fx;
-            let b = g(i01) + (g(i11) - g(i01)) * fx;
-            *o = (a + (b - a) * fy) * 2.0 - 1.0;
+            let e = g(i01) + (g(i11) - g(i01)) * fx;
+            *o = (a + (e - a) * fy) * 2.0 - 1.0;
         }
         f
     }
@@ -507,6 +555,67 @@ mod tests {
         // neighbouring channels' factors (channel 7 negated in slot 3), as a GPU does.
         let f = CubeMap::new(16).factors([1.0, 0.0, 0.0]);
         assert!(f[0] > 0.9 && f[1] > 0.0 && f[3] < 0.0, "{f:?}");
+    }
+
+    /// The UNORM8 value of texel (u, v) of `face`, decoded to t ∈ [0, 1] (the oracle's fetch).
+    fn stored(size: usize, face: usize, u: usize, v: usize) -> [f32; 4] {
+        let f = cubemap::factors_for_direction(cubemap::texel_direction(face, u, v, size));
+        f.map(|x| cubemap::unorm8(x) as f32 / 255.0)
+    }
+
+    #[test]
+    fn cube_filtering_is_seamless_across_faces() {
+        // On the seam between +X and +Y (azimuth 45°), GL's seamless rule blends the texels of
+        // both faces along the shared edge, half of each at the seam itself. Clamping within a
+        // face read one face's texels only, and the value jumped across the seam.
+        let n = 16;
+        let cube = CubeMap::new(n);
+        for e_deg in [3.0f64, 15.0, 30.0] {
+            let e = e_deg.to_radians();
+            let at = |a_deg: f64| {
+                let a = a_deg.to_radians();
+                cube.factors([e.cos() * a.cos(), e.cos() * a.sin(), e.sin()])
+            };
+            let (below, above) = (at(45.0 - 1e-9), at(45.0 + 1e-9));
+            for c in 0..4 {
+                assert!((below[c] - above[c]).abs() < 1e-5, "e={e_deg}: {below:?} vs {above:?}");
+            }
+            // Oracle from the face table alone. At azimuth 45° the direction lies on +X's edge
+            // tc = −y/x = −1 (its row 0), which +X shares with +Y's edge sc = x/y = 1 (its column
+            // n−1); +X's sc = −z/x is +Y's tc = z/y negated, so +X column u meets +Y row n−1−u.
+            // The footprint straddles the seam: half +X row 0, half that +Y texel.
+            let d = [e.cos() * 45f64.to_radians().cos(), e.cos() * 45f64.to_radians().sin(), e.sin()];
+            let sc = -d[2] / d[0];
+            let x = 0.5 * (sc + 1.0) * n as f64 - 0.5;
+            let (u0, fx) = (x.floor() as usize, (x - x.floor()) as f32);
+            let want: Vec<f32> = (0..4)
+                .map(|c| {
+                    let col = |u: usize| 0.5 * stored(n, 0, u, 0)[c] + 0.5 * stored(n, 2, n - 1, n - 1 - u)[c];
+                    (col(u0) + (col(u0 + 1) - col(u0)) * fx) * 2.0 - 1.0
+                })
+                .collect();
+            for c in 0..4 {
+                assert!((above[c] - want[c]).abs() < 1e-5, "e={e_deg} c={c}: {above:?} vs {want:?}");
+            }
+        }
+        // Away from every edge nothing changes: the four texels of the face's own footprint.
+        let f = cube.factors([1.0, 0.1, 0.05]);
+        let (face, s, t) = cubemap::select_face([1.0, 0.1, 0.05]);
+        let (x, y) = (s * n as f64 - 0.5, t * n as f64 - 0.5);
+        let (u, v) = (x.floor() as usize, y.floor() as usize);
+        let (fx, fy) = ((x - x.floor()) as f32, (y - y.floor()) as f32);
+        for c in 0..4 {
+            let g = |u, v| stored(n, face, u, v)[c];
+            let a = g(u, v) + (g(u + 1, v) - g(u, v)) * fx;
+            let b = g(u, v + 1) + (g(u + 1, v + 1) - g(u, v + 1)) * fx;
+            assert!(((a + (b - a) * fy) * 2.0 - 1.0 - f[c]).abs() < 1e-6);
+        }
+        // A corner: the mean of the three texels that exist, so the cube stays continuous there.
+        let c3 = 1.0 / 3f64.sqrt();
+        let (p, q) = (cube.factors([c3, c3 + 1e-9, c3]), cube.factors([c3 + 1e-9, c3, c3]));
+        for c in 0..4 {
+            assert!((p[c] - q[c]).abs() < 1e-5, "{p:?} vs {q:?}");
+        }
     }
 
     #[test]
