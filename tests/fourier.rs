@@ -13,26 +13,95 @@ use horizon_bake::params::{BakeParams, FourierRange};
 use horizon_bake::progress::Progress;
 use std::f64::consts::PI;
 
-/// The decoder of the radial-horizon write-up as a pixel shader runs it, in f32, straight-line:
+/// The decoder of the radial-horizon write-up as its pixel shader runs it (SPEC §3.4), in f32,
+/// straight-line, byte for byte:
 ///
 /// ```glsl
-/// vec4  c  = texture(fourier0, uv) * 2.0 - 1.0;   c  = c * abs(c) * range;
-/// float c0 = texture(fourier1, uv).r;             c0 = c0 * c0;
+/// vec4  lq = texture(fourier0, uv) * 4.0 - 2.0;   lq = lq * abs(lq);
+/// float c  = texture(fourier1, uv).r * 2.0 - 1.0; c  = c * abs(c);
 /// vec2  d  = normalize(L.xy);                     // (x, y) = (cos φ, sin φ)
-/// float s  = c0 + dot(c, vec4(d.x, d.y, 2.0 * d.x * d.y, d.y * d.y - d.x * d.x));
+/// float s  = c + dot(lq, vec4(d.x, d.y, 2.0 * d.x * d.y, d.y * d.y - d.x * d.x));
 /// ```
+///
+/// `expanded` is the same shader changed in two lines, as SPEC §3.4 says: the bands decode
+/// `t * 2.0 - 1.0` and are scaled by 2/π, the constant is `t * t`.
 fn shader_decode(rgba: [u8; 4], a8: u8, lx: f32, ly: f32, expanded: bool) -> f32 {
-    let range = if expanded { 2.0 / std::f32::consts::PI } else { 1.0 };
-    let mut c = [0.0f32; 4];
+    let mut lq = [0.0f32; 4];
     for i in 0..4 {
-        let t = rgba[i] as f32 / 255.0 * 2.0 - 1.0;
-        c[i] = t * t.abs() * range;
+        let t = rgba[i] as f32 / 255.0;
+        lq[i] = if expanded {
+            let v = t * 2.0 - 1.0;
+            v * v.abs() * (2.0 / std::f32::consts::PI)
+        } else {
+            let v = t * 4.0 - 2.0;
+            v * v.abs()
+        };
     }
-    let c0 = a8 as f32 / 255.0;
-    let c0 = c0 * c0;
+    let t0 = a8 as f32 / 255.0;
+    let c = if expanded {
+        t0 * t0
+    } else {
+        let v = t0 * 2.0 - 1.0;
+        v * v.abs()
+    };
     let len = (lx * lx + ly * ly).sqrt();
     let (x, y) = (lx / len, ly / len);
-    c0 + c[0] * x + c[1] * y + c[2] * 2.0 * x * y + c[3] * (y * y - x * x)
+    c + lq[0] * x + lq[1] * y + lq[2] * 2.0 * x * y + lq[3] * (y * y - x * x)
+}
+
+#[test]
+fn the_unchanged_write_up_shader_reproduces_the_projection_on_random_maps() {
+    // SPEC §3.4: the standard-range layers of a real bake, decoded byte for byte by the
+    // write-up's shader, give back the projection of the kernel's s(φ) up to the 8-bit
+    // quantisation. The bound is derived per texel, not fitted: a byte is within one step (1/255)
+    // of its t (half a step of rounding, and room for the bake's f32 kernel to round a
+    // coefficient the other way than this f64 projection), so a band's v = 4t − 2 is within
+    // 4/255 and C = v·|v| within 2|v|·(4/255) + (4/255)²; the constant's c = 2t − 1 is within
+    // 2/255 and c·|c| within 2|c|·(2/255) + (2/255)². Multiplied by |b_k(φ)| ≤ 1 (|2xy|,
+    // |y² − x²| ≤ 1) and summed. Before the storage followed §3.4 this shader was off by ~0.5.
+    let p = BakeParams::from_pairs([("radius", "6"), ("height_scale", "6"), ("outputs", "fourier")])
+        .unwrap();
+    let mut worst_margin = f64::INFINITY;
+    let (mut sum, mut count) = (0.0f64, 0usize);
+    for (seed, w, h) in [(1u64, 23usize, 17usize), (2, 9, 31), (3, 40, 40)] {
+        let map = random_map(w, h, seed);
+        let (f, _) = bake::bake_fourier(&map, &p, &Progress::new()).unwrap();
+        assert_eq!(f.range, FourierRange::Standard);
+        // The unquantised projection of the same per-bin horizon the bake projected.
+        let heights = map.scaled(p.height_scale);
+        let grid = Grid::new(w, h, &heights, p.edge, p.y_axis);
+        let k = LengyelNaive::new(grid, 6, p.bins);
+        let proj = Projector::new(p.bins as usize, 5);
+        let mut bins = vec![0.0f32; p.bins as usize];
+        let mut rng = Rng(seed * 77);
+        for i in 0..w * h {
+            k.texel_bins(i % w, i / w, &mut bins);
+            let mut c = [0.0; MAX_TERMS];
+            proj.project(&bins, &mut c);
+            let rgba = [0, 1, 2, 3].map(|j| f.bands[i * 4 + j]);
+            let a8 = f.constant[i];
+            let bound = (1..5)
+                .map(|k| {
+                    let v = fourier::compand(c[k]).abs();
+                    2.0 * v * (4.0 / 255.0) + (4.0 / 255.0f64).powi(2)
+                })
+                .sum::<f64>()
+                + 2.0 * c[0].max(0.0).sqrt() * (2.0 / 255.0)
+                + (2.0 / 255.0f64).powi(2);
+            for _ in 0..8 {
+                let phi = rng.f32() as f64 * 2.0 * PI;
+                let shader = shader_decode(rgba, a8, phi.cos() as f32, phi.sin() as f32, false);
+                let want = fourier::evaluate(&c, 5, phi);
+                let err = (shader as f64 - want).abs();
+                worst_margin = worst_margin.min(bound + 1e-5 - err);
+                sum += err;
+                count += 1;
+            }
+        }
+    }
+    assert!(worst_margin >= 0.0, "the shader left the quantisation bound by {}", -worst_margin);
+    let mean = sum / count as f64;
+    assert!(mean < 0.01, "mean |Δs| {mean}");
 }
 
 #[test]
@@ -127,11 +196,11 @@ fn expanded_range_measurably_improves_the_round_trip() {
         std_c += st.2;
         exp_c += ex.2;
     }
-    // √(2/π) ≈ 0.80 of the standard byte range holds every non-constant coefficient; expanding
-    // it to the full range shrinks their quantisation error by that factor (measured 0.81);
-    // the constant term is stored the same way in both, so s(φ) improves less (measured 0.90).
-    assert!(exp_c < 0.88 * std_c, "coefficients: expanded {exp_c:.6} vs standard {std_c:.6}");
-    assert!(exp_err < 0.95 * std_err, "s(φ): expanded {exp_err:.6} vs standard {std_err:.6}");
+    // The write-up's standard storage puts every non-constant coefficient in ¼·√(2/π) ≈ 0.2 of
+    // the byte range on each side of ½ and the constant in the upper half; `expanded` spreads
+    // both over the whole range, 2.5× and 2× finer steps.
+    assert!(exp_c < 0.5 * std_c, "coefficients: expanded {exp_c:.6} vs standard {std_c:.6}");
+    assert!(exp_err < 0.6 * std_err, "s(φ): expanded {exp_err:.6} vs standard {std_err:.6}");
 }
 
 fn random_map(w: usize, h: usize, seed: u64) -> HeightMap {

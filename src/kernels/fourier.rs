@@ -27,19 +27,29 @@
 //! which for B ≥ 16 equals the least-squares fit (the sampled basis is orthogonal below band B/2),
 //! and the decoder is simply s(φ) = Σ_k C_k b_k(φ).
 //!
-//! Storage (8-bit UNORM, byte = floor(v·255 + 0.5) as everywhere in the crate):
-//! - the constant term, C_0 ∈ [0, 1], as √C_0 (the write-up's companding; no sign to keep);
-//! - every other term as v = sign(c)·√|c| with c = C_k (`fourier_range=standard`) or
-//!   c = C_k / (2/π) (`expanded`), remapped to [0, 1] as v·0.5 + 0.5.
+//! Storage (8-bit UNORM, byte = floor(t·255 + 0.5) as everywhere in the crate) is what the
+//! write-up's shader decodes unchanged (SPEC §3.4):
+//!
+//! ```glsl
+//! vec4  lq = texture(fourier0, uv) * 4.0 - 2.0;   lq = lq * abs(lq);
+//! float c  = texture(fourier1, uv).r * 2.0 - 1.0; c  = c * abs(c);
+//! float s  = c + dot(lq, vec4(x, y, 2.0 * x * y, y * y - x * x));
+//! ```
+//!
+//! - `fourier_range=standard` (default): t_k = ½ + ¼·sign(C_k)·√|C_k| for k ≥ 1 and
+//!   t_0 = ½ + ½·√C_0;
+//! - `expanded`, for a shader changed in two lines (`* 2.0 - 1.0` and `* 2/π` for the bands,
+//!   `c = t * t` for the constant): t_k = ½ + ½·sign(C_k)·√(|C_k|·π/2) and t_0 = √C_0.
 //!
 //! For s ∈ [0, 1] and a unit sinusoid b_k, |C_k| = 2|mean(s·b_k)| ≤ 2·mean(max(b_k, 0)) = 2/π,
-//! so the standard range wastes the outer 1 − √(2/π) ≈ 20% of the byte range on each side;
-//! `expanded` divides by that bound first and uses all of it (values past it, possible only by
-//! sampling error, saturate).
+//! so the standard range uses only ¼·√(2/π) ≈ 0.2 of the byte range on each side of ½ (about
+//! 102 of 255 codes), and half of the constant's; `expanded` divides by that bound first and
+//! uses all of it (values past it, possible only by sampling error, saturate).
 //!
 //! Decoding (what a shader does after bilinear filtering the UNORM textures to t ∈ [0, 1]):
-//!   C_0 = t_0²,   v = 2t − 1,   C_k = v·|v| · (1 or 2/π),   s(φ) = Σ C_k b_k(φ).
-//! Note the UNORM zero offset: a stored 128 decodes to v = 1/255, C = 1.5e-5, not 0.
+//! standard C_k = v·|v| with v = 4t − 2, C_0 = c·|c| with c = 2t − 1; expanded C_k = v·|v|·2/π
+//! with v = 2t − 1, C_0 = t². Note the UNORM zero offset: a stored 128 decodes to v = 2/255
+//! (standard), C = 6e-5, not 0.
 //!
 //! # Layout
 //! - `fourier_0`: RGBA8 = C_1, C_2, C_3, C_4 (with 3 terms, B and A hold the encoded zero, 128);
@@ -146,6 +156,17 @@ pub fn range_scale(range: FourierRange) -> f64 {
     }
 }
 
+/// How far the companded value v = sign(c)·√|c / range_scale| reaches from the UNORM midpoint:
+/// the write-up's shader decodes `t·4 − 2`, so the standard range stores v·¼ + ½; `expanded`
+/// (a shader changed to `t·2 − 1`) stores v·½ + ½.
+#[inline]
+fn half_span(range: FourierRange) -> f64 {
+    match range {
+        FourierRange::Standard => 0.25,
+        FourierRange::Expanded => 0.5,
+    }
+}
+
 /// Sign-preserving square root.
 #[inline]
 pub fn compand(c: f64) -> f64 {
@@ -156,26 +177,38 @@ pub fn compand(c: f64) -> f64 {
 #[inline]
 pub fn encode_coeff(c: f64, range: FourierRange) -> u8 {
     let v = compand(c / range_scale(range)).clamp(-1.0, 1.0);
-    crate::encode::quantize8((v * 0.5 + 0.5) as f32)
+    crate::encode::quantize8((v * half_span(range) + 0.5) as f32)
 }
 
-/// The byte storing the constant term C_0 ∈ [0, 1].
+/// The byte storing the constant term C_0 ∈ [0, 1]: the write-up's shader decodes it as
+/// c = t·2 − 1, c·|c| (`standard`, t = ½ + ½√C_0); `expanded` stores t = √C_0, decoded t².
 #[inline]
-pub fn encode_constant(c0: f64) -> u8 {
-    crate::encode::quantize8(c0.clamp(0.0, 1.0).sqrt() as f32)
+pub fn encode_constant(c0: f64, range: FourierRange) -> u8 {
+    let r = c0.clamp(0.0, 1.0).sqrt();
+    let t = match range {
+        FourierRange::Standard => 0.5 + 0.5 * r,
+        FourierRange::Expanded => r,
+    };
+    crate::encode::quantize8(t as f32)
 }
 
 /// A non-constant coefficient from its filtered UNORM value `t` ∈ [0, 1].
 #[inline]
 pub fn decode_coeff(t: f64, range: FourierRange) -> f64 {
-    let v = t * 2.0 - 1.0;
+    let v = (t - 0.5) / half_span(range);
     v * v.abs() * range_scale(range)
 }
 
 /// The constant term from its filtered UNORM value `t`.
 #[inline]
-pub fn decode_constant(t: f64) -> f64 {
-    t * t
+pub fn decode_constant(t: f64, range: FourierRange) -> f64 {
+    match range {
+        FourierRange::Standard => {
+            let c = t * 2.0 - 1.0;
+            c * c.abs()
+        }
+        FourierRange::Expanded => t * t,
+    }
 }
 
 /// Which stored layer and channel hold coefficient k (k ≥ 1): (layer index in
@@ -201,7 +234,7 @@ pub fn encode_texel(
     constant: &mut u8,
     high: Option<&mut [u8]>,
 ) {
-    *constant = encode_constant(coeffs[0]);
+    *constant = encode_constant(coeffs[0], range);
     let zero = encode_coeff(0.0, range);
     for (i, b) in bands.iter_mut().enumerate().take(4) {
         let k = i + 1;
@@ -226,7 +259,7 @@ pub fn decode_texel(
     range: FourierRange,
 ) -> [f64; MAX_TERMS] {
     let mut c = [0.0; MAX_TERMS];
-    c[0] = decode_constant(constant);
+    c[0] = decode_constant(constant, range);
     for k in 1..terms.min(MAX_TERMS) {
         let t = if k <= 4 { bands[k - 1] } else { high[k - 5] };
         c[k] = decode_coeff(t, range);
@@ -328,16 +361,19 @@ mod tests {
 
     #[test]
     fn literal_bytes() {
-        // Zero encodes to 128 (0.5·255 + 0.5 = 128) and 128 decodes to (1/255)².
+        // Zero encodes to 128 (0.5·255 + 0.5 = 128) and 128 decodes to (4·128/255 − 2)².
         assert_eq!(encode_coeff(0.0, FourierRange::Standard), 128);
         let z = decode_coeff(128.0 / 255.0, FourierRange::Standard);
-        assert!((z - (1.0 / 255.0f64).powi(2)).abs() < 1e-15);
-        // C = 0.25 → √ = 0.5 → 0.75·255 + 0.5 = 191.75 → 191.
-        assert_eq!(encode_coeff(0.25, FourierRange::Standard), 191);
-        assert_eq!(encode_coeff(-0.25, FourierRange::Standard), 64);
+        assert!((z - (2.0 / 255.0f64).powi(2)).abs() < 1e-15);
+        // C = 0.25 → √ = 0.5 → (0.5·0.25 + 0.5)·255 + 0.5 = 159.875 → 159.
+        assert_eq!(encode_coeff(0.25, FourierRange::Standard), 159);
+        assert_eq!(encode_coeff(-0.25, FourierRange::Standard), 96);
         // Expanded: the bound itself maps to 255.
         assert_eq!(encode_coeff(COEFF_BOUND, FourierRange::Expanded), 255);
-        assert_eq!(encode_constant(0.25), 128);
-        assert!((decode_constant(128.0 / 255.0) - 0.2519).abs() < 1e-3);
+        // C_0 = 0.25 → √ = 0.5 → standard 0.75·255 + 0.5 → 191; expanded 0.5·255 + 0.5 → 128.
+        assert_eq!(encode_constant(0.25, FourierRange::Standard), 191);
+        assert_eq!(encode_constant(0.25, FourierRange::Expanded), 128);
+        assert!((decode_constant(191.0 / 255.0, FourierRange::Standard) - 0.2475).abs() < 1e-3);
+        assert!((decode_constant(128.0 / 255.0, FourierRange::Expanded) - 0.2519).abs() < 1e-3);
     }
 }
