@@ -481,7 +481,8 @@ async fn router_serves_exactly_the_declared_routes() {
         let concrete = path
             .replace("{id}", "0123456789abcdef0123")
             .replace("{layer}", "0")
-            .replace("{face}", "0");
+            .replace("{face}", "0")
+            .replace("{asset}", "app.js");
         for m in ["GET", "POST", "PUT", "PATCH", "DELETE"] {
             let req = Request::builder().method(m).uri(&concrete).body(Body::empty()).unwrap();
             let (s, _, body) = oneshot(&app, req).await;
@@ -656,5 +657,122 @@ async fn preview_of_an_unfinished_bake_is_409() {
         Request::get("/v1/bakes/0123456789abcdef0123/preview").body(Body::empty()).unwrap(),
     )
     .await;
+    assert_eq!(s, 404);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn heights_are_the_scaled_input_for_a_viewer() {
+    // What the web page rebuilds its normals from: the decoded input, channel picked,
+    // height_scale applied, little-endian f32, row 0 first, in any status.
+    let srv = Server::start(|_| {}).await;
+    let c = client();
+    let png = terrain_png16(37, 23, 11);
+    let res = c
+        .post(srv.url("/v1/bakes?radius=4&height_scale=24"))
+        .header("content-type", "image/png")
+        .body(png.clone())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(res.status(), 202);
+    let loc = res.headers()["location"].to_str().unwrap().to_owned();
+    let (map, _) = horizon_bake::heightmap::decode(
+        &png,
+        horizon_bake::params::Channel::Luma,
+        &Default::default(),
+    )
+    .unwrap();
+    let want: Vec<u8> = map.scaled(24.0).iter().flat_map(|v| v.to_le_bytes()).collect();
+    let res = c.get(srv.url(&format!("{loc}/heights"))).send().await.unwrap();
+    assert_eq!(res.status(), 200);
+    assert_eq!(res.headers()["content-type"], "application/octet-stream");
+    assert_eq!(res.headers()["x-width"], "37");
+    assert_eq!(res.headers()["x-height"], "23");
+    let etag = res.headers()["etag"].to_str().unwrap().to_owned();
+    let body = res.bytes().await.unwrap();
+    assert_eq!(body.len(), 37 * 23 * 4);
+    assert!(body[..] == want[..], "heights differ from the decoded, scaled input");
+    // The values really are scaled: the 16-bit terrain spans most of [0, 1].
+    let max = body.chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().unwrap())).fold(0.0, f32::max);
+    assert!(max > 12.0 && max <= 24.0, "{max}");
+    let res =
+        c.get(srv.url(&format!("{loc}/heights"))).header("if-none-match", &etag).send().await.unwrap();
+    assert_eq!(res.status(), 304);
+    // Another height_scale is another resource with another ETag.
+    let res = c
+        .post(srv.url("/v1/bakes?radius=4&height_scale=2"))
+        .header("content-type", "image/png")
+        .body(png)
+        .send()
+        .await
+        .unwrap();
+    let loc2 = res.headers()["location"].to_str().unwrap().to_owned();
+    let res = c.get(srv.url(&format!("{loc2}/heights"))).send().await.unwrap();
+    assert_ne!(res.headers()["etag"].to_str().unwrap(), etag);
+    let first = f32::from_le_bytes(res.bytes().await.unwrap()[..4].try_into().unwrap());
+    assert_eq!(first, (map.values[0] as f64 * 2.0) as f32);
+    let res = c.get(srv.url("/v1/bakes/nosuchbake/heights")).send().await.unwrap();
+    assert_eq!(res.status(), 404);
+}
+
+#[tokio::test]
+async fn web_page_is_built_in_knows_the_limits_and_turns_off() {
+    let (st, _dir) = idle_state(|c| {
+        c.limits.max_dim = 1234;
+        c.api_key = Some("k".into());
+    });
+    let app = service::app(st);
+    let (s, h, body) = oneshot(&app, Request::get("/").body(Body::empty()).unwrap()).await;
+    assert_eq!(s, 200);
+    assert_eq!(h["content-type"], "text/html; charset=utf-8");
+    let html = String::from_utf8(body).unwrap();
+    assert!(!html.contains("__HORIZON_CONFIG__"));
+    assert!(html.contains("\"max_dim\":1234"), "{html}");
+    // The page is open (it asks for the key itself); the API behind it is not.
+    assert!(html.contains("\"auth_required\":true"));
+    for (name, content_type, builtin) in service::ui::ASSETS {
+        let (s, h, body) =
+            oneshot(&app, Request::get(format!("/ui/{name}")).body(Body::empty()).unwrap()).await;
+        assert_eq!(s, 200, "{name}");
+        assert_eq!(h["content-type"], *content_type);
+        assert_eq!(body, builtin.as_bytes());
+    }
+    let (s, _, body) = oneshot(&app, Request::get("/ui/nope.js").body(Body::empty()).unwrap()).await;
+    assert_eq!(s, 404);
+    assert!(String::from_utf8_lossy(&body).contains("ui_asset_not_found"));
+    let (s, _, _) = oneshot(&app, Request::get("/v1/bakes").body(Body::empty()).unwrap()).await;
+    assert_eq!(s, 401);
+
+    let (st, _dir) = idle_state(|c| c.no_ui = true);
+    let app = service::app(st);
+    for path in ["/", "/ui/app.js"] {
+        let (s, _, body) = oneshot(&app, Request::get(path).body(Body::empty()).unwrap()).await;
+        assert_eq!(s, 404, "{path}");
+        assert!(String::from_utf8_lossy(&body).contains("ui_disabled"));
+    }
+    let (s, _, _) = oneshot(&app, Request::get("/healthz").body(Body::empty()).unwrap()).await;
+    assert_eq!(s, 200);
+}
+
+#[tokio::test]
+async fn ui_dir_serves_the_page_from_disk() {
+    let ui = tempfile::tempdir().unwrap();
+    std::fs::write(ui.path().join("index.html"), "<p>__HORIZON_CONFIG__</p>").unwrap();
+    std::fs::write(ui.path().join("app.js"), "export const x = 1;").unwrap();
+    let dir = ui.path().to_owned();
+    let (st, _dir) = idle_state(move |c| c.ui_dir = Some(dir));
+    let app = service::app(st);
+    let (s, _, body) = oneshot(&app, Request::get("/").body(Body::empty()).unwrap()).await;
+    assert_eq!(s, 200);
+    let text = String::from_utf8(body).unwrap();
+    assert!(text.starts_with("<p>{\"version\":"), "{text}");
+    let (_, _, body) = oneshot(&app, Request::get("/ui/app.js").body(Body::empty()).unwrap()).await;
+    assert_eq!(body, b"export const x = 1;");
+    // Only the page's own files are served from it, never another path in that directory.
+    std::fs::write(ui.path().join("secret.txt"), "no").unwrap();
+    let (s, _, _) = oneshot(&app, Request::get("/ui/secret.txt").body(Body::empty()).unwrap()).await;
+    assert_eq!(s, 404);
+    let (s, _, _) =
+        oneshot(&app, Request::get("/ui/..%2Fsecret.txt").body(Body::empty()).unwrap()).await;
     assert_eq!(s, 404);
 }

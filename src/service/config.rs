@@ -60,6 +60,13 @@ pub struct ServeArgs {
     /// Largest cube-map face size served by /v1/cubemap.
     #[arg(long, env = "HORIZON_MAX_CUBEMAP_SIZE", default_value_t = 1024)]
     pub max_cubemap_size: u32,
+    /// Turn the web page at `/` off (the API is unchanged).
+    #[arg(long, env = "HORIZON_NO_UI")]
+    pub no_ui: bool,
+    /// Serve the web page's files from this directory, re-read on every request, instead of the
+    /// copies built into the binary (for working on the page without rebuilding).
+    #[arg(long, env = "HORIZON_UI_DIR")]
+    pub ui_dir: Option<PathBuf>,
 }
 
 impl Default for ServeArgs {
@@ -82,6 +89,8 @@ impl Default for ServeArgs {
             shutdown_grace_secs: 30,
             api_key: None,
             max_cubemap_size: 1024,
+            no_ui: false,
+            ui_dir: None,
         }
     }
 }
@@ -104,6 +113,8 @@ pub struct Config {
     pub shutdown_grace: Duration,
     pub api_key: Option<String>,
     pub max_cubemap_size: u32,
+    pub no_ui: bool,
+    pub ui_dir: Option<PathBuf>,
 }
 
 fn at_least_one(field: &str, v: u64) -> Result<()> {
@@ -167,6 +178,8 @@ impl Config {
             shutdown_grace: Duration::from_secs(a.shutdown_grace_secs),
             api_key: a.api_key,
             max_cubemap_size: a.max_cubemap_size,
+            no_ui: a.no_ui,
+            ui_dir: a.ui_dir,
         })
     }
 

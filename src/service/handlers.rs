@@ -951,6 +951,89 @@ pub async fn cubemap_dds(
         .await
 }
 
+/// Runs `f` on the bake pool (never the async workers), panics caught, the result sent back
+/// over a oneshot; `what` names the work in the 500 a panic becomes.
+async fn on_pool<T, F>(st: &AppState, what: &str, f: F) -> Result<T, Problem>
+where
+    T: Send + 'static,
+    F: FnOnce(&AppState) -> crate::Result<T> + Send + 'static,
+{
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    let pool_state = st.clone();
+    st.0.pool.spawn(move || {
+        let _ = tx.send(catch_unwind(AssertUnwindSafe(|| f(&pool_state))));
+    });
+    match rx.await {
+        Ok(Ok(r)) => r.map_err(Problem::from),
+        Ok(Err(_)) | Err(_) => Err(Problem::internal(&format!("{what} panicked"))),
+    }
+}
+
+/// The bake's stored input decoded with its channel (unscaled heights).
+fn stored_heightmap(
+    st: &AppState,
+    rec: &BakeRecord,
+    params: &BakeParams,
+) -> crate::Result<heightmap::HeightMap> {
+    let bytes = st
+        .0
+        .blobs
+        .get(&rec.input_blob)?
+        .ok_or_else(|| Error::Internal(format!("input blob {} is missing", rec.input_blob)))?;
+    Ok(heightmap::decode(&bytes, params.channel, &st.0.config.limits)?.0)
+}
+
+/// `GET /v1/bakes/{id}/heights`: the heights the bake used, in texels (channel picked,
+/// `height_scale` applied), little-endian f32, row 0 first, with the size in `x-width` and
+/// `x-height`. A browser decodes 16-bit PNGs to 8 bits, so this is how a viewer rebuilds the
+/// server's normals exactly. The input is stored from submission on, so any status has them.
+pub async fn heights(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> Answer {
+    let rec = load(&st, &id).await?;
+    let params = params_of(&rec).map_err(store_err)?;
+    // The bytes are a function of the input and of these two parameters only.
+    let etag = format!(
+        "\"{}\"",
+        blake3::hash(
+            format!("heights|{}|{:?}|{}", rec.input_blob, params.channel, params.height_scale)
+                .as_bytes()
+        )
+        .to_hex()
+    );
+    let mut res = if etag_matches(&headers, &etag) {
+        StatusCode::NOT_MODIFIED.into_response()
+    } else {
+        let (w, h, bytes) = on_pool(&st, &format!("the heights of bake {id}"), move |st| {
+            let map = stored_heightmap(st, &rec, &params)?;
+            let (w, h) = (map.width, map.height);
+            let bytes: Vec<u8> =
+                map.into_scaled(params.height_scale).iter().flat_map(|v| v.to_le_bytes()).collect();
+            Ok((w, h, bytes))
+        })
+        .await?;
+        let mut r = Response::new(Body::from(bytes));
+        let hs = r.headers_mut();
+        hs.insert(header::CONTENT_TYPE, HeaderValue::from_static("application/octet-stream"));
+        hs.insert("x-width", HeaderValue::from(w));
+        hs.insert("x-height", HeaderValue::from(h));
+        if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"heights_{id}.f32\"")) {
+            hs.insert(header::CONTENT_DISPOSITION, v);
+        }
+        r
+    };
+    if let Ok(v) = HeaderValue::from_str(&etag) {
+        res.headers_mut().insert(header::ETAG, v);
+    }
+    res.headers_mut().insert(
+        header::CACHE_CONTROL,
+        HeaderValue::from_static("private, max-age=31536000, immutable"),
+    );
+    Ok(res)
+}
+
 /// Cancels a preview render when its request future is dropped (the client went away), so the
 /// pool does not keep computing an image nobody will read.
 struct CancelOnDrop(Progress);
@@ -984,25 +1067,11 @@ pub async fn preview(
     let params = params_of(&rec).map_err(store_err)?;
     let progress = Progress::new();
     let _cancel = CancelOnDrop(progress.clone());
-    let (tx, rx) = tokio::sync::oneshot::channel();
-    let pool_state = st.clone();
-    st.0.pool.spawn(move || {
-        let out = catch_unwind(AssertUnwindSafe(|| -> crate::Result<Vec<u8>> {
-            let bytes = pool_state.0.blobs.get(&rec.input_blob)?.ok_or_else(|| {
-                Error::Internal(format!("input blob {} is missing", rec.input_blob))
-            })?;
-            let (map, _) = heightmap::decode(&bytes, params.channel, &pool_state.0.config.limits)?;
-            drop(bytes);
-            preview::render_baking(&map, &params, &pp, &progress)?.to_png()
-        }));
-        let _ = tx.send(out);
-    });
-    let png = match rx.await {
-        Ok(Ok(r)) => r.map_err(Problem::from)?,
-        Ok(Err(_)) | Err(_) => {
-            return Err(Problem::internal(&format!("the preview of bake {id} panicked")))
-        }
-    };
+    let png = on_pool(&st, &format!("the preview of bake {id}"), move |st| {
+        let map = stored_heightmap(st, &rec, &params)?;
+        preview::render_baking(&map, &params, &pp, &progress)?.to_png()
+    })
+    .await?;
     let mut r = Response::new(Body::from(png));
     r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static("image/png"));
     if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"preview_{id}.png\"")) {

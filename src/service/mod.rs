@@ -24,6 +24,7 @@ pub mod metrics;
 pub mod problem;
 pub mod queue;
 pub mod store;
+pub mod ui;
 pub mod worker;
 
 pub use config::{Config, ServeArgs};
@@ -53,6 +54,7 @@ pub const ROUTES: &[(&str, &[&str])] = &[
     ("/v1/bakes/{id}/horizon.dds", &["GET"]),
     ("/v1/bakes/{id}/fourier/{layer}", &["GET"]),
     ("/v1/bakes/{id}/preview", &["GET"]),
+    ("/v1/bakes/{id}/heights", &["GET"]),
     ("/v1/cubemap/{face}", &["GET"]),
     ("/v1/cubemap.ktx2", &["GET"]),
     ("/v1/cubemap.dds", &["GET"]),
@@ -60,6 +62,8 @@ pub const ROUTES: &[(&str, &[&str])] = &[
     ("/readyz", &["GET"]),
     ("/metrics", &["GET"]),
     ("/openapi.yaml", &["GET"]),
+    ("/", &["GET"]),
+    ("/ui/{asset}", &["GET"]),
 ];
 
 /// Shared state of one server. Cheap to clone.
@@ -230,6 +234,7 @@ pub fn app(st: AppState) -> Router {
         .route("/v1/bakes/{id}/horizon.dds", get(handlers::horizon_dds))
         .route("/v1/bakes/{id}/fourier/{layer}", get(handlers::fourier_layer))
         .route("/v1/bakes/{id}/preview", get(handlers::preview))
+        .route("/v1/bakes/{id}/heights", get(handlers::heights))
         .route("/v1/cubemap/{face}", get(handlers::cubemap_face))
         .route("/v1/cubemap.ktx2", get(handlers::cubemap_ktx2))
         .route("/v1/cubemap.dds", get(handlers::cubemap_dds))
@@ -240,6 +245,9 @@ pub fn app(st: AppState) -> Router {
         .route("/readyz", get(handlers::readyz))
         .route("/metrics", get(handlers::metrics))
         .route("/openapi.yaml", get(handlers::openapi))
+        // The page loads before anyone can type an API key into it; it holds no data.
+        .route("/", get(ui::index))
+        .route("/ui/{asset}", get(ui::asset))
         .route_layer(axum::middleware::from_fn_with_state(st.clone(), handlers::track))
         .fallback(handlers::fallback)
         .layer(axum::middleware::map_response(problem::normalize))
