@@ -3,8 +3,9 @@
     HORIZON_BIN=target/debug/horizon-bake python tests/browser/screenshot.py [OUT.png]
 
 It starts the server binary on 127.0.0.1 with a temporary data directory, uploads
-docs/corpus/jacksboro_128.png through the page's file input with the default parameters, waits
-for the WebGL2 viewer, sets the light and captures the 1280×800 viewport.
+docs/corpus/jacksboro_128.png through the page's file input at the terrain's true scale
+(height_scale 728.2 = metres / 90 m per texel) with the exact kernel, waits for the WebGL2
+viewer, sets a low sun, shows the CPU preview beside it and captures the 1280×800 viewport.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from playwright.sync_api import sync_playwright
 
 from harness import CHROMIUM, ROOT, TERRAIN, launch, server
 
-AZIMUTH, ELEVATION = 150.0, 14.0
+AZIMUTH, ELEVATION = 150.0, 12.0
 
 
 def main() -> int:
@@ -30,6 +31,9 @@ def main() -> int:
             page.goto(s.url + "/")
             page.wait_for_function("() => window.__horizon !== undefined")
             page.set_input_files("#file", str(TERRAIN))
+            page.select_option("#p-method", "exact")
+            page.select_option("#p-radius-mode", "unlimited")
+            page.fill("#p-height_scale", "728.2")
             with page.expect_response(lambda r: r.request.method == "POST") as info:
                 page.click("#bake")
             bake_id = info.value.header_value("location").rsplit("/", 1)[1]
@@ -43,6 +47,7 @@ def main() -> int:
                 "() => { const i = document.getElementById('cpu-image');"
                 " return i.src.startsWith('blob:') && i.complete && i.naturalWidth > 0; }",
                 timeout=120_000)
+            page.evaluate("() => { document.activeElement.blur(); window.scrollTo(0, 0); }")
             page.wait_for_timeout(300)
             page.screenshot(path=str(out))
             if errors:
