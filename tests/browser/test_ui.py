@@ -29,7 +29,7 @@ from harness import TERRAIN, chromium_or_skip, compare, decode_rgba, launch, ser
 TRUE_SCALE = "728.2"
 # A bake slow enough that the 250 ms event stream reports it mid-way: the exact kernel to the
 # edge of the map on one thread.
-SLOW = {"method": "exact", "radius": "unlimited", "height_scale": TRUE_SCALE}
+SLOW = {"method": "exact", "radius": "unlimited", "bins": "64", "height_scale": TRUE_SCALE}
 # Lights for the GPU/CPU comparison: within 2° of the cube's face edges (azimuth 45°+k·90° is
 # the edge between side faces; elevation 45° at azimuth 0°/-90°/180° the edge with +Z), away
 # from the cube corners (elevation 35.26° at azimuth 45°+k·90°), plus a low and a high light.
@@ -177,11 +177,22 @@ def test_page_and_modules_are_served(srv):
     assert status == 200 and headers["content-type"].startswith("text/javascript")
 
 
+def test_no_ui_turns_the_page_off():
+    with server(extra=["--no-ui"]) as s:
+        for path in ("/", "/ui/app.js", "/ui/viewer.js", "/ui/style.css"):
+            status, headers, _ = s.request(path)
+            assert status == 404, path
+            assert headers["content-type"].startswith("application/problem+json"), path
+        status, _, _ = s.request("/v1/bakes")
+        assert status == 200
+
+
 def test_upload_shows_progress_then_succeeds(baked):
     assert baked.post_status == 202
     page = baked.page
     log = page.evaluate("() => window.__horizon.progressLog")
     fractions = [e["fraction"] for e in log]
+    print(f"\nprogress shown: {[(round(e['fraction'], 3), e['stage']) for e in log]}")
     assert any(0 < f < 1 for f in fractions), log
     assert log[-1]["status"] == "succeeded"
     assert page.locator("#progress").get_attribute("value") in ("1", "1.0")
