@@ -307,6 +307,7 @@ const CUBE_SIZE = DEFAULTS.cubeSize;
 
 const state = {
   file: null,
+  fileInfo: null,     // the dropped file's header (imageinfo)
   bake: null,          // the bake resource shown
   watch: null,         // AbortController of the event stream
   viewer: null,
@@ -931,7 +932,8 @@ function viewOptions(extra = {}) {
   return {
     light: fromAngles(l.azimuth, l.elevation),
     hardness: l.hardness,
-    shading: sh === 'fourier' || sh === 'none' ? sh : 'horizon',
+    // raytraced/difference are server images: beside them the GPU shows its own decode
+    shading: sh === 'fourier' || sh === 'none' ? sh : state.viewer && !state.viewer.hasLayers ? 'fourier' : 'horizon',
     tiled: $('layout').value === 'tiled',
     ...debugOptions(),
     ...extra,
@@ -1001,12 +1003,19 @@ function update() {
   }
   const cmpShading = serverOnly ? sh : viewOptions().shading;
   const wantCpu = !v || serverOnly || ((layout === 'split' || layout === 'side') && debugOptions().mode === 'shaded');
-  $('server-image').hidden = !(v && serverOnly);
-  $('canvas').style.visibility = v && serverOnly ? 'hidden' : '';
+  // Server-only shadings (raytraced, difference) replace the canvas, except side by side,
+  // where they stand beside the GPU's horizon decode.
+  const side = layout === 'side' && debugOptions().mode === 'shaded';
+  $('server-image').hidden = !(v && serverOnly && !side);
+  $('canvas').style.visibility = v && serverOnly && !side ? 'hidden' : '';
   $('overlay').hidden = !(v && !serverOnly && layout === 'split' && debugOptions().mode === 'shaded');
   $('split-line').hidden = $('overlay').hidden;
   $('split').hidden = $('overlay').hidden;
-  $('cpu-fig').hidden = !(!v || (layout === 'side' && debugOptions().mode === 'shaded'));
+  $('cpu-fig').hidden = !(!v || side);
+  $('cpu-caption').textContent = serverOnly ? `${sh} (server)` : `CPU preview, ${cmpShading} (server)`;
+  $('legend').textContent = sh === 'difference'
+    ? 'difference (server): grey = horizon map and ray tracing agree; red = the map shadows a lit texel; blue = it lights a shadowed one.'
+    : sh === 'raytraced' ? 'raytraced (server): ground-truth shadows, exact horizon to the edge of the map.' : '';
   if (!$('overlay').hidden) {
     const pct = Number($('split').value);
     $('overlay').style.clipPath = `inset(0 0 0 ${pct}%)`;
