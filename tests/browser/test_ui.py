@@ -1,14 +1,18 @@
 """Browser test of the web page (issue 13): the real server binary, Debian's chromium driven by
 Python playwright, WebGL2 on SwiftShader.
 
-What it checks: the page and its modules load without errors; an upload through the file input
-is accepted (202), shows a progress value strictly between 0 and 1 and then `succeeded`; the
-WebGL2 canvas matches the server's CPU preview within 2 levels on >= 99.9% of pixels at lights
-near cube-face edges; dragging the light changes the readout and the image, which still
-matches; error answers are shown (415 code and detail in an alert, a parameter's message next to
-its field, 429 with Retry-After); Cancel stops a bake; every download link answers 200 with its
-content type; the list links to bakes by `#id`; with --api-key the page works once the key is
-entered, progress included.
+What it checks: the page and its modules load without errors (and --no-ui turns them off); the
+file's header is read before the upload (PNG, TIFF, OpenEXR, the server's limits); an upload
+through the file input is accepted (202), shows a progress value strictly between 0 and 1 and
+then `succeeded`, with the resolved radius, its reason and the timings; the WebGL2 canvas
+matches the server's CPU preview within 2 levels on >= 99.9% of pixels at 8 lights near
+cube-face edges, for horizon, fourier and none shading, edge=wrap/none, y_axis=up/down,
+encoding=linear/sqrt and both Fourier ranges; the tiled view repeats the map; dragging the
+light changes the readout and the image, which still matches; error answers are shown (415
+code and detail in an alert, a parameter's message next to its field, 429 with Retry-After);
+Cancel stops a bake; every download link answers 200 with its content type; the list links to
+bakes by `#id`; without WebGL2 the CPU preview is shown; with --api-key the page works once the
+key is entered, progress included.
 
 Run: HORIZON_BIN=target/debug/horizon-bake python -m pytest -q tests/browser
 """
@@ -497,6 +501,70 @@ def test_other_conventions_match_the_cpu(browser, srv, params):
         if params["outputs"] == "fourier":
             assert p.page.evaluate(
                 "() => document.querySelector('#shading option[value=horizon]').disabled") is True
+        p.assert_no_errors()
+    finally:
+        p.close()
+
+
+def _png_header(width: int, height: int) -> bytes:
+    """Just a PNG signature and IHDR (16-bit gray): enough for the page's header probe."""
+    import struct
+    import zlib
+
+    ihdr = struct.pack(">IIBBBBB", width, height, 16, 0, 0, 0, 0)
+    chunk = b"IHDR" + ihdr
+    return b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + chunk + struct.pack(">I", zlib.crc32(chunk))
+
+
+def _exr_header(width: int, height: int) -> bytes:
+    """An OpenEXR header (one half channel `Y`, dataWindow), no pixels."""
+    import struct
+
+    def attr(name: str, kind: str, value: bytes) -> bytes:
+        return name.encode() + b"\0" + kind.encode() + b"\0" + struct.pack("<i", len(value)) + value
+
+    chlist = b"Y\0" + struct.pack("<iBBBBii", 1, 0, 0, 0, 0, 1, 1) + b"\0"
+    box = struct.pack("<iiii", 0, 0, width - 1, height - 1)
+    return (b"\x76\x2f\x31\x01" + struct.pack("<I", 2) + attr("channels", "chlist", chlist)
+            + attr("dataWindow", "box2i", box) + attr("displayWindow", "box2i", box) + b"\0")
+
+
+def test_file_header_probe_and_tiff_upload(browser, srv):
+    import io
+
+    from PIL import Image
+
+    rng = np.random.default_rng(7)
+    tiff = io.BytesIO()
+    Image.fromarray((rng.random((48, 80)) * 4).astype(np.float32), mode="F").save(tiff, format="TIFF")
+    p = Page(browser, srv.url + "/")
+    try:
+        info = p.page.locator("#file-info")
+        cases = [
+            ({"name": "huge.png", "mimeType": "image/png", "buffer": _png_header(20000, 300)},
+             ["20000 × 300", "PNG gray 16-bit", "over the server's limits"]),
+            ({"name": "h.exr", "mimeType": "image/x-exr", "buffer": _exr_header(64, 32)},
+             ["64 × 32", "EXR Y 16-bit float"]),
+            ({"name": "h.tif", "mimeType": "image/tiff", "buffer": tiff.getvalue()},
+             ["80 × 48", "TIFF gray 32-bit float"]),
+        ]
+        for payload, wants in cases:
+            p.page.set_input_files("#file", payload)
+            p.page.wait_for_function(
+                "n => { const t = document.getElementById('file-info').textContent;"
+                " return t.includes(n) && !t.endsWith('…'); }", arg=payload["name"])
+            text = info.text_content()
+            for want in wants:
+                assert want in text, (want, text)
+        assert "limits" in p.page.text_content("#limits")
+        # the TIFF goes up as image/tiff and bakes
+        with p.page.expect_request(lambda r: r.method == "POST") as req:
+            p.page.click("#bake")
+        assert req.value.headers["content-type"] == "image/tiff"
+        res = req.value.response()
+        assert res.status == 202
+        wait_loaded(p.page, bake_id_of(res))
+        assert "80 × 48 tiff" in p.page.text_content("#meta")
         p.assert_no_errors()
     finally:
         p.close()
