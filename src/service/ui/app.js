@@ -418,7 +418,7 @@ function syncForm() {
   const mode = $('p-radius-mode').value;
   $('p-radius').disabled = mode !== 'texels';
   $('p-min_elevation_deg').disabled = mode !== 'auto';
-  $('p-reduce').disabled = $('p-method').value !== 'exact';
+  $('p-reduce').disabled = $('p-method').value === 'lengyel';
   const fourier = $('p-out-fourier').checked;
   $('p-fourier_terms').disabled = !fourier;
   $('p-fourier_range').disabled = !fourier;
@@ -470,6 +470,20 @@ for (const id of ['p-radius-mode', 'p-method', 'p-out-fourier', 'p-out-horizon']
   $(id).addEventListener('change', syncForm);
 }
 $('reset').addEventListener('click', resetForm);
+
+// The kernels this server offers, when its configuration lists them (else the form's own).
+const METHOD_LABELS = {
+  lengyel: 'lengyel (Max/Lengyel splat)',
+  exact: 'exact (line of sight)',
+  march: 'march (fast, finite radius)',
+  sweep: 'sweep (fast, any radius)',
+};
+if (Array.isArray(config.methods) && config.methods.length) {
+  const sel = $('p-method');
+  sel.textContent = '';
+  for (const m of config.methods) sel.append(el('option', { value: m, text: METHOD_LABELS[m] || m }));
+  sel.value = config.methods.includes(DEFAULT_PARAMS.method) ? DEFAULT_PARAMS.method : config.methods[0];
+}
 syncForm();
 
 // --- the file -----------------------------------------------------------------------------
