@@ -41,6 +41,17 @@ CHROMIUM_ARGS = [
 ]
 
 
+def _die_with_parent() -> None:
+    """In the child: SIGTERM when the test process dies, even by SIGKILL (Linux prctl), so no
+    server outlives a killed test run."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
 def server_binary() -> Path:
     p = Path(os.environ.get("HORIZON_BIN", "target/debug/horizon-bake"))
     return p if p.is_absolute() else ROOT / p
@@ -65,7 +76,8 @@ class Server:
         cmd += extra or []
         self.log_path = self.tmp / "server.log"
         self.log = open(self.log_path, "wb")
-        self.proc = subprocess.Popen(cmd, stdout=self.log, stderr=subprocess.STDOUT)
+        self.proc = subprocess.Popen(cmd, stdout=self.log, stderr=subprocess.STDOUT,
+                                     preexec_fn=_die_with_parent)
         deadline = time.time() + 30
         while time.time() < deadline:
             if addr_file.exists() and addr_file.read_text().strip():
