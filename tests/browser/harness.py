@@ -119,9 +119,11 @@ class Server:
         return status, json.loads(body) if body else None
 
     def preview(self, bake_id: str, azimuth: float, elevation: float, hardness: float = 8,
-                shading: str = "horizon") -> np.ndarray:
+                shading: str = "horizon", size: int | None = None) -> np.ndarray:
         """The server's CPU preview (RGB, uint8, rows from the top) at one light."""
         q = f"shading={shading}&azimuth={azimuth!r}&elevation={elevation!r}&hardness={hardness!r}"
+        if size:
+            q += f"&size={size}"
         status, headers, body = self.request(f"/v1/bakes/{bake_id}/preview?{q}")
         assert status == 200, (status, body[:300])
         return np.asarray(Image.open(io.BytesIO(body)).convert("RGB"))

@@ -464,6 +464,26 @@ def test_tiled_split_and_side_by_side_views(baked):
     baked.assert_no_errors()
 
 
+def test_display_resolution_filters_like_the_preview_size(baked, srv):
+    """Rendered at the displayed size (2x zoom: 256 px for 128 texels), the layers and normals
+    are filtered bilinearly between texel centres, as the CPU preview's `size=` does."""
+    page = baked.page
+    page.select_option("#zoom", "2")
+    page.select_option("#resolution", "display")
+    try:
+        for az, el in ((46.0, 20.0), (150.0, 12.0)):
+            page.evaluate("l => window.__horizon.setLight(l)", {"azimuth": az, "elevation": el})
+            gpu = decode_rgba(page.evaluate("() => window.__horizon.readCanvas()"))
+            assert gpu.shape == (256, 256, 4)
+            frac, worst = compare(gpu, srv.preview(baked.bake_id, az, el, size=256), TOLERANCE)
+            print(f"\nsize=256 az {az} el {el}: {frac:.5f} within 2 levels, max {worst}")
+            assert frac >= MIN_MATCH, (az, el, frac, worst)
+    finally:
+        page.select_option("#resolution", "texel")
+        page.select_option("#zoom", "fit")
+    baked.assert_no_errors()
+
+
 @pytest.mark.parametrize("params", [
     {"edge": "none", "y_axis": "down", "encoding": "sqrt", "outputs": "horizon,fourier",
      "fourier_terms": "7", "radius": "24"},

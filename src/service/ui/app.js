@@ -322,6 +322,7 @@ const state = {
   previewUrl: '',
   previewFor: '',
   retryTimer: 0,
+  size: undefined,     // render size (longer side) in `display` resolution, else native
 };
 
 // --- formatting ---------------------------------------------------------------------------
@@ -1003,14 +1004,14 @@ function update() {
   const sh = $('shading').value;
   const serverOnly = sh === 'raytraced' || sh === 'difference';
   const ready = v && state.loadedId && bake && state.loadedId === bake.id;
-  let w = bake && bake.input ? bake.input.width : 256;
-  let h = bake && bake.input ? bake.input.height : 256;
-  if (ready) {
-    const opts = viewOptions();
-    v.draw(opts);
-    [w, h] = [v.canvas.width, v.canvas.height];
-  }
-  const [cw, ch] = displaySize(w, h);
+  const k = layout === 'tiled' ? 2 : 1;
+  const mw = bake && bake.input && bake.input.width ? bake.input.width : 256;
+  const mh = bake && bake.input && bake.input.height ? bake.input.height : 256;
+  const [cw, ch] = displaySize(mw * k, mh * k);
+  // "display" renders at the shown size (textures filtered as the preview's `size=` does).
+  state.size = $('resolution').value === 'display'
+    ? Math.max(1, Math.min(4096, Math.round(Math.max(cw, ch) / k))) : undefined;
+  if (ready) v.draw(viewOptions({ size: state.size }));
   for (const e of [$('canvas'), $('overlay'), $('server-image'), $('cpu-image')]) {
     e.style.width = `${cw}px`;
     e.style.height = `${ch}px`;
@@ -1041,7 +1042,8 @@ function update() {
 
 /** Fetches the server's CPU preview at the current light (debounced, stale requests aborted). */
 function schedulePreview(shading) {
-  const key = `${state.bake.id}?${currentLightQuery(shading)}`;
+  const query = currentLightQuery(shading) + (state.size ? `&size=${state.size}` : '');
+  const key = `${state.bake.id}?${query}`;
   if (key === state.previewFor) return;
   clearTimeout(state.previewTimer);
   state.previewTimer = setTimeout(async () => {
@@ -1049,7 +1051,7 @@ function schedulePreview(shading) {
     const ctrl = new AbortController();
     state.previewAbort = ctrl;
     try {
-      const url = await blobUrl(`/v1/bakes/${encodeURIComponent(state.bake.id)}/preview?${currentLightQuery(shading)}`, ctrl.signal);
+      const url = await blobUrl(`/v1/bakes/${encodeURIComponent(state.bake.id)}/preview?${query}`, ctrl.signal);
       if (ctrl.signal.aborted) return;
       if (state.previewUrl) URL.revokeObjectURL(state.previewUrl);
       state.previewUrl = url;
@@ -1071,7 +1073,7 @@ function setLight(l) {
 for (const id of ['azimuth', 'elevation', 'hardness']) {
   $(id).addEventListener('input', () => setLight({ [id]: Number($(id).value) }));
 }
-for (const id of ['shading', 'layout', 'debug', 'zoom']) $(id).addEventListener('change', update);
+for (const id of ['shading', 'layout', 'debug', 'zoom', 'resolution']) $(id).addEventListener('change', update);
 $('split').addEventListener('input', update);
 window.addEventListener('resize', update);
 
@@ -1150,11 +1152,15 @@ window.__horizon = {
     const px = state.viewer.readCanvas();
     return { width: px.width, height: px.height, rgba: base64(px.rgba) };
   },
-  /** An off-screen render at the native size (defaults: the current light, shading horizon). */
+  /**
+   * An off-screen render (defaults: the current light, shading horizon, the native size; `size`
+   * = the longer side, as the preview's `size`).
+   */
   render(o = {}) {
     const l = { ...state.light, ...o };
     const px = state.viewer.renderPixels(viewOptions({ light: fromAngles(l.azimuth, l.elevation),
-      hardness: l.hardness, shading: o.shading || 'horizon', mode: 'shaded', tiled: false }));
+      hardness: l.hardness, shading: o.shading || 'horizon', mode: 'shaded', tiled: false,
+      size: o.size }));
     return { width: px.width, height: px.height, rgba: base64(px.rgba) };
   },
 };

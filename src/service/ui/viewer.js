@@ -437,11 +437,18 @@ export class Viewer {
     this.fourier = { terms, range };
   }
 
-  /** Output size in pixels of a view: native, or 2×2 tiles. */
+  /**
+   * Output size in pixels of a view: native, or with `size` the longer side scaled to it and
+   * the shorter rounded (preview::output_size), times 2×2 when tiled.
+   */
   outputSize(opts) {
     const m = this.map;
     const k = opts.tiled ? 2 : 1;
-    return [m.width * k, m.height * k];
+    if (!opts.size) return [m.width * k, m.height * k];
+    const long = Math.max(m.width, m.height);
+    const w = Math.max(1, Math.round((m.width * opts.size) / long));
+    const h = Math.max(1, Math.round((m.height * opts.size) / long));
+    return [w * k, h * k];
   }
 
   /**
