@@ -5,7 +5,8 @@
 It starts the server binary on 127.0.0.1 with a temporary data directory, uploads
 docs/corpus/jacksboro_128.png through the page's file input at the terrain's true scale
 (height_scale 728.2 = metres / 90 m per texel) with the exact kernel, waits for the WebGL2
-viewer, sets a low sun, shows the CPU preview beside it and captures the 1280×800 viewport.
+viewer, sets a low sun, renders at the displayed size with the CPU preview (`size=`) beside it and
+captures the 1280×800 viewport.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ def main() -> int:
             page.wait_for_function("id => window.__horizon.loadedId === id", arg=bake_id,
                                    timeout=600_000)
             page.select_option("#layout", "side")
+            page.select_option("#resolution", "display")
             page.evaluate("l => window.__horizon.setLight(l)",
                           {"azimuth": AZIMUTH, "elevation": ELEVATION, "hardness": 8})
             # wait for the CPU preview beside the canvas to arrive for this light
