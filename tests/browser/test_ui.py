@@ -588,3 +588,24 @@ def test_file_header_probe_and_tiff_upload(browser, srv):
         p.assert_no_errors()
     finally:
         p.close()
+
+
+def test_a_failed_bake_shows_its_error(browser, srv):
+    """A file whose header passes but whose pixels do not decode is accepted, then fails: the
+    page shows the failure's code and message."""
+    p = Page(browser, srv.url + "/")
+    try:
+        res = upload(p.page, {"name": "cut.png", "mimeType": "image/png", "buffer": _png_header(64, 64)})
+        assert res.status == 202
+        bake_id = bake_id_of(res)
+        p.page.wait_for_function(
+            "id => window.__horizon.bake && window.__horizon.bake.id === id"
+            " && window.__horizon.bake.status === 'failed'", arg=bake_id, timeout=60_000)
+        _, rec = srv.json(f"/v1/bakes/{bake_id}")
+        alert = p.page.locator("#error")
+        alert.wait_for()
+        assert rec["error"]["code"] in alert.text_content(), (rec["error"], alert.text_content())
+        assert "failed" in p.page.text_content("#meta")
+        p.assert_no_errors()
+    finally:
+        p.close()
