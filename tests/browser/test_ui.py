@@ -20,7 +20,9 @@ Run: HORIZON_BIN=target/debug/horizon-bake python -m pytest -q tests/browser
 from __future__ import annotations
 
 import json
+import os
 import re
+import subprocess
 
 import numpy as np
 import pytest
@@ -402,6 +404,14 @@ def test_api_key_makes_the_page_work(browser):
             assert any(0 < e["fraction"] < 1 for e in log), log
             frac, worst = light_matches_on(p, s, bake_id, 46.0, 20.0)
             assert frac >= MIN_MATCH, (frac, worst)
+            # "Copy as curl" repeats this upload: run it, the server answers with the same bake
+            p.page.click("#curl")
+            cmd = p.page.input_value("#curl-text")
+            assert "$HORIZON_API_KEY" in cmd and key not in cmd, cmd
+            out = subprocess.run(["bash", "-c", cmd], cwd=TERRAIN.parent, capture_output=True,
+                                 text=True, timeout=60, env={**os.environ, "HORIZON_API_KEY": key})
+            assert out.returncode == 0, out.stderr
+            assert json.loads(out.stdout)["id"] == bake_id, out.stdout
             # the key survives a reload
             p.page.reload()
             p.page.wait_for_function("() => window.__horizon !== undefined")
