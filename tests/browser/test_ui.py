@@ -277,6 +277,11 @@ def test_every_download_answers_with_its_content_type(baked, srv):
         assert status == 200, (label, href, status, body[:200])
         assert headers["content-type"].split(";")[0] == ctype, (label, headers["content-type"])
         assert body, label
+        if href.endswith("/heights"):
+            # what the viewer rebuilds the normals from: W·H little-endian f32, in texels
+            assert (headers["x-width"], headers["x-height"]) == ("128", "128")
+            h = np.frombuffer(body, dtype="<f4")
+            assert h.size == 128 * 128 and np.isfinite(h).all() and 3 < np.ptp(h) < 10, np.ptp(h)
 
 
 def test_recent_list_links_to_the_bake(baked, browser, srv):
