@@ -111,6 +111,11 @@ pub fn make_kernel<'a>(
                     .with_cancel(progress),
             )
         }
+        // `unlimited` is max(W, H) texels here, as for Lengyel: a march's cost grows with R.
+        Method::March => Box::new(
+            kernels::march::March::new(grid, radius, params.bins, params.reduce)
+                .with_cancel(progress),
+        ),
     }
 }
 

@@ -49,7 +49,13 @@ pub enum Method {
     Lengyel,
     /// Exact line-of-sight horizon on the bilinear surface (SPEC §3.2).
     Exact,
+    /// The §3.2 horizon sampled at grid-line crossings, vectorised (SPEC §3.2a).
+    March,
 }
+
+/// Every `method` by name, in the order a user is offered them.
+pub const METHODS: &[(&str, Method)] =
+    &[("lengyel", Method::Lengyel), ("exact", Method::Exact), ("march", Method::March)];
 
 /// How far occluders are searched.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -269,13 +275,7 @@ impl BakeParams {
             "y_axis" => {
                 self.y_axis = parse_enum(key, value, &[("up", YAxis::Up), ("down", YAxis::Down)])?
             }
-            "method" => {
-                self.method = parse_enum(
-                    key,
-                    value,
-                    &[("lengyel", Method::Lengyel), ("exact", Method::Exact)],
-                )?
-            }
+            "method" => self.method = parse_enum(key, value, METHODS)?,
             "radius" => {
                 self.radius = match value.trim().to_ascii_lowercase().as_str() {
                     "unlimited" => Radius::Unlimited,

@@ -19,7 +19,7 @@
 
 mod common;
 
-use common::Rng;
+use common::{surface, Rng};
 use horizon_bake::bake::{self, Precisions};
 use horizon_bake::heightmap::HeightMap;
 use horizon_bake::kernels::exact::{direction, horizon_sin, ExactHorizon, ExactMarch};
@@ -32,30 +32,6 @@ use std::f64::consts::PI;
 
 const TOL_DEG: f64 = 0.01;
 const STEP: f64 = 1.0 / 128.0;
-
-/// The bilinear surface at image point (X, Y): wrapped, or on [0, W−1]×[0, H−1] for edge=none.
-fn surface(g: &Grid<'_>, x: f64, y: f64) -> f64 {
-    let (w, h) = (g.width as i64, g.height as i64);
-    let cell = |p: f64, n: i64| -> (i64, f64) {
-        let mut c = p.floor() as i64;
-        if g.edge == Edge::None {
-            c = c.clamp(0, (n - 2).max(0));
-        }
-        (c, p - c as f64)
-    };
-    let (cx, fx) = cell(x, w);
-    let (cy, fy) = cell(y, h);
-    let at = |c: i64, r: i64| -> f64 {
-        let (c, r) = match g.edge {
-            Edge::Wrap => (c.rem_euclid(w), r.rem_euclid(h)),
-            Edge::None => (c.clamp(0, w - 1), r.clamp(0, h - 1)),
-        };
-        g.heights[(r * w + c) as usize] as f64
-    };
-    let top = at(cx, cy) * (1.0 - fx) + at(cx + 1, cy) * fx;
-    let bot = at(cx, cy + 1) * (1.0 - fx) + at(cx + 1, cy + 1) * fx;
-    top * (1.0 - fy) + bot * fy
-}
 
 /// Brute force: sin α of texel (x, y) at azimuth phi, sampling every STEP and every grid-line
 /// crossing up to R (`None`: max(W, H) when wrapping, the map edge with edge=none).

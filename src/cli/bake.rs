@@ -68,7 +68,7 @@ pub struct ParamFlags {
     /// up (default, OpenGL) or down (DirectX).
     #[arg(long)]
     pub y_axis: Option<String>,
-    /// lengyel (default) or exact.
+    /// lengyel (default), exact or march.
     #[arg(long)]
     pub method: Option<String>,
     /// Search radius in texels (default 16), `unlimited` or `auto`.

@@ -16,6 +16,7 @@ pub mod exact;
 pub mod fourier;
 pub mod lengyel;
 pub mod lengyel_fast;
+pub mod march;
 pub mod parallax;
 pub mod shade;
 

@@ -162,7 +162,8 @@ impl CubeMap {
                 }
             }
             // Each corner: the mean of the three texels of its footprint that exist.
-            for (cu, cv, du, dv) in [(0, 0, 1i64, 1i64), (b - 1, 0, -1, 1), (0, b - 1, 1, -1), (b - 1, b - 1, -1, -1)]
+            for (cu, cv, du, dv) in
+                [(0, 0, 1i64, 1i64), (b - 1, 0, -1, 1), (0, b - 1, 1, -1), (b - 1, b - 1, -1, -1)]
             {
                 let at = |u: usize, v: usize| ((face * b + v) * b + u) * 4;
                 let nu = (cu as i64 + du) as usize;
@@ -577,25 +578,28 @@ mod tests {
                 cube.factors([e.cos() * a.cos(), e.cos() * a.sin(), e.sin()])
             };
             let (below, above) = (at(45.0 - 1e-9), at(45.0 + 1e-9));
-            for c in 0..4 {
-                assert!((below[c] - above[c]).abs() < 1e-5, "e={e_deg}: {below:?} vs {above:?}");
+            for (b, a) in below.iter().zip(&above) {
+                assert!((b - a).abs() < 1e-5, "e={e_deg}: {below:?} vs {above:?}");
             }
             // Oracle from the face table alone. At azimuth 45° the direction lies on +X's edge
             // tc = −y/x = −1 (its row 0), which +X shares with +Y's edge sc = x/y = 1 (its column
             // n−1); +X's sc = −z/x is +Y's tc = z/y negated, so +X column u meets +Y row n−1−u.
             // The footprint straddles the seam: half +X row 0, half that +Y texel.
-            let d = [e.cos() * 45f64.to_radians().cos(), e.cos() * 45f64.to_radians().sin(), e.sin()];
+            let d =
+                [e.cos() * 45f64.to_radians().cos(), e.cos() * 45f64.to_radians().sin(), e.sin()];
             let sc = -d[2] / d[0];
             let x = 0.5 * (sc + 1.0) * n as f64 - 0.5;
             let (u0, fx) = (x.floor() as usize, (x - x.floor()) as f32);
             let want: Vec<f32> = (0..4)
                 .map(|c| {
-                    let col = |u: usize| 0.5 * stored(n, 0, u, 0)[c] + 0.5 * stored(n, 2, n - 1, n - 1 - u)[c];
+                    let col = |u: usize| {
+                        0.5 * stored(n, 0, u, 0)[c] + 0.5 * stored(n, 2, n - 1, n - 1 - u)[c]
+                    };
                     (col(u0) + (col(u0 + 1) - col(u0)) * fx) * 2.0 - 1.0
                 })
                 .collect();
-            for c in 0..4 {
-                assert!((above[c] - want[c]).abs() < 1e-5, "e={e_deg} c={c}: {above:?} vs {want:?}");
+            for (a, w) in above.iter().zip(&want) {
+                assert!((a - w).abs() < 1e-5, "e={e_deg}: {above:?} vs {want:?}");
             }
         }
         // Away from every edge nothing changes: the four texels of the face's own footprint.
@@ -604,17 +608,17 @@ mod tests {
         let (x, y) = (s * n as f64 - 0.5, t * n as f64 - 0.5);
         let (u, v) = (x.floor() as usize, y.floor() as usize);
         let (fx, fy) = ((x - x.floor()) as f32, (y - y.floor()) as f32);
-        for c in 0..4 {
+        for (c, fc) in f.iter().enumerate() {
             let g = |u, v| stored(n, face, u, v)[c];
             let a = g(u, v) + (g(u + 1, v) - g(u, v)) * fx;
             let b = g(u, v + 1) + (g(u + 1, v + 1) - g(u, v + 1)) * fx;
-            assert!(((a + (b - a) * fy) * 2.0 - 1.0 - f[c]).abs() < 1e-6);
+            assert!(((a + (b - a) * fy) * 2.0 - 1.0 - fc).abs() < 1e-6);
         }
         // A corner: the mean of the three texels that exist, so the cube stays continuous there.
         let c3 = 1.0 / 3f64.sqrt();
         let (p, q) = (cube.factors([c3, c3 + 1e-9, c3]), cube.factors([c3 + 1e-9, c3, c3]));
-        for c in 0..4 {
-            assert!((p[c] - q[c]).abs() < 1e-5, "{p:?} vs {q:?}");
+        for (pc, qc) in p.iter().zip(&q) {
+            assert!((pc - qc).abs() < 1e-5, "{p:?} vs {q:?}");
         }
     }
 

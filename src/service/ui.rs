@@ -9,6 +9,9 @@
 //! The page learns the server's limits and whether it needs an API key from a JSON object put
 //! into `index.html` when it is served (no extra route, nothing to fetch before the first paint).
 
+// `Problem` is the error answer itself, built at most once per request (as in `handlers`).
+#![allow(clippy::result_large_err)]
+
 use crate::service::problem::Problem;
 use crate::service::AppState;
 use axum::extract::{Path, State};
@@ -33,6 +36,8 @@ pub struct PageConfig {
     pub max_body_bytes: u64,
     pub max_dim: u32,
     pub max_texels: u64,
+    /// The `method` values this build accepts (the form offers these).
+    pub methods: Vec<&'static str>,
 }
 
 /// The configuration object `index.html` receives.
@@ -44,6 +49,7 @@ pub fn page_config(st: &AppState) -> PageConfig {
         max_body_bytes: c.max_body_bytes,
         max_dim: c.limits.max_dim,
         max_texels: c.limits.max_texels,
+        methods: crate::params::METHODS.iter().map(|(name, _)| *name).collect(),
     }
 }
 
@@ -81,8 +87,8 @@ pub async fn index(State(st): State<AppState>) -> Result<Response, Problem> {
     let html = contents(&st, "index.html", INDEX_HTML)?;
     let config = serde_json::to_string(&page_config(&st))
         .map_err(|e| Problem::internal(&format!("page configuration: {e}")))?;
-    // `</` cannot occur in this JSON (numbers, booleans and a version string), so it cannot end
-    // the <script> element it is placed in.
+    // `</` cannot occur in this JSON (numbers, booleans and fixed names), so it cannot end the
+    // <script> element it is placed in.
     Ok(answer("text/html; charset=utf-8", html.replace("__HORIZON_CONFIG__", &config)))
 }
 

@@ -1,6 +1,8 @@
 //! Helpers shared by the integration tests.
 #![allow(dead_code)]
 
+use horizon_bake::kernels::Grid;
+use horizon_bake::params::Edge;
 use std::path::PathBuf;
 
 /// ../shared/golden beside the checkout (CI has it there), or `HORIZON_GOLDEN_DIR`.
@@ -39,4 +41,28 @@ impl Rng {
     pub fn range(&mut self, lo: usize, hi: usize) -> usize {
         lo + (self.next_u64() % (hi - lo + 1) as u64) as usize
     }
+}
+
+/// The bilinear surface at image point (X, Y): wrapped, or on [0, W−1]×[0, H−1] for edge=none.
+pub fn surface(g: &Grid<'_>, x: f64, y: f64) -> f64 {
+    let (w, h) = (g.width as i64, g.height as i64);
+    let cell = |p: f64, n: i64| -> (i64, f64) {
+        let mut c = p.floor() as i64;
+        if g.edge == Edge::None {
+            c = c.clamp(0, (n - 2).max(0));
+        }
+        (c, p - c as f64)
+    };
+    let (cx, fx) = cell(x, w);
+    let (cy, fy) = cell(y, h);
+    let at = |c: i64, r: i64| -> f64 {
+        let (c, r) = match g.edge {
+            Edge::Wrap => (c.rem_euclid(w), r.rem_euclid(h)),
+            Edge::None => (c.clamp(0, w - 1), r.clamp(0, h - 1)),
+        };
+        g.heights[(r * w + c) as usize] as f64
+    };
+    let top = at(cx, cy) * (1.0 - fx) + at(cx + 1, cy) * fx;
+    let bot = at(cx, cy + 1) * (1.0 - fx) + at(cx + 1, cy + 1) * fx;
+    top * (1.0 - fy) + bot * fy
 }

@@ -1,0 +1,161 @@
+//! The accuracy frontier (issue "fast ray march, radius-independent sweep"): every horizon
+//! method on one 2048² terrain-like map, in one run, as a Markdown table: ms, Mtexel/s, the
+//! ratio to the fast Lengyel kernel at R = 16 measured in the same run, and the mean and p99
+//! |Δα| (degrees, per azimuth bin) against `method=exact` at the same radius on the same map.
+//!
+//! The error needs the exact kernel on the same texels, which costs minutes at 2048², so it is
+//! measured on a crop: the first `CROP_ROWS` rows (every column) of the same map, whose rays
+//! still run over the whole map. `exact` itself is timed on that crop too and scaled by the
+//! texel count; the table says so.
+//!
+//! Build once with `cargo bench --bench frontier --no-run`, then run the binary it names, or
+//! `cargo bench --bench frontier`. Arguments: `[size]` (default 2048).
+
+use horizon_bake::kernels::exact::ExactHorizon;
+use horizon_bake::kernels::lengyel_fast::LengyelFast;
+use horizon_bake::kernels::march::March;
+use horizon_bake::kernels::{compute_all, Grid, HorizonRows};
+use horizon_bake::params::{Edge, Reduce, YAxis};
+use horizon_bake::progress::Progress;
+use std::time::Instant;
+
+/// Rows of the map whose per-bin values are compared with `exact` (and on which `exact` is
+/// timed when it is not run whole).
+const CROP_ROWS: usize = 8;
+
+fn splitmix(state: &mut u64) -> u64 {
+    *state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    let mut z = *state;
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// Periodic fBm value noise, 7 octaves, normalised to [0, 1] (as `benches/exact.rs`).
+fn fbm(n: usize) -> Vec<f32> {
+    let mut out = vec![0f32; n * n];
+    let mut seed = 1234u64;
+    let mut amp = 1.0f32;
+    let mut cells = 4usize;
+    while cells <= n && cells <= 256 {
+        let lattice: Vec<f32> = (0..cells * cells)
+            .map(|_| (splitmix(&mut seed) >> 40) as f32 / (1u64 << 24) as f32)
+            .collect();
+        let step = n as f32 / cells as f32;
+        for y in 0..n {
+            let fy = y as f32 / step;
+            let (y0, ty) = (fy.floor() as usize % cells, fy.fract());
+            let y1 = (y0 + 1) % cells;
+            let ty = ty * ty * (3.0 - 2.0 * ty);
+            for x in 0..n {
+                let fx = x as f32 / step;
+                let (x0, tx) = (fx.floor() as usize % cells, fx.fract());
+                let x1 = (x0 + 1) % cells;
+                let tx = tx * tx * (3.0 - 2.0 * tx);
+                let a = lattice[y0 * cells + x0] * (1.0 - tx) + lattice[y0 * cells + x1] * tx;
+                let b = lattice[y1 * cells + x0] * (1.0 - tx) + lattice[y1 * cells + x1] * tx;
+                out[y * n + x] += amp * (a * (1.0 - ty) + b * ty);
+            }
+        }
+        amp *= 0.5;
+        cells *= 2;
+    }
+    let (lo, hi) = out.iter().fold((f32::MAX, f32::MIN), |(l, h), &v| (l.min(v), h.max(v)));
+    out.iter().map(|v| (v - lo) / (hi - lo)).collect()
+}
+
+/// Per-bin sin α of the first `rows` rows.
+fn bins_of(k: &dyn HorizonRows, rows: usize) -> Vec<f32> {
+    let (w, nb) = (k.width(), k.bins());
+    let mut ch = vec![0f32; rows * w * 8];
+    let mut bins = vec![0f32; rows * w * nb];
+    k.rows(0, &mut ch, Some(&mut bins));
+    bins
+}
+
+/// Mean and p99 |Δα| in degrees.
+fn errors(got: &[f32], want: &[f32]) -> (f64, f64) {
+    let mut d: Vec<f64> = got
+        .iter()
+        .zip(want)
+        .map(|(&a, &b)| ((a as f64).asin() - (b as f64).asin()).abs().to_degrees())
+        .collect();
+    let mean = d.iter().sum::<f64>() / d.len() as f64;
+    d.sort_by(f64::total_cmp);
+    (mean, d[((d.len() as f64 * 0.99) as usize).min(d.len() - 1)])
+}
+
+fn time(k: &dyn HorizonRows) -> f64 {
+    let t = Instant::now();
+    let out = compute_all(k, &Progress::new()).expect("not canceled");
+    std::hint::black_box(&out);
+    t.elapsed().as_secs_f64()
+}
+
+fn main() {
+    let n: usize =
+        std::env::args().skip(1).find_map(|a| a.parse().ok()).unwrap_or(2048).max(CROP_ROWS);
+    let threads = rayon::current_num_threads();
+    let heights: Vec<f32> = fbm(n).iter().map(|v| v * 8.0).collect();
+    let grid = Grid::new(n, n, &heights, Edge::Wrap, YAxis::Up);
+    let bins = 32u32;
+    let texels = (n * n) as f64;
+    let crop = (CROP_ROWS * n) as f64;
+    println!("fBm value noise {n}², height_scale 8, edge=wrap, {bins} bins, {threads} threads.");
+    println!(
+        "Errors: per bin against `exact` at the same radius, on the first {CROP_ROWS} rows.\n"
+    );
+    println!("| method | R | ms | Mtexel/s | × lengyel R16 (same run) | mean Δα | p99 Δα | note |");
+    println!("|---|---|---:|---:|---:|---:|---:|---|");
+    let lengyel = LengyelFast::new(grid, 16, bins);
+    let base = time(&lengyel);
+    let row = |method: &str, r: &str, secs: f64, err: Option<(f64, f64)>, note: &str| {
+        let (m, p) = err.map_or(("–".into(), "–".into()), |(m, p)| {
+            (format!("{m:.4}°"), format!("{p:.4}°"))
+        });
+        println!(
+            "| {method} | {r} | {:.0} | {:.2} | {:.2} | {m} | {p} | {note} |",
+            secs * 1e3,
+            texels / secs / 1e6,
+            base / secs
+        );
+    };
+    let exact16 = bins_of(&ExactHorizon::new(grid, Some(16), bins, Reduce::Average), CROP_ROWS);
+    row(
+        "lengyel (fast)",
+        "16",
+        base,
+        Some(errors(&bins_of(&lengyel, CROP_ROWS), &exact16)),
+        "the baseline; a splat, not a line of sight",
+    );
+    for r in [16u32, 32, 64] {
+        let k = March::new(grid, r, bins, Reduce::Average);
+        let secs = time(&k);
+        let want = if r == 16 {
+            exact16.clone()
+        } else {
+            bins_of(&ExactHorizon::new(grid, Some(r), bins, Reduce::Average), CROP_ROWS)
+        };
+        let note = format!("{:.1} samples per ray", k.samples_per_ray());
+        row("march", &r.to_string(), secs, Some(errors(&bins_of(&k, CROP_ROWS), &want)), &note);
+    }
+    for r in ["64", "256", "unlimited"] {
+        println!("| sweep | {r} | – | – | – | – | – | not built yet |");
+    }
+    for r in [Some(16u32), None] {
+        let k = ExactHorizon::new(grid, r, bins, Reduce::Average);
+        let t = Instant::now();
+        let out = bins_of(&k, CROP_ROWS);
+        std::hint::black_box(&out);
+        // One thread did the crop (`rows` is called directly); the whole map would use all.
+        let secs = t.elapsed().as_secs_f64() * texels / crop / threads as f64;
+        let name = r.map_or("unlimited".to_string(), |r| r.to_string());
+        row(
+            "exact",
+            &name,
+            secs,
+            Some((0.0, 0.0)),
+            &format!("timed on {CROP_ROWS}×{n}, 1 thread, scaled to {n}² and {threads} threads"),
+        );
+    }
+}

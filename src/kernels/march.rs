@@ -1,0 +1,528 @@
+//! `method=march` (SPEC §3.2a): the line-of-sight horizon of §3.2 for a finite radius, sampled
+//! instead of solved, vectorised across texels.
+//!
+//! # What is sampled
+//! Along a ray from a texel centre the bilinear surface h̃ is piecewise quadratic, with a knee
+//! wherever the ray crosses a grid line (a row or column of texel centres). For one azimuth the
+//! crossings fall at the same offsets from every texel centre, so the pieces between them, their
+//! cells and all their constants are the same for every texel: the hot loop runs over a strip of
+//! consecutive texels, over contiguous memory, and LLVM vectorises it. Per piece, from s_a to
+//! s_b = s_a + L inside one cell:
+//! - the end, a crossing: h̃ is a linear interpolation of two texels there, (h̃ − h0)/s_b;
+//! - K interior points: inside a cell h̃ along the ray is its chord minus twist·dx·dy·t·(L − t)
+//!   (t from s_a; twist = h00 − h10 − h01 + h11 of the cell, kept in a second tile), so an
+//!   interior point costs two multiply-adds from values already at hand and one twist load.
+//!   The chord misses a bulge of up to ¼·|twist·dx·dy|·L²; K points cut what is missed to about
+//!   1/(K+1)² of it. K = [`K_NEAR`] up to s = [`NEAR`], where that bulge is worth degrees (a
+//!   single-texel spike has twist = its height), and [`K_FAR`] beyond, where it falls as 1/s;
+//! - at s → 0 the slope of the first piece (part of the supremum of §3.2: on a ramp every s
+//!   gives it), and the point s = R, so the radius is honoured exactly at its end.
+//!
+//! Every sample is a real point of the ray within R, so the march never overshoots §3.2; what
+//! it misses is the top of a bulge between samples. `tests/march.rs` checks the kernel against a
+//! scalar f64 oracle of the same samples and against [`super::exact`] for its tolerance.
+//!
+//! # Why the layout mirrors the fast Lengyel kernel
+//! Each band of rows is copied into a padded tile (wrapped, or filled with `f32::MIN` for
+//! `edge=none`, whose weighted sum is so negative that a sample off the surface never counts),
+//! relative to the middle of the height range so that f32 differences of large absolute
+//! heights (DEMs in metres) keep their precision. The hot function is compiled for AVX-512,
+//! AVX2+FMA and the baseline and picked at run time ([`Isa`]). A tile larger than
+//! [`MAX_TILE`] (radii of thousands of texels) falls back to the exact kernel: slower, but
+//! within any tolerance and bounded in memory.
+
+use super::exact::{self, ExactHorizon};
+use super::lengyel_fast::Isa;
+use super::{Grid, HorizonRows};
+use crate::params::{Edge, Reduce};
+use crate::progress::Progress;
+use std::cell::RefCell;
+use std::f64::consts::PI;
+
+/// Up to this distance (texels) a piece gets [`K_NEAR`] interior points, beyond it [`K_FAR`].
+pub const NEAR: f64 = 12.0;
+/// Interior points per piece in the near field.
+pub const K_NEAR: usize = 3;
+/// Interior points per piece beyond [`NEAR`].
+pub const K_FAR: usize = 1;
+
+/// Widest strip of any variant; the tile keeps this many spare columns.
+const STRIP: usize = 64;
+
+/// Largest padded tile (floats, per thread) before falling back to the exact kernel (64 MiB).
+pub const MAX_TILE: usize = 1 << 24;
+
+/// Height outside the map with `edge=none`.
+const LOW: f32 = f32::MIN;
+
+/// An interior point of a piece: r = rA + α·(rB − rA) + β·twist, ratio = r·inv.
+#[derive(Debug, Clone, Copy, Default)]
+struct Inner {
+    alpha: f32,
+    beta: f32,
+    inv: f32,
+}
+
+/// One piece of a ray, between two crossings (or a crossing and R) inside one cell. Its end is
+/// Σ w·t[i + o] (two taps at a crossing, four at R); `cell` is the offset of the cell's twist.
+#[derive(Debug, Clone, Copy)]
+struct Piece {
+    o: [isize; 4],
+    w: [f32; 4],
+    /// Taps of the end in use: 2 (a crossing) or 4 (a point inside a cell, the end at R).
+    taps: usize,
+    cell: isize,
+    inv: f32,
+    inner: [Inner; MAX_INNER],
+    /// Interior points in use.
+    k: usize,
+}
+
+/// Interior points a piece can have: K_NEAR, plus the slope at s → 0 on the first piece (an
+/// "interior point" too: with rA = 0 it is rB·(1/L) − dx·dy·twist·L, times inv = 1).
+const MAX_INNER: usize = K_NEAR + 1;
+
+/// Consecutive pieces of a ray with the same number of end taps and interior points, so one
+/// monomorphised loop runs them.
+#[derive(Debug, Clone, Copy)]
+struct Run {
+    taps: usize,
+    k: usize,
+    start: usize,
+    end: usize,
+}
+
+/// The pieces of one azimuth in order of s, grouped into runs.
+#[derive(Debug, Clone, Default)]
+struct Ray {
+    pieces: Vec<Piece>,
+    runs: Vec<Run>,
+}
+
+/// The march kernel prepared for one grid (see the module doc).
+pub struct March<'a> {
+    grid: Grid<'a>,
+    radius: u32,
+    bins: usize,
+    reduce: Reduce,
+    /// Tile padding on every side (rows and columns), ≥ the farthest tap.
+    pad: usize,
+    /// Tile row length: pad + width + pad + STRIP.
+    stride: usize,
+    rays: Vec<Ray>,
+    /// Heights are stored relative to this (the middle of the range).
+    reference: f32,
+    isa: Isa,
+    fallback: Option<ExactHorizon<'a>>,
+    progress: Option<Progress>,
+    /// Which bins the reduction reads: all of them, or one per channel for `reduce=point`
+    /// (unless the per-bin values are asked for, as the Fourier output does).
+    cast: Vec<bool>,
+    all: Vec<bool>,
+}
+
+// The tile a thread reuses band after band.
+thread_local! {
+    static TILE: RefCell<(Vec<f32>, Vec<f32>)> = const { RefCell::new((Vec::new(), Vec::new())) };
+}
+
+impl<'a> March<'a> {
+    /// Prepares the kernel for `grid` with a finite `radius` (≥ 1) and `bins` azimuths.
+    pub fn new(grid: Grid<'a>, radius: u32, bins: u32, reduce: Reduce) -> Self {
+        let radius = radius.max(1);
+        let bins = bins.max(8) as usize;
+        let pad = radius as usize + 2;
+        let stride = pad + grid.width + pad + STRIP;
+        let row_step = grid.row_step();
+        let rays = (0..bins)
+            .map(|n| {
+                let (dx, dy) = exact::direction(n as f64 * 2.0 * PI / bins as f64, row_step);
+                ray_samples(dx, dy, radius as f64, stride as isize)
+            })
+            .collect();
+        let (lo, hi) = grid.range();
+        let rows_per_band = 1;
+        let tile = (rows_per_band + 2 * pad) * stride;
+        let fallback =
+            (tile > MAX_TILE).then(|| ExactHorizon::new(grid, Some(radius), bins as u32, reduce));
+        let step = bins / 8;
+        let cast = (0..bins).map(|n| reduce == Reduce::Average || n % step == 0).collect();
+        March {
+            grid,
+            radius,
+            bins,
+            reduce,
+            pad,
+            stride,
+            rays,
+            reference: ((lo as f64 + hi as f64) * 0.5) as f32,
+            isa: Isa::detect(),
+            fallback,
+            progress: None,
+            cast,
+            all: vec![true; bins],
+        }
+    }
+
+    /// Checks `progress` for cancel between strips (a band can be long at large radii).
+    pub fn with_cancel(mut self, progress: &Progress) -> Self {
+        self.fallback = self.fallback.map(|f| f.with_cancel(progress));
+        self.progress = Some(progress.clone());
+        self
+    }
+
+    /// Forces a compiled variant (benches and tests compare them).
+    pub fn with_isa(mut self, isa: Isa) -> Self {
+        if isa.supported() {
+            self.isa = isa;
+        }
+        self
+    }
+
+    /// Samples per ray (piece ends and interior points), averaged over the azimuths.
+    pub fn samples_per_ray(&self) -> f64 {
+        let n: usize = self.rays.iter().flat_map(|r| &r.pieces).map(|p| 1 + p.k).sum();
+        n as f64 / self.rays.len() as f64
+    }
+
+    /// Fills `tile` with rows `y0 − pad .. y0 + rows + pad` of the map, relative to the
+    /// reference height, wrapped or padded with [`LOW`], and `twist` with each cell's
+    /// h00 − h10 − h01 + h11 (the cell whose top-left texel has that index); NaN for a cell with
+    /// a corner off the map, so no interior point of a piece off the surface ever counts.
+    fn fill(&self, tile: &mut Vec<f32>, twist: &mut Vec<f32>, y0: usize, rows: usize) {
+        let (w, h) = (self.grid.width as i64, self.grid.height as i64);
+        let pad = self.pad as i64;
+        let tile_rows = rows + 2 * self.pad;
+        tile.clear();
+        tile.resize(tile_rows * self.stride, LOW);
+        for tr in 0..tile_rows {
+            let ir = y0 as i64 - pad + tr as i64;
+            let dst = &mut tile[tr * self.stride..(tr + 1) * self.stride];
+            let src_row = match self.grid.edge {
+                Edge::Wrap => ir.rem_euclid(h),
+                Edge::None if (0..h).contains(&ir) => ir,
+                Edge::None => continue,
+            } as usize;
+            let src = &self.grid.heights[src_row * w as usize..(src_row + 1) * w as usize];
+            match self.grid.edge {
+                Edge::Wrap => {
+                    for (tc, d) in dst[..(pad + w + pad) as usize].iter_mut().enumerate() {
+                        *d = src[(tc as i64 - pad).rem_euclid(w) as usize] - self.reference;
+                    }
+                }
+                Edge::None => {
+                    let row = &mut dst[pad as usize..(pad + w) as usize];
+                    for (d, &s) in row.iter_mut().zip(src) {
+                        *d = s - self.reference;
+                    }
+                }
+            }
+        }
+        let n = tile.len();
+        twist.clear();
+        twist.resize(n, f32::NAN);
+        let st = self.stride;
+        for i in 0..n.saturating_sub(st + 1) {
+            let (a, b, c, d) = (tile[i], tile[i + 1], tile[i + st], tile[i + st + 1]);
+            if a != LOW && b != LOW && c != LOW && d != LOW {
+                twist[i] = a - b - c + d;
+            }
+        }
+    }
+}
+
+/// The pieces of the ray along image direction (`dx`, `dy`) (unit), up to `radius`, as offsets
+/// into tiles of row length `stride`.
+fn ray_samples(dx: f64, dy: f64, radius: f64, stride: isize) -> Ray {
+    let off = |c: i64, r: i64| r as isize * stride + c as isize;
+    let (ax, ay) = (dx.abs(), dy.abs());
+    // Grid-line crossings, in order of s, then R.
+    let mut ends: Vec<f64> = Vec::new();
+    for a in [ax, ay] {
+        if a > 1e-12 {
+            let mut k = 1.0;
+            while k / a <= radius + 1e-9 {
+                ends.push(k / a);
+                k += 1.0;
+            }
+        }
+    }
+    ends.push(radius);
+    ends.sort_by(f64::total_cmp);
+    ends.dedup_by(|a, b| (*a - *b).abs() < 1e-9);
+    let snap = |v: f64| {
+        let r = v.round();
+        if (v - r).abs() < 1e-9 {
+            r
+        } else {
+            v
+        }
+    };
+    let mut pieces = Vec::with_capacity(ends.len());
+    let mut prev = 0.0;
+    for &s in &ends {
+        let (x, y) = (snap(s * dx), snap(s * dy));
+        let (x0, y0) = (x.floor(), y.floor());
+        let (fx, fy) = (x - x0, y - y0);
+        let (c, r) = (x0 as i64, y0 as i64);
+        // The end: on a column line (fx = 0) the two texels above and below, on a row line the
+        // two beside, at a corner one texel, anywhere else (the end at R) all four.
+        let (o, w, taps) = if fx == 0.0 || fy == 0.0 {
+            let (o1, f) = if fx == 0.0 { (off(c, r + 1), fy) } else { (off(c + 1, r), fx) };
+            ([off(c, r), o1, 0, 0], [(1.0 - f) as f32, f as f32, 0.0, 0.0], 2)
+        } else {
+            let o = [off(c, r), off(c + 1, r), off(c, r + 1), off(c + 1, r + 1)];
+            let w = [(1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy];
+            (o, w.map(|v| v as f32), 4)
+        };
+        let len = s - prev;
+        // The piece's cell: the one its middle lies in.
+        let mid = prev + len * 0.5;
+        let (cx, cy) = ((mid * dx).floor() as i64, (mid * dy).floor() as i64);
+        let mut k = if mid <= NEAR { K_NEAR } else { K_FAR };
+        let mut inner = [Inner::default(); MAX_INNER];
+        for (j, p) in inner.iter_mut().enumerate().take(k) {
+            let t = len * (j + 1) as f64 / (k + 1) as f64;
+            *p = Inner {
+                alpha: (t / len) as f32,
+                beta: (-dx * dy * t * (len - t)) as f32,
+                inv: (1.0 / (prev + t)) as f32,
+            };
+        }
+        if pieces.is_empty() {
+            // The slope at s → 0: the derivative of chord − dx·dy·twist·t·(L − t) at t = 0.
+            inner[k] = Inner { alpha: (1.0 / len) as f32, beta: (-dx * dy * len) as f32, inv: 1.0 };
+            k += 1;
+        }
+        pieces.push(Piece { o, w, taps, cell: off(cx, cy), inv: (1.0 / s) as f32, inner, k });
+        prev = s;
+    }
+    let mut runs: Vec<Run> = Vec::new();
+    for (i, p) in pieces.iter().enumerate() {
+        match runs.last_mut() {
+            Some(r) if r.taps == p.taps && r.k == p.k => r.end = i + 1,
+            _ => runs.push(Run { taps: p.taps, k: p.k, start: i, end: i + 1 }),
+        }
+    }
+    Ray { pieces, runs }
+}
+
+/// a·b + c, fused where the variant has FMA (Rust never fuses on its own; without the
+/// feature `mul_add` would call the C library's `fmaf`).
+#[inline(always)]
+fn madd<const FMA: bool>(a: f32, b: f32, c: f32) -> f32 {
+    if FMA {
+        a.mul_add(b, c)
+    } else {
+        a * b + c
+    }
+}
+
+/// The `L` values of a tile at offset `o` from the strip's first texel.
+#[inline(always)]
+fn lanes_at<const L: usize>(buf: &[f32], base: usize, o: isize) -> &[f32; L] {
+    buf[(base as isize + o) as usize..][..L].try_into().expect("offset inside the tile")
+}
+
+/// The pieces of one run over a strip of `L` lanes: each lane's end value rB, its ratio, the
+/// `K` interior points from rA, rB and the cell's twist; one fused loop over the lanes, so the
+/// values stay in registers.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn run<const L: usize, const TAPS: usize, const K: usize, const FMA: bool>(
+    tile: &[f32],
+    twist: &[f32],
+    base: usize,
+    pieces: &[Piece],
+    h0: &[f32; L],
+    best: &mut [f32; L],
+    r_a: &mut [f32; L],
+) {
+    for p in pieces {
+        let taps: [&[f32; L]; TAPS] = std::array::from_fn(|j| lanes_at(tile, base, p.o[j]));
+        let tw: &[f32; L] = lanes_at(twist, base, p.cell);
+        let inner: [Inner; K] = std::array::from_fn(|j| p.inner[j]);
+        for l in 0..L {
+            let mut rb = -h0[l];
+            for (w, t) in p.w.iter().zip(&taps) {
+                rb = madd::<FMA>(*w, t[l], rb);
+            }
+            let (ra, t) = (r_a[l], tw[l]);
+            let d = rb - ra;
+            let mut m = best[l];
+            let v = rb * p.inv;
+            m = if v > m { v } else { m };
+            for q in &inner {
+                let v = madd::<FMA>(t, q.beta, madd::<FMA>(d, q.alpha, ra)) * q.inv;
+                m = if v > m { v } else { m };
+            }
+            best[l] = m;
+            r_a[l] = rb;
+        }
+    }
+}
+
+/// One strip: `L` consecutive texels of one row, every cast azimuth; writes sin α per bin into
+/// `sbuf[n * L + lane]`. `tile` and `twist` are the band's tiles, `base` the strip's first texel.
+#[inline(always)]
+fn strip_body<const L: usize, const FMA: bool>(
+    tile: &[f32],
+    twist: &[f32],
+    base: usize,
+    rays: &[Ray],
+    cast: &[bool],
+    sbuf: &mut [f32],
+) {
+    let h0: &[f32; L] = tile[base..base + L].try_into().expect("strip inside the tile");
+    for (n, ray) in rays.iter().enumerate() {
+        if !cast[n] {
+            continue;
+        }
+        let mut best = [0.0f32; L];
+        let mut r_a = [0.0f32; L];
+        for r in &ray.runs {
+            let ps = &ray.pieces[r.start..r.end];
+            let (b, ra) = (&mut best, &mut r_a);
+            match (r.taps, r.k) {
+                (2, K_FAR) => run::<L, 2, K_FAR, FMA>(tile, twist, base, ps, h0, b, ra),
+                (2, K_NEAR) => run::<L, 2, K_NEAR, FMA>(tile, twist, base, ps, h0, b, ra),
+                (2, MAX_INNER) => run::<L, 2, MAX_INNER, FMA>(tile, twist, base, ps, h0, b, ra),
+                (4, K_FAR) => run::<L, 4, K_FAR, FMA>(tile, twist, base, ps, h0, b, ra),
+                (4, K_NEAR) => run::<L, 4, K_NEAR, FMA>(tile, twist, base, ps, h0, b, ra),
+                (4, MAX_INNER) => run::<L, 4, MAX_INNER, FMA>(tile, twist, base, ps, h0, b, ra),
+                _ => unreachable!("ray_samples makes only these runs"),
+            }
+        }
+        // sin α = t / √(1 + t²); t is capped so that t² stays finite (1e18 is 90° to f32).
+        let out = &mut sbuf[n * L..(n + 1) * L];
+        for l in 0..L {
+            let t = best[l].min(1e18);
+            out[l] = t / (1.0 + t * t).sqrt();
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2,fma")]
+unsafe fn strip_avx512(
+    t: &[f32],
+    tw: &[f32],
+    base: usize,
+    rays: &[Ray],
+    cast: &[bool],
+    sbuf: &mut [f32],
+) {
+    strip_body::<32, true>(t, tw, base, rays, cast, sbuf)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn strip_avx2(
+    t: &[f32],
+    tw: &[f32],
+    base: usize,
+    rays: &[Ray],
+    cast: &[bool],
+    sbuf: &mut [f32],
+) {
+    strip_body::<16, true>(t, tw, base, rays, cast, sbuf)
+}
+
+fn strip_baseline(
+    t: &[f32],
+    tw: &[f32],
+    base: usize,
+    rays: &[Ray],
+    cast: &[bool],
+    sbuf: &mut [f32],
+) {
+    strip_body::<8, false>(t, tw, base, rays, cast, sbuf)
+}
+
+impl March<'_> {
+    /// Lanes per strip of the selected variant.
+    fn lanes(&self) -> usize {
+        match self.isa {
+            Isa::Avx512 => 32,
+            Isa::Avx2 => 16,
+            Isa::Baseline => 8,
+        }
+    }
+
+    fn strip(&self, tile: &[f32], twist: &[f32], base: usize, cast: &[bool], sbuf: &mut [f32]) {
+        let rays = &self.rays;
+        match self.isa {
+            // SAFETY: `Isa::detect`/`with_isa` only select a variant the CPU supports.
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => unsafe { strip_avx512(tile, twist, base, rays, cast, sbuf) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { strip_avx2(tile, twist, base, rays, cast, sbuf) },
+            _ => strip_baseline(tile, twist, base, rays, cast, sbuf),
+        }
+    }
+}
+
+impl HorizonRows for March<'_> {
+    fn width(&self) -> usize {
+        self.grid.width
+    }
+    fn height(&self) -> usize {
+        self.grid.height
+    }
+    fn bins(&self) -> usize {
+        self.bins
+    }
+    fn texel_cost(&self) -> f64 {
+        // Samples grow linearly with R; at R = 16 a texel costs about what Lengyel's does.
+        (self.radius as f64 / 16.0).max(1.0)
+    }
+    fn rows(&self, y0: usize, channels: &mut [f32], mut bins_out: Option<&mut [f32]>) {
+        if let Some(f) = &self.fallback {
+            return f.rows(y0, channels, bins_out);
+        }
+        let (w, nb) = (self.grid.width, self.bins);
+        let rows = channels.len() / (w * 8);
+        let lanes = self.lanes();
+        let mut sbuf = vec![0.0f32; nb * lanes];
+        let step = nb / 8;
+        let half = (nb / 16) as i64;
+        let inv = 1.0 / (step + 1) as f32;
+        let cast = if bins_out.is_some() { &self.all } else { &self.cast };
+        TILE.with(|cell| {
+            let (tile, twist) = &mut *cell.borrow_mut();
+            self.fill(tile, twist, y0, rows);
+            for r in 0..rows {
+                for x0 in (0..w).step_by(lanes) {
+                    if self.progress.as_ref().is_some_and(Progress::is_canceled) {
+                        return;
+                    }
+                    let base = (r + self.pad) * self.stride + self.pad + x0;
+                    self.strip(tile, twist, base, cast, &mut sbuf);
+                    for l in 0..lanes.min(w - x0) {
+                        let texel = r * w + x0 + l;
+                        let ch = &mut channels[texel * 8..texel * 8 + 8];
+                        for (c, o) in ch.iter_mut().enumerate() {
+                            let centre = (c * step) as i64;
+                            *o = match self.reduce {
+                                Reduce::Point => sbuf[c * step * lanes + l],
+                                Reduce::Average => {
+                                    let mut sum = 0.0f32;
+                                    for k in -half..=half {
+                                        let n = (centre + k).rem_euclid(nb as i64) as usize;
+                                        sum += sbuf[n * lanes + l];
+                                    }
+                                    sum * inv
+                                }
+                            };
+                        }
+                        if let Some(b) = bins_out.as_deref_mut() {
+                            for (n, o) in b[texel * nb..(texel + 1) * nb].iter_mut().enumerate() {
+                                *o = sbuf[n * lanes + l];
+                            }
+                        }
+                    }
+                }
+            }
+        });
+    }
+}
