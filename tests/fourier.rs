@@ -59,8 +59,9 @@ fn the_unchanged_write_up_shader_reproduces_the_projection_on_random_maps() {
     // 4/255 and C = v·|v| within 2|v|·(4/255) + (4/255)²; the constant's c = 2t − 1 is within
     // 2/255 and c·|c| within 2|c|·(2/255) + (2/255)². Multiplied by |b_k(φ)| ≤ 1 (|2xy|,
     // |y² − x²| ≤ 1) and summed. Before the storage followed §3.4 this shader was off by ~0.5.
-    let p = BakeParams::from_pairs([("radius", "6"), ("height_scale", "6"), ("outputs", "fourier")])
-        .unwrap();
+    let p =
+        BakeParams::from_pairs([("radius", "6"), ("height_scale", "6"), ("outputs", "fourier")])
+            .unwrap();
     let mut worst_margin = f64::INFINITY;
     let (mut sum, mut count) = (0.0f64, 0usize);
     for (seed, w, h) in [(1u64, 23usize, 17usize), (2, 9, 31), (3, 40, 40)] {

@@ -693,10 +693,15 @@ async fn heights_are_the_scaled_input_for_a_viewer() {
     assert_eq!(body.len(), 37 * 23 * 4);
     assert!(body[..] == want[..], "heights differ from the decoded, scaled input");
     // The values really are scaled: the 16-bit terrain spans most of [0, 1].
-    let max = body.chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().unwrap())).fold(0.0, f32::max);
+    let max =
+        body.chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().unwrap())).fold(0.0, f32::max);
     assert!(max > 12.0 && max <= 24.0, "{max}");
-    let res =
-        c.get(srv.url(&format!("{loc}/heights"))).header("if-none-match", &etag).send().await.unwrap();
+    let res = c
+        .get(srv.url(&format!("{loc}/heights")))
+        .header("if-none-match", &etag)
+        .send()
+        .await
+        .unwrap();
     assert_eq!(res.status(), 304);
     // Another height_scale is another resource with another ETag.
     let res = c
@@ -737,7 +742,8 @@ async fn web_page_is_built_in_knows_the_limits_and_turns_off() {
         assert_eq!(h["content-type"], *content_type);
         assert_eq!(body, builtin.as_bytes());
     }
-    let (s, _, body) = oneshot(&app, Request::get("/ui/nope.js").body(Body::empty()).unwrap()).await;
+    let (s, _, body) =
+        oneshot(&app, Request::get("/ui/nope.js").body(Body::empty()).unwrap()).await;
     assert_eq!(s, 404);
     assert!(String::from_utf8_lossy(&body).contains("ui_asset_not_found"));
     let (s, _, _) = oneshot(&app, Request::get("/v1/bakes").body(Body::empty()).unwrap()).await;
@@ -770,7 +776,8 @@ async fn ui_dir_serves_the_page_from_disk() {
     assert_eq!(body, b"export const x = 1;");
     // Only the page's own files are served from it, never another path in that directory.
     std::fs::write(ui.path().join("secret.txt"), "no").unwrap();
-    let (s, _, _) = oneshot(&app, Request::get("/ui/secret.txt").body(Body::empty()).unwrap()).await;
+    let (s, _, _) =
+        oneshot(&app, Request::get("/ui/secret.txt").body(Body::empty()).unwrap()).await;
     assert_eq!(s, 404);
     let (s, _, _) =
         oneshot(&app, Request::get("/ui/..%2Fsecret.txt").body(Body::empty()).unwrap()).await;

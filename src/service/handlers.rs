@@ -975,11 +975,10 @@ fn stored_heightmap(
     rec: &BakeRecord,
     params: &BakeParams,
 ) -> crate::Result<heightmap::HeightMap> {
-    let bytes = st
-        .0
-        .blobs
-        .get(&rec.input_blob)?
-        .ok_or_else(|| Error::Internal(format!("input blob {} is missing", rec.input_blob)))?;
+    let bytes =
+        st.0.blobs
+            .get(&rec.input_blob)?
+            .ok_or_else(|| Error::Internal(format!("input blob {} is missing", rec.input_blob)))?;
     Ok(heightmap::decode(&bytes, params.channel, &st.0.config.limits)?.0)
 }
 
