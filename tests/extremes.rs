@@ -16,7 +16,7 @@ use horizon_bake::params::{BakeParams, Channel, Edge, Method, YAxis};
 use horizon_bake::progress::Progress;
 use std::f64::consts::PI;
 
-const METHODS: [Method; 2] = [Method::Lengyel, Method::Exact];
+const METHODS: [Method; 3] = [Method::Lengyel, Method::Exact, Method::March];
 
 fn params(method: Method, radius: &str, edge: Edge) -> BakeParams {
     let mut p = BakeParams { method, edge, ..BakeParams::default() };
@@ -436,10 +436,10 @@ fn y_axis_down_reads_the_flipped_image_identically() {
 
 #[test]
 fn fourier_at_the_extremes() {
-    // Flat and 1×1 maps have no horizon: C_0 stores as 0 and every band as the encoded zero.
-    // On the ±1e30 checkerboard the low texels are walled in (s ≈ 1 at every azimuth, C_0 = 1,
-    // stored 255) and the high ones see nothing (stored 0): a NaN anywhere in the projection
-    // would quantise to 0 and show up on the low texels.
+    // Flat and 1×1 maps have no horizon: C_0 stores as the encoded zero (128 in the standard
+    // range, ½ + ½·√0) and every band as the encoded zero too. On the ±1e30 checkerboard the low
+    // texels are walled in (s ≈ 1 at every azimuth, C_0 = 1, stored 255) and the high ones see
+    // nothing (128): a NaN anywhere in the projection would quantise to 0 and show up.
     let cases: Vec<(usize, usize, Vec<f32>)> = vec![
         (7, 5, vec![2.5; 35]),
         (1, 1, vec![0.7]),
@@ -455,7 +455,7 @@ fn fourier_at_the_extremes() {
                 let (f, _) = bake::bake_fourier(&map, &p, &Progress::new()).unwrap();
                 for t in 0..w * h {
                     let low = vals[t] < vals.iter().copied().fold(f32::MIN, f32::max);
-                    let want = if low { 255 } else { 0 };
+                    let want = if low { 255 } else { 128 };
                     assert_eq!(f.constant[t], want, "{m:?} {terms} {w}×{h} texel {t}");
                     if !low {
                         assert!(f.bands[t * 4..t * 4 + 4].iter().all(|&b| b == 128), "{m:?}");

@@ -63,12 +63,16 @@ struct Inner {
     inv: f32,
 }
 
-/// One piece of a ray, between two crossings (or a crossing and R) inside one cell. Its end is
-/// Σ w·t[i + o] (two taps at a crossing, four at R); `cell` is the offset of the cell's twist.
+/// One piece of a ray, between two crossings (or a crossing and R) inside one cell. Its end
+/// interpolates t[i + o] (two taps at a crossing, four at R); `cell` is the offset of the
+/// cell's twist.
 #[derive(Debug, Clone, Copy)]
 struct Piece {
     o: [isize; 4],
-    w: [f32; 4],
+    /// Interpolation fractions of the end: along the line for 2 taps, (fx, fy) for 4. Lerps
+    /// rather than weighted sums, so a flat neighbourhood gives exactly 0 (weights that sum
+    /// to 1 only up to f32 rounding left ~1e-8 on a plane).
+    f: [f32; 2],
     /// Taps of the end in use: 2 (a crossing) or 4 (a point inside a cell, the end at R).
     taps: usize,
     cell: isize,
@@ -267,13 +271,12 @@ fn ray_samples(dx: f64, dy: f64, radius: f64, stride: isize) -> Ray {
         let (c, r) = (x0 as i64, y0 as i64);
         // The end: on a column line (fx = 0) the two texels above and below, on a row line the
         // two beside, at a corner one texel, anywhere else (the end at R) all four.
-        let (o, w, taps) = if fx == 0.0 || fy == 0.0 {
+        let (o, f, taps) = if fx == 0.0 || fy == 0.0 {
             let (o1, f) = if fx == 0.0 { (off(c, r + 1), fy) } else { (off(c + 1, r), fx) };
-            ([off(c, r), o1, 0, 0], [(1.0 - f) as f32, f as f32, 0.0, 0.0], 2)
+            ([off(c, r), o1, 0, 0], [f as f32, 0.0], 2)
         } else {
             let o = [off(c, r), off(c + 1, r), off(c, r + 1), off(c + 1, r + 1)];
-            let w = [(1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy];
-            (o, w.map(|v| v as f32), 4)
+            (o, [fx as f32, fy as f32], 4)
         };
         let len = s - prev;
         // The piece's cell: the one its middle lies in.
@@ -294,7 +297,7 @@ fn ray_samples(dx: f64, dy: f64, radius: f64, stride: isize) -> Ray {
             inner[k] = Inner { alpha: (1.0 / len) as f32, beta: (-dx * dy * len) as f32, inv: 1.0 };
             k += 1;
         }
-        pieces.push(Piece { o, w, taps, cell: off(cx, cy), inv: (1.0 / s) as f32, inner, k });
+        pieces.push(Piece { o, f, taps, cell: off(cx, cy), inv: (1.0 / s) as f32, inner, k });
         prev = s;
     }
     let mut runs: Vec<Run> = Vec::new();
@@ -343,10 +346,13 @@ fn run<const L: usize, const TAPS: usize, const K: usize, const FMA: bool>(
         let tw: &[f32; L] = lanes_at(twist, base, p.cell);
         let inner: [Inner; K] = std::array::from_fn(|j| p.inner[j]);
         for l in 0..L {
-            let mut rb = -h0[l];
-            for (w, t) in p.w.iter().zip(&taps) {
-                rb = madd::<FMA>(*w, t[l], rb);
-            }
+            let rb = if TAPS == 2 {
+                madd::<FMA>(p.f[0], taps[1][l] - taps[0][l], taps[0][l] - h0[l])
+            } else {
+                let top = madd::<FMA>(p.f[0], taps[1][l] - taps[0][l], taps[0][l]);
+                let bottom = madd::<FMA>(p.f[0], taps[3][l] - taps[2][l], taps[2][l]);
+                madd::<FMA>(p.f[1], bottom - top, top) - h0[l]
+            };
             let (ra, t) = (r_a[l], tw[l]);
             let d = rb - ra;
             let mut m = best[l];
