@@ -479,8 +479,9 @@ impl HorizonRows for March<'_> {
         self.bins
     }
     fn texel_cost(&self) -> f64 {
-        // Samples grow linearly with R; at R = 16 a texel costs about what Lengyel's does.
-        (self.radius as f64 / 16.0).max(1.0)
+        // Samples grow linearly with R; at R = 16 a texel costs about 3× Lengyel's (measured
+        // with benches/frontier.rs), which keeps a band near the 25 ms a cancel waits for.
+        (3.0 * self.radius as f64 / 16.0).max(1.0)
     }
     fn rows(&self, y0: usize, channels: &mut [f32], mut bins_out: Option<&mut [f32]>) {
         if let Some(f) = &self.fallback {

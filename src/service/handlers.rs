@@ -730,14 +730,20 @@ async fn blob_response(
         }
         r
     };
-    if let Ok(v) = HeaderValue::from_str(&etag) {
+    immutable(&mut res, &etag);
+    Ok(res)
+}
+
+/// Marks `res` as an immutable resource with the strong `etag` (results never change once
+/// written, so clients and proxies may keep them for a year).
+fn immutable(res: &mut Response, etag: &str) {
+    if let Ok(v) = HeaderValue::from_str(etag) {
         res.headers_mut().insert(header::ETAG, v);
     }
     res.headers_mut().insert(
         header::CACHE_CONTROL,
         HeaderValue::from_static("private, max-age=31536000, immutable"),
     );
-    Ok(res)
 }
 
 /// A succeeded bake, or the 404/409 that says why there is no result.
@@ -1023,13 +1029,7 @@ pub async fn heights(
         }
         r
     };
-    if let Ok(v) = HeaderValue::from_str(&etag) {
-        res.headers_mut().insert(header::ETAG, v);
-    }
-    res.headers_mut().insert(
-        header::CACHE_CONTROL,
-        HeaderValue::from_static("private, max-age=31536000, immutable"),
-    );
+    immutable(&mut res, &etag);
     Ok(res)
 }
 
