@@ -197,6 +197,15 @@ pub fn models(quick: bool) -> Vec<ModelSpec> {
             ));
         }
     }
+    // The fast approximation of exact at finite radii (SPEC §3.2a), beside exact at R16/R64.
+    let march_radii: &[u32] = if quick { &[16] } else { &[16, 32, 64] };
+    for &r in march_radii {
+        out.push(ModelSpec::new(
+            format!("march R{r} average"),
+            "march",
+            params(Method::March, Radius::Texels(r), 32, Reduce::Average),
+        ));
+    }
     let thetas: &[f64] = if quick { &[10.0] } else { &[5.0, 10.0, 20.0, 30.0] };
     for &t in thetas {
         let mut p = params(Method::Exact, Radius::Auto, 32, Reduce::Average);
