@@ -60,6 +60,17 @@ pub struct ServeArgs {
     /// Largest cube-map face size served by /v1/cubemap.
     #[arg(long, env = "HORIZON_MAX_CUBEMAP_SIZE", default_value_t = 1024)]
     pub max_cubemap_size: u32,
+    /// Seconds an upload may go without sending a byte of its body before it is answered 408
+    /// and its upload slot freed (a client that announces a body and never sends it).
+    #[arg(long, env = "HORIZON_BODY_TIMEOUT_SECS", default_value_t = 30)]
+    pub body_timeout_secs: u64,
+    /// Seconds a connection gets to send a request's complete headers before it is closed.
+    #[arg(long, env = "HORIZON_HEADER_TIMEOUT_SECS", default_value_t = 30)]
+    pub header_timeout_secs: u64,
+    /// Threads of the preview pool, separate from the bake pool so a preview never waits for a
+    /// long bake (0 = half the cores, at least one).
+    #[arg(long, env = "HORIZON_PREVIEW_THREADS", default_value_t = 0)]
+    pub preview_threads: usize,
 }
 
 impl Default for ServeArgs {
@@ -82,6 +93,9 @@ impl Default for ServeArgs {
             shutdown_grace_secs: 30,
             api_key: None,
             max_cubemap_size: 1024,
+            body_timeout_secs: 30,
+            header_timeout_secs: 30,
+            preview_threads: 0,
         }
     }
 }
@@ -102,8 +116,15 @@ pub struct Config {
     pub retention: Duration,
     pub sweep_interval: Duration,
     pub shutdown_grace: Duration,
+    /// The API key, trimmed of surrounding whitespace (a key pasted with a trailing newline or
+    /// space is the key without it; inner whitespace is refused).
     pub api_key: Option<String>,
     pub max_cubemap_size: u32,
+    /// Longest pause between two pieces of an upload's body.
+    pub body_timeout: Duration,
+    /// Longest time to receive a request's headers.
+    pub header_timeout: Duration,
+    pub preview_threads: usize,
 }
 
 fn at_least_one(field: &str, v: u64) -> Result<()> {
@@ -137,16 +158,23 @@ impl Config {
                 format!("must be at most {}", crate::encode::MAX_CUBE_SIZE),
             ));
         }
-        if let Some(k) = &a.api_key {
-            if k.trim().is_empty() {
-                return Err(Error::param("api_key", "must not be empty when given"));
+        at_least_one("body_timeout_secs", a.body_timeout_secs)?;
+        at_least_one("header_timeout_secs", a.header_timeout_secs)?;
+        // Environment variables and secret files often carry a trailing newline or space; a key
+        // that cannot match any header value would lock every client out, so trim it, and refuse
+        // whitespace inside (no `Authorization` value could carry it as one token).
+        let api_key = match a.api_key.as_deref().map(str::trim) {
+            None => None,
+            Some("") => return Err(Error::param("api_key", "must not be empty when given")),
+            Some(k) if k.chars().any(char::is_whitespace) => {
+                return Err(Error::param("api_key", "must not contain whitespace"))
             }
-        }
-        let bake_threads = if a.bake_threads == 0 {
-            std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)
-        } else {
-            a.bake_threads
+            Some(k) => Some(k.to_owned()),
         };
+        let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+        let preview_threads =
+            if a.preview_threads == 0 { (cores / 2).max(1) } else { a.preview_threads };
+        let bake_threads = if a.bake_threads == 0 { cores } else { a.bake_threads };
         Ok(Config {
             addr,
             data_dir: a.data_dir,
@@ -165,8 +193,11 @@ impl Config {
             retention: Duration::from_secs(a.retention_secs),
             sweep_interval: Duration::from_secs(a.sweep_interval_secs),
             shutdown_grace: Duration::from_secs(a.shutdown_grace_secs),
-            api_key: a.api_key,
+            api_key,
             max_cubemap_size: a.max_cubemap_size,
+            body_timeout: Duration::from_secs(a.body_timeout_secs),
+            header_timeout: Duration::from_secs(a.header_timeout_secs),
+            preview_threads,
         })
     }
 

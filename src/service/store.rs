@@ -115,6 +115,10 @@ pub struct BakeRecord {
     pub created_ms: u64,
     pub started_ms: Option<u64>,
     pub finished_ms: Option<u64>,
+    /// When an identical submission last asked for this finished bake (a deduplication hit):
+    /// the retention counts from the later of this and `finished_ms`.
+    #[serde(default)]
+    pub requested_ms: Option<u64>,
     pub timings_ms: Option<Timings>,
     pub error: Option<BakeFailure>,
     /// Result name (`horizon_0.png8`, …) → blob hash.
@@ -124,6 +128,15 @@ pub struct BakeRecord {
 }
 
 impl BakeRecord {
+    /// When a finished bake's retention of `retention_ms` runs out (None while in flight).
+    pub fn expires_ms(&self, retention_ms: u64) -> Option<u64> {
+        if !self.status.is_terminal() {
+            return None;
+        }
+        let last = self.finished_ms?.max(self.requested_ms.unwrap_or(0));
+        Some(last.saturating_add(retention_ms))
+    }
+
     /// Every blob this record references.
     pub fn blobs(&self) -> impl Iterator<Item = &str> {
         std::iter::once(self.input_blob.as_str()).chain(self.results.values().map(String::as_str))
@@ -146,8 +159,79 @@ pub struct Page {
     pub next: Option<String>,
 }
 
+/// What a listing asks for: any of `statuses` (all when empty), after `cursor` in the chosen
+/// order, at most `limit`.
+#[derive(Debug, Clone, Default)]
+pub struct ListQuery {
+    pub statuses: Vec<Status>,
+    pub cursor: Option<String>,
+    pub limit: usize,
+    /// Newest first.
+    pub newest_first: bool,
+}
+
+/// One page of a listing, with how many records match the filter in all.
+#[derive(Debug, Clone)]
+pub struct Listing {
+    pub items: Vec<BakeRecord>,
+    pub next: Option<String>,
+    pub total: u64,
+}
+
 /// Bake records and the deduplication index.
 pub trait BakeStore: Send + Sync + 'static {
+    /// A page of records for `q` and the total matching count. The provided version reads the
+    /// ids in order through [`BakeStore::list`] (one pass, keeping only matching records up to
+    /// the page); a database backend would answer it with an indexed query instead.
+    ///
+    /// # Errors
+    /// The backend's failure.
+    fn query(&self, q: &ListQuery) -> Result<Listing> {
+        let wanted = |s: Status| q.statuses.is_empty() || q.statuses.contains(&s);
+        // At most `limit + 1` records (the extra one says whether there is a next page).
+        let mut page_items: std::collections::VecDeque<BakeRecord> = Default::default();
+        let mut total = 0u64;
+        let mut after: Option<String> = None;
+        loop {
+            let page = self.list(None, after.as_deref(), 1000)?;
+            for r in page.items {
+                if !wanted(r.status) {
+                    continue;
+                }
+                total += 1;
+                let in_range = match (&q.cursor, q.newest_first) {
+                    (None, _) => true,
+                    (Some(c), false) => r.id.as_str() > c.as_str(),
+                    (Some(c), true) => r.id.as_str() < c.as_str(),
+                };
+                if !in_range {
+                    continue;
+                }
+                if q.newest_first {
+                    // Ids ascend: keep the last `limit + 1` below the cursor.
+                    page_items.push_back(r);
+                    if page_items.len() > q.limit + 1 {
+                        page_items.pop_front();
+                    }
+                } else if page_items.len() <= q.limit {
+                    page_items.push_back(r);
+                }
+            }
+            match page.next {
+                Some(n) => after = Some(n),
+                None => break,
+            }
+        }
+        let mut items: Vec<BakeRecord> = page_items.into();
+        if q.newest_first {
+            items.reverse();
+        }
+        let more = items.len() > q.limit;
+        items.truncate(q.limit);
+        let next = if more { items.last().map(|r| r.id.clone()) } else { None };
+        Ok(Listing { items, next, total })
+    }
+
     /// Inserts or replaces a record, and points its dedup key at it. Durable on return.
     ///
     /// # Errors
@@ -223,12 +307,20 @@ impl RedbStore {
     /// # Errors
     /// When the file cannot be created or opened (e.g. another server holds it).
     pub fn open(path: &Path) -> Result<Self> {
-        let db = redb::Database::create(path).map_err(db_err)?;
+        // The operator must learn which file is at fault (locked by a running server, corrupt),
+        // so every failure here names it.
+        let named = |e: &dyn std::fmt::Display| {
+            Error::Io(std::io::Error::other(format!(
+                "cannot open the bake store {}: {e}",
+                path.display()
+            )))
+        };
+        let db = redb::Database::create(path).map_err(|e| named(&e))?;
         // Create the tables up front so readers never see "table does not exist".
-        let tx = db.begin_write().map_err(db_err)?;
-        tx.open_table(BAKES).map_err(db_err)?;
-        tx.open_table(DEDUP).map_err(db_err)?;
-        tx.commit().map_err(db_err)?;
+        let tx = db.begin_write().map_err(|e| named(&e))?;
+        tx.open_table(BAKES).map_err(|e| named(&e))?;
+        tx.open_table(DEDUP).map_err(|e| named(&e))?;
+        tx.commit().map_err(|e| named(&e))?;
         Ok(RedbStore { db })
     }
 }
@@ -437,6 +529,7 @@ mod tests {
             created_ms: 1,
             started_ms: None,
             finished_ms: None,
+            requested_ms: None,
             timings_ms: None,
             error: None,
             results: BTreeMap::new(),
