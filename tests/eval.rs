@@ -293,3 +293,31 @@ fn outputs_fourier_alone_bakes_no_horizon_layers() {
     let listed = json.to_string();
     assert!(!listed.contains("horizon_0"), "bake.json lists horizon files: {listed}");
 }
+
+/// `eval` writes nothing unless `--out` names a directory (it used to replace ./docs), and `-q`
+/// prints nothing at all.
+#[test]
+fn cli_eval_writes_only_when_told_and_quiet_is_silent() {
+    let dir = tempfile::tempdir().unwrap();
+    let quick = ["eval", "--quick", "--size", "16", "--repeat-budget-ms", "0"];
+    let st = std::process::Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
+        .args(quick)
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
+    assert!(String::from_utf8_lossy(&st.stdout).contains("| lengyel R16 B32 "));
+    let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+    assert!(left.is_empty(), "eval without --out wrote {left:?}");
+    let st = std::process::Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
+        .args(quick)
+        .arg("-q")
+        .arg("--out")
+        .arg(dir.path().join("docs"))
+        .output()
+        .unwrap();
+    assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
+    assert!(st.stdout.is_empty(), "-q printed {}", String::from_utf8_lossy(&st.stdout));
+    assert!(st.stderr.is_empty(), "-q printed {}", String::from_utf8_lossy(&st.stderr));
+    assert!(dir.path().join("docs/accuracy.md").exists());
+}
