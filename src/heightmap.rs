@@ -248,6 +248,14 @@ fn tiff_decoder(bytes: &[u8]) -> Result<tiff::decoder::Decoder<Cursor<&[u8]>>> {
     tiff::decoder::Decoder::new(Cursor::new(bytes)).map_err(tiff_error)
 }
 
+/// Runs a third-party decoder on untrusted bytes with its panics caught: a decoder bug on a
+/// malformed file must be that file's 422, not a crashed worker or a 500.
+fn contained<T>(what: &str, f: impl FnOnce() -> Result<T>) -> Result<T> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)).unwrap_or_else(|_| {
+        Err(Error::Decode(format!("the {what} decoder could not read this input (malformed)")))
+    })
+}
+
 /// Reads only the header: format and dimensions, checked against `limits`.
 fn probe_format(bytes: &[u8], limits: &Limits) -> Result<(Format, u32, u32)> {
     if bytes.len() as u64 > limits.max_bytes {
@@ -259,19 +267,19 @@ fn probe_format(bytes: &[u8], limits: &Limits) -> Result<(Format, u32, u32)> {
     let fmt = sniff(bytes)?;
     let (w, h) = match fmt {
         Format::Png => png_dimensions(bytes)?,
-        Format::Tiff => {
+        Format::Tiff => contained("TIFF", || {
             let (w, h) = tiff_decoder(bytes)?.dimensions().map_err(tiff_error)?;
-            (w as u64, h as u64)
-        }
-        Format::Exr => {
+            Ok((w as u64, h as u64))
+        })?,
+        Format::Exr => contained("OpenEXR", || {
             let meta = exr::meta::MetaData::read_from_buffered(Cursor::new(bytes), false)
                 .map_err(exr_error)?;
             let header = meta
                 .headers
                 .first()
                 .ok_or_else(|| Error::Decode("the OpenEXR file has no layers".into()))?;
-            (header.layer_size.0 as u64, header.layer_size.1 as u64)
-        }
+            Ok((header.layer_size.0 as u64, header.layer_size.1 as u64))
+        })?,
     };
     check_dimensions(w, h, limits)?;
     // check_dimensions bounds both by `max_dim: u32`.
@@ -332,9 +340,9 @@ pub fn decode(bytes: &[u8], channel: Channel, limits: &Limits) -> Result<(Height
     // Room for the decoded image at up to 4 × f32 per texel plus the decoders' own buffers.
     let max_alloc = limits.max_texels.saturating_mul(16).saturating_add(64 << 20);
     let d = match fmt {
-        Format::Png => decode_png(bytes, channel, limits, max_alloc)?,
-        Format::Tiff => decode_tiff(bytes, channel, max_alloc)?,
-        Format::Exr => decode_exr(bytes, channel)?,
+        Format::Png => contained("PNG", || decode_png(bytes, channel, limits, max_alloc))?,
+        Format::Tiff => contained("TIFF", || decode_tiff(bytes, channel, max_alloc))?,
+        Format::Exr => contained("OpenEXR", || decode_exr(bytes, channel))?,
     };
     if d.values.len() != w as usize * h as usize {
         return Err(Error::Decode(format!(
