@@ -7,7 +7,9 @@
 //!   bake that was accepted.
 //! - [`BlobStore`]: immutable, content-addressed bytes (inputs and encoded results), named by the
 //!   BLAKE3 of their content. [`FsBlobStore`] writes each to a temporary file, fsyncs it and
-//!   renames it into place, so a crash leaves either the whole file or nothing.
+//!   renames it into place, so a crash leaves either the whole file or nothing. A result
+//!   streamed out of a bake goes through a [`BlobWriter`] (hashed as it is written, named on
+//!   commit), so it is never whole in memory.
 //!
 //! The traits are synchronous: both implementations block on disk, so callers run them on a
 //! blocking thread or on the bake pool, never on an async worker.
@@ -260,8 +262,24 @@ pub trait BakeStore: Send + Sync + 'static {
     fn delete(&self, id: &str) -> Result<bool>;
 }
 
+/// A blob written piece by piece (a result streamed out of a bake), so its bytes never need to
+/// be in memory at once; it is named by its hash when committed.
+pub trait BlobWriter: std::io::Write + Send {
+    /// Makes the bytes written so far durable under their hash and returns the hash. Dropping a
+    /// writer without committing discards what it wrote.
+    ///
+    /// # Errors
+    /// The backend's failure.
+    fn commit(self: Box<Self>) -> Result<String>;
+}
+
 /// Immutable content-addressed bytes.
 pub trait BlobStore: Send + Sync + 'static {
+    /// A writer for a new blob (see [`BlobWriter`]).
+    ///
+    /// # Errors
+    /// The backend's failure.
+    fn writer(&self) -> Result<Box<dyn BlobWriter>>;
     /// Stores `bytes` and returns their hash (hex BLAKE3). Idempotent; durable on return.
     ///
     /// # Errors
@@ -440,7 +458,56 @@ impl FsBlobStore {
     }
 }
 
+/// [`BlobWriter`] of [`FsBlobStore`]: a temporary file in `tmp/`, hashed as it is written,
+/// fsynced and renamed to its hash on commit (the same durability as [`BlobStore::put`]).
+struct FsBlobWriter {
+    tmp: tempfile::NamedTempFile,
+    hasher: blake3::Hasher,
+    store: FsBlobStore,
+}
+
+impl std::io::Write for FsBlobWriter {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.tmp.write(buf)?;
+        self.hasher.update(&buf[..n]);
+        Ok(n)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.tmp.flush()
+    }
+}
+
+impl BlobWriter for FsBlobWriter {
+    fn commit(self: Box<Self>) -> Result<String> {
+        let FsBlobWriter { mut tmp, hasher, store } = *self;
+        tmp.flush()?;
+        let hash = hasher.finalize().to_hex().to_string();
+        let dest = store.path(&hash)?;
+        if dest.exists() {
+            // Already stored (content-addressed); the temporary file is removed on drop.
+            return Ok(hash);
+        }
+        let dir = dest.parent().map(Path::to_path_buf).unwrap_or_else(|| store.root.clone());
+        std::fs::create_dir_all(&dir)?;
+        tmp.as_file().sync_all()?;
+        tmp.persist(&dest).map_err(|e| Error::Io(e.error))?;
+        if let Ok(d) = std::fs::File::open(&dir) {
+            let _ = d.sync_all();
+        }
+        Ok(hash)
+    }
+}
+
 impl BlobStore for FsBlobStore {
+    fn writer(&self) -> Result<Box<dyn BlobWriter>> {
+        Ok(Box::new(FsBlobWriter {
+            tmp: tempfile::NamedTempFile::new_in(self.root.join("tmp"))?,
+            hasher: blake3::Hasher::new(),
+            store: FsBlobStore { root: self.root.clone() },
+        }))
+    }
+
     fn put(&self, bytes: &[u8]) -> Result<String> {
         let hash = blake3::hash(bytes).to_hex().to_string();
         let dest = self.path(&hash)?;

@@ -301,14 +301,15 @@ fn execute(st: &AppState, mut rec: BakeRecord, progress: &Progress) -> Result<Ba
             encoded.push((f.name.to_owned(), f.bytes));
         }
     }
+    let mut streamed = None;
     if params.outputs.horizon {
         // Kernel and PNG encoder overlap band by band, as in the CLI, so `bake` covers both and
-        // no whole layer exists; every other format waits for its first request.
-        let ([png0, png1], r) =
-            encode::stream_horizon_pngs::<u8, _>(map, &params, progress, [Vec::new(), Vec::new()])?;
+        // no whole layer exists; the PNGs go straight into blob writers (temporary files), so
+        // no whole encoded image exists either. Every other format waits for its first request.
+        let outs = [st.0.blobs.writer()?, st.0.blobs.writer()?];
+        let (writers, r) = encode::stream_horizon_pngs::<u8, _>(map, &params, progress, outs)?;
         radius = Some(r);
-        encoded.push((HORIZON_RESULTS[0].to_owned(), png0));
-        encoded.push((HORIZON_RESULTS[1].to_owned(), png1));
+        streamed = Some(writers);
     } else {
         drop(map);
     }
@@ -319,11 +320,19 @@ fn execute(st: &AppState, mut rec: BakeRecord, progress: &Progress) -> Result<Ba
     if progress.is_canceled() {
         return Err(Error::Canceled);
     }
-    progress.start(Stage::Store, encoded.len() as u64 + 1);
+    progress.start(Stage::Store, encoded.len() as u64 + 3);
     let t = Instant::now();
     // Hold the sweep lock from the first blob write to the record commit, so a concurrent
     // retention sweep never removes a blob this record is about to reference.
     let _gc = st.0.gc_lock.read().unwrap_or_else(|e| e.into_inner());
+    if let Some([w0, w1]) = streamed {
+        // Both files are written already; committing is an fsync and a rename each, side by
+        // side.
+        let (h0, h1) = rayon::join(|| w0.commit(), || w1.commit());
+        rec.results.insert(HORIZON_RESULTS[0].to_owned(), h0?);
+        rec.results.insert(HORIZON_RESULTS[1].to_owned(), h1?);
+        progress.advance(2);
+    }
     for (name, bytes) in &encoded {
         let hash = st.0.blobs.put(bytes)?;
         rec.results.insert(name.clone(), hash);
