@@ -205,7 +205,8 @@ async fn duplicate_parameters_are_a_422_naming_the_key_everywhere() {
 async fn echoed_input_in_errors_is_capped() {
     let (st, _dir) = idle_state(|_| {});
     let app = service::app(st);
-    let key = "k".repeat(65_000);
+    // 12,000 characters: under max_uri_bytes (16 KiB), so it reaches the parameter parser.
+    let key = "k".repeat(12_000);
     for uri in [
         format!("/v1/bakes?{key}=1"),
         format!("/v1/cubemap/0?size={key}"),
@@ -591,4 +592,25 @@ async fn listing_newest_first_several_statuses_and_total() {
     assert_eq!((s.as_u16(), p["field"].as_str()), (422, Some("order")));
     let (s, p) = oneshot(&app, get("/v1/bakes?status=queued,done".into())).await;
     assert_eq!((s.as_u16(), p["field"].as_str()), (422, Some("status")));
+}
+
+/// A request target over max_uri_bytes is a 414, headers over max_header_bytes a 431, both
+/// problem+json (hyper's own bare answers only start far above these limits), over a socket.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn uri_and_header_limits_answer_problem_json() {
+    let srv = Server::start(|_| {}).await;
+    let c = client();
+    let long = format!("/v1/bakes?{}=1", "k".repeat(65_000));
+    let (s, p) = problem(c.get(srv.url(&long)).send().await.unwrap()).await;
+    assert_eq!((s, p["code"].as_str()), (414, Some("uri_too_long")));
+    let big = "v".repeat(100 * 1024);
+    let (s, p) =
+        problem(c.get(srv.url("/v1/bakes")).header("x-big", big).send().await.unwrap()).await;
+    assert_eq!((s, p["code"].as_str()), (431, Some("headers_too_large")));
+    let (s, _) = problem(
+        c.get(srv.url("/healthz")).header("x-big", "v".repeat(70_000)).send().await.unwrap(),
+    )
+    .await;
+    assert_eq!(s, 431);
+    srv.stop().await;
 }

@@ -71,6 +71,12 @@ pub struct ServeArgs {
     /// long bake (0 = half the cores, at least one).
     #[arg(long, env = "HORIZON_PREVIEW_THREADS", default_value_t = 0)]
     pub preview_threads: usize,
+    /// Longest request target (path and query) in bytes; longer ones get 414 (problem+json).
+    #[arg(long, env = "HORIZON_MAX_URI_BYTES", default_value_t = 16 * 1024)]
+    pub max_uri_bytes: usize,
+    /// Most bytes of request headers (names and values); more get 431 (problem+json).
+    #[arg(long, env = "HORIZON_MAX_HEADER_BYTES", default_value_t = 64 * 1024)]
+    pub max_header_bytes: usize,
 }
 
 impl Default for ServeArgs {
@@ -96,6 +102,8 @@ impl Default for ServeArgs {
             body_timeout_secs: 30,
             header_timeout_secs: 30,
             preview_threads: 0,
+            max_uri_bytes: 16 * 1024,
+            max_header_bytes: 64 * 1024,
         }
     }
 }
@@ -125,6 +133,8 @@ pub struct Config {
     /// Longest time to receive a request's headers.
     pub header_timeout: Duration,
     pub preview_threads: usize,
+    pub max_uri_bytes: usize,
+    pub max_header_bytes: usize,
 }
 
 fn at_least_one(field: &str, v: u64) -> Result<()> {
@@ -159,6 +169,14 @@ impl Config {
             ));
         }
         at_least_one("body_timeout_secs", a.body_timeout_secs)?;
+        // hyper answers a head over its own buffer (set to 1 MiB in `service::serve`) with a
+        // bare 431, and a target over 64 KiB with a bare 414; below those, ours are problem+json.
+        if !(256..=60 * 1024).contains(&a.max_uri_bytes) {
+            return Err(Error::param("max_uri_bytes", "must be from 256 to 61440"));
+        }
+        if !(1024..=512 * 1024).contains(&a.max_header_bytes) {
+            return Err(Error::param("max_header_bytes", "must be from 1024 to 524288"));
+        }
         at_least_one("header_timeout_secs", a.header_timeout_secs)?;
         // Environment variables and secret files often carry a trailing newline or space; a key
         // that cannot match any header value would lock every client out, so trim it, and refuse
@@ -198,6 +216,8 @@ impl Config {
             body_timeout: Duration::from_secs(a.body_timeout_secs),
             header_timeout: Duration::from_secs(a.header_timeout_secs),
             preview_threads,
+            max_uri_bytes: a.max_uri_bytes,
+            max_header_bytes: a.max_header_bytes,
         })
     }
 

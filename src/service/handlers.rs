@@ -1271,6 +1271,37 @@ fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
     a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 
+/// 414 for a request target over `max_uri_bytes`, 431 for headers over `max_header_bytes`,
+/// both problem+json, before routing (so before any extractor echoes a part of them).
+pub async fn head_limits(State(st): State<AppState>, req: Request, next: Next) -> Response {
+    let target = req.uri().path_and_query().map_or(0, |pq| pq.as_str().len());
+    if target > st.0.config.max_uri_bytes {
+        return Problem::new(
+            StatusCode::URI_TOO_LONG,
+            "uri_too_long",
+            format!(
+                "the request target is {target} bytes; at most {} are accepted (max_uri_bytes)",
+                st.0.config.max_uri_bytes
+            ),
+        )
+        .into_response();
+    }
+    let headers: usize = req.headers().iter().map(|(k, v)| k.as_str().len() + v.len() + 4).sum();
+    if headers > st.0.config.max_header_bytes {
+        return Problem::new(
+            StatusCode::REQUEST_HEADER_FIELDS_TOO_LARGE,
+            "headers_too_large",
+            format!(
+                "the request headers are {headers} bytes; at most {} are accepted \
+                 (max_header_bytes)",
+                st.0.config.max_header_bytes
+            ),
+        )
+        .into_response();
+    }
+    next.run(req).await
+}
+
 /// Bearer-token check on /v1 routes when an API key is configured.
 pub async fn auth(State(st): State<AppState>, req: Request, next: Next) -> Response {
     if let Some(key) = &st.0.config.api_key {

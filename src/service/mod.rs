@@ -263,6 +263,7 @@ pub fn app(st: AppState) -> Router {
         .route("/openapi.yaml", get(handlers::openapi))
         .route_layer(axum::middleware::from_fn_with_state(st.clone(), handlers::track))
         .fallback(handlers::fallback)
+        .layer(axum::middleware::from_fn_with_state(st.clone(), handlers::head_limits))
         .layer(axum::middleware::map_response(problem::normalize))
         .with_state(st)
 }
@@ -305,7 +306,9 @@ pub async fn serve(
     let router = app(st.clone());
     let graceful = GracefulShutdown::new();
     let mut builder = http1::Builder::new();
-    builder.timer(TokioTimer::new()).header_read_timeout(header_timeout);
+    // hyper's own limit on a request head answers a bare 431; set it well above ours
+    // (`max_header_bytes`, checked by `handlers::head_limits`), so clients get problem+json.
+    builder.timer(TokioTimer::new()).header_read_timeout(header_timeout).max_buf_size(1 << 20);
     let drain_state = st.clone();
     let mut shutdown = std::pin::pin!(async move {
         shutdown.await;
