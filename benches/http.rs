@@ -1,23 +1,30 @@
-//! End-to-end cost of the HTTP service against the library call it wraps, in one run.
+//! What a bake costs through the HTTP service against the CLI, in one run, and what EXR costs
+//! against the bake.
 //!
-//! For a 2048² 16-bit height map at the default parameters, times (best of `HTTP_BENCH_RUNS`,
-//! default 3):
-//! - `library`: decode → `bake_horizon` (every precision) → `encode::horizon_files` for the same
-//!   eight files the service stores (png8, png16, exr, ktx2, dds);
-//! - `http`: POST the PNG to a server on 127.0.0.1:0, poll until `succeeded`, download both png8
-//!   layers — queueing, hashing, durable blob writes and the record commit included.
+//! For an N² 16-bit height map at the default parameters (N = `HTTP_BENCH_SIZE`, default 2048),
+//! best of `HTTP_BENCH_RUNS` (default 3), interleaved so machine load affects both alike:
+//! - `cli`: the real binary, `horizon-bake bake IN -o DIR --format png8`, wall time and peak
+//!   resident memory (VmHWM sampled from /proc every 5 ms);
+//! - `http`: the real binary as a server (`horizon-bake serve`, a child process): POST the PNG,
+//!   poll until `succeeded`, GET `horizon/0` and `horizon/1` (png8), DELETE. Its peak resident
+//!   memory (VmHWM of the server process) is read at the end.
 //!
-//! Prints ms, Mtexel/s and the HTTP/library ratio; the target is a ratio ≤ 1.20.
-//! Run: `cargo bench --bench http` (set `HTTP_BENCH_SIZE` for another size).
+//! Prints both times, the HTTP/CLI ratio (target ≤ 1.3) and both peaks (target for the server at
+//! 8192²: ≤ 1.5 GiB). Then, for N ≤ 4096, the EXR/bake ratio: encoding both f32 layers as EXR
+//! (float and half) against `bake_horizon` of those layers, in this process (target ≤ 1), and
+//! the first `?format=exr` download of both layers over HTTP (re-bake included) against the
+//! service's own `timings_ms.bake`.
+//! Run: `cargo bench --bench http` (or `HTTP_BENCH_SIZE=8192 HTTP_BENCH_RUNS=1 …`).
 
 use horizon_bake::bake::{self, Precisions};
+use horizon_bake::encode::exr::{encode_rgba_as, ExrPrecision};
 use horizon_bake::encode::png::{encode16, PngColor};
-use horizon_bake::encode::{self, Formats, TexturePrecision};
 use horizon_bake::heightmap::{self, Limits};
 use horizon_bake::params::BakeParams;
 use horizon_bake::progress::Progress;
-use horizon_bake::service::{self, Config};
 use std::f64::consts::TAU;
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 fn terrain(n: usize) -> Vec<u8> {
@@ -36,25 +43,76 @@ fn terrain(n: usize) -> Vec<u8> {
     encode16(n, n, PngColor::Gray, &data).expect("encode input")
 }
 
-fn library(png: &[u8]) -> usize {
-    let params = BakeParams::default();
-    let (map, _) = heightmap::decode(png, params.channel, &Limits::default()).expect("decode");
-    let (layers, _) =
-        bake::bake_horizon(&map, &params, Precisions::ALL, &Progress::new()).expect("bake");
-    let all = Formats::parse("png8,exr,ktx2,dds", TexturePrecision::Unorm8).expect("formats");
-    let wide = Formats::parse("png16", TexturePrecision::Unorm8).expect("formats");
-    let mut bytes = 0;
-    for f in [all, wide] {
-        bytes += encode::horizon_files(&layers, &f)
-            .expect("encode")
-            .iter()
-            .map(|f| f.bytes.len())
-            .sum::<usize>();
-    }
-    bytes
+/// VmHWM of process `pid` in MiB.
+fn peak_mib(pid: u32) -> Option<f64> {
+    let s = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let line = s.lines().find(|l| l.starts_with("VmHWM:"))?;
+    Some(line.split_whitespace().nth(1)?.parse::<f64>().ok()? / 1024.0)
 }
 
-async fn over_http(c: &reqwest::Client, base: &str, png: &[u8]) -> usize {
+/// The CLI's png8 bake of `input` into `out`: (wall seconds, peak MiB).
+fn cli(input: &Path, out: &Path) -> (f64, f64) {
+    let t = Instant::now();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
+        .arg("bake")
+        .arg(input)
+        .arg("-o")
+        .arg(out)
+        .args(["--format", "png8"])
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("cli");
+    let mut peak = 0.0f64;
+    loop {
+        peak = peak.max(peak_mib(child.id()).unwrap_or(0.0));
+        match child.try_wait().expect("wait") {
+            Some(st) => {
+                assert!(st.success(), "cli bake failed: {st}");
+                return (t.elapsed().as_secs_f64(), peak);
+            }
+            None => std::thread::sleep(Duration::from_millis(5)),
+        }
+    }
+}
+
+struct ServerChild(Child);
+
+impl Drop for ServerChild {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn start_server(dir: &Path) -> (ServerChild, String) {
+    let addr_file = dir.join("addr");
+    let child = Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
+        .arg("serve")
+        .args(["--addr", "127.0.0.1:0", "--max-body-bytes", "1073741824", "--data-dir"])
+        .arg(dir.join("data"))
+        .arg("--addr-file")
+        .arg(&addr_file)
+        .env_remove("HORIZON_API_KEY")
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .spawn()
+        .expect("server");
+    let child = ServerChild(child);
+    let t = Instant::now();
+    loop {
+        if let Ok(a) = std::fs::read_to_string(&addr_file) {
+            return (child, format!("http://{a}"));
+        }
+        assert!(t.elapsed() < Duration::from_secs(30), "server did not start");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+async fn submit_and_wait(
+    c: &reqwest::Client,
+    base: &str,
+    png: &[u8],
+) -> (String, serde_json::Value) {
     let res = c
         .post(format!("{base}/v1/bakes"))
         .header("content-type", "image/png")
@@ -68,30 +126,53 @@ async fn over_http(c: &reqwest::Client, base: &str, png: &[u8]) -> usize {
         let v: serde_json::Value =
             c.get(format!("{base}{loc}")).send().await.expect("poll").json().await.expect("json");
         match v["status"].as_str() {
-            Some("succeeded") => break,
+            Some("succeeded") => return (loc, v),
             Some("failed") | Some("canceled") => panic!("bake ended {v}"),
             _ => tokio::time::sleep(Duration::from_millis(5)).await,
         }
     }
+}
+
+async fn get_all(c: &reqwest::Client, base: &str, loc: &str, query: &str) -> usize {
     let mut bytes = 0;
     for layer in 0..2 {
-        bytes += c
-            .get(format!("{base}{loc}/horizon/{layer}"))
-            .send()
-            .await
-            .expect("download")
-            .bytes()
-            .await
-            .expect("body")
-            .len();
+        let res = c.get(format!("{base}{loc}/horizon/{layer}{query}")).send().await.expect("get");
+        assert_eq!(res.status(), 200);
+        bytes += res.bytes().await.expect("body").len();
     }
-    let v: serde_json::Value =
-        c.get(format!("{base}{loc}")).send().await.expect("get").json().await.expect("json");
-    println!("service timings_ms: {}", v["timings_ms"]);
+    bytes
+}
+
+async fn over_http(c: &reqwest::Client, base: &str, png: &[u8]) -> (usize, serde_json::Value) {
+    let (loc, v) = submit_and_wait(c, base, png).await;
+    let bytes = get_all(c, base, &loc, "").await;
     // Remove it so the next run is a fresh bake rather than a deduplicated answer.
     let res = c.delete(format!("{base}{loc}")).send().await.expect("delete");
     assert_eq!(res.status(), 204);
-    bytes
+    (bytes, v["timings_ms"].clone())
+}
+
+/// Encoding both f32 layers as EXR against baking them, in this process: (bake s, [(float s,
+/// bytes), (half s, bytes)]).
+fn exr_against_bake(png: &[u8]) -> (f64, Vec<(ExrPrecision, f64, usize)>) {
+    let params = BakeParams::default();
+    let (map, _) = heightmap::decode(png, params.channel, &Limits::default()).expect("decode");
+    let t = Instant::now();
+    let only_f32 = Precisions { u8: false, u16: false, f32: true };
+    let (layers, _) = bake::bake_horizon(&map, &params, only_f32, &Progress::new()).expect("bake");
+    let bake_s = t.elapsed().as_secs_f64();
+    let l = layers.f32.as_ref().expect("f32 layers");
+    let (w, h) = (layers.width, layers.height);
+    let mut out = Vec::new();
+    for p in [ExrPrecision::Float, ExrPrecision::Half] {
+        let t = Instant::now();
+        // As encode::horizon_files does: the two layers side by side.
+        let (a, b) =
+            rayon::join(|| encode_rgba_as(w, h, &l[0], p), || encode_rgba_as(w, h, &l[1], p));
+        let bytes = a.expect("exr").len() + b.expect("exr").len();
+        out.push((p, t.elapsed().as_secs_f64(), bytes));
+    }
+    (bake_s, out)
 }
 
 fn main() {
@@ -100,42 +181,80 @@ fn main() {
     let runs: usize =
         std::env::var("HTTP_BENCH_RUNS").ok().and_then(|v| v.parse().ok()).unwrap_or(3);
     let png = terrain(n);
+    let dir = tempfile::tempdir().expect("tempdir");
+    let input = dir.path().join("in.png");
+    std::fs::write(&input, &png).expect("input");
+    let (server, base) = start_server(dir.path());
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
         .build()
         .expect("runtime");
-    let dir = tempfile::tempdir().expect("tempdir");
-    let mut config = Config::for_dir(dir.path()).expect("config");
-    config.max_body_bytes = 1 << 30;
-    let (base, stop) = rt.block_on(async {
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind");
-        let base = format!("http://{}", listener.local_addr().expect("addr"));
-        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-        tokio::spawn(service::run(config, listener, async move {
-            let _ = rx.await;
-        }));
-        (base, tx)
-    });
     let c = reqwest::Client::new();
-    // Interleave the two so machine load affects both alike; keep the best of each.
-    let (mut best_lib, mut best_http) = (f64::MAX, f64::MAX);
-    for _ in 0..runs {
+    let (mut best_cli, mut best_http, mut cli_peak) = (f64::MAX, f64::MAX, 0.0f64);
+    let mut timings = serde_json::Value::Null;
+    for run in 0..runs {
+        let (t, peak) = cli(&input, &dir.path().join(format!("cli{run}")));
+        best_cli = best_cli.min(t);
+        cli_peak = cli_peak.max(peak);
         let t = Instant::now();
-        let lib_bytes = std::hint::black_box(library(&png));
-        best_lib = best_lib.min(t.elapsed().as_secs_f64());
-        let t = Instant::now();
-        let http_bytes = rt.block_on(over_http(&c, &base, &png));
-        best_http = best_http.min(t.elapsed().as_secs_f64());
-        assert!(lib_bytes > 0 && http_bytes > 0);
+        let (bytes, tm) = rt.block_on(over_http(&c, &base, &png));
+        let took = t.elapsed().as_secs_f64();
+        if took < best_http {
+            best_http = took;
+            timings = tm;
+        }
+        assert!(bytes > 0);
     }
-    let _ = stop.send(());
+    let server_peak = peak_mib(server.0.id()).unwrap_or(f64::NAN);
     let texels = (n * n) as f64;
-    println!("end-to-end {n}×{n} bake, default parameters, best of {runs}");
-    println!("{:<10} {:>10} {:>12} {:>8}", "path", "ms", "Mtexel/s", "ratio");
-    for (name, t) in [("library", best_lib), ("http", best_http)] {
-        println!("{name:<10} {:>10.1} {:>12.2} {:>8.3}", t * 1e3, texels / t / 1e6, t / best_lib);
+    println!("{n}×{n} 16-bit input, default parameters, png8 layers, best of {runs}");
+    println!("{:<6} {:>10} {:>10} {:>9} {:>10}", "path", "ms", "Mtexel/s", "ratio", "peak MiB");
+    for (name, t, peak) in [("cli", best_cli, cli_peak), ("http", best_http, server_peak)] {
+        println!(
+            "{name:<6} {:>10.1} {:>10.2} {:>9.3} {:>10.0}",
+            t * 1e3,
+            texels / t / 1e6,
+            t / best_cli,
+            peak
+        );
     }
-    let overhead = best_http / best_lib - 1.0;
-    println!("HTTP overhead: {:.1}% (target ≤ 20%)", overhead * 100.0);
+    println!("service timings_ms of the best run: {timings}");
+    println!(
+        "HTTP/CLI ratio: {:.3} (target ≤ 1.3); server peak {:.0} MiB (target ≤ 1536 at 8192²)",
+        best_http / best_cli,
+        server_peak
+    );
+
+    if n <= 4096 {
+        let (bake_s, exr) = exr_against_bake(&png);
+        println!("\nEXR of both layers against the bake of those layers (this process):");
+        println!("bake (f32 layers) {:.1} ms", bake_s * 1e3);
+        for (p, s, bytes) in exr {
+            println!(
+                "exr {:<6} {:>8.1} ms  {:>7.1} MB  EXR/bake ratio {:.3} (target ≤ 1)",
+                p.as_str(),
+                s * 1e3,
+                bytes as f64 / 1e6,
+                s / bake_s
+            );
+        }
+        // Over HTTP: the first EXR request of a finished bake re-bakes and encodes it.
+        rt.block_on(async {
+            let (loc, v) = submit_and_wait(&c, &base, &png).await;
+            let bake_ms = v["timings_ms"]["bake"].as_f64().unwrap_or(f64::NAN);
+            for q in ["?format=exr", "?format=exr&exr_precision=half"] {
+                let t = Instant::now();
+                let bytes = get_all(&c, &base, &loc, q).await;
+                let ms = t.elapsed().as_secs_f64() * 1e3;
+                println!(
+                    "first GET of both layers {q}: {ms:.1} ms, {:.1} MB, over the service's \
+                     bake {bake_ms:.1} ms: {:.3}",
+                    bytes as f64 / 1e6,
+                    ms / bake_ms
+                );
+            }
+        });
+    }
+    drop(server);
 }

@@ -86,10 +86,31 @@ impl HeightMap {
     }
 }
 
+/// Largest absolute height value accepted (before `height_scale`). With `height_scale` at most
+/// [`crate::params::MAX_HEIGHT_SCALE`] (1e9), scaled heights and their differences stay within
+/// f32 (3.4e38), so a value beyond this is the input's fault, never the scale's.
+pub const MAX_ABS_HEIGHT: f32 = 1e29;
+
 fn check_finite(values: &[f32], width: usize) -> Result<()> {
     if let Some(k) = values.iter().position(|v| !v.is_finite()) {
         return Err(Error::InvalidInput(format!(
             "height at column {}, row {} is {} (heights must be finite)",
+            k % width.max(1),
+            k / width.max(1),
+            values[k]
+        )));
+    }
+    Ok(())
+}
+
+/// Decoded input values must also be within ±[`MAX_ABS_HEIGHT`], so that an overflow is blamed
+/// on the file rather than on `height_scale`. (Synthetic maps built with
+/// [`HeightMap::from_values`] may go further: the kernels handle any finite value.)
+fn check_range(values: &[f32], width: usize) -> Result<()> {
+    if let Some(k) = values.iter().position(|v| v.abs() > MAX_ABS_HEIGHT) {
+        return Err(Error::InvalidInput(format!(
+            "height at column {}, row {} is {:e}, beyond ±{MAX_ABS_HEIGHT:e}: the input's values \
+             are out of range",
             k % width.max(1),
             k / width.max(1),
             values[k]
@@ -227,6 +248,14 @@ fn tiff_decoder(bytes: &[u8]) -> Result<tiff::decoder::Decoder<Cursor<&[u8]>>> {
     tiff::decoder::Decoder::new(Cursor::new(bytes)).map_err(tiff_error)
 }
 
+/// Runs a third-party decoder on untrusted bytes with its panics caught: a decoder bug on a
+/// malformed file must be that file's 422, not a crashed worker or a 500.
+fn contained<T>(what: &str, f: impl FnOnce() -> Result<T>) -> Result<T> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)).unwrap_or_else(|_| {
+        Err(Error::Decode(format!("the {what} decoder could not read this input (malformed)")))
+    })
+}
+
 /// Reads only the header: format and dimensions, checked against `limits`.
 fn probe_format(bytes: &[u8], limits: &Limits) -> Result<(Format, u32, u32)> {
     if bytes.len() as u64 > limits.max_bytes {
@@ -238,19 +267,19 @@ fn probe_format(bytes: &[u8], limits: &Limits) -> Result<(Format, u32, u32)> {
     let fmt = sniff(bytes)?;
     let (w, h) = match fmt {
         Format::Png => png_dimensions(bytes)?,
-        Format::Tiff => {
+        Format::Tiff => contained("TIFF", || {
             let (w, h) = tiff_decoder(bytes)?.dimensions().map_err(tiff_error)?;
-            (w as u64, h as u64)
-        }
-        Format::Exr => {
+            Ok((w as u64, h as u64))
+        })?,
+        Format::Exr => contained("OpenEXR", || {
             let meta = exr::meta::MetaData::read_from_buffered(Cursor::new(bytes), false)
                 .map_err(exr_error)?;
             let header = meta
                 .headers
                 .first()
                 .ok_or_else(|| Error::Decode("the OpenEXR file has no layers".into()))?;
-            (header.layer_size.0 as u64, header.layer_size.1 as u64)
-        }
+            Ok((header.layer_size.0 as u64, header.layer_size.1 as u64))
+        })?,
     };
     check_dimensions(w, h, limits)?;
     // check_dimensions bounds both by `max_dim: u32`.
@@ -272,6 +301,26 @@ pub fn probe(bytes: &[u8], limits: &Limits) -> Result<(image::ImageFormat, u32, 
     Ok((f, w, h))
 }
 
+/// What a service checks before accepting an upload: the header (format, dimensions against
+/// `limits`, without allocating pixels), and for TIFF and OpenEXR the whole decode with
+/// `channel`: those can hold float samples (NaN, infinities, values out of range) and sample
+/// formats we do not read (32-bit integer, 16-bit float TIFF), which the header check alone
+/// would only find when the bake runs. PNG holds integers only, so its header is enough.
+///
+/// # Errors
+/// As [`decode`].
+pub fn check_submission(
+    bytes: &[u8],
+    channel: Channel,
+    limits: &Limits,
+) -> Result<(image::ImageFormat, u32, u32)> {
+    let probed = probe(bytes, limits)?;
+    if probed.0 != image::ImageFormat::Png {
+        decode(bytes, channel, limits)?;
+    }
+    Ok(probed)
+}
+
 /// Samples decoded from an image, before the channel pick.
 struct Decoded {
     values: Vec<f32>,
@@ -291,9 +340,9 @@ pub fn decode(bytes: &[u8], channel: Channel, limits: &Limits) -> Result<(Height
     // Room for the decoded image at up to 4 × f32 per texel plus the decoders' own buffers.
     let max_alloc = limits.max_texels.saturating_mul(16).saturating_add(64 << 20);
     let d = match fmt {
-        Format::Png => decode_png(bytes, channel, limits, max_alloc)?,
-        Format::Tiff => decode_tiff(bytes, channel, max_alloc)?,
-        Format::Exr => decode_exr(bytes, channel)?,
+        Format::Png => contained("PNG", || decode_png(bytes, channel, limits, max_alloc))?,
+        Format::Tiff => contained("TIFF", || decode_tiff(bytes, channel, max_alloc))?,
+        Format::Exr => contained("OpenEXR", || decode_exr(bytes, channel))?,
     };
     if d.values.len() != w as usize * h as usize {
         return Err(Error::Decode(format!(
@@ -302,6 +351,7 @@ pub fn decode(bytes: &[u8], channel: Channel, limits: &Limits) -> Result<(Height
         )));
     }
     check_finite(&d.values, w as usize)?;
+    check_range(&d.values, w as usize)?;
     let info = InputInfo {
         width: w,
         height: h,
@@ -391,8 +441,17 @@ fn decode_exr(bytes: &[u8], channel: Channel) -> Result<Decoded> {
             ))),
         }
     };
+    // Half-float channels report 16 bits, as the file stores them.
+    let depth = |cs: &[&AnyChannel<FlatSamples>]| -> u8 {
+        if cs.iter().all(|c| matches!(c.sample_data, FlatSamples::F16(_))) {
+            16
+        } else {
+            32
+        }
+    };
     let (r, g, b, a) = (find("R"), find("G"), find("B"), find("A"));
     if let (Some(r), Some(g), Some(b)) = (r, g, b) {
+        let bit_depth = depth(&[r, g, b]);
         let (r, g, b) = (to_f32(r)?, to_f32(g)?, to_f32(b)?);
         let a = a.map(to_f32).transpose()?;
         let color = if a.is_some() { "rgba" } else { "rgb" };
@@ -410,14 +469,14 @@ fn decode_exr(bytes: &[u8], channel: Channel) -> Result<Decoded> {
                 )
             })
             .collect();
-        return Ok(Decoded { values, color, bit_depth: 32, float: true });
+        return Ok(Decoded { values, color, bit_depth, float: true });
     }
     // A gray map: `Y`, or the only channel whatever its name.
     let gray = find("Y").or(if list.len() == 1 { list.first() } else { None });
     match gray {
         Some(y) => {
             let color = if a.is_some() && list.len() == 2 { "gray_alpha" } else { "gray" };
-            Ok(Decoded { values: to_f32(y)?, color, bit_depth: 32, float: true })
+            Ok(Decoded { values: to_f32(y)?, color, bit_depth: depth(&[y]), float: true })
         }
         None => {
             let names: Vec<String> = list.iter().map(|c| c.name.to_string()).collect();

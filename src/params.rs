@@ -239,6 +239,78 @@ pub(crate) fn parse_u32(field: &str, value: &str) -> Result<u32> {
     }
 }
 
+/// The members of a JSON object in document order, refusing a key given twice (serde_json would
+/// silently keep the last one; SPEC-wise a duplicate is a 422 naming the key, as in a query).
+///
+/// # Errors
+/// [`Error::Param`] naming `params` for text that is not a JSON object, or the duplicated key.
+pub fn json_object_pairs(text: &[u8]) -> Result<Vec<(String, serde_json::Value)>> {
+    use serde::de::{Deserializer as _, MapAccess, Visitor};
+    struct Pairs;
+    impl<'de> Visitor<'de> for Pairs {
+        type Value = Vec<(String, serde_json::Value)>;
+        fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+            f.write_str("a JSON object")
+        }
+        fn visit_map<A: MapAccess<'de>>(
+            self,
+            mut map: A,
+        ) -> std::result::Result<Self::Value, A::Error> {
+            let mut out: Vec<(String, serde_json::Value)> = Vec::new();
+            while let Some((k, v)) = map.next_entry::<String, serde_json::Value>()? {
+                if out.iter().any(|(seen, _)| *seen == k) {
+                    return Err(serde::de::Error::custom(DuplicateKey(k)));
+                }
+                out.push((k, v));
+            }
+            Ok(out)
+        }
+    }
+    /// Carries the duplicated key through serde's error text.
+    struct DuplicateKey(String);
+    impl std::fmt::Display for DuplicateKey {
+        fn fmt(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+            write!(f, "\u{1}{}\u{1}", self.0)
+        }
+    }
+    let mut de = serde_json::Deserializer::from_slice(text);
+    let pairs = de.deserialize_map(Pairs).and_then(|p| de.end().map(|()| p));
+    pairs.map_err(|e| {
+        let msg = e.to_string();
+        let mut parts = msg.split('\u{1}');
+        match (parts.next(), parts.next()) {
+            (Some(_), Some(key)) => Error::param(key, "given more than once"),
+            _ if e.is_data() => Error::param("params", "must be a JSON object"),
+            _ => Error::param("params", format!("not valid JSON: {e}")),
+        }
+    })
+}
+
+/// The textual value of one JSON member (None for `null`, meaning the default).
+///
+/// # Errors
+/// [`Error::Param`] naming `key` for a boolean, an object or a non-string array item.
+pub fn json_value_text(key: &str, v: &serde_json::Value) -> Result<Option<String>> {
+    Ok(Some(match v {
+        serde_json::Value::Null => return Ok(None),
+        serde_json::Value::String(s) => s.clone(),
+        serde_json::Value::Number(n) => n.to_string(),
+        serde_json::Value::Bool(_) | serde_json::Value::Object(_) => {
+            return Err(Error::param(key, "must be a number or a string"))
+        }
+        serde_json::Value::Array(items) => {
+            let mut parts = Vec::new();
+            for it in items {
+                match it {
+                    serde_json::Value::String(s) => parts.push(s.clone()),
+                    _ => return Err(Error::param(key, "array items must be strings")),
+                }
+            }
+            parts.join(",")
+        }
+    }))
+}
+
 impl BakeParams {
     /// Sets one parameter from its textual value, validating it.
     ///
@@ -379,14 +451,19 @@ impl BakeParams {
     /// Builds parameters from key/value pairs (a query string, CLI flags), defaults elsewhere.
     ///
     /// # Errors
-    /// The first invalid or unknown pair, as [`Error::Param`].
+    /// The first invalid or unknown pair, or a key given twice, as [`Error::Param`] naming it.
     pub fn from_pairs<'a, I>(pairs: I) -> Result<Self>
     where
         I: IntoIterator<Item = (&'a str, &'a str)>,
     {
         let mut p = BakeParams::default();
+        let mut seen: Vec<&str> = Vec::new();
         for (k, v) in pairs {
+            if seen.contains(&k) {
+                return Err(Error::param(k, "given more than once"));
+            }
             p.set(k, v)?;
+            seen.push(k);
         }
         Ok(p)
     }
@@ -401,27 +478,9 @@ impl BakeParams {
             value.as_object().ok_or_else(|| Error::param("params", "must be a JSON object"))?;
         let mut p = BakeParams::default();
         for (k, v) in obj {
-            let text = match v {
-                serde_json::Value::Null => continue,
-                serde_json::Value::String(s) => s.clone(),
-                serde_json::Value::Number(n) => n.to_string(),
-                serde_json::Value::Bool(_) | serde_json::Value::Object(_) => {
-                    return Err(Error::param(k.as_str(), "must be a number or a string"))
-                }
-                serde_json::Value::Array(items) => {
-                    let mut parts = Vec::new();
-                    for it in items {
-                        match it {
-                            serde_json::Value::String(s) => parts.push(s.clone()),
-                            _ => {
-                                return Err(Error::param(k.as_str(), "array items must be strings"))
-                            }
-                        }
-                    }
-                    parts.join(",")
-                }
-            };
-            p.set(k, &text)?;
+            if let Some(text) = json_value_text(k, v)? {
+                p.set(k, &text)?;
+            }
         }
         Ok(p)
     }

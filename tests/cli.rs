@@ -417,3 +417,78 @@ fn fourier_outputs_are_written_alone_or_beside_the_layers() {
         ]
     );
 }
+
+/// `--outputs fourier --format ktx2` would write no KTX2 while bake.json claimed one: refused
+/// with exit 2, naming `format`, and nothing written.
+#[test]
+fn fourier_only_with_a_horizon_format_is_refused() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("out");
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("keep.txt"), b"x").unwrap();
+    let good = common::golden_dir().join("inputs/bump64.png");
+    for format in ["ktx2", "dds", "exr", "png16", "png8,exr"] {
+        let args = [
+            "bake",
+            good.to_str().unwrap(),
+            "-o",
+            dir.to_str().unwrap(),
+            "--outputs",
+            "fourier",
+            "--format",
+            format,
+        ];
+        assert_fails_cleanly(&args, &dir, "format", 2);
+    }
+}
+
+/// `preview` honours the umask like `bake` does (0644 under umask 022, not a temp file's 0600),
+/// exits 2 for a missing output directory and writes the PNG to stdout for `-o -`.
+#[cfg(unix)]
+#[test]
+fn preview_output_mode_missing_dir_and_stdout() {
+    use std::os::unix::fs::PermissionsExt;
+    let tmp = tempfile::tempdir().unwrap();
+    let good = common::golden_dir().join("inputs/bump64.png");
+    let good = good.to_str().unwrap();
+    let out = tmp.path().join("p.png");
+    // A shell sets the umask so the test does not depend on the one it was started with.
+    let o = Command::new("sh")
+        .arg("-c")
+        .arg(format!(
+            "umask 022 && exec \"$0\" preview {good} -o {} --radius 4",
+            out.to_str().unwrap()
+        ))
+        .arg(env!("CARGO_BIN_EXE_horizon-bake"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let mode = std::fs::metadata(&out).unwrap().permissions().mode() & 0o777;
+    assert_eq!(mode, 0o644, "preview file mode {mode:o}");
+    let bake_dir = tmp.path().join("b");
+    let o = Command::new("sh")
+        .arg("-c")
+        .arg(format!(
+            "umask 022 && exec \"$0\" bake {good} -o {} --radius 4",
+            bake_dir.to_str().unwrap()
+        ))
+        .arg(env!("CARGO_BIN_EXE_horizon-bake"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let bake_mode =
+        std::fs::metadata(bake_dir.join("horizon_0.png")).unwrap().permissions().mode() & 0o777;
+    assert_eq!(bake_mode, mode, "bake and preview files differ in mode");
+
+    let missing = tmp.path().join("missing/p.png");
+    let o = run(&["preview", good, "-o", missing.to_str().unwrap(), "--radius", "4"]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{stderr}");
+    assert_eq!(stderr.lines().count(), 1, "{stderr}");
+    assert!(stderr.contains("missing"), "{stderr}");
+
+    let o = run(&["preview", good, "-o", "-", "--radius", "4"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(o.stdout, std::fs::read(&out).unwrap(), "`-o -` is not the same PNG");
+    assert!(!std::path::Path::new("-").exists(), "`-o -` wrote a file named -");
+}

@@ -266,13 +266,14 @@ fn outputs_fourier_alone_bakes_no_horizon_layers() {
             .unwrap(),
     )
     .unwrap();
-    let run = |outputs: &str, out: &std::path::Path| {
+    // (`--format png16,exr` with `--outputs fourier` alone is refused: see tests/cli.rs.)
+    let run = |outputs: &str, format: &str, out: &std::path::Path| {
         let st = std::process::Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
             .arg("bake")
             .arg(&input)
             .arg("-o")
             .arg(out)
-            .args(["--outputs", outputs, "--format", "png16,exr"])
+            .args(["--outputs", outputs, "--format", format])
             .output()
             .unwrap();
         assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
@@ -283,12 +284,40 @@ fn outputs_fourier_alone_bakes_no_horizon_layers() {
         names.sort();
         names
     };
-    let only = run("fourier", &dir.path().join("f"));
+    let only = run("fourier", "png8", &dir.path().join("f"));
     assert_eq!(only, ["bake.json", "fourier_0.png", "fourier_1.png"]);
-    let both = run("horizon,fourier", &dir.path().join("hf"));
+    let both = run("horizon,fourier", "png16,exr", &dir.path().join("hf"));
     assert!(both.iter().any(|n| n == "horizon_0.png") && both.iter().any(|n| n == "horizon_0.exr"));
     let json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("f/bake.json")).unwrap()).unwrap();
     let listed = json.to_string();
     assert!(!listed.contains("horizon_0"), "bake.json lists horizon files: {listed}");
+}
+
+/// `eval` writes nothing unless `--out` names a directory (it used to replace ./docs), and `-q`
+/// prints nothing at all.
+#[test]
+fn cli_eval_writes_only_when_told_and_quiet_is_silent() {
+    let dir = tempfile::tempdir().unwrap();
+    let quick = ["eval", "--quick", "--size", "16", "--repeat-budget-ms", "0"];
+    let st = std::process::Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
+        .args(quick)
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
+    assert!(String::from_utf8_lossy(&st.stdout).contains("| lengyel R16 B32 "));
+    let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+    assert!(left.is_empty(), "eval without --out wrote {left:?}");
+    let st = std::process::Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
+        .args(quick)
+        .arg("-q")
+        .arg("--out")
+        .arg(dir.path().join("docs"))
+        .output()
+        .unwrap();
+    assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
+    assert!(st.stdout.is_empty(), "-q printed {}", String::from_utf8_lossy(&st.stdout));
+    assert!(st.stderr.is_empty(), "-q printed {}", String::from_utf8_lossy(&st.stderr));
+    assert!(dir.path().join("docs/accuracy.md").exists());
 }

@@ -1,4 +1,4 @@
-//! The acceptance test of the conventions: every case of ../shared/golden/cases.json.
+//! The acceptance test of the conventions: every case of tests/golden/cases.json.
 //!
 //! f32 values within the file's `f32_abs`; 8-bit layers within `png_lsb` on at most
 //! `png_lsb_fraction` of the bytes. Both the plain oracle and the production bake path are

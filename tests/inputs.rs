@@ -437,3 +437,23 @@ fn huge_exr_header_is_rejected_before_decoding() {
         "{e:?}"
     );
 }
+
+/// A half-float EXR reports the bit depth it stores (16), a float one 32; out-of-range float
+/// heights are the input's fault (an `InvalidInput` naming the range, not `height_scale`).
+#[test]
+fn exr_half_bit_depth_and_out_of_range_floats() {
+    use exr::prelude::{f16, FlatSamples};
+    let lim = Limits::default();
+    let half = exr_bytes(2, 2, vec![("Y", FlatSamples::F16(vec![f16::from_f32(0.5); 4]))]);
+    let (_, info) = decode(&half, Channel::Luma, &lim).unwrap();
+    assert_eq!((info.bit_depth, info.float), (16, true));
+    let float = exr_bytes(2, 2, vec![("Y", FlatSamples::F32(vec![0.5; 4]))]);
+    assert_eq!(decode(&float, Channel::Luma, &lim).unwrap().1.bit_depth, 32);
+    let huge = exr_bytes(2, 2, vec![("Y", FlatSamples::F32(vec![0.5, 3.0e38, 0.5, 0.5]))]);
+    match decode(&huge, Channel::Luma, &lim) {
+        Err(Error::InvalidInput(m)) => {
+            assert!(m.contains("out of range") && !m.contains("height_scale"), "{m}")
+        }
+        other => panic!("expected InvalidInput, got {other:?}"),
+    }
+}

@@ -28,14 +28,16 @@ async fn two_hundred_concurrent_submissions_on_a_small_queue() {
     })
     .await;
     let c = client();
-    // 150 distinct inputs and 50 repeats of earlier ones (dedup under load).
-    let inputs: Vec<Vec<u8>> = (0..150).map(|s| terrain_png16(24, 24, 1000 + s)).collect();
+    // 150 distinct inputs and 50 repeats of earlier ones (dedup under load). Each bake must
+    // take long enough (64², R = 32: tens of ms) for the queue to fill: a bake encodes only its
+    // png8 layers now, so a 24², R = 4 one finished before the next upload arrived.
+    let inputs: Vec<Vec<u8>> = (0..150).map(|s| terrain_png16(64, 64, 1000 + s)).collect();
     let rss_before = peak_rss_kib();
     let mut tasks = Vec::new();
     for k in 0..200usize {
         let body = inputs[k % 150].clone();
         let c = c.clone();
-        let url = srv.url("/v1/bakes?radius=4");
+        let url = srv.url("/v1/bakes?radius=32");
         tasks.push(tokio::spawn(async move {
             let res =
                 c.post(url).header("content-type", "image/png").body(body).send().await.unwrap();

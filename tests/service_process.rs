@@ -193,8 +193,9 @@ async fn downloads_are_byte_identical_to_the_cli() {
             .unwrap();
         assert!(st.success(), "cli bake {format}");
     };
-    cli("a", "png8,exr,ktx2,dds");
+    cli("a", "exr,ktx2,dds");
     cli("b", "png16");
+    cli("c", "png8");
     let p = spawn(&dir.path().join("data"), &[]);
     let c = client();
     let (s, v) =
@@ -203,8 +204,8 @@ async fn downloads_are_byte_identical_to_the_cli() {
     let url = format!("{}/v1/bakes/{}", p.base, v["id"].as_str().unwrap());
     assert_eq!(wait_done(&c, &url, Duration::from_secs(60)).await["status"], "succeeded");
     let pairs = [
-        ("horizon_0.png8", "a/horizon_0.png"),
-        ("horizon_1.png8", "a/horizon_1.png"),
+        ("horizon_0.png8", "c/horizon_0.png"),
+        ("horizon_1.png8", "c/horizon_1.png"),
         ("horizon_0.exr", "a/horizon_0.exr"),
         ("horizon_1.exr", "a/horizon_1.exr"),
         ("horizon.ktx2", "a/horizon.ktx2"),
@@ -223,5 +224,38 @@ async fn downloads_are_byte_identical_to_the_cli() {
             .await
             .unwrap();
         assert!(got[..] == want[..], "{name} differs from the CLI's {file}");
+    }
+}
+
+/// `serve` opens its store before it says it is listening: a data directory locked by a running
+/// server, or a corrupt `bakes.redb`, exits non-zero naming the file, with no address file and no
+/// `listening` line.
+#[test]
+fn serve_refuses_a_locked_or_corrupt_store_before_listening() {
+    let tmp = tempfile::tempdir().unwrap();
+    let locked = tmp.path().join("locked");
+    let _first = spawn(&locked, &[]);
+    let corrupt = tmp.path().join("corrupt");
+    std::fs::create_dir_all(&corrupt).unwrap();
+    std::fs::write(corrupt.join("bakes.redb"), vec![0x5a; 4096]).unwrap();
+    for data in [&locked, &corrupt] {
+        let addr_file = tmp.path().join("second.addr");
+        let out = Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
+            .arg("serve")
+            .args(["--addr", "127.0.0.1:0", "--data-dir"])
+            .arg(data)
+            .arg("--addr-file")
+            .arg(&addr_file)
+            .env_remove("HORIZON_API_KEY")
+            .env("RUST_LOG", "off")
+            .output()
+            .unwrap();
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{}: {stdout} {stderr}", data.display());
+        assert!(!stdout.contains("listening"), "{stdout}");
+        assert!(!addr_file.exists(), "{}: an address file was written", data.display());
+        let path = data.join("bakes.redb");
+        assert!(stderr.contains(path.to_str().unwrap()), "{stderr} does not name the store");
     }
 }

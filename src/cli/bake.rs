@@ -14,8 +14,8 @@
 //! both and `encode` only what is left (Fourier outputs). EXR, KTX2 and DDS need whole layers
 //! and take the whole-layer path.
 
-use crate::bake::{self, LayerRows, ResolvedRadius};
-use crate::encode::png::{PngColor, PngRowWriter, PngSample};
+use crate::bake::{self, ResolvedRadius};
+use crate::encode::png::PngSample;
 use crate::encode::{self, Formats, OutFile, TexturePrecision};
 use crate::error::{Error, Result};
 use crate::heightmap::{self, HeightMap, InputInfo, Limits};
@@ -41,6 +41,10 @@ pub struct BakeArgs {
     /// Sample type of horizon.ktx2 / horizon.dds: unorm8 (default), unorm16, float32.
     #[arg(long, default_value = "unorm8")]
     pub texture_precision: String,
+    /// Sample type of horizon_0.exr / horizon_1.exr: float (default, bit-exact) or half (half
+    /// the size). Both uncompressed: no EXR compression pays for itself on horizon layers.
+    #[arg(long, default_value = "float")]
+    pub exr_precision: String,
     /// The bake parameters (SPEC §5). Boxed: thirteen strings would make this the one huge
     /// variant of the subcommand enum.
     #[command(flatten)]
@@ -144,8 +148,8 @@ pub fn streamable(formats: &Formats) -> bool {
 }
 
 /// Bakes `map` straight into `horizon_0.png` and `horizon_1.png` in `staging`, band by band in
-/// row order ([`bake::stream_horizon`] into [`PngRowWriter`]s): no layer and no encoded PNG is
-/// ever whole in memory. 16-bit with `formats.png16`, else 8-bit.
+/// row order ([`encode::stream_horizon_pngs`]): no layer and no encoded PNG is ever whole in
+/// memory. 16-bit with `formats.png16`, else 8-bit.
 ///
 /// # Errors
 /// [`Error::Canceled`], [`Error::Io`]; the staged files are then incomplete, and dropping
@@ -171,21 +175,11 @@ fn stream_png<T: bake::Sample + PngSample>(
     staging: &mut Staging,
 ) -> Result<ResolvedRadius> {
     const NAMES: [&str; 2] = ["horizon_0.png", "horizon_1.png"];
-    let (w, h) = (map.width, map.height);
     let files = [staging.create(NAMES[0])?, staging.create(NAMES[1])?];
-    let mut writers = [
-        PngRowWriter::<_, T>::new(files[0].try_clone()?, w, h, PngColor::Rgba)?,
-        PngRowWriter::<_, T>::new(files[1].try_clone()?, w, h, PngColor::Rgba)?,
-    ];
-    let radius = bake::stream_horizon(map, params, progress, |rows: LayerRows<'_, T>| {
-        // Deflate is single-threaded and as slow as the kernel: the two layers in parallel.
-        let [w0, w1] = &mut writers;
-        let (a, b) =
-            rayon::join(|| w0.write_rows(rows.layers[0]), || w1.write_rows(rows.layers[1]));
-        a.and(b)
-    })?;
-    for ((writer, file), name) in writers.into_iter().zip(files).zip(NAMES) {
-        drop(writer.finish()?);
+    let outs = [files[0].try_clone()?, files[1].try_clone()?];
+    let (outs, radius) = encode::stream_horizon_pngs::<T, _>(map, params, progress, outs)?;
+    drop(outs);
+    for (file, name) in files.into_iter().zip(NAMES) {
         staging.add(name, file)?;
     }
     Ok(radius)
@@ -205,7 +199,22 @@ pub fn run(args: BakeArgs) -> Result<()> {
     let total = Instant::now();
     let params = args.params()?;
     let precision = TexturePrecision::parse(&args.texture_precision)?;
-    let formats = Formats::parse(&args.format, precision)?;
+    let mut formats = Formats::parse(&args.format, precision)?;
+    formats.exr_precision =
+        crate::encode::exr::ExrPrecision::parse("exr_precision", &args.exr_precision)?;
+    // Without the horizon output there are no layers to write as png16, EXR, KTX2 or DDS;
+    // writing none while bake.json lists them would be a lie, so the combination is refused.
+    // (png8, the default, stays accepted: the Fourier files are 8-bit PNGs.)
+    if !params.outputs.horizon && (formats.png16 || formats.exr || formats.ktx2 || formats.dds) {
+        return Err(Error::param(
+            "format",
+            format!(
+                "`{}` names horizon-layer formats, but --outputs has no `horizon`; \
+                 add it (--outputs horizon,fourier) or drop --format",
+                args.format
+            ),
+        ));
+    }
     check_out_dir(&args.out)?;
     let progress = Progress::new();
 

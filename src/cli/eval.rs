@@ -12,9 +12,10 @@ use std::path::{Path, PathBuf};
 /// Flags of `horizon-bake eval`.
 #[derive(Debug, clap::Args)]
 pub struct EvalArgs {
-    /// Directory for accuracy.md (generated block spliced in), .csv, .json and .png.
-    #[arg(short = 'o', long = "out", default_value = "docs")]
-    pub out: PathBuf,
+    /// Directory for accuracy.md (generated block spliced in), .csv, .json and .png. Without
+    /// it nothing is written (the table goes to stdout): a run never replaces ./docs unasked.
+    #[arg(short = 'o', long = "out")]
+    pub out: Option<PathBuf>,
     /// Reduced corpus and model grid (CI): two maps, one model per family.
     #[arg(long)]
     pub quick: bool,
@@ -39,7 +40,7 @@ pub struct EvalArgs {
     /// Repeat short bakes for timing until this many ms were spent (best of up to 5 runs).
     #[arg(long, default_value_t = 300.0)]
     pub repeat_budget_ms: f64,
-    /// No per-model progress lines on stderr.
+    /// Quiet: no per-model progress lines on stderr and no table on stdout (errors still print).
     #[arg(long, short = 'q')]
     pub quiet: bool,
 }
@@ -88,11 +89,17 @@ pub fn run(args: EvalArgs) -> Result<()> {
     };
     let res = eval::run(&opts)?;
     let md = report::markdown(&res);
+    let Some(out) = &args.out else {
+        if !args.quiet {
+            println!("{md}");
+        }
+        return Ok(());
+    };
     let csv = report::csv(&res);
     let json = report::json(&res)?;
     let png = plot::render(&report::summarise(&res.rows))?;
-    std::fs::create_dir_all(&args.out)?;
-    let md_path = args.out.join("accuracy.md");
+    std::fs::create_dir_all(out)?;
+    let md_path = out.join("accuracy.md");
     let existing = match std::fs::read_to_string(&md_path) {
         Ok(s) => s,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
@@ -100,10 +107,12 @@ pub fn run(args: EvalArgs) -> Result<()> {
         }
         Err(e) => return Err(e.into()),
     };
-    write_atomic(&args.out.join("accuracy.csv"), csv.as_bytes())?;
-    write_atomic(&args.out.join("accuracy.json"), json.as_bytes())?;
-    write_atomic(&args.out.join("accuracy.png"), &png)?;
+    write_atomic(&out.join("accuracy.csv"), csv.as_bytes())?;
+    write_atomic(&out.join("accuracy.json"), json.as_bytes())?;
+    write_atomic(&out.join("accuracy.png"), &png)?;
     write_atomic(&md_path, report::splice(&existing, &md).as_bytes())?;
-    println!("{md}");
+    if !args.quiet {
+        println!("{md}");
+    }
     Ok(())
 }

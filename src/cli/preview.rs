@@ -18,7 +18,7 @@ use std::path::PathBuf;
 pub struct PreviewArgs {
     /// The height map (PNG, TIFF or OpenEXR).
     pub input: PathBuf,
-    /// The PNG to write.
+    /// The PNG to write (`-` writes it to standard output).
     #[arg(short, long)]
     pub output: PathBuf,
     /// Every parameter flag (boxed: `Command` stays small, clippy's `large_enum_variant`).
@@ -30,7 +30,9 @@ pub struct PreviewArgs {
 #[derive(Debug, clap::Args)]
 pub struct PreviewFlags {
     // Preview parameters (SPEC §3.5).
-    /// horizon | fourier | raytraced | none | difference.
+    /// horizon | fourier | raytraced | none | difference. `difference` compares horizon with
+    /// the raytraced ground truth: grey where they agree on lit vs shadowed, red where the
+    /// horizon map shadows a lit texel, blue where it lights a shadowed one.
     #[arg(long)]
     pub shading: Option<String>,
     /// Light azimuth in degrees from +x toward +y.
@@ -133,12 +135,29 @@ impl PreviewFlags {
 /// Decoding, parameter, limit and I/O errors, each with a one-line message.
 pub fn run(args: PreviewArgs) -> Result<()> {
     let (bake, params) = args.flags.params()?;
+    let to_stdout = args.output.as_os_str() == "-";
+    // A missing directory is the caller's mistake (exit 2), found before any work is done.
+    if !to_stdout {
+        if let Some(dir) = args.output.parent().filter(|d| !d.as_os_str().is_empty()) {
+            if !dir.is_dir() {
+                return Err(Error::param(
+                    "output",
+                    format!("the directory {} does not exist", dir.display()),
+                ));
+            }
+        }
+    }
     let bytes = std::fs::read(&args.input).map_err(|e| {
         Error::Io(std::io::Error::new(e.kind(), format!("{}: {e}", args.input.display())))
     })?;
     let (map, _info) = heightmap::decode(&bytes, bake.channel, &Limits::default())?;
     let image = preview::render_baking(&map, &bake, &params, &Progress::new())?;
     let png = image.to_png()?;
+    if to_stdout {
+        let mut out = std::io::stdout().lock();
+        out.write_all(&png)?;
+        return Ok(out.flush()?);
+    }
     write_atomically(&args.output, &png)
 }
 
@@ -147,7 +166,16 @@ fn write_atomically(path: &std::path::Path, data: &[u8]) -> Result<()> {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
     };
-    let mut tmp = tempfile::NamedTempFile::new_in(&dir)
+    // A temporary file is created 0600; the preview is an ordinary output, so it gets the mode
+    // `bake`'s files get: 0666 less the umask (the kernel applies it to the mode asked for).
+    let mut builder = tempfile::Builder::new();
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        builder.permissions(std::fs::Permissions::from_mode(0o666));
+    }
+    let mut tmp = builder
+        .tempfile_in(&dir)
         .map_err(|e| Error::Io(std::io::Error::new(e.kind(), format!("{}: {e}", dir.display()))))?;
     tmp.write_all(data)?;
     tmp.persist(path).map_err(|e| {

@@ -1,8 +1,10 @@
 //! `horizon-bake serve` (SPEC §6): the HTTP bake service on its embedded store.
 //!
-//! Parses the flags into a validated [`Config`], binds the listener, prints the bound address
-//! (`listening on http://IP:PORT`, and into `--addr-file` when given, so scripts and tests using
-//! port 0 can find it), then runs [`crate::service::run`] until SIGTERM or Ctrl-C.
+//! Parses the flags into a validated [`Config`], opens the store in the data directory, binds the
+//! listener, and only then prints the bound address (`listening on http://IP:PORT`, and into
+//! `--addr-file` when given, so scripts and tests using port 0 can find it); then serves until
+//! SIGTERM or Ctrl-C. A store that cannot be opened (locked by a running server, corrupt) ends
+//! the command with an error naming the file, before anything says the server is up.
 
 use crate::error::{Error, Result};
 use crate::service::Config;
@@ -43,6 +45,8 @@ pub fn run(args: ServeArgs) -> Result<()> {
                 .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
         )
         .with_writer(std::io::stderr)
+        // Colour codes only for a person at a terminal, never in a log file or a collector.
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .try_init();
     let config = Config::from_args(args)?;
     let rt = tokio::runtime::Builder::new_multi_thread()
@@ -50,9 +54,17 @@ pub fn run(args: ServeArgs) -> Result<()> {
         .build()
         .map_err(|e| Error::Internal(format!("cannot start the async runtime: {e}")))?;
     rt.block_on(async move {
-        let listener = tokio::net::TcpListener::bind(config.addr).await?;
+        let data_dir = config.data_dir.clone();
+        let addr_file = config.addr_file.clone();
+        let st = crate::service::AppState::open(config)?;
+        let listener = tokio::net::TcpListener::bind(st.0.config.addr).await.map_err(|e| {
+            Error::Io(std::io::Error::new(
+                e.kind(),
+                format!("cannot listen on {}: {e}", st.0.config.addr),
+            ))
+        })?;
         let addr = listener.local_addr()?;
-        if let Some(path) = &config.addr_file {
+        if let Some(path) = &addr_file {
             let tmp = path.with_extension("tmp");
             std::fs::write(&tmp, addr.to_string())?;
             std::fs::rename(&tmp, path)?;
@@ -60,7 +72,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
         let mut out = std::io::stdout();
         let _ = writeln!(out, "listening on http://{addr}");
         let _ = out.flush();
-        tracing::info!(%addr, data_dir = %config.data_dir.display(), "horizon-bake serving");
-        crate::service::run(config, listener, shutdown_signal()).await
+        tracing::info!(%addr, data_dir = %data_dir.display(), "horizon-bake serving");
+        crate::service::serve(st, listener, shutdown_signal()).await
     })
 }

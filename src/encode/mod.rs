@@ -16,6 +16,47 @@ pub mod png;
 use crate::bake::{HorizonLayers, Precisions};
 use crate::error::{Error, Result};
 
+/// Bakes `map` straight into the two RGBA horizon PNGs (`horizon_0.png`, `horizon_1.png`),
+/// written to `outs` band by band in row order ([`crate::bake::stream_horizon`] into
+/// [`png::PngRowWriter`]s): no whole layer and, with files as `outs`, no whole encoded image is
+/// ever in memory. `T` = `u8` for png8, `u16` for png16. The CLI (into staged files) and the
+/// service (into memory, for the blob store) both call this, so their PNGs are the same bytes.
+///
+/// # Errors
+/// [`Error::Canceled`] when `progress` is canceled (checked between bands), [`Error::Io`] from
+/// `outs`, [`Error::Internal`] from the encoder.
+pub fn stream_horizon_pngs<T, W>(
+    map: crate::heightmap::HeightMap,
+    params: &crate::params::BakeParams,
+    progress: &crate::progress::Progress,
+    outs: [W; 2],
+) -> Result<([W; 2], crate::bake::ResolvedRadius)>
+where
+    T: crate::bake::Sample + png::PngSample,
+    W: std::io::Write + Send + 'static,
+{
+    let (w, h) = (map.width, map.height);
+    let [o0, o1] = outs;
+    let mut writers = [
+        png::PngRowWriter::<W, T>::new(o0, w, h, png::PngColor::Rgba)?,
+        png::PngRowWriter::<W, T>::new(o1, w, h, png::PngColor::Rgba)?,
+    ];
+    let radius = crate::bake::stream_horizon(
+        map,
+        params,
+        progress,
+        |rows: crate::bake::LayerRows<'_, T>| {
+            // Deflate is single-threaded and as slow as the kernel: the two layers in parallel.
+            let [w0, w1] = &mut writers;
+            let (a, b) =
+                rayon::join(|| w0.write_rows(rows.layers[0]), || w1.write_rows(rows.layers[1]));
+            a.and(b)
+        },
+    )?;
+    let [w0, w1] = writers;
+    Ok(([w0.finish()?, w1.finish()?], radius))
+}
+
 /// 8-bit UNORM of a value in [0, 1]: floor(v·255 + 0.5).
 #[inline]
 pub fn quantize8(v: f32) -> u8 {
@@ -161,6 +202,8 @@ pub struct Formats {
     pub dds: bool,
     /// Precision of `horizon.ktx2` / `horizon.dds`.
     pub texture_precision: TexturePrecision,
+    /// Sample type of `horizon_0.exr` / `horizon_1.exr` (float unless asked otherwise).
+    pub exr_precision: exr::ExrPrecision,
 }
 
 impl Default for Formats {
@@ -172,6 +215,7 @@ impl Default for Formats {
             ktx2: false,
             dds: false,
             texture_precision: TexturePrecision::Unorm8,
+            exr_precision: exr::ExrPrecision::Float,
         }
     }
 }
@@ -192,6 +236,7 @@ impl Formats {
             ktx2: false,
             dds: false,
             texture_precision,
+            exr_precision: exr::ExrPrecision::Float,
         };
         for part in list.split(',').map(str::trim).filter(|p| !p.is_empty()) {
             match part.to_ascii_lowercase().as_str() {
@@ -280,8 +325,14 @@ pub fn horizon_files(layers: &HorizonLayers, formats: &Formats) -> Result<Vec<Ou
     }
     if formats.exr {
         let l = layers.f32.as_ref().ok_or_else(|| missing("f32"))?;
-        out.push(OutFile { name: "horizon_0.exr", bytes: exr::encode_rgba(w, h, &l[0])? });
-        out.push(OutFile { name: "horizon_1.exr", bytes: exr::encode_rgba(w, h, &l[1])? });
+        // The two layers are independent: encode them side by side.
+        let p = formats.exr_precision;
+        let (a, b) = rayon::join(
+            || exr::encode_rgba_as(w, h, &l[0], p),
+            || exr::encode_rgba_as(w, h, &l[1], p),
+        );
+        out.push(OutFile { name: "horizon_0.exr", bytes: a? });
+        out.push(OutFile { name: "horizon_1.exr", bytes: b? });
     }
     if formats.ktx2 || formats.dds {
         let images: [Texels<'_>; 2] = match formats.texture_precision {

@@ -118,11 +118,15 @@ impl<W: std::io::Write> std::io::Write for Latch<W> {
 /// IDAT chunk size of streamed PNGs (the `png` default of 4 KiB adds a chunk header per 4 KiB).
 const STREAM_CHUNK: usize = 1 << 20;
 
+/// Images up to this many texels are streamed with zlib's `Balanced` compression, larger ones
+/// with fdeflate's `Fast` (see [`PngRowWriter::new`]).
+const SMALL_IMAGE_TEXELS: usize = 512 * 512;
+
 /// Writes a PNG row by row to any [`std::io::Write`] (a file, usually), so neither the samples
 /// nor the encoded image need to be in memory whole: 16-bit rows are converted to big-endian one
-/// call at a time. Same colour, depth and compression as [`encode8`] / [`encode16`]; the bytes
-/// may differ (those fall back to stored blocks when compression does not pay), the samples
-/// never do.
+/// call at a time. Same colour and depth as [`encode8`] / [`encode16`]; the bytes may differ
+/// (those fall back to stored blocks when compression does not pay; this one uses zlib for small
+/// images and fdeflate's fast mode for large ones), the samples never do.
 pub struct PngRowWriter<W: std::io::Write + 'static, T: PngSample> {
     stream: png::StreamWriter<'static, Latch<W>>,
     shared: SharedOut<W>,
@@ -157,7 +161,16 @@ impl<W: std::io::Write + 'static, T: PngSample> PngRowWriter<W, T> {
         let mut enc = png::Encoder::new(Latch(shared.clone()), w32, h32);
         enc.set_color(color.png());
         enc.set_depth(if T::BITS == 16 { png::BitDepth::Sixteen } else { png::BitDepth::Eight });
-        enc.set_compression(png::Compression::Fast);
+        // fdeflate's `Fast` streams without buffering, so on incompressible rows (the layers of
+        // a rough map are close to noise) it can write more than the raw samples: 555 KB for a
+        // 256² 16-bit layer of 524 KB. zlib's `Balanced` falls back to stored blocks and never
+        // does; it is slower, which only matters for large images, so small ones use it.
+        let small = width.saturating_mul(height) <= SMALL_IMAGE_TEXELS;
+        enc.set_compression(if small {
+            png::Compression::Balanced
+        } else {
+            png::Compression::Fast
+        });
         let stream = enc.write_header().and_then(|w| w.into_stream_writer_with_size(STREAM_CHUNK));
         match stream {
             Ok(stream) => Ok(PngRowWriter {

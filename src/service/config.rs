@@ -67,6 +67,23 @@ pub struct ServeArgs {
     /// copies built into the binary (for working on the page without rebuilding).
     #[arg(long, env = "HORIZON_UI_DIR")]
     pub ui_dir: Option<PathBuf>,
+    /// Seconds an upload may go without sending a byte of its body before it is answered 408
+    /// and its upload slot freed (a client that announces a body and never sends it).
+    #[arg(long, env = "HORIZON_BODY_TIMEOUT_SECS", default_value_t = 30)]
+    pub body_timeout_secs: u64,
+    /// Seconds a connection gets to send a request's complete headers before it is closed.
+    #[arg(long, env = "HORIZON_HEADER_TIMEOUT_SECS", default_value_t = 30)]
+    pub header_timeout_secs: u64,
+    /// Threads of the preview pool, separate from the bake pool so a preview never waits for a
+    /// long bake (0 = half the cores, at least one).
+    #[arg(long, env = "HORIZON_PREVIEW_THREADS", default_value_t = 0)]
+    pub preview_threads: usize,
+    /// Longest request target (path and query) in bytes; longer ones get 414 (problem+json).
+    #[arg(long, env = "HORIZON_MAX_URI_BYTES", default_value_t = 16 * 1024)]
+    pub max_uri_bytes: usize,
+    /// Most bytes of request headers (names and values); more get 431 (problem+json).
+    #[arg(long, env = "HORIZON_MAX_HEADER_BYTES", default_value_t = 64 * 1024)]
+    pub max_header_bytes: usize,
 }
 
 impl Default for ServeArgs {
@@ -91,6 +108,11 @@ impl Default for ServeArgs {
             max_cubemap_size: 1024,
             no_ui: false,
             ui_dir: None,
+            body_timeout_secs: 30,
+            header_timeout_secs: 30,
+            preview_threads: 0,
+            max_uri_bytes: 16 * 1024,
+            max_header_bytes: 64 * 1024,
         }
     }
 }
@@ -111,10 +133,19 @@ pub struct Config {
     pub retention: Duration,
     pub sweep_interval: Duration,
     pub shutdown_grace: Duration,
+    /// The API key, trimmed of surrounding whitespace (a key pasted with a trailing newline or
+    /// space is the key without it; inner whitespace is refused).
     pub api_key: Option<String>,
     pub max_cubemap_size: u32,
     pub no_ui: bool,
     pub ui_dir: Option<PathBuf>,
+    /// Longest pause between two pieces of an upload's body.
+    pub body_timeout: Duration,
+    /// Longest time to receive a request's headers.
+    pub header_timeout: Duration,
+    pub preview_threads: usize,
+    pub max_uri_bytes: usize,
+    pub max_header_bytes: usize,
 }
 
 fn at_least_one(field: &str, v: u64) -> Result<()> {
@@ -148,16 +179,31 @@ impl Config {
                 format!("must be at most {}", crate::encode::MAX_CUBE_SIZE),
             ));
         }
-        if let Some(k) = &a.api_key {
-            if k.trim().is_empty() {
-                return Err(Error::param("api_key", "must not be empty when given"));
-            }
+        at_least_one("body_timeout_secs", a.body_timeout_secs)?;
+        // hyper answers a head over its own buffer (set to 1 MiB in `service::serve`) with a
+        // bare 431, and a target over 64 KiB with a bare 414; below those, ours are problem+json.
+        if !(256..=60 * 1024).contains(&a.max_uri_bytes) {
+            return Err(Error::param("max_uri_bytes", "must be from 256 to 61440"));
         }
-        let bake_threads = if a.bake_threads == 0 {
-            std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)
-        } else {
-            a.bake_threads
+        if !(1024..=512 * 1024).contains(&a.max_header_bytes) {
+            return Err(Error::param("max_header_bytes", "must be from 1024 to 524288"));
+        }
+        at_least_one("header_timeout_secs", a.header_timeout_secs)?;
+        // Environment variables and secret files often carry a trailing newline or space; a key
+        // that cannot match any header value would lock every client out, so trim it, and refuse
+        // whitespace inside (no `Authorization` value could carry it as one token).
+        let api_key = match a.api_key.as_deref().map(str::trim) {
+            None => None,
+            Some("") => return Err(Error::param("api_key", "must not be empty when given")),
+            Some(k) if k.chars().any(char::is_whitespace) => {
+                return Err(Error::param("api_key", "must not contain whitespace"))
+            }
+            Some(k) => Some(k.to_owned()),
         };
+        let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+        let preview_threads =
+            if a.preview_threads == 0 { (cores / 2).max(1) } else { a.preview_threads };
+        let bake_threads = if a.bake_threads == 0 { cores } else { a.bake_threads };
         Ok(Config {
             addr,
             data_dir: a.data_dir,
@@ -176,10 +222,15 @@ impl Config {
             retention: Duration::from_secs(a.retention_secs),
             sweep_interval: Duration::from_secs(a.sweep_interval_secs),
             shutdown_grace: Duration::from_secs(a.shutdown_grace_secs),
-            api_key: a.api_key,
+            api_key,
             max_cubemap_size: a.max_cubemap_size,
             no_ui: a.no_ui,
             ui_dir: a.ui_dir,
+            body_timeout: Duration::from_secs(a.body_timeout_secs),
+            header_timeout: Duration::from_secs(a.header_timeout_secs),
+            preview_threads,
+            max_uri_bytes: a.max_uri_bytes,
+            max_header_bytes: a.max_header_bytes,
         })
     }
 

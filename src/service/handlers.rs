@@ -13,9 +13,9 @@ use crate::params::BakeParams;
 use crate::preview::{self, PreviewParams};
 use crate::progress::{Progress, Stage};
 use crate::service::problem::Problem;
-use crate::service::store::{now_ms, BakeRecord, Status};
-use crate::service::worker::{blocking, params_of};
-use crate::service::AppState;
+use crate::service::store::{self, now_ms, BakeRecord, Status};
+use crate::service::worker::{self, blocking, params_of};
+use crate::service::{upload, AppState};
 use axum::body::Body;
 use axum::extract::{FromRequest, MatchedPath, Path, Query, Request, State};
 use axum::http::{header, HeaderMap, HeaderValue, Method, StatusCode};
@@ -28,6 +28,7 @@ use serde_json::{json, Value};
 use std::collections::HashMap;
 use std::convert::Infallible;
 use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::sync::Arc;
 use std::time::Duration;
 
 type Answer = Result<Response, Problem>;
@@ -59,6 +60,22 @@ fn query_map(
             ));
         }
         if out.insert(k.clone(), v).is_some() {
+            return Err(Problem::param(k, "given more than once"));
+        }
+    }
+    Ok(out)
+}
+
+/// Query pairs of a GET of an immutable result: the keys in `known` are parsed (each at most
+/// once), any other key is ignored, so a cache buster (`?v=123`) does not turn a download into
+/// a 422.
+fn known_query(
+    pairs: Vec<(String, String)>,
+    known: &[&str],
+) -> Result<HashMap<String, String>, Problem> {
+    let mut out = HashMap::new();
+    for (k, v) in pairs {
+        if known.contains(&k.as_str()) && out.insert(k.clone(), v).is_some() {
             return Err(Problem::param(k, "given more than once"));
         }
     }
@@ -167,6 +184,7 @@ pub fn resource(st: &AppState, rec: &BakeRecord) -> Value {
         "created_at": rfc3339(rec.created_ms),
         "started_at": rec.started_ms.map(rfc3339),
         "finished_at": rec.finished_ms.map(rfc3339),
+        "expires_at": rec.expires_ms(st.0.config.retention.as_millis() as u64).map(rfc3339),
         "timings_ms": rec.timings_ms,
         "error": rec.error,
         "attempts": rec.attempts,
@@ -213,54 +231,66 @@ fn new_id() -> String {
 const RAW_TYPES: &[&str] =
     &["image/png", "image/tiff", "image/x-exr", "image/exr", "application/octet-stream"];
 
-fn body_error(e: &(dyn std::error::Error + 'static)) -> Problem {
-    let mut cur: Option<&(dyn std::error::Error + 'static)> = Some(e);
-    while let Some(c) = cur {
-        if c.is::<http_body_util::LengthLimitError>() {
-            return Problem::new(
-                StatusCode::PAYLOAD_TOO_LARGE,
-                "payload_too_large",
-                "the request body is larger than the server accepts (max_body_bytes)",
-            );
-        }
-        cur = c.source();
+fn body_error(e: &(dyn std::error::Error + 'static), timeout: Duration) -> Problem {
+    match upload::fault(e) {
+        upload::BodyFault::TooLarge => Problem::new(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "payload_too_large",
+            "the request body is larger than the server accepts (max_body_bytes)",
+        ),
+        upload::BodyFault::TimedOut => Problem::new(
+            StatusCode::REQUEST_TIMEOUT,
+            "body_timeout",
+            format!(
+                "the request body stalled for {}s (body_timeout_secs); send it without pauses",
+                timeout.as_secs()
+            ),
+        ),
+        upload::BodyFault::Other => Problem::new(
+            StatusCode::BAD_REQUEST,
+            "bad_request",
+            "the request body could not be read",
+        ),
     }
-    Problem::new(StatusCode::BAD_REQUEST, "bad_request", "the request body could not be read")
 }
 
-fn query_params(uri: &axum::http::Uri) -> Result<BakeParams, Problem> {
+/// The bake parameters of a query string, and the keys it gave.
+fn query_params(uri: &axum::http::Uri) -> Result<(BakeParams, Vec<String>), Problem> {
     let pairs: Vec<(String, String)> = match Query::<Vec<(String, String)>>::try_from_uri(uri) {
         Ok(Query(p)) => p,
         Err(_) => return Err(Problem::param("query", "the query string is malformed")),
     };
-    BakeParams::from_pairs(pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
-        .map_err(Problem::from)
+    let params = BakeParams::from_pairs(pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
+        .map_err(Problem::from)?;
+    Ok((params, pairs.into_iter().map(|(k, _)| k).collect()))
 }
 
-/// Applies the keys present in a multipart `params` JSON object on top of `base` (the query's),
-/// so the JSON part wins where both name a parameter.
-fn merge_json(base: BakeParams, text: &[u8]) -> Result<BakeParams, Problem> {
+/// Applies the keys of a multipart `params` JSON object on top of `base` (the query's). A key
+/// given in both is refused (422 naming it), as a key given twice in the query or in the JSON is:
+/// one rule everywhere, since which one "wins" would be a guess about what the client meant.
+fn merge_json(base: BakeParams, query_keys: &[String], text: &[u8]) -> Result<BakeParams, Problem> {
     if text.iter().all(u8::is_ascii_whitespace) {
         return Ok(base);
     }
-    let v: Value = serde_json::from_slice(text)
-        .map_err(|e| Problem::param("params", format!("not valid JSON: {e}")))?;
-    let from_json = BakeParams::from_json(&v).map_err(Problem::from)?;
-    let given: Vec<&String> = v
-        .as_object()
-        .map(|o| o.iter().filter(|(_, x)| !x.is_null()).map(|(k, _)| k).collect())
-        .unwrap_or_default();
+    let given = crate::params::json_object_pairs(text).map_err(Problem::from)?;
     let mut merged = base;
-    for (k, val) in from_json.to_pairs() {
-        if given.iter().any(|g| g.as_str() == k) {
-            merged.set(k, &val).map_err(Problem::from)?;
+    for (k, v) in &given {
+        if query_keys.iter().any(|q| q == k) {
+            return Err(Problem::param(
+                k.clone(),
+                "given both in the query string and in the `params` part",
+            ));
+        }
+        if let Some(text) = crate::params::json_value_text(k, v).map_err(Problem::from)? {
+            merged.set(k, &text).map_err(Problem::from)?;
         }
     }
     Ok(merged)
 }
 
 async fn read_multipart(st: &AppState, req: Request) -> Result<(Vec<u8>, BakeParams), Problem> {
-    let query = query_params(req.uri())?;
+    let (query, query_keys) = query_params(req.uri())?;
+    let timeout = st.0.config.body_timeout;
     let mut mp = axum::extract::Multipart::from_request(req, st).await.map_err(|e| {
         Problem::new(
             StatusCode::BAD_REQUEST,
@@ -269,12 +299,12 @@ async fn read_multipart(st: &AppState, req: Request) -> Result<(Vec<u8>, BakePar
         )
     })?;
     let mut image: Option<Vec<u8>> = None;
-    let mut params = query.clone();
+    let mut params: Option<BakeParams> = None;
     loop {
         let field = match mp.next_field().await {
             Ok(Some(f)) => f,
             Ok(None) => break,
-            Err(e) => return Err(multipart_error(&e)),
+            Err(e) => return Err(multipart_error(&e, timeout)),
         };
         let name = field.name().unwrap_or("").to_owned();
         match name.as_str() {
@@ -282,11 +312,15 @@ async fn read_multipart(st: &AppState, req: Request) -> Result<(Vec<u8>, BakePar
                 if image.is_some() {
                     return Err(Problem::param("heightmap", "given more than once"));
                 }
-                image = Some(field.bytes().await.map_err(|e| multipart_error(&e))?.to_vec());
+                let bytes = field.bytes().await.map_err(|e| multipart_error(&e, timeout))?;
+                image = Some(bytes.to_vec());
             }
             "params" => {
-                let text = field.bytes().await.map_err(|e| multipart_error(&e))?;
-                params = merge_json(query.clone(), &text)?;
+                if params.is_some() {
+                    return Err(Problem::param("params", "given more than once"));
+                }
+                let text = field.bytes().await.map_err(|e| multipart_error(&e, timeout))?;
+                params = Some(merge_json(query.clone(), &query_keys, &text)?);
             }
             other => {
                 return Err(Problem::param(
@@ -298,35 +332,36 @@ async fn read_multipart(st: &AppState, req: Request) -> Result<(Vec<u8>, BakePar
     }
     let image = image
         .ok_or_else(|| Problem::param("heightmap", "the multipart body has no `heightmap` part"))?;
-    Ok((image, params))
+    Ok((image, params.unwrap_or(query)))
 }
 
-fn multipart_error(e: &axum::extract::multipart::MultipartError) -> Problem {
-    if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
-        return Problem::new(
-            StatusCode::PAYLOAD_TOO_LARGE,
-            "payload_too_large",
-            "the request body is larger than the server accepts (max_body_bytes)",
-        );
+fn multipart_error(e: &axum::extract::multipart::MultipartError, timeout: Duration) -> Problem {
+    match upload::fault(e) {
+        upload::BodyFault::Other if e.status() != StatusCode::PAYLOAD_TOO_LARGE => Problem::new(
+            StatusCode::BAD_REQUEST,
+            "bad_request",
+            format!("malformed multipart body: {}", e.body_text()),
+        ),
+        upload::BodyFault::Other => body_error(&upload::BodyTooLarge(0), timeout),
+        _ => body_error(e, timeout),
     }
-    Problem::new(
-        StatusCode::BAD_REQUEST,
-        "bad_request",
-        format!("malformed multipart body: {}", e.body_text()),
-    )
 }
 
 async fn read_raw(st: &AppState, req: Request, ct: &str) -> Result<(Vec<u8>, BakeParams), Problem> {
     let mime = ct.split(';').next().unwrap_or("").trim().to_ascii_lowercase();
+    let (params, _) = query_params(req.uri())?;
+    let timeout = st.0.config.body_timeout;
+    let bytes = axum::body::to_bytes(req.into_body(), usize::MAX)
+        .await
+        .map_err(|e| body_error(&e, timeout))?;
+    // Checked after the body is read, so the client gets this answer rather than a reset.
     if !mime.is_empty() && !RAW_TYPES.contains(&mime.as_str()) {
         return Err(Error::Unsupported(format!(
-            "Content-Type `{mime}` is not accepted; send image/png, image/tiff, image/x-exr or multipart/form-data"
+            "Content-Type `{}` is not accepted; send image/png, image/tiff, image/x-exr or multipart/form-data",
+            crate::service::problem::cap(&mime, 100)
         ))
         .into());
     }
-    let params = query_params(req.uri())?;
-    let limit = usize::try_from(st.0.config.max_body_bytes).unwrap_or(usize::MAX);
-    let bytes = axum::body::to_bytes(req.into_body(), limit).await.map_err(|e| body_error(&e))?;
     Ok((bytes.to_vec(), params))
 }
 
@@ -364,13 +399,24 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
         .and_then(|v| v.to_str().ok())
         .unwrap_or("")
         .to_owned();
+    let (parts, body) = req.into_parts();
+    let body = upload::guarded(body, st.0.config.max_body_bytes, st.0.config.body_timeout);
+    let req = Request::from_parts(parts, body);
     let (bytes, params) = if ct.to_ascii_lowercase().starts_with("multipart/form-data") {
         read_multipart(&st, req).await?
     } else {
         read_raw(&st, req, &ct).await?
     };
-    // Header only: format and dimensions against the limits, before any pixel allocation.
-    let (fmt, width, height) = heightmap::probe(&bytes, &st.0.config.limits)?;
+    // Format and dimensions from the header against the limits, before any pixel allocation;
+    // then, for float images only, the values (NaN, infinities, out of range), so such an input
+    // is a 422 now rather than a failed bake later. Integer images cannot hold a bad value.
+    let limits = st.0.config.limits;
+    let channel = params.channel;
+    let (bytes, (fmt, width, height)) = blocking(move || {
+        let probed = heightmap::check_submission(&bytes, channel, &limits)?;
+        Ok((bytes, probed))
+    })
+    .await?;
     let format = match fmt {
         image::ImageFormat::Png => "png",
         image::ImageFormat::Tiff => "tiff",
@@ -397,8 +443,15 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
     let store = st.0.bakes.clone();
     let lookup = key.clone();
     let existing = blocking(move || store.find_by_key(&lookup)).await.map_err(store_err)?;
-    if let Some(rec) = existing {
+    if let Some(mut rec) = existing {
         if !matches!(rec.status, Status::Failed | Status::Canceled) {
+            // Someone asked for this bake again: its retention starts over from now.
+            if rec.status.is_terminal() {
+                rec.requested_ms = Some(now_ms());
+                let store = st.0.bakes.clone();
+                let to_store = rec.clone();
+                blocking(move || store.put(&to_store)).await.map_err(store_err)?;
+            }
             st.0.metrics.submitted(true);
             let mut res = json_response(StatusCode::OK, &resource(&st, &rec));
             if let Ok(v) = HeaderValue::from_str(&format!("/v1/bakes/{}", rec.id)) {
@@ -425,6 +478,7 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
         created_ms: now_ms(),
         started_ms: None,
         finished_ms: None,
+        requested_ms: None,
         timings_ms: None,
         error: None,
         results: Default::default(),
@@ -456,9 +510,11 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
 // ---------------------------------------------------------------------------------------------
 // Reading and managing bakes
 
-/// `GET /v1/bakes?limit=&cursor=&status=`.
+/// `GET /v1/bakes?limit=&cursor=&status=&order=`: `status` is one status or a comma list,
+/// `order` is `asc` (oldest first, the default) or `desc` (newest first); the answer carries
+/// `total`, how many bakes match the filter in all.
 pub async fn list(State(st): State<AppState>, Query(q): Query<Vec<(String, String)>>) -> Answer {
-    let q = query_map(q, &["limit", "cursor", "status"])?;
+    let q = query_map(q, &["limit", "cursor", "status", "order"])?;
     let limit = match q.get("limit") {
         None => 50,
         Some(v) => match v.parse::<usize>() {
@@ -471,28 +527,44 @@ pub async fn list(State(st): State<AppState>, Query(q): Query<Vec<(String, Strin
             }
         },
     };
-    let status = match q.get("status") {
-        None => None,
-        Some(s) => Some(Status::parse(s).map_err(Problem::from)?),
+    let mut statuses = Vec::new();
+    if let Some(list) = q.get("status") {
+        for s in list.split(',') {
+            let s = Status::parse(s.trim()).map_err(Problem::from)?;
+            if !statuses.contains(&s) {
+                statuses.push(s);
+            }
+        }
+    }
+    let newest_first = match q.get("order").map(String::as_str) {
+        None | Some("asc") => false,
+        Some("desc") => true,
+        Some(v) => return Err(Problem::param("order", format!("`{v}` is not one of asc, desc"))),
     };
     let cursor = q.get("cursor").cloned();
+    // One rule for every malformed cursor: a cursor is a bake id (20 lowercase hex digits), as
+    // `next.cursor` returns it; a well-formed id of a removed bake still pages on after it.
     if let Some(c) = &cursor {
-        if c.is_empty() || c.len() > 64 {
+        if c.len() != 20 || !c.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b)) {
             return Err(Problem::param("cursor", "not a cursor returned by this API"));
         }
     }
     let store = st.0.bakes.clone();
-    let page =
-        blocking(move || store.list(status, cursor.as_deref(), limit)).await.map_err(store_err)?;
+    let query = store::ListQuery { statuses: statuses.clone(), cursor, limit, newest_first };
+    let page = blocking(move || store.query(&query)).await.map_err(store_err)?;
     let items: Vec<Value> = page.items.iter().map(|r| resource(&st, r)).collect();
     let next = page.next.map(|c| {
         let mut link = format!("/v1/bakes?limit={limit}&cursor={c}");
-        if let Some(s) = status {
-            link.push_str(&format!("&status={}", s.as_str()));
+        if !statuses.is_empty() {
+            let names: Vec<&str> = statuses.iter().map(|s| s.as_str()).collect();
+            link.push_str(&format!("&status={}", names.join(",")));
+        }
+        if newest_first {
+            link.push_str("&order=desc");
         }
         json!({"cursor": c, "href": link})
     });
-    Ok(json_response(StatusCode::OK, &json!({"items": items, "next": next})))
+    Ok(json_response(StatusCode::OK, &json!({"items": items, "next": next, "total": page.total})))
 }
 
 /// `GET /v1/bakes/{id}`.
@@ -564,13 +636,14 @@ pub fn remove_bake(st: &AppState, id: &str) -> crate::Result<bool> {
 /// # Errors
 /// Store failures.
 pub fn sweep(st: &AppState) -> crate::Result<usize> {
-    let cutoff = now_ms().saturating_sub(st.0.config.retention.as_millis() as u64);
+    let now = now_ms();
+    let retention = st.0.config.retention.as_millis() as u64;
     let mut expired = Vec::new();
     let mut after: Option<String> = None;
     loop {
         let page = st.0.bakes.list(None, after.as_deref(), 1000)?;
         for r in &page.items {
-            if r.status.is_terminal() && r.finished_ms.is_some_and(|f| f <= cutoff) {
+            if r.expires_ms(retention).is_some_and(|e| e <= now) {
                 expired.push(r.id.clone());
             }
         }
@@ -641,25 +714,43 @@ struct Watch {
     last: Option<String>,
     first: bool,
     done: bool,
+    /// Sequence number of the next event (the SSE `id:` field).
+    seq: u64,
+}
+
+impl Watch {
+    /// The next event with its `id:`; the first one also carries `retry:` (how long a client
+    /// waits before reconnecting after the stream ends without `done`, e.g. a network cut).
+    fn event(&mut self, name: &str, data: String) -> Event {
+        let mut ev = Event::default().event(name).data(data).id(self.seq.to_string());
+        if self.seq == 0 {
+            ev = ev.retry(Duration::from_millis(2000));
+        }
+        self.seq += 1;
+        ev
+    }
 }
 
 /// `GET /v1/bakes/{id}/events`: `progress` events while the bake is in flight, then one `done`
-/// event carrying the final resource (or `deleted`), then the stream ends.
+/// event carrying the final resource (or `deleted`), then the stream ends. Every stream ends
+/// with `done`: on shutdown too, carrying the resource as it stands (still queued or running,
+/// it finishes after the restart), so a client never waits on a stream that silently stopped.
 pub async fn events(
     State(st): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, Problem> {
     load(&st, &id).await?;
     let rx = st.0.changes.subscribe();
-    let w = Watch { st, id, rx, last: None, first: true, done: false };
+    let w = Watch { st, id, rx, last: None, first: true, done: false, seq: 0 };
     let stream = futures_util::stream::unfold(w, |mut w| async move {
         if w.done {
             return None;
         }
         loop {
+            let mut closing = false;
             if !w.first {
                 tokio::select! {
-                    _ = w.st.0.closing.cancelled() => return None,
+                    _ = w.st.0.closing.cancelled() => closing = true,
                     _ = tokio::time::sleep(Duration::from_millis(250)) => {}
                     _ = w.rx.recv() => {}
                 }
@@ -668,13 +759,12 @@ pub async fn events(
             match snapshot(&w.st, &w.id).await {
                 None => {
                     w.done = true;
-                    let ev =
-                        Event::default().event("deleted").data(json!({"id": w.id}).to_string());
+                    let ev = w.event("deleted", json!({"id": w.id}).to_string());
                     return Some((Ok(ev), w));
                 }
-                Some((status, res)) if status.is_terminal() => {
+                Some((status, res)) if status.is_terminal() || closing => {
                     w.done = true;
-                    let ev = Event::default().event("done").data(res.to_string());
+                    let ev = w.event("done", res.to_string());
                     return Some((Ok(ev), w));
                 }
                 Some((status, res)) => {
@@ -683,7 +773,8 @@ pub async fn events(
                             .to_string();
                     if w.last.as_ref() != Some(&text) {
                         w.last = Some(text.clone());
-                        return Some((Ok(Event::default().event("progress").data(text)), w));
+                        let ev = w.event("progress", text);
+                        return Some((Ok(ev), w));
                     }
                 }
             }
@@ -730,21 +821,12 @@ async fn blob_response(
         }
         r
     };
-    immutable(&mut res, &etag);
+    cache_headers(&mut res, &etag, IMMUTABLE_CACHE);
     Ok(res)
 }
 
-/// Marks `res` as an immutable resource with the strong `etag` (results never change once
-/// written, so clients and proxies may keep them for a year).
-fn immutable(res: &mut Response, etag: &str) {
-    if let Ok(v) = HeaderValue::from_str(etag) {
-        res.headers_mut().insert(header::ETAG, v);
-    }
-    res.headers_mut().insert(
-        header::CACHE_CONTROL,
-        HeaderValue::from_static("private, max-age=31536000, immutable"),
-    );
-}
+/// Results never change once written: clients may keep them for a year.
+const IMMUTABLE_CACHE: &str = "private, max-age=31536000, immutable";
 
 /// A succeeded bake, or the 404/409 that says why there is no result.
 async fn finished(st: &AppState, id: &str) -> Result<BakeRecord, Problem> {
@@ -756,14 +838,14 @@ async fn finished(st: &AppState, id: &str) -> Result<BakeRecord, Problem> {
     Ok(rec)
 }
 
-/// `GET /v1/bakes/{id}/horizon/{layer}?format=png8|png16`.
+/// `GET /v1/bakes/{id}/horizon/{layer}?format=png8|png16|exr[&exr_precision=half|float]`.
 pub async fn horizon_layer(
     State(st): State<AppState>,
     Path((id, layer)): Path<(String, String)>,
     Query(q): Query<Vec<(String, String)>>,
     headers: HeaderMap,
 ) -> Answer {
-    let q = query_map(q, &["format"])?;
+    let q = known_query(q, &["format", "exr_precision"])?;
     let layer: u8 = match layer.as_str() {
         "0" => 0,
         "1" => 1,
@@ -781,19 +863,67 @@ pub async fn horizon_layer(
         }
     };
     let rec = finished(&st, &id).await?;
-    if !rec.results.keys().any(|k| k.starts_with("horizon")) {
+    if !params_of(&rec).is_ok_and(|p| p.outputs.horizon) {
         return Err(not_produced(&id, "horizon"));
     }
-    let name = if ext == "exr" {
+    let half = match q.get("exr_precision") {
+        None => false,
+        Some(_) if ext != "exr" => {
+            return Err(Problem::param("exr_precision", "applies only with format=exr"))
+        }
+        Some(v) => {
+            crate::encode::exr::ExrPrecision::parse("exr_precision", v)?
+                == crate::encode::exr::ExrPrecision::Half
+        }
+    };
+    let name = if half {
+        format!("horizon_{layer}.half.exr")
+    } else if ext == "exr" {
         format!("horizon_{layer}.exr")
     } else {
         format!("horizon_{layer}.{format}")
     };
-    let hash = rec
-        .results
-        .get(&name)
-        .ok_or_else(|| Problem::internal(&format!("bake {id} succeeded without {name}")))?;
-    blob_response(&st, &headers, hash, content_type, &format!("horizon_{layer}.{ext}")).await
+    let hash = result_hash(&st, rec, &name).await?;
+    blob_response(&st, &headers, &hash, content_type, &format!("horizon_{layer}.{ext}")).await
+}
+
+/// The blob of result `name` of a succeeded bake: stored already, or encoded now (on the preview
+/// pool, once however many requests ask at the same time) and kept for the next request.
+async fn result_hash(st: &AppState, rec: BakeRecord, name: &str) -> Result<String, Problem> {
+    if let Some(h) = rec.results.get(name) {
+        return Ok(h.clone());
+    }
+    let id = rec.id.clone();
+    let group = worker::result_group(name)
+        .ok_or_else(|| Problem::internal(&format!("bake {id} has no result {name}")))?;
+    let key = format!("{id}/{}", group[0]);
+    let lock = {
+        let mut m = st.0.encoding.lock().unwrap_or_else(|e| e.into_inner());
+        m.entry(key.clone()).or_default().clone()
+    };
+    let answer = async {
+        let _one_at_a_time = lock.lock().await;
+        // Whoever held the lock before may have stored it.
+        let rec = load(st, &id).await?;
+        if let Some(h) = rec.results.get(name) {
+            return Ok(h.clone());
+        }
+        let wanted = name.to_owned();
+        let encoded = on_pool(st, &format!("encoding {name} of {id}"), move |job| {
+            worker::encode_on_request(job, &rec, &wanted, &Progress::new())
+        })
+        .await?;
+        encoded.ok_or_else(|| Problem::bake_not_found(&id))
+    }
+    .await;
+    {
+        // The last one out removes the entry (the map holds one reference, this call another).
+        let mut m = st.0.encoding.lock().unwrap_or_else(|e| e.into_inner());
+        if m.get(&key).is_some_and(|l| Arc::strong_count(l) <= 2) {
+            m.remove(&key);
+        }
+    }
+    answer
 }
 
 fn not_produced(id: &str, what: &str) -> Problem {
@@ -812,7 +942,7 @@ pub async fn fourier_layer(
     Query(q): Query<Vec<(String, String)>>,
     headers: HeaderMap,
 ) -> Answer {
-    query_map(q, &[])?;
+    known_query(q, &[])?;
     let layer: u8 = match layer.as_str() {
         "0" => 0,
         "1" => 1,
@@ -838,12 +968,13 @@ async fn horizon_texture(
     name: &'static str,
     content_type: &'static str,
 ) -> Answer {
-    query_map(q, &[])?;
+    known_query(q, &[])?;
     let rec = finished(&st, &id).await?;
-    let Some(hash) = rec.results.get(name) else {
+    if !params_of(&rec).is_ok_and(|p| p.outputs.horizon) {
         return Err(not_produced(&id, "horizon"));
-    };
-    blob_response(&st, &headers, hash, content_type, name).await
+    }
+    let hash = result_hash(&st, rec, name).await?;
+    blob_response(&st, &headers, &hash, content_type, name).await
 }
 
 /// `GET /v1/bakes/{id}/horizon.ktx2`: both layers as one 2-layer RGBA8 UNORM array texture.
@@ -882,7 +1013,32 @@ fn cube_size(st: &AppState, q: &HashMap<String, String>) -> Result<usize, Proble
     }
 }
 
-/// Encodes a cube-map file (the CLI's own function) and answers it with a content-hash ETag.
+/// An ETag for a response that is a pure function of `parts` and of this build's code (cube
+/// maps, previews), known before computing anything, so a revalidation (304) costs nothing.
+fn derived_etag(parts: &[&str]) -> String {
+    let mut h = blake3::Hasher::new();
+    h.update(env!("CARGO_PKG_VERSION").as_bytes());
+    for p in parts {
+        h.update(b"\0");
+        h.update(p.as_bytes());
+    }
+    format!("\"{}\"", &h.finalize().to_hex()[..32])
+}
+
+/// Adds `ETag` and `Cache-Control` to a response.
+fn cache_headers(res: &mut Response, etag: &str, cache_control: &'static str) {
+    if let Ok(v) = HeaderValue::from_str(etag) {
+        res.headers_mut().insert(header::ETAG, v);
+    }
+    res.headers_mut().insert(header::CACHE_CONTROL, HeaderValue::from_static(cache_control));
+}
+
+/// Cube maps depend only on the size and the format: cacheable by anyone for a day, and
+/// revalidated by the derived ETag without re-encoding.
+const CUBE_CACHE: &str = "public, max-age=86400";
+
+/// Encodes a cube-map file (the CLI's own function) and answers it with a derived ETag; a
+/// matching `If-None-Match` is answered 304 before anything is computed.
 async fn cube_answer(
     headers: &HeaderMap,
     size: usize,
@@ -890,6 +1046,17 @@ async fn cube_answer(
     pick: usize,
     content_type: &'static str,
 ) -> Answer {
+    let etag = derived_etag(&[
+        "cube",
+        &size.to_string(),
+        &format!("{}{}{}", formats.png8, formats.ktx2, formats.dds),
+        &pick.to_string(),
+    ]);
+    if etag_matches(headers, &etag) {
+        let mut res = StatusCode::NOT_MODIFIED.into_response();
+        cache_headers(&mut res, &etag, CUBE_CACHE);
+        return Ok(res);
+    }
     let file = blocking(move || {
         let mut files = crate::encode::cube_files(size, formats)?;
         if pick >= files.len() {
@@ -899,20 +1066,12 @@ async fn cube_answer(
     })
     .await
     .map_err(store_err)?;
-    let etag = format!("\"{}\"", blake3::hash(&file.bytes).to_hex());
-    let mut res = if etag_matches(headers, &etag) {
-        StatusCode::NOT_MODIFIED.into_response()
-    } else {
-        let mut r = Response::new(Body::from(file.bytes));
-        r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
-        if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"{}\"", file.name)) {
-            r.headers_mut().insert(header::CONTENT_DISPOSITION, v);
-        }
-        r
-    };
-    if let Ok(v) = HeaderValue::from_str(&etag) {
-        res.headers_mut().insert(header::ETAG, v);
+    let mut res = Response::new(Body::from(file.bytes));
+    res.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
+    if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"{}\"", file.name)) {
+        res.headers_mut().insert(header::CONTENT_DISPOSITION, v);
     }
+    cache_headers(&mut res, &etag, CUBE_CACHE);
     Ok(res)
 }
 
@@ -923,7 +1082,7 @@ pub async fn cubemap_face(
     Query(q): Query<Vec<(String, String)>>,
     headers: HeaderMap,
 ) -> Answer {
-    let q = query_map(q, &["size"])?;
+    let q = known_query(q, &["size"])?;
     let face: usize = match face.parse::<usize>() {
         Ok(f) if f < 6 && face.len() == 1 => f,
         _ => return Err(Problem::param("face", format!("`{face}` is not a face index 0..5"))),
@@ -939,7 +1098,7 @@ pub async fn cubemap_ktx2(
     Query(q): Query<Vec<(String, String)>>,
     headers: HeaderMap,
 ) -> Answer {
-    let q = query_map(q, &["size"])?;
+    let q = known_query(q, &["size"])?;
     let size = cube_size(&st, &q)?;
     cube_answer(&headers, size, CubeFormats { png8: false, ktx2: true, dds: false }, 0, KTX2_TYPE)
         .await
@@ -951,14 +1110,15 @@ pub async fn cubemap_dds(
     Query(q): Query<Vec<(String, String)>>,
     headers: HeaderMap,
 ) -> Answer {
-    let q = query_map(q, &["size"])?;
+    let q = known_query(q, &["size"])?;
     let size = cube_size(&st, &q)?;
     cube_answer(&headers, size, CubeFormats { png8: false, ktx2: false, dds: true }, 0, DDS_TYPE)
         .await
 }
 
-/// Runs `f` on the bake pool (never the async workers), panics caught, the result sent back
-/// over a oneshot; `what` names the work in the 500 a panic becomes.
+/// Runs `f` on the preview pool (never the async workers, and never behind a long bake: the
+/// work a request waits for), panics caught, the result sent back over a oneshot; `what` names
+/// the work in the 500 a panic becomes.
 async fn on_pool<T, F>(st: &AppState, what: &str, f: F) -> Result<T, Problem>
 where
     T: Send + 'static,
@@ -966,7 +1126,7 @@ where
 {
     let (tx, rx) = tokio::sync::oneshot::channel();
     let pool_state = st.clone();
-    st.0.pool.spawn(move || {
+    st.0.preview_pool.spawn(move || {
         let _ = tx.send(catch_unwind(AssertUnwindSafe(|| f(&pool_state))));
     });
     match rx.await {
@@ -1029,7 +1189,7 @@ pub async fn heights(
         }
         r
     };
-    immutable(&mut res, &etag);
+    cache_headers(&mut res, &etag, IMMUTABLE_CACHE);
     Ok(res)
 }
 
@@ -1046,13 +1206,15 @@ impl Drop for CancelOnDrop {
 /// `GET /v1/bakes/{id}/preview?…`: the lit surface (SPEC §3.5 parameters; `contact_sheet=N` for
 /// the contact sheet) rendered from the bake's stored input with its resolved parameters, as PNG.
 ///
-/// Rendering is CPU work, so it runs on the bake pool (never the async workers): that keeps the
-/// service's CPU use within `bake_threads`, and the renderer's own limits (`MAX_SIZE`,
-/// `MAX_TILES`, `MAX_PIXELS`) cap the cost of one request.
+/// Rendering is CPU work, so it runs on the preview pool (never the async workers, and not the
+/// bake pool, where it would wait for a running bake to finish); `preview_threads` bounds its CPU
+/// use, and the renderer's own limits (`MAX_SIZE`, `MAX_TILES`, `MAX_PIXELS`) cap the cost of one
+/// request.
 pub async fn preview(
     State(st): State<AppState>,
     Path(id): Path<String>,
     Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
 ) -> Answer {
     let mut pp = PreviewParams::default();
     let mut seen = std::collections::HashSet::new();
@@ -1063,6 +1225,19 @@ pub async fn preview(
         pp.set(k, v).map_err(Problem::from)?;
     }
     let rec = finished(&st, &id).await?;
+    // A preview is a pure function of the input, the bake's parameters and the query: its ETag
+    // is known before rendering, so a revalidation is a 304 with no render.
+    let mut query: Vec<String> = q.iter().map(|(k, v)| format!("{k}={v}")).collect();
+    query.sort();
+    let bake_params: Vec<String> = rec.params.iter().map(|(k, v)| format!("{k}={v}")).collect();
+    let etag =
+        derived_etag(&["preview", &rec.input_blob, &bake_params.join("&"), &query.join("&")]);
+    const PREVIEW_CACHE: &str = "private, max-age=86400";
+    if etag_matches(&headers, &etag) {
+        let mut res = StatusCode::NOT_MODIFIED.into_response();
+        cache_headers(&mut res, &etag, PREVIEW_CACHE);
+        return Ok(res);
+    }
     let params = params_of(&rec).map_err(store_err)?;
     let progress = Progress::new();
     let _cancel = CancelOnDrop(progress.clone());
@@ -1076,6 +1251,7 @@ pub async fn preview(
     if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"preview_{id}.png\"")) {
         r.headers_mut().insert(header::CONTENT_DISPOSITION, v);
     }
+    cache_headers(&mut r, &etag, PREVIEW_CACHE);
     Ok(r)
 }
 
@@ -1144,15 +1320,49 @@ fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
     a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 
+/// 414 for a request target over `max_uri_bytes`, 431 for headers over `max_header_bytes`,
+/// both problem+json, before routing (so before any extractor echoes a part of them).
+pub async fn head_limits(State(st): State<AppState>, req: Request, next: Next) -> Response {
+    let target = req.uri().path_and_query().map_or(0, |pq| pq.as_str().len());
+    if target > st.0.config.max_uri_bytes {
+        return Problem::new(
+            StatusCode::URI_TOO_LONG,
+            "uri_too_long",
+            format!(
+                "the request target is {target} bytes; at most {} are accepted (max_uri_bytes)",
+                st.0.config.max_uri_bytes
+            ),
+        )
+        .into_response();
+    }
+    let headers: usize = req.headers().iter().map(|(k, v)| k.as_str().len() + v.len() + 4).sum();
+    if headers > st.0.config.max_header_bytes {
+        return Problem::new(
+            StatusCode::REQUEST_HEADER_FIELDS_TOO_LARGE,
+            "headers_too_large",
+            format!(
+                "the request headers are {headers} bytes; at most {} are accepted \
+                 (max_header_bytes)",
+                st.0.config.max_header_bytes
+            ),
+        )
+        .into_response();
+    }
+    next.run(req).await
+}
+
 /// Bearer-token check on /v1 routes when an API key is configured.
 pub async fn auth(State(st): State<AppState>, req: Request, next: Next) -> Response {
     if let Some(key) = &st.0.config.api_key {
+        // RFC 9110 §11.1: the auth scheme is case-insensitive (`bearer`, `BEARER`), and the
+        // credentials follow after one or more spaces.
         let ok = req
             .headers()
             .get(header::AUTHORIZATION)
             .and_then(|v| v.to_str().ok())
-            .and_then(|v| v.strip_prefix("Bearer "))
-            .is_some_and(|t| constant_time_eq(t.trim().as_bytes(), key.as_bytes()));
+            .and_then(|v| v.split_once(' '))
+            .filter(|(scheme, _)| scheme.eq_ignore_ascii_case("bearer"))
+            .is_some_and(|(_, t)| constant_time_eq(t.trim().as_bytes(), key.as_bytes()));
         if !ok {
             return Problem::new(
                 StatusCode::UNAUTHORIZED,
@@ -1165,21 +1375,53 @@ pub async fn auth(State(st): State<AppState>, req: Request, next: Next) -> Respo
     next.run(req).await
 }
 
-/// Counts requests by matched route, method and status.
+/// The request id: the client's `X-Request-Id` when it is a short token, else a fresh one.
+fn request_id(headers: &HeaderMap) -> String {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static NEXT: AtomicU64 = AtomicU64::new(1);
+    let given = headers.get("x-request-id").and_then(|v| v.to_str().ok()).filter(|v| {
+        !v.is_empty()
+            && v.len() <= 64
+            && v.bytes().all(|b| b.is_ascii_alphanumeric() || b"-_.:".contains(&b))
+    });
+    match given {
+        Some(v) => v.to_owned(),
+        None => format!("{:08x}-{}", std::process::id(), NEXT.fetch_add(1, Ordering::Relaxed)),
+    }
+}
+
+/// One log line per request (method, path, status, latency, request id; the path without its
+/// query and capped, so a huge or secret-bearing query string never reaches the log), the
+/// `X-Request-Id` answer header, and the request counters by matched route.
 pub async fn track(State(st): State<AppState>, req: Request, next: Next) -> Response {
+    let started = std::time::Instant::now();
     let route = req
         .extensions()
         .get::<MatchedPath>()
         .map(|m| m.as_str().to_owned())
         .unwrap_or_else(|| "unmatched".into());
     let method = req.method().clone();
-    let res = next.run(req).await;
+    let path = crate::service::problem::cap(req.uri().path(), 200);
+    let rid = request_id(req.headers());
+    let mut res = next.run(req).await;
+    let status = res.status().as_u16();
+    tracing::info!(
+        method = %method,
+        path = %path,
+        status,
+        latency_ms = (started.elapsed().as_secs_f64() * 1e3 * 10.0).round() / 10.0,
+        request_id = %rid,
+        "request"
+    );
+    if let Ok(v) = HeaderValue::from_str(&rid) {
+        res.headers_mut().insert("x-request-id", v);
+    }
     let method = if [Method::GET, Method::POST, Method::DELETE, Method::HEAD].contains(&method) {
         method.as_str().to_owned()
     } else {
         "OTHER".into()
     };
-    st.0.metrics.http(&route, &method, res.status().as_u16());
+    st.0.metrics.http(&route, &method, status);
     res
 }
 

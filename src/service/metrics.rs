@@ -9,6 +9,8 @@
 //! - `horizon_queue_depth`, `horizon_bakes_running`.
 //! - `horizon_bake_duration_seconds` (histogram, from a worker taking a bake to its outcome).
 //! - `horizon_texels_baked_total`.
+//! - `horizon_results_encoded_total`: result files encoded on their first request (png16, EXR,
+//!   KTX2, DDS are not encoded with the bake; see `service::worker`).
 
 use crate::service::store::Status;
 use std::collections::BTreeMap;
@@ -31,6 +33,7 @@ pub struct Metrics {
     duration_count: AtomicU64,
     duration_sum_us: AtomicU64,
     texels: AtomicU64,
+    encoded: AtomicU64,
 }
 
 fn status_index(s: Status) -> usize {
@@ -66,6 +69,11 @@ impl Metrics {
         }
         self.duration_count.fetch_add(1, Ordering::Relaxed);
         self.duration_sum_us.fetch_add((seconds * 1e6) as u64, Ordering::Relaxed);
+    }
+
+    /// Counts a result encoded on its first request.
+    pub fn encoded_on_request(&self) {
+        self.encoded.fetch_add(1, Ordering::Relaxed);
     }
 
     /// Mean bake duration so far, in seconds (for `Retry-After`), if any bake finished.
@@ -143,6 +151,13 @@ impl Metrics {
         let _ = writeln!(s, "# HELP horizon_texels_baked_total Texels of succeeded bakes.");
         let _ = writeln!(s, "# TYPE horizon_texels_baked_total counter");
         let _ = writeln!(s, "horizon_texels_baked_total {}", self.texels.load(Ordering::Relaxed));
+        let _ = writeln!(
+            s,
+            "# HELP horizon_results_encoded_total Result files encoded on their first request."
+        );
+        let _ = writeln!(s, "# TYPE horizon_results_encoded_total counter");
+        let _ =
+            writeln!(s, "horizon_results_encoded_total {}", self.encoded.load(Ordering::Relaxed));
         s
     }
 }

@@ -7,6 +7,7 @@
 //! - [`queue`] and [`worker`]: a bounded FIFO of bake ids, a dispatcher that runs at most N
 //!   bakes at once on a dedicated rayon pool, results back over a oneshot.
 //! - [`handlers`]: thin axum handlers: validate, call the store or the queue, answer.
+//! - [`upload`]: an upload's body under the size limit and the idle timeout.
 //! - [`problem`]: every failure as problem+json with a stable code.
 //! - [`metrics`]: Prometheus text.
 //!
@@ -25,6 +26,7 @@ pub mod problem;
 pub mod queue;
 pub mod store;
 pub mod ui;
+pub mod upload;
 pub mod worker;
 
 pub use config::{Config, ServeArgs};
@@ -41,7 +43,6 @@ use store::{BakeStore, BlobStore, FsBlobStore, RedbStore, Status};
 use tokio::sync::{broadcast, Semaphore};
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
-use tower_http::limit::RequestBodyLimitLayer;
 
 /// Every route and its methods: the router below is built to match, and a test checks both
 /// against `openapi.yaml`.
@@ -78,6 +79,10 @@ pub struct Shared {
     pub queue: queue::Queue,
     /// The dedicated pool bakes run on (never the async workers).
     pub pool: rayon::ThreadPool,
+    /// Previews render here, not on `pool`: a preview is a request someone is waiting for, and
+    /// on the bake pool it would wait for the whole of a running bake (rayon workers busy in a
+    /// bake's parallel loop only take new jobs when they run out of its work).
+    pub preview_pool: rayon::ThreadPool,
     /// At most `max_concurrent_bakes` permits.
     pub slots: Arc<Semaphore>,
     /// Uploads read at once.
@@ -97,6 +102,9 @@ pub struct Shared {
     pub gc_lock: std::sync::RwLock<()>,
     /// Ids of bakes whose state changed (wakes SSE streams).
     pub changes: broadcast::Sender<String>,
+    /// One lock per result group being encoded on request (`id/first result name`), so
+    /// concurrent first requests for a result encode it once and the others wait for it.
+    pub encoding: std::sync::Mutex<std::collections::HashMap<String, Arc<tokio::sync::Mutex<()>>>>,
 }
 
 impl AppState {
@@ -105,7 +113,12 @@ impl AppState {
     /// # Errors
     /// When the data directory or the store cannot be opened, or the pool cannot start.
     pub fn open(config: Config) -> Result<Self> {
-        std::fs::create_dir_all(&config.data_dir)?;
+        std::fs::create_dir_all(&config.data_dir).map_err(|e| {
+            Error::Io(std::io::Error::new(
+                e.kind(),
+                format!("cannot create the data directory {}: {e}", config.data_dir.display()),
+            ))
+        })?;
         let bakes = Arc::new(RedbStore::open(&config.data_dir.join("bakes.redb"))?);
         let blobs = Arc::new(FsBlobStore::open(&config.data_dir.join("blobs"))?);
         Self::with_stores(config, bakes, blobs)
@@ -126,6 +139,12 @@ impl AppState {
             .panic_handler(|_| tracing::error!("a bake thread panicked outside a job"))
             .build()
             .map_err(|e| Error::Internal(format!("cannot start the bake pool: {e}")))?;
+        let preview_pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(config.preview_threads)
+            .thread_name(|i| format!("preview-{i}"))
+            .panic_handler(|_| tracing::error!("a preview thread panicked outside a job"))
+            .build()
+            .map_err(|e| Error::Internal(format!("cannot start the preview pool: {e}")))?;
         let (changes, _) = broadcast::channel(1024);
         Ok(AppState(Arc::new(Shared {
             slots: Arc::new(Semaphore::new(config.max_concurrent_bakes)),
@@ -135,6 +154,7 @@ impl AppState {
             bakes,
             blobs,
             pool,
+            preview_pool,
             metrics: metrics::Metrics::default(),
             draining: AtomicBool::new(false),
             stop: CancellationToken::new(),
@@ -143,6 +163,7 @@ impl AppState {
             submit_lock: tokio::sync::Mutex::new(()),
             gc_lock: std::sync::RwLock::new(()),
             changes,
+            encoding: Default::default(),
         })))
     }
 
@@ -221,10 +242,10 @@ impl AppState {
 
 /// The router: every route of SPEC §5 that this build serves (see [`ROUTES`]).
 pub fn app(st: AppState) -> Router {
-    let max_body = usize::try_from(st.0.config.max_body_bytes).unwrap_or(usize::MAX);
-    let submit = post(handlers::submit)
-        .layer::<_, Infallible>(DefaultBodyLimit::max(max_body))
-        .layer::<_, Infallible>(RequestBodyLimitLayer::new(max_body));
+    // The submit handler bounds the body itself (see `handlers::submit`): it must read and
+    // discard an oversized body before answering 413, or the client, still sending, sees a reset
+    // instead of the answer. A limit layer would answer at once, so none is set here.
+    let submit = post(handlers::submit).layer::<_, Infallible>(DefaultBodyLimit::disable());
     let v1 = Router::new()
         .route("/v1/bakes", submit.get(handlers::list))
         .route("/v1/bakes/{id}", get(handlers::get_bake).delete(handlers::delete_bake))
@@ -250,11 +271,13 @@ pub fn app(st: AppState) -> Router {
         .route("/ui/{asset}", get(ui::asset))
         .route_layer(axum::middleware::from_fn_with_state(st.clone(), handlers::track))
         .fallback(handlers::fallback)
+        .layer(axum::middleware::from_fn_with_state(st.clone(), handlers::head_limits))
         .layer(axum::middleware::map_response(problem::normalize))
         .with_state(st)
 }
 
-/// Serves `app` on `listener` until `shutdown` resolves, then drains (see [`AppState::drain`]).
+/// Opens the store in `config.data_dir`, then serves on `listener` until `shutdown` resolves
+/// (see [`serve`]).
 ///
 /// # Errors
 /// When the store cannot be opened or the listener fails.
@@ -264,14 +287,63 @@ pub async fn run(
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<()> {
     let st = AppState::open(config)?;
+    serve(st, listener, shutdown).await
+}
+
+/// Serves `app(st)` on `listener` until `shutdown` resolves, then drains (see
+/// [`AppState::drain`]) and lets open connections finish.
+///
+/// The accept loop is our own rather than `axum::serve`, which sets no timer on hyper and so
+/// has no header read timeout: a client that opens a connection and never finishes its headers
+/// would hold it forever. Here hyper closes such a connection after `header_timeout`.
+///
+/// # Errors
+/// When the store cannot be read at start.
+pub async fn serve(
+    st: AppState,
+    listener: tokio::net::TcpListener,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<()> {
+    use hyper::server::conn::http1;
+    use hyper_util::rt::{TokioIo, TokioTimer};
+    use hyper_util::server::graceful::GracefulShutdown;
+    use hyper_util::service::TowerToHyperService;
+
     st.start().await?;
+    let header_timeout = st.0.config.header_timeout;
+    let router = app(st.clone());
+    let graceful = GracefulShutdown::new();
+    let mut builder = http1::Builder::new();
+    // hyper's own limit on a request head answers a bare 431; set it well above ours
+    // (`max_header_bytes`, checked by `handlers::head_limits`), so clients get problem+json.
+    builder.timer(TokioTimer::new()).header_read_timeout(header_timeout).max_buf_size(1 << 20);
     let drain_state = st.clone();
-    axum::serve(listener, app(st))
-        .with_graceful_shutdown(async move {
-            shutdown.await;
-            tracing::info!("shutting down: draining");
-            drain_state.drain().await;
-        })
-        .await?;
+    let mut shutdown = std::pin::pin!(async move {
+        shutdown.await;
+        tracing::info!("shutting down: draining");
+        drain_state.drain().await;
+    });
+    loop {
+        let (stream, _peer) = tokio::select! {
+            _ = &mut shutdown => break,
+            accepted = listener.accept() => match accepted {
+                Ok(conn) => conn,
+                Err(e) => {
+                    // Out of file descriptors and the like: back off instead of spinning.
+                    tracing::warn!(error = %e, "accept failed");
+                    tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+                    continue;
+                }
+            },
+        };
+        let service = TowerToHyperService::new(router.clone());
+        let conn = graceful.watch(builder.serve_connection(TokioIo::new(stream), service));
+        tokio::spawn(async move {
+            if let Err(e) = conn.await {
+                tracing::debug!(error = %e, "connection ended with an error");
+            }
+        });
+    }
+    graceful.shutdown().await;
     Ok(())
 }

@@ -35,14 +35,28 @@ pub struct Problem {
     pub retry_after: Option<u64>,
 }
 
+/// Longest `field` echoed back, in characters.
+pub const MAX_FIELD_CHARS: usize = 64;
+/// Longest `detail`, in characters: details quote the client's input, and a 65,000-character
+/// query key must not come back twice in a 130 KB answer.
+pub const MAX_DETAIL_CHARS: usize = 600;
+
+/// `s` cut to at most `max` characters, with `…` marking the cut.
+pub fn cap(s: &str, max: usize) -> String {
+    match s.char_indices().nth(max) {
+        None => s.to_owned(),
+        Some((end, _)) => format!("{}…", &s[..end]),
+    }
+}
+
 impl Problem {
-    /// A problem with `status`, `code` and a human-readable `detail`.
+    /// A problem with `status`, `code` and a human-readable `detail` (capped in length).
     pub fn new(status: StatusCode, code: &'static str, detail: impl Into<String>) -> Self {
         Problem {
             kind: format!("urn:horizon-bake:problem:{code}"),
             title: status.canonical_reason().unwrap_or("Error").to_string(),
             status: status.as_u16(),
-            detail: detail.into(),
+            detail: cap(&detail.into(), MAX_DETAIL_CHARS),
             code,
             field: None,
             retry_after: None,
@@ -51,7 +65,7 @@ impl Problem {
 
     /// A 422 parameter error naming `field`.
     pub fn param(field: impl Into<String>, detail: impl Into<String>) -> Self {
-        let field = field.into();
+        let field = cap(&field.into(), MAX_FIELD_CHARS);
         let mut p = Problem::new(
             StatusCode::UNPROCESSABLE_ENTITY,
             "invalid_parameter",

@@ -7,7 +7,9 @@
 //!   bake that was accepted.
 //! - [`BlobStore`]: immutable, content-addressed bytes (inputs and encoded results), named by the
 //!   BLAKE3 of their content. [`FsBlobStore`] writes each to a temporary file, fsyncs it and
-//!   renames it into place, so a crash leaves either the whole file or nothing.
+//!   renames it into place, so a crash leaves either the whole file or nothing. A result
+//!   streamed out of a bake goes through a [`BlobWriter`] (hashed as it is written, named on
+//!   commit), so it is never whole in memory.
 //!
 //! The traits are synchronous: both implementations block on disk, so callers run them on a
 //! blocking thread or on the bake pool, never on an async worker.
@@ -115,6 +117,10 @@ pub struct BakeRecord {
     pub created_ms: u64,
     pub started_ms: Option<u64>,
     pub finished_ms: Option<u64>,
+    /// When an identical submission last asked for this finished bake (a deduplication hit):
+    /// the retention counts from the later of this and `finished_ms`.
+    #[serde(default)]
+    pub requested_ms: Option<u64>,
     pub timings_ms: Option<Timings>,
     pub error: Option<BakeFailure>,
     /// Result name (`horizon_0.png8`, …) → blob hash.
@@ -124,6 +130,15 @@ pub struct BakeRecord {
 }
 
 impl BakeRecord {
+    /// When a finished bake's retention of `retention_ms` runs out (None while in flight).
+    pub fn expires_ms(&self, retention_ms: u64) -> Option<u64> {
+        if !self.status.is_terminal() {
+            return None;
+        }
+        let last = self.finished_ms?.max(self.requested_ms.unwrap_or(0));
+        Some(last.saturating_add(retention_ms))
+    }
+
     /// Every blob this record references.
     pub fn blobs(&self) -> impl Iterator<Item = &str> {
         std::iter::once(self.input_blob.as_str()).chain(self.results.values().map(String::as_str))
@@ -146,8 +161,79 @@ pub struct Page {
     pub next: Option<String>,
 }
 
+/// What a listing asks for: any of `statuses` (all when empty), after `cursor` in the chosen
+/// order, at most `limit`.
+#[derive(Debug, Clone, Default)]
+pub struct ListQuery {
+    pub statuses: Vec<Status>,
+    pub cursor: Option<String>,
+    pub limit: usize,
+    /// Newest first.
+    pub newest_first: bool,
+}
+
+/// One page of a listing, with how many records match the filter in all.
+#[derive(Debug, Clone)]
+pub struct Listing {
+    pub items: Vec<BakeRecord>,
+    pub next: Option<String>,
+    pub total: u64,
+}
+
 /// Bake records and the deduplication index.
 pub trait BakeStore: Send + Sync + 'static {
+    /// A page of records for `q` and the total matching count. The provided version reads the
+    /// ids in order through [`BakeStore::list`] (one pass, keeping only matching records up to
+    /// the page); a database backend would answer it with an indexed query instead.
+    ///
+    /// # Errors
+    /// The backend's failure.
+    fn query(&self, q: &ListQuery) -> Result<Listing> {
+        let wanted = |s: Status| q.statuses.is_empty() || q.statuses.contains(&s);
+        // At most `limit + 1` records (the extra one says whether there is a next page).
+        let mut page_items: std::collections::VecDeque<BakeRecord> = Default::default();
+        let mut total = 0u64;
+        let mut after: Option<String> = None;
+        loop {
+            let page = self.list(None, after.as_deref(), 1000)?;
+            for r in page.items {
+                if !wanted(r.status) {
+                    continue;
+                }
+                total += 1;
+                let in_range = match (&q.cursor, q.newest_first) {
+                    (None, _) => true,
+                    (Some(c), false) => r.id.as_str() > c.as_str(),
+                    (Some(c), true) => r.id.as_str() < c.as_str(),
+                };
+                if !in_range {
+                    continue;
+                }
+                if q.newest_first {
+                    // Ids ascend: keep the last `limit + 1` below the cursor.
+                    page_items.push_back(r);
+                    if page_items.len() > q.limit + 1 {
+                        page_items.pop_front();
+                    }
+                } else if page_items.len() <= q.limit {
+                    page_items.push_back(r);
+                }
+            }
+            match page.next {
+                Some(n) => after = Some(n),
+                None => break,
+            }
+        }
+        let mut items: Vec<BakeRecord> = page_items.into();
+        if q.newest_first {
+            items.reverse();
+        }
+        let more = items.len() > q.limit;
+        items.truncate(q.limit);
+        let next = if more { items.last().map(|r| r.id.clone()) } else { None };
+        Ok(Listing { items, next, total })
+    }
+
     /// Inserts or replaces a record, and points its dedup key at it. Durable on return.
     ///
     /// # Errors
@@ -176,8 +262,24 @@ pub trait BakeStore: Send + Sync + 'static {
     fn delete(&self, id: &str) -> Result<bool>;
 }
 
+/// A blob written piece by piece (a result streamed out of a bake), so its bytes never need to
+/// be in memory at once; it is named by its hash when committed.
+pub trait BlobWriter: std::io::Write + Send {
+    /// Makes the bytes written so far durable under their hash and returns the hash. Dropping a
+    /// writer without committing discards what it wrote.
+    ///
+    /// # Errors
+    /// The backend's failure.
+    fn commit(self: Box<Self>) -> Result<String>;
+}
+
 /// Immutable content-addressed bytes.
 pub trait BlobStore: Send + Sync + 'static {
+    /// A writer for a new blob (see [`BlobWriter`]).
+    ///
+    /// # Errors
+    /// The backend's failure.
+    fn writer(&self) -> Result<Box<dyn BlobWriter>>;
     /// Stores `bytes` and returns their hash (hex BLAKE3). Idempotent; durable on return.
     ///
     /// # Errors
@@ -223,12 +325,20 @@ impl RedbStore {
     /// # Errors
     /// When the file cannot be created or opened (e.g. another server holds it).
     pub fn open(path: &Path) -> Result<Self> {
-        let db = redb::Database::create(path).map_err(db_err)?;
+        // The operator must learn which file is at fault (locked by a running server, corrupt),
+        // so every failure here names it.
+        let named = |e: &dyn std::fmt::Display| {
+            Error::Io(std::io::Error::other(format!(
+                "cannot open the bake store {}: {e}",
+                path.display()
+            )))
+        };
+        let db = redb::Database::create(path).map_err(|e| named(&e))?;
         // Create the tables up front so readers never see "table does not exist".
-        let tx = db.begin_write().map_err(db_err)?;
-        tx.open_table(BAKES).map_err(db_err)?;
-        tx.open_table(DEDUP).map_err(db_err)?;
-        tx.commit().map_err(db_err)?;
+        let tx = db.begin_write().map_err(|e| named(&e))?;
+        tx.open_table(BAKES).map_err(|e| named(&e))?;
+        tx.open_table(DEDUP).map_err(|e| named(&e))?;
+        tx.commit().map_err(|e| named(&e))?;
         Ok(RedbStore { db })
     }
 }
@@ -348,7 +458,56 @@ impl FsBlobStore {
     }
 }
 
+/// [`BlobWriter`] of [`FsBlobStore`]: a temporary file in `tmp/`, hashed as it is written,
+/// fsynced and renamed to its hash on commit (the same durability as [`BlobStore::put`]).
+struct FsBlobWriter {
+    tmp: tempfile::NamedTempFile,
+    hasher: blake3::Hasher,
+    store: FsBlobStore,
+}
+
+impl std::io::Write for FsBlobWriter {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.tmp.write(buf)?;
+        self.hasher.update(&buf[..n]);
+        Ok(n)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.tmp.flush()
+    }
+}
+
+impl BlobWriter for FsBlobWriter {
+    fn commit(self: Box<Self>) -> Result<String> {
+        let FsBlobWriter { mut tmp, hasher, store } = *self;
+        tmp.flush()?;
+        let hash = hasher.finalize().to_hex().to_string();
+        let dest = store.path(&hash)?;
+        if dest.exists() {
+            // Already stored (content-addressed); the temporary file is removed on drop.
+            return Ok(hash);
+        }
+        let dir = dest.parent().map(Path::to_path_buf).unwrap_or_else(|| store.root.clone());
+        std::fs::create_dir_all(&dir)?;
+        tmp.as_file().sync_all()?;
+        tmp.persist(&dest).map_err(|e| Error::Io(e.error))?;
+        if let Ok(d) = std::fs::File::open(&dir) {
+            let _ = d.sync_all();
+        }
+        Ok(hash)
+    }
+}
+
 impl BlobStore for FsBlobStore {
+    fn writer(&self) -> Result<Box<dyn BlobWriter>> {
+        Ok(Box::new(FsBlobWriter {
+            tmp: tempfile::NamedTempFile::new_in(self.root.join("tmp"))?,
+            hasher: blake3::Hasher::new(),
+            store: FsBlobStore { root: self.root.clone() },
+        }))
+    }
+
     fn put(&self, bytes: &[u8]) -> Result<String> {
         let hash = blake3::hash(bytes).to_hex().to_string();
         let dest = self.path(&hash)?;
@@ -437,6 +596,7 @@ mod tests {
             created_ms: 1,
             started_ms: None,
             finished_ms: None,
+            requested_ms: None,
             timings_ms: None,
             error: None,
             results: BTreeMap::new(),

@@ -7,7 +7,8 @@
 //! `failed` record instead of an aborted process (rayon's default on a panic in `spawn`).
 //! Cancellation goes through [`Progress::cancel`], which the kernel polls between bands.
 
-use crate::bake::{self, Precisions};
+use crate::bake;
+use crate::encode::exr::ExrPrecision;
 use crate::encode::{self, Formats, TexturePrecision};
 use crate::error::{Error, Result};
 use crate::heightmap;
@@ -20,21 +21,119 @@ use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::atomic::Ordering;
 use std::time::Instant;
 
-/// Names of the horizon results a bake stores (each an immutable blob); with
-/// `outputs=fourier` it also stores `fourier_0.png`, `fourier_1.png` (and `fourier_2.png` for
-/// 7 or 9 terms), as the CLI names them. Every format is encoded once, when the bake finishes, by the same function the CLI uses
-/// ([`encode::horizon_files`]), so a download is a file read with a content-hash ETag and is
-/// byte-identical to `horizon-bake bake --format …` (KTX2/DDS at the CLI's default `unorm8`).
-pub const HORIZON_RESULTS: [&str; 8] = [
+/// Names of the horizon results (each an immutable, content-addressed blob). A bake stores only
+/// `horizon_0.png8` and `horizon_1.png8` (plus `fourier_*.png` with `outputs=fourier`), streamed
+/// band by band into the PNG encoder as the CLI's `bake --format png8` does, so a bake costs what
+/// the CLI's does and holds no whole layer in memory. Every other format is encoded on its first
+/// request ([`encode_on_request`]) and kept: pay only for what is asked. All of them come from the
+/// CLI's own functions, so each download is byte-identical to `horizon-bake bake --format …`
+/// (png8 / png16 alone; KTX2/DDS at the CLI's default `unorm8`).
+pub const HORIZON_RESULTS: [&str; 10] = [
     "horizon_0.png8",
     "horizon_1.png8",
     "horizon_0.png16",
     "horizon_1.png16",
     "horizon_0.exr",
     "horizon_1.exr",
+    "horizon_0.half.exr",
+    "horizon_1.half.exr",
     "horizon.ktx2",
     "horizon.dds",
 ];
+
+/// The results one on-request encode produces together (both layers of a layered format).
+pub fn result_group(name: &str) -> Option<&'static [&'static str]> {
+    Some(match name {
+        "horizon_0.png8" | "horizon_1.png8" => &HORIZON_RESULTS[0..2],
+        "horizon_0.png16" | "horizon_1.png16" => &HORIZON_RESULTS[2..4],
+        "horizon_0.exr" | "horizon_1.exr" => &HORIZON_RESULTS[4..6],
+        "horizon_0.half.exr" | "horizon_1.half.exr" => &HORIZON_RESULTS[6..8],
+        "horizon.ktx2" => &HORIZON_RESULTS[8..9],
+        "horizon.dds" => &HORIZON_RESULTS[9..10],
+        _ => return None,
+    })
+}
+
+/// Encodes the result group of `name` for the succeeded bake `rec` (on the calling thread: the
+/// preview pool), stores it and records it in the bake's record. Returns the blob hash of
+/// `name`, or None when the bake was removed meanwhile.
+///
+/// The input is decoded and baked again (bakes are deterministic, and re-baking costs about what
+/// keeping every precision of the layers would cost in memory and disk for every bake, asked
+/// or not); only the precision the format needs is produced.
+///
+/// # Errors
+/// Decode, bake, encode and store failures.
+pub fn encode_on_request(
+    st: &AppState,
+    rec: &BakeRecord,
+    name: &str,
+    progress: &Progress,
+) -> Result<Option<String>> {
+    let group = result_group(name)
+        .ok_or_else(|| Error::Internal(format!("`{name}` is not an on-request result")))?;
+    let params = params_of(rec)?;
+    let bytes =
+        st.0.blobs
+            .get(&rec.input_blob)?
+            .ok_or_else(|| Error::Internal(format!("input blob {} is missing", rec.input_blob)))?;
+    let (map, _) = heightmap::decode(&bytes, params.channel, &st.0.config.limits)?;
+    drop(bytes);
+    let files: Vec<Vec<u8>> = match group[0] {
+        "horizon_0.png8" => {
+            let (pngs, _) = encode::stream_horizon_pngs::<u8, _>(
+                map,
+                &params,
+                progress,
+                [Vec::new(), Vec::new()],
+            )?;
+            pngs.into()
+        }
+        "horizon_0.png16" => {
+            let (pngs, _) = encode::stream_horizon_pngs::<u16, _>(
+                map,
+                &params,
+                progress,
+                [Vec::new(), Vec::new()],
+            )?;
+            pngs.into()
+        }
+        first => {
+            let half = first == "horizon_0.half.exr";
+            let formats = Formats {
+                png8: false,
+                png16: false,
+                exr: half || first == "horizon_0.exr",
+                ktx2: first == "horizon.ktx2",
+                dds: first == "horizon.dds",
+                texture_precision: TexturePrecision::Unorm8,
+                exr_precision: if half { ExrPrecision::Half } else { ExrPrecision::Float },
+            };
+            let (layers, _) = bake::bake_horizon(&map, &params, formats.precisions(), progress)?;
+            drop(map);
+            if progress.is_canceled() {
+                return Err(Error::Canceled);
+            }
+            encode::horizon_files(&layers, &formats)?.into_iter().map(|f| f.bytes).collect()
+        }
+    };
+    if files.len() != group.len() {
+        return Err(Error::Internal(format!("{} files encoded for {group:?}", files.len())));
+    }
+    // Under the sweep lock, so a removal cannot run between the re-read and the write (which
+    // would bring a deleted bake back).
+    let _gc = st.0.gc_lock.read().unwrap_or_else(|e| e.into_inner());
+    let Some(mut current) = st.0.bakes.get(&rec.id)? else {
+        return Ok(None);
+    };
+    for (n, bytes) in group.iter().zip(&files) {
+        let hash = st.0.blobs.put(bytes)?;
+        current.results.insert((*n).to_owned(), hash);
+        st.0.metrics.encoded_on_request();
+    }
+    st.0.bakes.put(&current)?;
+    Ok(current.results.get(name).cloned())
+}
 
 /// The parameters stored in a record.
 ///
@@ -127,10 +226,14 @@ async fn run_job(st: AppState, id: String, live: Live) {
         Ok(Ok(Err(e))) => {
             let message = match &e {
                 Error::Io(_) | Error::Internal(_) => {
-                    tracing::error!(bake = %id, error = %e, "bake failed");
+                    tracing::error!(bake = %id, code = e.code(), error = %e, "bake failed");
                     "an internal error occurred; it has been logged".to_owned()
                 }
-                _ => e.to_string(),
+                _ => {
+                    // The input's fault, not ours: one line so an operator can still find it.
+                    tracing::warn!(bake = %id, code = e.code(), error = %e, "bake failed");
+                    e.to_string()
+                }
             };
             rec.error = Some(BakeFailure { code: e.code().to_owned(), message });
             Status::Failed
@@ -187,66 +290,49 @@ fn execute(st: &AppState, mut rec: BakeRecord, progress: &Progress) -> Result<Ba
     let decode_ms = ms(t);
 
     let t = Instant::now();
-    let mut encoded: Vec<(String, Vec<u8>)> = Vec::with_capacity(HORIZON_RESULTS.len() + 3);
+    let mut encoded: Vec<(String, Vec<u8>)> = Vec::with_capacity(5);
     let mut radius = None;
-    let mut encode_ms = 0.0;
-    if params.outputs.horizon {
-        let (layers, r) = bake::bake_horizon(&map, &params, Precisions::ALL, progress)?;
-        radius = Some(r);
-        let te = Instant::now();
-        progress.start(Stage::Encode, 2);
-        // png8 and png16 share a file name in the CLI's scheme, so they are two calls.
-        let main_formats = Formats {
-            png8: true,
-            png16: false,
-            exr: true,
-            ktx2: true,
-            dds: true,
-            texture_precision: TexturePrecision::Unorm8,
-        };
-        let wide = Formats {
-            png8: false,
-            png16: true,
-            exr: false,
-            ktx2: false,
-            dds: false,
-            ..main_formats
-        };
-        for (formats, png_suffix) in [(main_formats, "png8"), (wide, "png16")] {
-            if progress.is_canceled() {
-                return Err(Error::Canceled);
-            }
-            for f in encode::horizon_files(&layers, &formats)? {
-                let name = match f.name.strip_suffix(".png") {
-                    Some(stem) => format!("{stem}.{png_suffix}"),
-                    None => f.name.to_owned(),
-                };
-                encoded.push((name, f.bytes));
-            }
-            progress.advance(1);
-        }
-        encode_ms += ms(te);
-    }
     if params.outputs.fourier {
         // The CLI's own function: the same files `horizon-bake bake --outputs fourier` writes.
+        // Before the horizon layers, which consume the map as they stream.
         let (files, r) = crate::bake::fourier_files(&map, &params, progress)?;
-        radius.get_or_insert(r);
+        radius = Some(r);
         for f in files {
             encoded.push((f.name.to_owned(), f.bytes));
         }
     }
-    drop(map);
-    let bake_ms = ms(t) - encode_ms;
+    let mut streamed = None;
+    if params.outputs.horizon {
+        // Kernel and PNG encoder overlap band by band, as in the CLI, so `bake` covers both and
+        // no whole layer exists; the PNGs go straight into blob writers (temporary files), so
+        // no whole encoded image exists either. Every other format waits for its first request.
+        let outs = [st.0.blobs.writer()?, st.0.blobs.writer()?];
+        let (writers, r) = encode::stream_horizon_pngs::<u8, _>(map, &params, progress, outs)?;
+        radius = Some(r);
+        streamed = Some(writers);
+    } else {
+        drop(map);
+    }
+    let bake_ms = ms(t);
+    let encode_ms = 0.0;
     let radius = radius.ok_or_else(|| Error::Internal("a bake with no outputs".into()))?;
 
     if progress.is_canceled() {
         return Err(Error::Canceled);
     }
-    progress.start(Stage::Store, encoded.len() as u64 + 1);
+    progress.start(Stage::Store, encoded.len() as u64 + 3);
     let t = Instant::now();
     // Hold the sweep lock from the first blob write to the record commit, so a concurrent
     // retention sweep never removes a blob this record is about to reference.
     let _gc = st.0.gc_lock.read().unwrap_or_else(|e| e.into_inner());
+    if let Some([w0, w1]) = streamed {
+        // Both files are written already; committing is an fsync and a rename each, side by
+        // side.
+        let (h0, h1) = rayon::join(|| w0.commit(), || w1.commit());
+        rec.results.insert(HORIZON_RESULTS[0].to_owned(), h0?);
+        rec.results.insert(HORIZON_RESULTS[1].to_owned(), h1?);
+        progress.advance(2);
+    }
     for (name, bytes) in &encoded {
         let hash = st.0.blobs.put(bytes)?;
         rec.results.insert(name.clone(), hash);

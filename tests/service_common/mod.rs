@@ -59,22 +59,34 @@ pub fn noise_png8(w: usize, h: usize, seed: u64) -> Vec<u8> {
 }
 
 /// What the library produces for `png` and `pairs`, by the service's result name:
-/// `horizon_{0,1}.png8`, `horizon_{0,1}.png16`, `horizon_{0,1}.exr`, `horizon.ktx2`, `horizon.dds`.
+/// `horizon_{0,1}.png8`, `horizon_{0,1}.png16` (streamed, as `bake --format png8|png16` writes
+/// them), `horizon_{0,1}.exr`, `horizon.ktx2`, `horizon.dds`.
 pub fn library_files(png: &[u8], pairs: &[(&str, &str)]) -> BTreeMap<String, Vec<u8>> {
     let params = BakeParams::from_pairs(pairs.iter().copied()).unwrap();
     let (map, _) = heightmap::decode(png, params.channel, &Limits::default()).unwrap();
-    let (layers, _) = bake::bake_horizon(&map, &params, Precisions::ALL, &Progress::new()).unwrap();
     let mut out = BTreeMap::new();
-    let all = Formats::parse("png8,exr,ktx2,dds", TexturePrecision::Unorm8).unwrap();
-    let wide = Formats::parse("png16", TexturePrecision::Unorm8).unwrap();
-    for (f, suffix) in [(all, "png8"), (wide, "png16")] {
-        for file in encode::horizon_files(&layers, &f).unwrap() {
-            let name = match file.name.strip_suffix(".png") {
-                Some(stem) => format!("{stem}.{suffix}"),
-                None => file.name.to_owned(),
-            };
-            out.insert(name, file.bytes);
-        }
+    let (p8, _) = encode::stream_horizon_pngs::<u8, _>(
+        map.clone(),
+        &params,
+        &Progress::new(),
+        [Vec::new(), Vec::new()],
+    )
+    .unwrap();
+    let (p16, _) = encode::stream_horizon_pngs::<u16, _>(
+        map.clone(),
+        &params,
+        &Progress::new(),
+        [Vec::new(), Vec::new()],
+    )
+    .unwrap();
+    for (k, (a, b)) in p8.into_iter().zip(p16).enumerate() {
+        out.insert(format!("horizon_{k}.png8"), a);
+        out.insert(format!("horizon_{k}.png16"), b);
+    }
+    let (layers, _) = bake::bake_horizon(&map, &params, Precisions::ALL, &Progress::new()).unwrap();
+    let rest = Formats::parse("exr,ktx2,dds", TexturePrecision::Unorm8).unwrap();
+    for file in encode::horizon_files(&layers, &rest).unwrap() {
+        out.insert(file.name.to_owned(), file.bytes);
     }
     out
 }
