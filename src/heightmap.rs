@@ -256,6 +256,47 @@ fn contained<T>(what: &str, f: impl FnOnce() -> Result<T>) -> Result<T> {
     })
 }
 
+/// Refuses an OpenEXR whose first header's `dataWindow` is inverted (xMax < xMin or
+/// yMax < yMin): such a file describes no image, and the `exr` crate silently swaps the corners,
+/// which would bake a different size than the file states. Walks the attribute list (name\0,
+/// type\0, i32 size, value) of the first header; a list it cannot walk is left to the crate.
+fn check_exr_data_window(bytes: &[u8]) -> Result<()> {
+    let cstr = |at: usize| -> Option<(&[u8], usize)> {
+        let len = bytes.get(at..)?.iter().take(256).position(|&b| b == 0)?;
+        Some((&bytes[at..at + len], at + len + 1))
+    };
+    let i32_at = |at: usize| -> Option<i32> {
+        Some(i32::from_le_bytes(bytes.get(at..at + 4)?.try_into().ok()?))
+    };
+    // Magic (4 bytes) and version (4), then the attributes.
+    let mut at = 8;
+    for _ in 0..1024 {
+        let Some((name, next)) = cstr(at) else { return Ok(()) };
+        if name.is_empty() {
+            return Ok(());
+        }
+        let Some((kind, next)) = cstr(next) else { return Ok(()) };
+        let Some(size) = i32_at(next).and_then(|v| usize::try_from(v).ok()) else {
+            return Ok(());
+        };
+        let value = next + 4;
+        if name == b"dataWindow" && kind == b"box2i" && size == 16 {
+            let v = [0, 4, 8, 12].map(|o| i32_at(value + o));
+            if let [Some(x0), Some(y0), Some(x1), Some(y1)] = v {
+                if x1 < x0 || y1 < y0 {
+                    return Err(Error::Decode(format!(
+                        "the OpenEXR data window is inverted (min {x0},{y0}, max {x1},{y1}): \
+                         it describes no image"
+                    )));
+                }
+            }
+            return Ok(());
+        }
+        at = value.saturating_add(size);
+    }
+    Ok(())
+}
+
 /// Reads only the header: format and dimensions, checked against `limits`.
 fn probe_format(bytes: &[u8], limits: &Limits) -> Result<(Format, u32, u32)> {
     if bytes.len() as u64 > limits.max_bytes {
@@ -272,6 +313,7 @@ fn probe_format(bytes: &[u8], limits: &Limits) -> Result<(Format, u32, u32)> {
             Ok((w as u64, h as u64))
         })?,
         Format::Exr => contained("OpenEXR", || {
+            check_exr_data_window(bytes)?;
             let meta = exr::meta::MetaData::read_from_buffered(Cursor::new(bytes), false)
                 .map_err(exr_error)?;
             let header = meta

@@ -438,6 +438,25 @@ fn huge_exr_header_is_rejected_before_decoding() {
     );
 }
 
+#[test]
+fn inverted_exr_data_window_is_refused_at_the_header_check() {
+    // xMax < xMin (or yMax < yMin) describes no image at all: the header check (which the
+    // service runs before it answers 202) must refuse it, as a decoding error (415), rather than
+    // let a bake fail later or size a buffer from a wrapped-around width.
+    use exr::prelude::FlatSamples;
+    let key = b"dataWindow\0box2i\0";
+    for (field, value) in [(8usize, -5i32), (12, -3), (8, i32::MIN)] {
+        let mut bytes = exr_bytes(4, 4, vec![("Y", FlatSamples::F32(vec![0.5; 16]))]);
+        let at = bytes.windows(key.len()).position(|w| w == key).unwrap() + key.len() + 4;
+        bytes[at + field..at + field + 4].copy_from_slice(&value.to_le_bytes());
+        let e = probe(&bytes, &Limits::default()).unwrap_err();
+        assert!(matches!(e, Error::Decode(_)), "field {field} = {value}: {e:?}");
+        assert!(e.to_string().contains("data window"), "{e}");
+        let d = decode(&bytes, Channel::Luma, &Limits::default()).unwrap_err();
+        assert_eq!(d.to_string(), e.to_string());
+    }
+}
+
 /// A half-float EXR reports the bit depth it stores (16), a float one 32; out-of-range float
 /// heights are the input's fault (an `InvalidInput` naming the range, not `height_scale`).
 #[test]
