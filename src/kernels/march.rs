@@ -49,7 +49,8 @@ pub const K_FAR: usize = 1;
 /// Widest strip of any variant; the tile keeps this many spare columns.
 const STRIP: usize = 64;
 
-/// Largest padded tile (floats, per thread) before falling back to the exact kernel (64 MiB).
+/// Largest padded tile (floats, per thread) before falling back to the exact kernel: 64 MiB,
+/// and as much again for the twist tile beside it.
 pub const MAX_TILE: usize = 1 << 24;
 
 /// Height outside the map with `edge=none`.
@@ -145,8 +146,8 @@ impl<'a> March<'a> {
             })
             .collect();
         let (lo, hi) = grid.range();
-        let rows_per_band = 1;
-        let tile = (rows_per_band + 2 * pad) * stride;
+        // A band is at least one row; its tile is that plus the padding above and below.
+        let tile = (1 + 2 * pad) * stride;
         let fallback =
             (tile > MAX_TILE).then(|| ExactHorizon::new(grid, Some(radius), bins as u32, reduce));
         let step = bins / 8;
