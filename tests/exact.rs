@@ -19,7 +19,7 @@
 
 mod common;
 
-use common::{surface, Rng};
+use common::{surface, waves, Rng};
 use horizon_bake::bake::{self, Precisions};
 use horizon_bake::heightmap::HeightMap;
 use horizon_bake::kernels::exact::{direction, horizon_sin, ExactHorizon, ExactMarch};
@@ -91,21 +91,7 @@ fn random_map(rng: &mut Rng, w: usize, h: usize, spiky: bool) -> Vec<f32> {
         let scale = 1.0 + 15.0 * rng.f32();
         (0..w * h).map(|_| rng.f32() * scale).collect()
     } else {
-        // A few smooth waves (periodic over the map so wrap has no seam).
-        let mut v = vec![0.0f32; w * h];
-        for _ in 0..3 {
-            let (fx, fy) = (rng.range(0, 2) as f32, rng.range(0, 2) as f32);
-            let (a, p) = (3.0 * rng.f32(), std::f32::consts::TAU * rng.f32());
-            for r in 0..h {
-                for c in 0..w {
-                    let t = std::f32::consts::TAU
-                        * (fx * c as f32 / w as f32 + fy * r as f32 / h as f32)
-                        + p;
-                    v[r * w + c] += a * t.sin();
-                }
-            }
-        }
-        v
+        waves(rng, w, h, 2, 3.0)
     }
 }
 

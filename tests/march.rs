@@ -12,7 +12,7 @@
 
 mod common;
 
-use common::{surface, Rng};
+use common::{surface, waves, Rng};
 use horizon_bake::eval::corpus;
 use horizon_bake::kernels::exact::{direction, ExactHorizon};
 use horizon_bake::kernels::lengyel_fast::Isa;
@@ -90,23 +90,6 @@ fn white(rng: &mut Rng, w: usize, h: usize, amp: f32) -> Vec<f32> {
     (0..w * h).map(|_| rng.f32() * amp).collect()
 }
 
-fn waves(rng: &mut Rng, w: usize, h: usize) -> Vec<f32> {
-    let mut v = vec![0.0f32; w * h];
-    for _ in 0..3 {
-        let (fx, fy) = (rng.range(0, 3) as f32, rng.range(0, 3) as f32);
-        let (a, p) = (4.0 * rng.f32(), std::f32::consts::TAU * rng.f32());
-        for r in 0..h {
-            for c in 0..w {
-                let t = std::f32::consts::TAU
-                    * (fx * c as f32 / w as f32 + fy * r as f32 / h as f32)
-                    + p;
-                v[r * w + c] += a * t.sin();
-            }
-        }
-    }
-    v
-}
-
 #[test]
 fn vectorised_kernel_matches_its_naive_oracle() {
     let mut rng = Rng(0x3A7C);
@@ -116,7 +99,7 @@ fn vectorised_kernel_matches_its_naive_oracle() {
     for (i, &(w, h)) in cases.iter().enumerate() {
         for edge in [Edge::Wrap, Edge::None] {
             let heights =
-                if i % 2 == 0 { white(&mut rng, w, h, 6.0) } else { waves(&mut rng, w, h) };
+                if i % 2 == 0 { white(&mut rng, w, h, 6.0) } else { waves(&mut rng, w, h, 3, 4.0) };
             let y_axis = if i % 3 == 0 { YAxis::Down } else { YAxis::Up };
             let g = Grid::new(w, h, &heights, edge, y_axis);
             for (radius, bins) in [(1u32, 16u32), (2, 32), (5, 48), (16, 32), (90, 16)] {
@@ -239,7 +222,7 @@ fn meets_its_tolerance_on_random_maps() {
                 "spiky" => (0..w * h)
                     .map(|_| if rng.f32() < 0.01 { 4.0 + 20.0 * rng.f32() } else { 0.0 })
                     .collect(),
-                _ => waves(&mut rng, w, h),
+                _ => waves(&mut rng, w, h, 3, 4.0),
             };
             let y_axis = if i % 2 == 0 { YAxis::Down } else { YAxis::Up };
             let g = Grid::new(w, h, &heights, edge, y_axis);

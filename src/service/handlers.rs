@@ -1135,19 +1135,6 @@ where
     }
 }
 
-/// The bake's stored input decoded with its channel (unscaled heights).
-fn stored_heightmap(
-    st: &AppState,
-    rec: &BakeRecord,
-    params: &BakeParams,
-) -> crate::Result<heightmap::HeightMap> {
-    let bytes =
-        st.0.blobs
-            .get(&rec.input_blob)?
-            .ok_or_else(|| Error::Internal(format!("input blob {} is missing", rec.input_blob)))?;
-    Ok(heightmap::decode(&bytes, params.channel, &st.0.config.limits)?.0)
-}
-
 /// `GET /v1/bakes/{id}/heights`: the heights the bake used, in texels (channel picked,
 /// `height_scale` applied), little-endian f32, row 0 first, with the size in `x-width` and
 /// `x-height`. A browser decodes 16-bit PNGs to 8 bits, so this is how a viewer rebuilds the
@@ -1172,7 +1159,7 @@ pub async fn heights(
         StatusCode::NOT_MODIFIED.into_response()
     } else {
         let (w, h, bytes) = on_pool(&st, &format!("the heights of bake {id}"), move |st| {
-            let map = stored_heightmap(st, &rec, &params)?;
+            let map = worker::decode_input(st, &rec, &params)?.0;
             let (w, h) = (map.width, map.height);
             let bytes: Vec<u8> =
                 map.into_scaled(params.height_scale).iter().flat_map(|v| v.to_le_bytes()).collect();
@@ -1242,7 +1229,7 @@ pub async fn preview(
     let progress = Progress::new();
     let _cancel = CancelOnDrop(progress.clone());
     let png = on_pool(&st, &format!("the preview of bake {id}"), move |st| {
-        let map = stored_heightmap(st, &rec, &params)?;
+        let map = worker::decode_input(st, &rec, &params)?.0;
         preview::render_baking(&map, &params, &pp, &progress)?.to_png()
     })
     .await?;

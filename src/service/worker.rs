@@ -73,12 +73,7 @@ pub fn encode_on_request(
     let group = result_group(name)
         .ok_or_else(|| Error::Internal(format!("`{name}` is not an on-request result")))?;
     let params = params_of(rec)?;
-    let bytes =
-        st.0.blobs
-            .get(&rec.input_blob)?
-            .ok_or_else(|| Error::Internal(format!("input blob {} is missing", rec.input_blob)))?;
-    let (map, _) = heightmap::decode(&bytes, params.channel, &st.0.config.limits)?;
-    drop(bytes);
+    let (map, _) = decode_input(st, rec, &params)?;
     let files: Vec<Vec<u8>> = match group[0] {
         "horizon_0.png8" => {
             let (pngs, _) = encode::stream_horizon_pngs::<u8, _>(
@@ -272,6 +267,24 @@ fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
 }
 
+/// The bake's stored input, decoded with its `channel` (unscaled heights): what a bake, an
+/// on-request encode, a preview and the heights route all start from. The encoded bytes are
+/// dropped before the caller allocates anything else.
+///
+/// # Errors
+/// A missing input blob ([`Error::Internal`]), store and decode failures.
+pub fn decode_input(
+    st: &AppState,
+    rec: &BakeRecord,
+    params: &BakeParams,
+) -> Result<(heightmap::HeightMap, heightmap::InputInfo)> {
+    let bytes =
+        st.0.blobs
+            .get(&rec.input_blob)?
+            .ok_or_else(|| Error::Internal(format!("input blob {} is missing", rec.input_blob)))?;
+    heightmap::decode(&bytes, params.channel, &st.0.config.limits)
+}
+
 /// One bake, on the bake pool: decode → bake → encode → store, then the record is committed as
 /// `succeeded`. Returns the stored record.
 fn execute(st: &AppState, mut rec: BakeRecord, progress: &Progress) -> Result<BakeRecord> {
@@ -280,12 +293,7 @@ fn execute(st: &AppState, mut rec: BakeRecord, progress: &Progress) -> Result<Ba
 
     progress.start(Stage::Decode, 1);
     let t = Instant::now();
-    let bytes =
-        st.0.blobs
-            .get(&rec.input_blob)?
-            .ok_or_else(|| Error::Internal(format!("input blob {} is missing", rec.input_blob)))?;
-    let (map, info) = heightmap::decode(&bytes, params.channel, &st.0.config.limits)?;
-    drop(bytes);
+    let (map, info) = decode_input(st, &rec, &params)?;
     progress.advance(1);
     let decode_ms = ms(t);
 

@@ -67,3 +67,22 @@ pub fn surface(g: &Grid<'_>, x: f64, y: f64) -> f64 {
     let bot = at(cx, cy + 1) * (1.0 - fx) + at(cx + 1, cy + 1) * fx;
     top * (1.0 - fy) + bot * fy
 }
+
+/// Three smooth waves of whole periods over the map (so `edge=wrap` has no seam): frequencies
+/// 0..=`max_freq` per axis, amplitudes up to `amp` texels, random phases.
+pub fn waves(rng: &mut Rng, w: usize, h: usize, max_freq: usize, amp: f32) -> Vec<f32> {
+    let mut v = vec![0.0f32; w * h];
+    for _ in 0..3 {
+        let (fx, fy) = (rng.range(0, max_freq) as f32, rng.range(0, max_freq) as f32);
+        let (a, p) = (amp * rng.f32(), std::f32::consts::TAU * rng.f32());
+        for r in 0..h {
+            for c in 0..w {
+                let t = std::f32::consts::TAU
+                    * (fx * c as f32 / w as f32 + fy * r as f32 / h as f32)
+                    + p;
+                v[r * w + c] += a * t.sin();
+            }
+        }
+    }
+    v
+}
