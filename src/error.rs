@@ -37,6 +37,10 @@ pub enum Error {
     /// A bug or an unexpected internal failure (a caught panic, an encoder that refused).
     #[error("internal error: {0}")]
     Internal(String),
+    /// A backing service (the database, object storage) cannot be reached right now; the
+    /// request may succeed later. Never the input's fault.
+    #[error("temporarily unavailable: {0}")]
+    Unavailable(String),
 }
 
 /// Which limit an input broke, with the numbers, so the message can say by how much.
@@ -82,7 +86,7 @@ impl Error {
             | Error::Param { .. }
             | Error::Limits(_) => 2,
             Error::Canceled => 130,
-            Error::Io(_) | Error::Internal(_) => 1,
+            Error::Io(_) | Error::Internal(_) | Error::Unavailable(_) => 1,
         }
     }
 
@@ -98,6 +102,7 @@ impl Error {
             Error::Canceled => "canceled",
             Error::Io(_) => "io_error",
             Error::Internal(_) => "internal",
+            Error::Unavailable(_) => "store_unavailable",
         }
     }
 }

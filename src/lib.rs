@@ -23,6 +23,7 @@ pub mod encode;
 pub mod error;
 pub mod eval;
 pub mod heightmap;
+pub mod jobs;
 pub mod kernels;
 pub mod params;
 pub mod preview;

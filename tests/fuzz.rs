@@ -35,6 +35,7 @@ fn clone_kind(e: &Error) -> Error {
         Error::Canceled => Error::Canceled,
         Error::Io(io) => Error::Io(std::io::Error::new(io.kind(), io.to_string())),
         Error::Internal(m) => Error::Internal(m.clone()),
+        Error::Unavailable(m) => Error::Unavailable(m.clone()),
     }
 }
 

@@ -98,7 +98,7 @@ async fn stalled_uploads_do_not_hold_upload_slots() {
 /// when it expires.
 #[tokio::test]
 async fn dedup_hit_extends_retention_and_shows_expires_at() {
-    let (st, _dir) = idle_state(|c| c.retention = Duration::from_secs(3600));
+    let (st, repo, _dir) = idle_state_with_repo(|c| c.retention = Duration::from_secs(3600));
     let app = service::app(st.clone());
     let png = terrain_png16(8, 8, 21);
     let (s, v) = oneshot(&app, raw_submit(&png, "")).await;
@@ -106,11 +106,12 @@ async fn dedup_hit_extends_retention_and_shows_expires_at() {
     assert!(v["expires_at"].is_null(), "a queued bake does not expire: {v}");
     let id = v["id"].as_str().unwrap().to_owned();
     // Make it a bake that finished two hours ago: past the retention.
-    let mut rec = st.0.bakes.get(&id).unwrap().unwrap();
+    use horizon_bake::service::store::BakeStore;
+    let mut rec = repo.store().get(&id).unwrap().unwrap();
     rec.status = horizon_bake::service::store::Status::Succeeded;
     let two_hours_ago = horizon_bake::service::store::now_ms() - 2 * 3600 * 1000;
     rec.finished_ms = Some(two_hours_ago);
-    st.0.bakes.put(&rec).unwrap();
+    repo.store().put(&rec).unwrap();
     let (s, v) =
         oneshot(&app, Request::get(format!("/v1/bakes/{id}")).body(Body::empty()).unwrap()).await;
     assert_eq!(s, 200);
@@ -120,10 +121,9 @@ async fn dedup_hit_extends_retention_and_shows_expires_at() {
     assert_eq!((s, v["id"].as_str().unwrap()), (StatusCode::OK, id.as_str()));
     let renewed = v["expires_at"].as_str().unwrap().to_owned();
     assert!(renewed > handlers::rfc3339(horizon_bake::service::store::now_ms()), "{renewed}");
-    let job = st.clone();
-    let removed = tokio::task::spawn_blocking(move || handlers::sweep(&job)).await.unwrap();
+    let removed = handlers::sweep(&st).await;
     assert_eq!(removed.unwrap(), 0, "the sweep removed a bake that was just asked for again");
-    assert!(st.0.bakes.get(&id).unwrap().is_some());
+    assert!(repo.store().get(&id).unwrap().is_some());
 }
 
 /// `HORIZON_API_KEY='abc123 '` is the key `abc123`; the `Bearer` scheme is case-insensitive.

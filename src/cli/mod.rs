@@ -23,7 +23,7 @@ pub struct Cli {
 #[derive(Debug, Subcommand)]
 pub enum Command {
     /// Run the HTTP bake service.
-    Serve(serve::ServeArgs),
+    Serve(Box<serve::ServeArgs>),
     /// Bake one height map into horizon layers (and Fourier coefficients) in a directory.
     Bake(bake::BakeArgs),
     /// Write the channel-factor cube map.
@@ -40,7 +40,7 @@ pub enum Command {
 /// Whatever the subcommand fails with.
 pub fn run(cli: Cli) -> crate::Result<()> {
     match cli.command {
-        Command::Serve(a) => serve::run(a),
+        Command::Serve(a) => serve::run(*a),
         Command::Bake(a) => bake::run(a),
         Command::Cubemap(a) => cubemap::run(a),
         Command::Preview(a) => preview::run(a),

@@ -56,7 +56,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
     rt.block_on(async move {
         let data_dir = config.data_dir.clone();
         let addr_file = config.addr_file.clone();
-        let st = crate::service::AppState::open(config)?;
+        let st = crate::service::AppState::connect(config).await?;
         let listener = tokio::net::TcpListener::bind(st.0.config.addr).await.map_err(|e| {
             Error::Io(std::io::Error::new(
                 e.kind(),

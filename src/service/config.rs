@@ -84,6 +84,39 @@ pub struct ServeArgs {
     /// Most bytes of request headers (names and values); more get 431 (problem+json).
     #[arg(long, env = "HORIZON_MAX_HEADER_BYTES", default_value_t = 64 * 1024)]
     pub max_header_bytes: usize,
+    /// What this process does (SPEC §7): `all` answers HTTP and bakes; `api` answers HTTP and
+    /// bakes nothing; `worker` bakes and serves only /healthz, /readyz and /metrics. `api` and
+    /// `worker` need the shared stores (--database-url and --s3-bucket).
+    #[arg(long, env = "HORIZON_ROLE", default_value = "all")]
+    pub role: String,
+    /// PostgreSQL for records, queue, leases, progress, cancel and change notifications,
+    /// instead of the embedded redb file (needs --s3-bucket too).
+    #[arg(long, env = "HORIZON_DATABASE_URL", hide_env_values = true)]
+    pub database_url: Option<String>,
+    /// S3-compatible endpoint URL for inputs and results (e.g. http://127.0.0.1:8333).
+    #[arg(long, env = "HORIZON_S3_ENDPOINT")]
+    pub s3_endpoint: Option<String>,
+    /// Bucket for inputs and results (needs --database-url too).
+    #[arg(long, env = "HORIZON_S3_BUCKET")]
+    pub s3_bucket: Option<String>,
+    /// Region of the bucket.
+    #[arg(long, env = "HORIZON_S3_REGION", default_value = "us-east-1")]
+    pub s3_region: String,
+    /// Key prefix inside the bucket (several deployments can share one bucket).
+    #[arg(long, env = "HORIZON_S3_PREFIX", default_value = "")]
+    pub s3_prefix: String,
+    /// This worker's name in claims and logs (default: host name and process id).
+    #[arg(long, env = "HORIZON_WORKER_ID")]
+    pub worker_id: Option<String>,
+    /// Seconds a claim lasts without a heartbeat before another worker may take the bake over.
+    #[arg(long, env = "HORIZON_LEASE_SECS", default_value_t = 15)]
+    pub lease_secs: u64,
+    /// Milliseconds between a running bake's heartbeats (progress, lease, cancel).
+    #[arg(long, env = "HORIZON_HEARTBEAT_MS", default_value_t = 1000)]
+    pub heartbeat_ms: u64,
+    /// Claims of one bake before a lost worker fails it (`worker_lost`).
+    #[arg(long, env = "HORIZON_MAX_ATTEMPTS", default_value_t = 3)]
+    pub max_attempts: u32,
 }
 
 impl Default for ServeArgs {
@@ -113,8 +146,50 @@ impl Default for ServeArgs {
             preview_threads: 0,
             max_uri_bytes: 16 * 1024,
             max_header_bytes: 64 * 1024,
+            role: "all".into(),
+            database_url: None,
+            s3_endpoint: None,
+            s3_bucket: None,
+            s3_region: "us-east-1".into(),
+            s3_prefix: String::new(),
+            worker_id: None,
+            lease_secs: 15,
+            heartbeat_ms: 1000,
+            max_attempts: 3,
         }
     }
+}
+
+/// What a process does (SPEC §7).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Role {
+    /// HTTP and bakes (the default).
+    All,
+    /// HTTP only; bakes nothing.
+    Api,
+    /// Bakes; HTTP only for health and metrics.
+    Worker,
+}
+
+impl Role {
+    /// Whether this process claims bakes.
+    pub fn bakes(self) -> bool {
+        self != Role::Api
+    }
+
+    /// Whether this process serves the API.
+    pub fn serves_api(self) -> bool {
+        self != Role::Worker
+    }
+}
+
+/// Where records and blobs live.
+#[derive(Debug, Clone)]
+pub enum Backend {
+    /// redb + files in the data directory.
+    Embedded,
+    /// PostgreSQL + an S3 bucket.
+    Shared { database_url: String, s3: crate::jobs::s3::S3Config },
 }
 
 /// The validated service configuration.
@@ -146,6 +221,12 @@ pub struct Config {
     pub preview_threads: usize,
     pub max_uri_bytes: usize,
     pub max_header_bytes: usize,
+    pub role: Role,
+    pub backend: Backend,
+    pub worker_id: String,
+    pub lease: Duration,
+    pub heartbeat: Duration,
+    pub max_attempts: u32,
 }
 
 fn at_least_one(field: &str, v: u64) -> Result<()> {
@@ -204,6 +285,68 @@ impl Config {
         let preview_threads =
             if a.preview_threads == 0 { (cores / 2).max(1) } else { a.preview_threads };
         let bake_threads = if a.bake_threads == 0 { cores } else { a.bake_threads };
+        let role = match a.role.as_str() {
+            "all" => Role::All,
+            "api" => Role::Api,
+            "worker" => Role::Worker,
+            other => {
+                return Err(Error::param(
+                    "role",
+                    format!("`{other}` is not one of all, api, worker"),
+                ))
+            }
+        };
+        let backend = match (a.database_url, a.s3_bucket) {
+            (None, None) => Backend::Embedded,
+            (Some(_), None) => {
+                return Err(Error::param("s3_bucket", "--database-url needs --s3-bucket too"))
+            }
+            (None, Some(_)) => {
+                return Err(Error::param("database_url", "--s3-bucket needs --database-url too"))
+            }
+            (Some(database_url), Some(bucket)) => {
+                let endpoint = a.s3_endpoint.ok_or_else(|| {
+                    Error::param("s3_endpoint", "the shared stores need --s3-endpoint")
+                })?;
+                let env = |k: &str| std::env::var(k).ok().filter(|v| !v.is_empty());
+                Backend::Shared {
+                    database_url,
+                    s3: crate::jobs::s3::S3Config {
+                        endpoint,
+                        bucket,
+                        region: a.s3_region,
+                        prefix: a.s3_prefix,
+                        access_key: env("AWS_ACCESS_KEY_ID"),
+                        secret_key: env("AWS_SECRET_ACCESS_KEY"),
+                    },
+                }
+            }
+        };
+        if role != Role::All && matches!(backend, Backend::Embedded) {
+            return Err(Error::param(
+                "role",
+                "`api` and `worker` share work through --database-url and --s3-bucket; \
+                 the embedded store serves one process (role `all`)",
+            ));
+        }
+        at_least_one("lease_secs", a.lease_secs)?;
+        at_least_one("heartbeat_ms", a.heartbeat_ms)?;
+        at_least_one("max_attempts", a.max_attempts as u64)?;
+        if a.heartbeat_ms >= a.lease_secs * 1000 {
+            return Err(Error::param("heartbeat_ms", "must be shorter than the lease"));
+        }
+        let worker_id = match a.worker_id.map(|w| w.trim().to_owned()) {
+            Some(w) if !w.is_empty() => w,
+            _ => {
+                let host = std::fs::read_to_string("/proc/sys/kernel/hostname")
+                    .ok()
+                    .map(|h| h.trim().to_owned())
+                    .filter(|h| !h.is_empty())
+                    .or_else(|| std::env::var("HOSTNAME").ok())
+                    .unwrap_or_else(|| "host".into());
+                format!("{host}-{}", std::process::id())
+            }
+        };
         Ok(Config {
             addr,
             data_dir: a.data_dir,
@@ -231,6 +374,12 @@ impl Config {
             preview_threads,
             max_uri_bytes: a.max_uri_bytes,
             max_header_bytes: a.max_header_bytes,
+            role,
+            backend,
+            worker_id,
+            lease: Duration::from_secs(a.lease_secs),
+            heartbeat: Duration::from_millis(a.heartbeat_ms),
+            max_attempts: a.max_attempts,
         })
     }
 

@@ -9,6 +9,7 @@
 use crate::encode::CubeFormats;
 use crate::error::Error;
 use crate::heightmap;
+use crate::jobs::repo::{CancelResult, Submitted};
 use crate::params::BakeParams;
 use crate::preview::{self, PreviewParams};
 use crate::progress::{Progress, Stage};
@@ -125,19 +126,15 @@ fn stage_name(s: Stage) -> Value {
 
 /// The bake resource (SPEC §5) for a record, with live progress when it is in flight.
 pub fn resource(st: &AppState, rec: &BakeRecord) -> Value {
-    let live = st.0.queue.live(&rec.id);
-    let (status, progress) = match (&live, rec.status) {
-        (Some(l), s) if !s.is_terminal() => {
-            let stage = l.progress.stage();
-            let status = if l.running { Status::Running } else { Status::Queued };
-            (
-                status,
-                json!({"fraction": overall(stage, l.progress.fraction()), "stage": stage_name(stage)}),
-            )
+    let status = rec.status;
+    let progress = match (rec.progress, status) {
+        (Some(p), Status::Running) => {
+            json!({"fraction": overall(p.stage, p.fraction), "stage": stage_name(p.stage)})
         }
-        (_, Status::Succeeded) => (Status::Succeeded, json!({"fraction": 1.0, "stage": "done"})),
-        (_, s) if s.is_terminal() => (s, json!({"fraction": 0.0, "stage": "done"})),
-        (_, s) => (s, json!({"fraction": 0.0, "stage": "queued"})),
+        (None, Status::Running) => json!({"fraction": 0.0, "stage": "decode"}),
+        (_, Status::Succeeded) => json!({"fraction": 1.0, "stage": "done"}),
+        (_, s) if s.is_terminal() => json!({"fraction": 0.0, "stage": "done"}),
+        _ => json!({"fraction": 0.0, "stage": "queued"}),
     };
     let mut params =
         params_of(rec).ok().and_then(|p| serde_json::to_value(p).ok()).unwrap_or_else(|| json!({}));
@@ -188,6 +185,7 @@ pub fn resource(st: &AppState, rec: &BakeRecord) -> Value {
         "timings_ms": rec.timings_ms,
         "error": rec.error,
         "attempts": rec.attempts,
+        "worker": rec.worker,
         "links": links,
     })
 }
@@ -196,12 +194,7 @@ async fn load(st: &AppState, id: &str) -> Result<BakeRecord, Problem> {
     if id.is_empty() || id.len() > 64 {
         return Err(Problem::bake_not_found(id));
     }
-    let store = st.0.bakes.clone();
-    let key = id.to_owned();
-    blocking(move || store.get(&key))
-        .await
-        .map_err(store_err)?
-        .ok_or_else(|| Problem::bake_not_found(id))
+    st.0.jobs.get(id).await.map_err(store_err)?.ok_or_else(|| Problem::bake_not_found(id))
 }
 
 fn json_response(status: StatusCode, body: &Value) -> Response {
@@ -365,8 +358,7 @@ async fn read_raw(st: &AppState, req: Request, ct: &str) -> Result<(Vec<u8>, Bak
     Ok((bytes.to_vec(), params))
 }
 
-fn retry_after(st: &AppState) -> u64 {
-    let (waiting, _) = st.0.queue.counts();
+fn retry_after(st: &AppState, waiting: u64) -> u64 {
     let mean = st.0.metrics.mean_duration().unwrap_or(1.0);
     let per_slot = waiting as f64 * mean / st.0.config.max_concurrent_bakes.max(1) as f64;
     per_slot.ceil().clamp(1.0, 300.0) as u64
@@ -439,30 +431,6 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
     .await
     .map_err(store_err)?;
 
-    let _serial = st.0.submit_lock.lock().await;
-    let store = st.0.bakes.clone();
-    let lookup = key.clone();
-    let existing = blocking(move || store.find_by_key(&lookup)).await.map_err(store_err)?;
-    if let Some(mut rec) = existing {
-        if !matches!(rec.status, Status::Failed | Status::Canceled) {
-            // Someone asked for this bake again: its retention starts over from now.
-            if rec.status.is_terminal() {
-                rec.requested_ms = Some(now_ms());
-                let store = st.0.bakes.clone();
-                let to_store = rec.clone();
-                blocking(move || store.put(&to_store)).await.map_err(store_err)?;
-            }
-            st.0.metrics.submitted(true);
-            let mut res = json_response(StatusCode::OK, &resource(&st, &rec));
-            if let Ok(v) = HeaderValue::from_str(&format!("/v1/bakes/{}", rec.id)) {
-                res.headers_mut().insert(header::LOCATION, v);
-            }
-            return Ok(res);
-        }
-    }
-    if st.0.queue.is_full() {
-        return Err(Problem::queue_full(st.0.queue.capacity(), retry_after(&st)));
-    }
     let rec = BakeRecord {
         id: new_id(),
         status: Status::Queued,
@@ -483,24 +451,23 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
         error: None,
         results: Default::default(),
         attempts: 0,
+        progress: None,
+        worker: None,
     };
-    let job = st.clone();
-    let to_store = rec.clone();
-    blocking(move || {
-        let _gc = job.0.gc_lock.read().unwrap_or_else(|e| e.into_inner());
-        job.0.blobs.put(&bytes)?;
-        job.0.bakes.put(&to_store)
-    })
-    .await
-    .map_err(store_err)?;
-    if st.0.queue.try_push(&rec.id).is_err() {
-        // Unreachable while the submit lock is held (the capacity was checked above), but never
-        // leave a durable record nobody will run: the next start would pick it up anyway.
-        st.0.queue.push_recovered(&rec.id);
-    }
-    st.0.metrics.submitted(false);
-    st.notify(&rec.id);
-    let mut res = json_response(StatusCode::ACCEPTED, &resource(&st, &rec));
+    let (status, rec) = match st.0.jobs.submit(bytes, rec).await.map_err(store_err)? {
+        Submitted::Created(rec) => {
+            st.0.metrics.submitted(false);
+            (StatusCode::ACCEPTED, rec)
+        }
+        Submitted::Existing(rec) => {
+            st.0.metrics.submitted(true);
+            (StatusCode::OK, rec)
+        }
+        Submitted::QueueFull { waiting } => {
+            return Err(Problem::queue_full(st.0.config.queue_capacity, retry_after(&st, waiting)))
+        }
+    };
+    let mut res = json_response(status, &resource(&st, &rec));
     if let Ok(v) = HeaderValue::from_str(&format!("/v1/bakes/{}", rec.id)) {
         res.headers_mut().insert(header::LOCATION, v);
     }
@@ -549,9 +516,8 @@ pub async fn list(State(st): State<AppState>, Query(q): Query<Vec<(String, Strin
             return Err(Problem::param("cursor", "not a cursor returned by this API"));
         }
     }
-    let store = st.0.bakes.clone();
     let query = store::ListQuery { statuses: statuses.clone(), cursor, limit, newest_first };
-    let page = blocking(move || store.query(&query)).await.map_err(store_err)?;
+    let page = st.0.jobs.list(&query).await.map_err(store_err)?;
     let items: Vec<Value> = page.items.iter().map(|r| resource(&st, r)).collect();
     let next = page.next.map(|c| {
         let mut link = format!("/v1/bakes?limit={limit}&cursor={c}");
@@ -577,131 +543,36 @@ pub async fn get_bake(State(st): State<AppState>, Path(id): Path<String>) -> Ans
 /// stop (202, it turns `canceled` within a band of rows), removes a finished one and its
 /// results (204).
 pub async fn delete_bake(State(st): State<AppState>, Path(id): Path<String>) -> Answer {
-    let rec = load(&st, &id).await?;
-    if rec.status.is_terminal() {
-        let job = st.clone();
-        let rid = rec.id.clone();
-        blocking(move || remove_bake(&job, &rid)).await.map_err(store_err)?;
-        st.notify(&id);
-        return Ok(StatusCode::NO_CONTENT.into_response());
+    if id.is_empty() || id.len() > 64 {
+        return Err(Problem::bake_not_found(&id));
     }
-    if st.0.queue.remove_waiting(&id) {
-        let mut rec = rec;
-        rec.status = Status::Canceled;
-        rec.finished_ms = Some(now_ms());
-        let store = st.0.bakes.clone();
-        let to_store = rec.clone();
-        blocking(move || store.put(&to_store)).await.map_err(store_err)?;
-        st.0.metrics.finished(Status::Canceled, 0.0, 0);
-        st.notify(&id);
-        return Ok(json_response(StatusCode::OK, &resource(&st, &rec)));
+    match st.0.jobs.cancel(&id).await.map_err(store_err)? {
+        CancelResult::NotFound => Err(Problem::bake_not_found(&id)),
+        CancelResult::Finished(_) => Ok(StatusCode::NO_CONTENT.into_response()),
+        CancelResult::Canceled(rec) => Ok(json_response(StatusCode::OK, &resource(&st, &rec))),
+        // Running: its worker records `canceled` when the kernel stops (within a band of rows
+        // here, within a heartbeat on another machine).
+        CancelResult::Requested(_) => {
+            let rec = load(&st, &id).await?;
+            Ok(json_response(StatusCode::ACCEPTED, &resource(&st, &rec)))
+        }
     }
-    st.0.queue.cancel_running(&id, false);
-    // Running (or just taken by a worker): the worker records `canceled` when the kernel stops.
-    let rec = load(&st, &id).await?;
-    Ok(json_response(StatusCode::ACCEPTED, &resource(&st, &rec)))
 }
 
-/// Removes a finished bake and every blob no other record references (blocking).
+/// Removes finished bakes past their retention, then orphaned blobs (see
+/// [`crate::jobs::Jobs::sweep`]); returns how many bakes were removed.
 ///
 /// # Errors
 /// Store failures.
-pub fn remove_bake(st: &AppState, id: &str) -> crate::Result<bool> {
-    let _gc = st.0.gc_lock.write().unwrap_or_else(|e| e.into_inner());
-    let Some(rec) = st.0.bakes.get(id)? else {
-        return Ok(false);
-    };
-    st.0.bakes.delete(id)?;
-    let mut mine: Vec<String> = rec.blobs().map(str::to_owned).collect();
-    let mut after: Option<String> = None;
-    while !mine.is_empty() {
-        let page = st.0.bakes.list(None, after.as_deref(), 1000)?;
-        for other in &page.items {
-            mine.retain(|b| other.blobs().all(|o| o != b));
-        }
-        match page.next {
-            Some(n) => after = Some(n),
-            None => break,
-        }
-    }
-    for b in mine {
-        st.0.blobs.delete(&b)?;
-    }
-    Ok(true)
-}
-
-/// Removes finished bakes older than the retention, then orphaned blobs (older than an hour, so
-/// a submission between its blob write and its record commit is never touched).
-///
-/// # Errors
-/// Store failures.
-pub fn sweep(st: &AppState) -> crate::Result<usize> {
-    let now = now_ms();
-    let retention = st.0.config.retention.as_millis() as u64;
-    let mut expired = Vec::new();
-    let mut after: Option<String> = None;
-    loop {
-        let page = st.0.bakes.list(None, after.as_deref(), 1000)?;
-        for r in &page.items {
-            if r.expires_ms(retention).is_some_and(|e| e <= now) {
-                expired.push(r.id.clone());
-            }
-        }
-        match page.next {
-            Some(n) => after = Some(n),
-            None => break,
-        }
-    }
-    let mut removed = 0;
-    for id in &expired {
-        if remove_bake(st, id)? {
-            removed += 1;
-        }
-    }
-    let _gc = st.0.gc_lock.write().unwrap_or_else(|e| e.into_inner());
-    let mut referenced = std::collections::HashSet::new();
-    let mut after: Option<String> = None;
-    loop {
-        let page = st.0.bakes.list(None, after.as_deref(), 1000)?;
-        for r in &page.items {
-            referenced.extend(r.blobs().map(str::to_owned));
-        }
-        match page.next {
-            Some(n) => after = Some(n),
-            None => break,
-        }
-    }
-    for (hash, age) in st.0.blobs.list()? {
-        if age > 3600 && !referenced.contains(&hash) {
-            st.0.blobs.delete(&hash)?;
-        }
-    }
-    Ok(removed)
-}
-
-/// Runs [`sweep`] every `sweep_interval` until the server closes.
-pub async fn sweep_loop(st: AppState) {
-    loop {
-        tokio::select! {
-            _ = st.0.closing.cancelled() => return,
-            _ = tokio::time::sleep(st.0.config.sweep_interval) => {}
-        }
-        let job = st.clone();
-        match blocking(move || sweep(&job)).await {
-            Ok(0) => {}
-            Ok(n) => tracing::info!(removed = n, "retention sweep"),
-            Err(e) => tracing::error!(error = %e, "retention sweep failed"),
-        }
-    }
+pub async fn sweep(st: &AppState) -> crate::Result<usize> {
+    st.0.jobs.sweep().await
 }
 
 // ---------------------------------------------------------------------------------------------
 // Progress events
 
 async fn snapshot(st: &AppState, id: &str) -> Option<(Status, Value)> {
-    let store = st.0.bakes.clone();
-    let key = id.to_owned();
-    let rec = blocking(move || store.get(&key)).await.ok().flatten()?;
+    let rec = st.0.jobs.get(id).await.ok().flatten()?;
     let res = resource(st, &rec);
     let status = res.get("status").and_then(Value::as_str).and_then(|s| Status::parse(s).ok())?;
     Some((status, res))
@@ -711,6 +582,7 @@ struct Watch {
     st: AppState,
     id: String,
     rx: tokio::sync::broadcast::Receiver<String>,
+    closing: tokio_util::sync::CancellationToken,
     last: Option<String>,
     first: bool,
     done: bool,
@@ -740,8 +612,9 @@ pub async fn events(
     Path(id): Path<String>,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, Problem> {
     load(&st, &id).await?;
-    let rx = st.0.changes.subscribe();
-    let w = Watch { st, id, rx, last: None, first: true, done: false, seq: 0 };
+    let rx = st.0.jobs.watch();
+    let closing = st.0.jobs.closing();
+    let w = Watch { st, id, rx, closing, last: None, first: true, done: false, seq: 0 };
     let stream = futures_util::stream::unfold(w, |mut w| async move {
         if w.done {
             return None;
@@ -750,7 +623,7 @@ pub async fn events(
             let mut closing = false;
             if !w.first {
                 tokio::select! {
-                    _ = w.st.0.closing.cancelled() => closing = true,
+                    _ = w.closing.cancelled() => closing = true,
                     _ = tokio::time::sleep(Duration::from_millis(250)) => {}
                     _ = w.rx.recv() => {}
                 }
@@ -808,13 +681,14 @@ async fn blob_response(
     let mut res = if etag_matches(headers, &etag) {
         StatusCode::NOT_MODIFIED.into_response()
     } else {
-        let blobs = st.0.blobs.clone();
+        let blobs = st.0.jobs.blob_store().clone();
         let key = hash.to_owned();
-        let bytes =
-            blocking(move || blobs.get(&key)).await.map_err(store_err)?.ok_or_else(|| {
+        let (len, reader) =
+            blocking(move || blobs.open(&key)).await.map_err(store_err)?.ok_or_else(|| {
                 Problem::internal(&format!("result blob {hash} is missing from the blob store"))
             })?;
-        let mut r = Response::new(Body::from(bytes));
+        let mut r = Response::new(stream_body(reader));
+        r.headers_mut().insert(header::CONTENT_LENGTH, HeaderValue::from(len));
         r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
         if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"{filename}\"")) {
             r.headers_mut().insert(header::CONTENT_DISPOSITION, v);
@@ -823,6 +697,30 @@ async fn blob_response(
     };
     cache_headers(&mut res, &etag, IMMUTABLE_CACHE);
     Ok(res)
+}
+
+/// A body read from `reader` on a blocking thread, 64 KiB at a time with at most a few chunks
+/// in flight: a download never holds a whole result in memory, whichever store it comes from.
+fn stream_body(mut reader: Box<dyn std::io::Read + Send>) -> Body {
+    let (tx, rx) = tokio::sync::mpsc::channel::<std::io::Result<bytes::Bytes>>(4);
+    tokio::task::spawn_blocking(move || {
+        let mut buf = vec![0u8; 64 * 1024];
+        loop {
+            match reader.read(&mut buf) {
+                Ok(0) => return,
+                Ok(n) => {
+                    if tx.blocking_send(Ok(bytes::Bytes::copy_from_slice(&buf[..n]))).is_err() {
+                        return; // the client went away
+                    }
+                }
+                Err(e) => {
+                    let _ = tx.blocking_send(Err(e));
+                    return;
+                }
+            }
+        }
+    });
+    Body::from_stream(tokio_stream::wrappers::ReceiverStream::new(rx))
 }
 
 /// Results never change once written: clients may keep them for a year.
@@ -1159,7 +1057,13 @@ pub async fn heights(
         StatusCode::NOT_MODIFIED.into_response()
     } else {
         let (w, h, bytes) = on_pool(&st, &format!("the heights of bake {id}"), move |st| {
-            let map = worker::decode_input(st, &rec, &params)?.0;
+            let map = worker::decode_input(
+                st.0.jobs.blob_store().as_ref(),
+                &rec,
+                &params,
+                &st.0.config.limits,
+            )?
+            .0;
             let (w, h) = (map.width, map.height);
             let bytes: Vec<u8> =
                 map.into_scaled(params.height_scale).iter().flat_map(|v| v.to_le_bytes()).collect();
@@ -1229,7 +1133,13 @@ pub async fn preview(
     let progress = Progress::new();
     let _cancel = CancelOnDrop(progress.clone());
     let png = on_pool(&st, &format!("the preview of bake {id}"), move |st| {
-        let map = worker::decode_input(st, &rec, &params)?.0;
+        let map = worker::decode_input(
+            st.0.jobs.blob_store().as_ref(),
+            &rec,
+            &params,
+            &st.0.config.limits,
+        )?
+        .0;
         preview::render_baking(&map, &params, &pp, &progress)?.to_png()
     })
     .await?;
@@ -1255,37 +1165,31 @@ pub async fn readyz(State(st): State<AppState>) -> Answer {
     if st.is_draining() {
         return Err(Problem::shutting_down());
     }
-    let (waiting, running) = st.0.queue.counts();
+    // Ready means the stores answer too: with PostgreSQL away this is 503, so a load
+    // balancer stops sending work here until it is back.
+    let c = st.0.jobs.counts().await.map_err(store_err)?;
     Ok(json_response(
         StatusCode::OK,
-        &json!({"status": "ready", "queue_depth": waiting, "queue_capacity": st.0.queue.capacity(), "running": running}),
+        &json!({
+            "status": "ready",
+            "role": match st.0.config.role {
+                super::config::Role::All => "all",
+                super::config::Role::Api => "api",
+                super::config::Role::Worker => "worker",
+            },
+            "queue_depth": c.queued,
+            "queue_capacity": st.0.config.queue_capacity,
+            "running": c.running,
+            "running_here": st.0.jobs.running_here(),
+        }),
     ))
 }
 
 /// `GET /metrics`: Prometheus text.
 pub async fn metrics(State(st): State<AppState>) -> Answer {
-    let store = st.0.bakes.clone();
-    let stored = blocking(move || {
-        let mut counts: HashMap<Status, u64> = HashMap::new();
-        let mut after: Option<String> = None;
-        loop {
-            let page = store.list(None, after.as_deref(), 1000)?;
-            for r in &page.items {
-                *counts.entry(r.status).or_insert(0) += 1;
-            }
-            match page.next {
-                Some(n) => after = Some(n),
-                None => break,
-            }
-        }
-        Ok(Status::ALL
-            .iter()
-            .map(|s| (*s, counts.get(s).copied().unwrap_or(0)))
-            .collect::<Vec<_>>())
-    })
-    .await
-    .map_err(store_err)?;
-    let (waiting, running) = st.0.queue.counts();
+    let c = st.0.jobs.counts().await.map_err(store_err)?;
+    let stored: Vec<(Status, u64)> = Status::ALL.iter().map(|s| (*s, c.of(*s))).collect();
+    let (waiting, running) = (c.queued as usize, c.running as usize);
     let text = st.0.metrics.render(&stored, waiting, running);
     Ok(([(header::CONTENT_TYPE, "text/plain; version=0.0.4; charset=utf-8")], text).into_response())
 }

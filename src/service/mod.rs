@@ -2,47 +2,51 @@
 //!
 //! # Shape
 //! - [`config`]: flags and environment → one validated [`Config`].
-//! - [`store`]: the [`store::BakeStore`] and [`store::BlobStore`] traits and their embedded
-//!   implementations (redb file + content-addressed files in the data directory).
-//! - [`queue`] and [`worker`]: a bounded FIFO of bake ids, a dispatcher that runs at most N
-//!   bakes at once on a dedicated rayon pool, results back over a oneshot.
-//! - [`handlers`]: thin axum handlers: validate, call the store or the queue, answer.
+//! - [`crate::jobs`]: the job lifecycle behind the repository and blob traits (embedded redb +
+//!   files, or PostgreSQL + S3); the HTTP layer reaches storage only through it.
+//! - [`worker`]: what a bake computes (the [`crate::jobs::Runner`] the jobs core runs on the
+//!   bake pool) and the results encoded on request.
+//! - [`handlers`]: thin axum handlers: validate, call the jobs core, answer.
 //! - [`upload`]: an upload's body under the size limit and the idle timeout.
 //! - [`problem`]: every failure as problem+json with a stable code.
 //! - [`metrics`]: Prometheus text.
 //!
 //! # Durability
 //! A submission is answered 202 only after its input blob and its `queued` record are durable.
-//! At start, every record found `queued` or `running` is queued again (in creation order), so a
-//! crash or a SIGKILL loses no accepted bake; a re-run is idempotent because results are
-//! content-addressed. On SIGTERM the server stops taking work (`/readyz` and submissions answer
-//! 503), lets running bakes finish within the grace period and puts the others back to `queued`
-//! for the next start.
+//! Embedded: at start, every record found `queued` or `running` is queued again (in creation
+//! order), so a crash or a SIGKILL loses no accepted bake. Shared stores: a worker that stops
+//! heartbeating loses its lease and another takes the bake over. A re-run is idempotent because
+//! results are content-addressed. On SIGTERM the server stops taking work (`/readyz` and
+//! submissions answer 503), lets running bakes finish within the grace period and hands the
+//! others back to the queue.
 
 pub mod config;
 pub mod handlers;
 pub mod metrics;
 pub mod problem;
-pub mod queue;
-pub mod store;
 pub mod ui;
 pub mod upload;
 pub mod worker;
 
+/// The record and blob types, where they always were for the service's callers.
+pub use crate::jobs::store;
 pub use config::{Config, ServeArgs};
 
 use crate::error::{Error, Result};
+use crate::jobs::embedded::EmbeddedRepo;
+use crate::jobs::repo::JobRepo;
+use crate::jobs::store::{BlobStore, FsBlobStore};
+use crate::jobs::{Jobs, JobsConfig};
 use axum::extract::DefaultBodyLimit;
 use axum::routing::{get, post};
 use axum::Router;
+use config::Backend;
 use std::convert::Infallible;
 use std::future::Future;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
-use store::{BakeStore, BlobStore, FsBlobStore, RedbStore, Status};
-use tokio::sync::{broadcast, Semaphore};
-use tokio_util::sync::CancellationToken;
-use tokio_util::task::TaskTracker;
+use std::time::Duration;
+use tokio::sync::Semaphore;
 
 /// Every route and its methods: the router below is built to match, and a test checks both
 /// against `openapi.yaml`.
@@ -74,44 +78,27 @@ pub struct AppState(pub Arc<Shared>);
 /// What [`AppState`] holds.
 pub struct Shared {
     pub config: Config,
-    pub bakes: Arc<dyn BakeStore>,
-    pub blobs: Arc<dyn BlobStore>,
-    pub queue: queue::Queue,
-    /// The dedicated pool bakes run on (never the async workers).
-    pub pool: rayon::ThreadPool,
-    /// Previews render here, not on `pool`: a preview is a request someone is waiting for, and
-    /// on the bake pool it would wait for the whole of a running bake (rayon workers busy in a
-    /// bake's parallel loop only take new jobs when they run out of its work).
+    /// The job lifecycle: every state change of a bake goes through it.
+    pub jobs: Jobs,
+    /// Previews render here, not on the bake pool: a preview is a request someone is waiting
+    /// for, and on the bake pool it would wait for the whole of a running bake (rayon workers
+    /// busy in a bake's parallel loop only take new jobs when they run out of its work).
     pub preview_pool: rayon::ThreadPool,
-    /// At most `max_concurrent_bakes` permits.
-    pub slots: Arc<Semaphore>,
     /// Uploads read at once.
     pub uploads: Arc<Semaphore>,
-    pub metrics: metrics::Metrics,
+    pub metrics: Arc<metrics::Metrics>,
     /// Set on shutdown: readyz and submissions answer 503.
     pub draining: AtomicBool,
-    /// Stops the dispatcher.
-    pub stop: CancellationToken,
-    /// Ends long-lived responses (SSE) and background loops.
-    pub closing: CancellationToken,
-    /// Running jobs.
-    pub tracker: TaskTracker,
-    /// Serialises the dedup check and the insert of submissions.
-    pub submit_lock: tokio::sync::Mutex<()>,
-    /// Readers: anything writing blobs then a record referencing them. Writer: blob removal.
-    pub gc_lock: std::sync::RwLock<()>,
-    /// Ids of bakes whose state changed (wakes SSE streams).
-    pub changes: broadcast::Sender<String>,
     /// One lock per result group being encoded on request (`id/first result name`), so
     /// concurrent first requests for a result encode it once and the others wait for it.
     pub encoding: std::sync::Mutex<std::collections::HashMap<String, Arc<tokio::sync::Mutex<()>>>>,
 }
 
 impl AppState {
-    /// Opens the data directory with the embedded stores.
+    /// Opens the embedded stores in the data directory. Call inside a tokio runtime.
     ///
     /// # Errors
-    /// When the data directory or the store cannot be opened, or the pool cannot start.
+    /// When the data directory or the store cannot be opened, or the pools cannot start.
     pub fn open(config: Config) -> Result<Self> {
         std::fs::create_dir_all(&config.data_dir).map_err(|e| {
             Error::Io(std::io::Error::new(
@@ -119,119 +106,94 @@ impl AppState {
                 format!("cannot create the data directory {}: {e}", config.data_dir.display()),
             ))
         })?;
-        let bakes = Arc::new(RedbStore::open(&config.data_dir.join("bakes.redb"))?);
+        let repo = Arc::new(EmbeddedRepo::open(&config.data_dir.join("bakes.redb"))?);
         let blobs = Arc::new(FsBlobStore::open(&config.data_dir.join("blobs"))?);
-        Self::with_stores(config, bakes, blobs)
+        Self::with_stores(config, repo, blobs)
     }
 
-    /// Builds the state on any stores (a networked database, object storage).
+    /// Opens the stores `config.backend` names: the embedded ones, or PostgreSQL (migrated at
+    /// start) and the S3 bucket. Call inside a tokio runtime.
     ///
     /// # Errors
-    /// When the bake pool cannot start.
+    /// When a store cannot be opened or reached.
+    pub async fn connect(config: Config) -> Result<Self> {
+        match config.backend.clone() {
+            Backend::Embedded => Self::open(config),
+            Backend::Shared { database_url, s3 } => {
+                let repo =
+                    crate::jobs::postgres::PgRepo::connect(&database_url, Duration::from_secs(30))
+                        .await?;
+                let spool = config.data_dir.join("spool");
+                let blobs = crate::jobs::s3::S3BlobStore::connect(&s3, &spool).await?;
+                Self::with_stores(config, Arc::new(repo), Arc::new(blobs))
+            }
+        }
+    }
+
+    /// Builds the state on any stores. Call inside a tokio runtime.
+    ///
+    /// # Errors
+    /// When a pool cannot start.
     pub fn with_stores(
         config: Config,
-        bakes: Arc<dyn BakeStore>,
+        repo: Arc<dyn JobRepo>,
         blobs: Arc<dyn BlobStore>,
     ) -> Result<Self> {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(config.bake_threads)
-            .thread_name(|i| format!("bake-{i}"))
-            .panic_handler(|_| tracing::error!("a bake thread panicked outside a job"))
-            .build()
-            .map_err(|e| Error::Internal(format!("cannot start the bake pool: {e}")))?;
         let preview_pool = rayon::ThreadPoolBuilder::new()
             .num_threads(config.preview_threads)
             .thread_name(|i| format!("preview-{i}"))
             .panic_handler(|_| tracing::error!("a preview thread panicked outside a job"))
             .build()
             .map_err(|e| Error::Internal(format!("cannot start the preview pool: {e}")))?;
-        let (changes, _) = broadcast::channel(1024);
-        Ok(AppState(Arc::new(Shared {
-            slots: Arc::new(Semaphore::new(config.max_concurrent_bakes)),
-            uploads: Arc::new(Semaphore::new(config.max_inflight_uploads)),
-            queue: queue::Queue::new(config.queue_capacity),
-            config,
-            bakes,
+        let metrics = Arc::new(metrics::Metrics::default());
+        let shared = matches!(config.backend, Backend::Shared { .. });
+        let jobs_cfg = JobsConfig {
+            worker_id: config.worker_id.clone(),
+            lease: config.lease,
+            heartbeat: config.heartbeat,
+            max_attempts: config.max_attempts,
+            queue_capacity: config.queue_capacity,
+            concurrency: if config.role.bakes() { config.max_concurrent_bakes } else { 0 },
+            bake_threads: config.bake_threads,
+            retention: config.retention,
+            sweep_interval: config.sweep_interval,
+            orphan_age: Duration::from_secs(3600),
+            // Change notifications wake idle workers; polling only covers a lost notification
+            // (a database restart). The embedded queue lives in this process and never misses.
+            poll: if shared { Duration::from_secs(2) } else { Duration::from_secs(30) },
+        };
+        let hook_metrics = metrics.clone();
+        let jobs = Jobs::new(
+            repo,
             blobs,
-            pool,
+            jobs_cfg,
+            worker::runner(config.limits),
+            Some(Arc::new(move |s, secs, texels| hook_metrics.finished(s, secs, texels))),
+        )?;
+        Ok(AppState(Arc::new(Shared {
+            uploads: Arc::new(Semaphore::new(config.max_inflight_uploads)),
+            config,
+            jobs,
             preview_pool,
-            metrics: metrics::Metrics::default(),
+            metrics,
             draining: AtomicBool::new(false),
-            stop: CancellationToken::new(),
-            closing: CancellationToken::new(),
-            tracker: TaskTracker::new(),
-            submit_lock: tokio::sync::Mutex::new(()),
-            gc_lock: std::sync::RwLock::new(()),
-            changes,
             encoding: Default::default(),
         })))
     }
 
-    /// Tells SSE watchers that bake `id` changed.
-    pub fn notify(&self, id: &str) {
-        let _ = self.0.changes.send(id.to_owned());
-    }
-
-    /// Re-queues every bake found `queued` or `running` (in creation order) and starts the
-    /// dispatcher and the retention sweeper. Call once, inside a tokio runtime.
+    /// Recovers what a previous run left and starts the jobs core's background work.
     ///
     /// # Errors
     /// When the store cannot be read.
     pub async fn start(&self) -> Result<usize> {
-        let store = self.0.bakes.clone();
-        let unfinished = worker::blocking(move || {
-            let mut out = Vec::new();
-            let mut after: Option<String> = None;
-            loop {
-                let page = store.list(None, after.as_deref(), 1000)?;
-                for mut r in page.items {
-                    if r.status == Status::Running {
-                        r.status = Status::Queued;
-                        r.started_ms = None;
-                        store.put(&r)?;
-                    }
-                    if r.status == Status::Queued {
-                        out.push(r.id);
-                    }
-                }
-                match page.next {
-                    Some(n) => after = Some(n),
-                    None => break,
-                }
-            }
-            Ok(out)
-        })
-        .await?;
-        for id in &unfinished {
-            self.0.queue.push_recovered(id);
-        }
-        if !unfinished.is_empty() {
-            tracing::info!(count = unfinished.len(), "re-queued unfinished bakes");
-        }
-        tokio::spawn(worker::dispatch(self.clone()));
-        tokio::spawn(handlers::sweep_loop(self.clone()));
-        Ok(unfinished.len())
+        self.0.jobs.start().await
     }
 
-    /// Stops taking work, lets running bakes finish within the grace period, puts the rest back
-    /// to `queued`, and ends long-lived responses.
+    /// Stops taking work, lets running bakes finish within the grace period, hands the rest
+    /// back to the queue, and ends long-lived responses.
     pub async fn drain(&self) {
         self.0.draining.store(true, Ordering::SeqCst);
-        self.0.stop.cancel();
-        self.0.tracker.close();
-        let grace = self.0.config.shutdown_grace;
-        if tokio::time::timeout(grace, self.0.tracker.wait()).await.is_err() {
-            let ids = self.0.queue.running_ids();
-            tracing::warn!(
-                count = ids.len(),
-                "grace period over: returning running bakes to the queue"
-            );
-            for id in ids {
-                self.0.queue.cancel_running(&id, true);
-            }
-            self.0.tracker.wait().await;
-        }
-        self.0.closing.cancel();
+        self.0.jobs.drain(self.0.config.shutdown_grace).await;
     }
 
     /// Whether the server is draining.
@@ -242,6 +204,17 @@ impl AppState {
 
 /// The router: every route of SPEC §5 that this build serves (see [`ROUTES`]).
 pub fn app(st: AppState) -> Router {
+    if !st.0.config.role.serves_api() {
+        // A worker answers health and metrics only (SPEC §7).
+        return Router::new()
+            .route("/healthz", get(handlers::healthz))
+            .route("/readyz", get(handlers::readyz))
+            .route("/metrics", get(handlers::metrics))
+            .route_layer(axum::middleware::from_fn_with_state(st.clone(), handlers::track))
+            .fallback(handlers::fallback)
+            .layer(axum::middleware::map_response(problem::normalize))
+            .with_state(st);
+    }
     // The submit handler bounds the body itself (see `handlers::submit`): it must read and
     // discard an oversized body before answering 413, or the client, still sending, sees a reset
     // instead of the answer. A limit layer would answer at once, so none is set here.
@@ -286,7 +259,7 @@ pub async fn run(
     listener: tokio::net::TcpListener,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<()> {
-    let st = AppState::open(config)?;
+    let st = AppState::connect(config).await?;
     serve(st, listener, shutdown).await
 }
 

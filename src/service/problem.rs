@@ -143,6 +143,16 @@ impl From<Error> for Problem {
             Error::Param { field, message } => Problem::param(field.clone(), message.clone()),
             Error::Canceled => Problem::new(StatusCode::CONFLICT, code, "the bake was canceled"),
             Error::Io(_) | Error::Internal(_) => Problem::internal(&e),
+            Error::Unavailable(cause) => {
+                tracing::warn!(%cause, "backing store unavailable");
+                let mut p = Problem::new(
+                    StatusCode::SERVICE_UNAVAILABLE,
+                    code,
+                    "the bake store is unavailable right now; retry shortly",
+                );
+                p.retry_after = Some(2);
+                p
+            }
         }
     }
 }

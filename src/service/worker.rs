@@ -1,25 +1,26 @@
-//! Running bakes: the dispatcher that takes ids off the queue, at most N at once, and the job
-//! that runs one bake on the dedicated rayon pool.
+//! What a bake computes for the service: the [`Runner`] the jobs core runs on the bake pool
+//! for each claimed bake (decode → bake → encode → store), and the results encoded on their
+//! first request.
 //!
-//! The async side never computes: it marks the record `running`, hands the bake to the pool with
-//! `ThreadPool::spawn`, and awaits the outcome on a oneshot channel. The pool side decodes,
-//! bakes, encodes and stores the results, inside `catch_unwind` so a panicking bake becomes a
-//! `failed` record instead of an aborted process (rayon's default on a panic in `spawn`).
-//! Cancellation goes through [`Progress::cancel`], which the kernel polls between bands.
+//! The jobs core owns the lifecycle (claims, heartbeats, cancel, completion, `catch_unwind`);
+//! this module only turns a record into results. Cancellation goes through
+//! [`Progress::cancel`], which the kernel polls between bands.
 
 use crate::bake;
 use crate::encode::exr::ExrPrecision;
 use crate::encode::{self, Formats, TexturePrecision};
 use crate::error::{Error, Result};
 use crate::heightmap;
+use crate::heightmap::Limits;
+use crate::jobs::store::{now_ms, BakeRecord, BlobStore, RadiusInfo, Status, Timings};
+use crate::jobs::{Blobs, Runner};
 use crate::params::BakeParams;
 use crate::progress::{Progress, Stage};
-use crate::service::queue::Live;
-use crate::service::store::{now_ms, BakeFailure, BakeRecord, RadiusInfo, Status, Timings};
 use crate::service::AppState;
-use std::panic::{catch_unwind, AssertUnwindSafe};
-use std::sync::atomic::Ordering;
+use std::sync::Arc;
 use std::time::Instant;
+
+pub use crate::jobs::blocking;
 
 /// Names of the horizon results (each an immutable, content-addressed blob). A bake stores only
 /// `horizon_0.png8` and `horizon_1.png8` (plus `fourier_*.png` with `outputs=fourier`), streamed
@@ -73,7 +74,8 @@ pub fn encode_on_request(
     let group = result_group(name)
         .ok_or_else(|| Error::Internal(format!("`{name}` is not an on-request result")))?;
     let params = params_of(rec)?;
-    let (map, _) = decode_input(st, rec, &params)?;
+    let (map, _) =
+        decode_input(st.0.jobs.blob_store().as_ref(), rec, &params, &st.0.config.limits)?;
     let files: Vec<Vec<u8>> = match group[0] {
         "horizon_0.png8" => {
             let (pngs, _) = encode::stream_horizon_pngs::<u8, _>(
@@ -115,19 +117,20 @@ pub fn encode_on_request(
     if files.len() != group.len() {
         return Err(Error::Internal(format!("{} files encoded for {group:?}", files.len())));
     }
-    // Under the sweep lock, so a removal cannot run between the re-read and the write (which
-    // would bring a deleted bake back).
-    let _gc = st.0.gc_lock.read().unwrap_or_else(|e| e.into_inner());
-    let Some(mut current) = st.0.bakes.get(&rec.id)? else {
-        return Ok(None);
-    };
+    // Each blob is pinned for this encode until the record references it, so a concurrent
+    // removal of an identical result elsewhere cannot take it away in between.
+    let owner = format!("encode/{}/{}/{}", rec.id, group[0], now_ms());
+    let blobs = st.0.jobs.blobs_for(owner.clone());
+    let mut stored = Vec::with_capacity(group.len());
     for (n, bytes) in group.iter().zip(&files) {
-        let hash = st.0.blobs.put(bytes)?;
-        current.results.insert((*n).to_owned(), hash);
+        stored.push(((*n).to_owned(), blobs.put(bytes)?));
         st.0.metrics.encoded_on_request();
     }
-    st.0.bakes.put(&current)?;
-    Ok(current.results.get(name).cloned())
+    let added = st.0.jobs.block_on(st.0.jobs.add_results(&rec.id, &stored, &owner))?;
+    if !added {
+        return Ok(None);
+    }
+    Ok(stored.into_iter().find(|(n, _)| n == name).map(|(_, h)| h))
 }
 
 /// The parameters stored in a record.
@@ -138,129 +141,11 @@ pub fn params_of(rec: &BakeRecord) -> Result<BakeParams> {
     BakeParams::from_pairs(rec.params.iter().map(|(k, v)| (k.as_str(), v.as_str())))
 }
 
-/// Takes bakes off the queue while slots are free, until `stop` is canceled.
-pub async fn dispatch(st: AppState) {
-    let slots = st.0.slots.clone();
-    loop {
-        let permit = tokio::select! {
-            p = slots.clone().acquire_owned() => match p { Ok(p) => p, Err(_) => return },
-            _ = st.0.stop.cancelled() => return,
-        };
-        let (id, live) = tokio::select! {
-            x = st.0.queue.next() => x,
-            _ = st.0.stop.cancelled() => return,
-        };
-        let job_state = st.clone();
-        st.0.tracker.spawn(async move {
-            run_job(job_state, id, live).await;
-            drop(permit);
-        });
-    }
-}
-
-/// Runs a blocking closure off the async workers.
-///
-/// # Errors
-/// The closure's error, or [`Error::Internal`] if it panicked.
-pub async fn blocking<T, F>(f: F) -> Result<T>
-where
-    T: Send + 'static,
-    F: FnOnce() -> Result<T> + Send + 'static,
-{
-    tokio::task::spawn_blocking(f)
-        .await
-        .map_err(|e| Error::Internal(format!("blocking task failed: {e}")))?
-}
-
-async fn run_job(st: AppState, id: String, live: Live) {
-    let store = st.0.bakes.clone();
-    let lookup = id.clone();
-    let rec = match blocking(move || store.get(&lookup)).await {
-        Ok(Some(r)) if !r.status.is_terminal() => r,
-        Ok(_) => {
-            st.0.queue.finish(&id);
-            return;
-        }
-        Err(e) => {
-            tracing::error!(bake = %id, error = %e, "cannot load a queued bake; leaving it queued");
-            st.0.queue.finish(&id);
-            return;
-        }
-    };
-    let mut running = rec.clone();
-    running.status = Status::Running;
-    running.started_ms = Some(now_ms());
-    running.attempts += 1;
-    let store = st.0.bakes.clone();
-    let to_store = running.clone();
-    if let Err(e) = blocking(move || store.put(&to_store)).await {
-        tracing::error!(bake = %id, error = %e, "cannot mark a bake running; leaving it queued");
-        st.0.queue.finish(&id);
-        return;
-    }
-    st.notify(&id);
-
-    let started = Instant::now();
-    let (tx, rx) = tokio::sync::oneshot::channel();
-    let pool_state = st.clone();
-    let progress = live.progress.clone();
-    let job = running.clone();
-    st.0.pool.spawn(move || {
-        let out = catch_unwind(AssertUnwindSafe(|| execute(&pool_state, job, &progress)));
-        let _ = tx.send(out);
-    });
-    let outcome = rx.await;
-    let seconds = started.elapsed().as_secs_f64();
-    let texels = running.width as u64 * running.height as u64;
-
-    let mut rec = running;
-    let status = match outcome {
-        Ok(Ok(Ok(_stored))) => Status::Succeeded,
-        Ok(Ok(Err(Error::Canceled))) if live.requeue.load(Ordering::Relaxed) => Status::Queued,
-        Ok(Ok(Err(Error::Canceled))) => Status::Canceled,
-        Ok(Ok(Err(e))) => {
-            let message = match &e {
-                Error::Io(_) | Error::Internal(_) => {
-                    tracing::error!(bake = %id, code = e.code(), error = %e, "bake failed");
-                    "an internal error occurred; it has been logged".to_owned()
-                }
-                _ => {
-                    // The input's fault, not ours: one line so an operator can still find it.
-                    tracing::warn!(bake = %id, code = e.code(), error = %e, "bake failed");
-                    e.to_string()
-                }
-            };
-            rec.error = Some(BakeFailure { code: e.code().to_owned(), message });
-            Status::Failed
-        }
-        Ok(Err(_)) | Err(_) => {
-            tracing::error!(bake = %id, "bake panicked");
-            rec.error = Some(BakeFailure {
-                code: "internal".into(),
-                message: "an internal error occurred; it has been logged".into(),
-            });
-            Status::Failed
-        }
-    };
-    if status != Status::Succeeded {
-        rec.status = status;
-        if status == Status::Queued {
-            // Shutdown: leave it for the next start, which re-queues it.
-            rec.started_ms = None;
-        } else {
-            rec.finished_ms = Some(now_ms());
-        }
-        let store = st.0.bakes.clone();
-        let to_store = rec.clone();
-        if let Err(e) = blocking(move || store.put(&to_store)).await {
-            tracing::error!(bake = %id, error = %e, "cannot record a bake's outcome");
-        }
-    }
-    if status.is_terminal() {
-        st.0.metrics.finished(status, seconds, texels);
-    }
-    st.0.queue.finish(&id);
-    st.notify(&id);
+/// The runner the jobs core calls for each claimed bake, with the service's input limits.
+pub fn runner(limits: Limits) -> Runner {
+    Arc::new(move |rec: &BakeRecord, progress: &Progress, blobs: &Blobs| {
+        execute(&limits, rec.clone(), progress, blobs)
+    })
 }
 
 fn ms(t: Instant) -> f64 {
@@ -274,26 +159,35 @@ fn ms(t: Instant) -> f64 {
 /// # Errors
 /// A missing input blob ([`Error::Internal`]), store and decode failures.
 pub fn decode_input(
-    st: &AppState,
+    blobs: &dyn BlobStore,
     rec: &BakeRecord,
     params: &BakeParams,
+    limits: &Limits,
 ) -> Result<(heightmap::HeightMap, heightmap::InputInfo)> {
-    let bytes =
-        st.0.blobs
-            .get(&rec.input_blob)?
-            .ok_or_else(|| Error::Internal(format!("input blob {} is missing", rec.input_blob)))?;
-    heightmap::decode(&bytes, params.channel, &st.0.config.limits)
+    let bytes = blobs
+        .get(&rec.input_blob)?
+        .ok_or_else(|| Error::Internal(format!("input blob {} is missing", rec.input_blob)))?;
+    heightmap::decode(&bytes, params.channel, limits)
 }
 
 /// One bake, on the bake pool: decode → bake → encode → store, then the record is committed as
 /// `succeeded`. Returns the stored record.
-fn execute(st: &AppState, mut rec: BakeRecord, progress: &Progress) -> Result<BakeRecord> {
+fn execute(
+    limits: &Limits,
+    mut rec: BakeRecord,
+    progress: &Progress,
+    blobs: &Blobs,
+) -> Result<BakeRecord> {
     let t_total = Instant::now();
     let params = params_of(&rec)?;
 
     progress.start(Stage::Decode, 1);
     let t = Instant::now();
-    let (map, info) = decode_input(st, &rec, &params)?;
+    let bytes = blobs
+        .get(&rec.input_blob)?
+        .ok_or_else(|| Error::Internal(format!("input blob {} is missing", rec.input_blob)))?;
+    let (map, info) = heightmap::decode(&bytes, params.channel, limits)?;
+    drop(bytes);
     progress.advance(1);
     let decode_ms = ms(t);
 
@@ -314,7 +208,7 @@ fn execute(st: &AppState, mut rec: BakeRecord, progress: &Progress) -> Result<Ba
         // Kernel and PNG encoder overlap band by band, as in the CLI, so `bake` covers both and
         // no whole layer exists; the PNGs go straight into blob writers (temporary files), so
         // no whole encoded image exists either. Every other format waits for its first request.
-        let outs = [st.0.blobs.writer()?, st.0.blobs.writer()?];
+        let outs = [blobs.writer()?, blobs.writer()?];
         let (writers, r) = encode::stream_horizon_pngs::<u8, _>(map, &params, progress, outs)?;
         radius = Some(r);
         streamed = Some(writers);
@@ -330,9 +224,8 @@ fn execute(st: &AppState, mut rec: BakeRecord, progress: &Progress) -> Result<Ba
     }
     progress.start(Stage::Store, encoded.len() as u64 + 3);
     let t = Instant::now();
-    // Hold the sweep lock from the first blob write to the record commit, so a concurrent
-    // retention sweep never removes a blob this record is about to reference.
-    let _gc = st.0.gc_lock.read().unwrap_or_else(|e| e.into_inner());
+    // Every blob is pinned for this claim as it is published (see `jobs::Blobs`), so a
+    // concurrent sweep never removes one this record is about to reference.
     if let Some([w0, w1]) = streamed {
         // Both files are written already; committing is an fsync and a rename each, side by
         // side.
@@ -342,7 +235,7 @@ fn execute(st: &AppState, mut rec: BakeRecord, progress: &Progress) -> Result<Ba
         progress.advance(2);
     }
     for (name, bytes) in &encoded {
-        let hash = st.0.blobs.put(bytes)?;
+        let hash = blobs.put(bytes)?;
         rec.results.insert(name.clone(), hash);
         progress.advance(1);
     }
@@ -361,7 +254,6 @@ fn execute(st: &AppState, mut rec: BakeRecord, progress: &Progress) -> Result<Ba
         store: store_ms,
         total: ms(t_total),
     });
-    st.0.bakes.put(&rec)?;
     progress.start(Stage::Done, 1);
     progress.advance(1);
     Ok(rec)

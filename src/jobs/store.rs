@@ -1,10 +1,11 @@
-//! Persistence behind two small traits, so a networked database and object storage can replace
-//! the embedded ones without touching a handler:
+//! The bake record, its embedded record table, and content-addressed blobs.
 //!
-//! - [`BakeStore`]: bake records (status, parameters, input description, result references) and
-//!   the deduplication index. [`RedbStore`] keeps them in one redb file in the data directory; a
-//!   commit is durable before the caller answers, which is what lets a restart re-queue every
-//!   bake that was accepted.
+//! - [`BakeRecord`]: everything persisted about one bake, whichever backend keeps it.
+//! - [`BakeStore`]: the embedded backend's record table and deduplication index.
+//!   [`RedbStore`] keeps them in one redb file in the data directory; a commit is durable before
+//!   the caller answers, which is what lets a restart re-queue every bake that was accepted.
+//!   The job lifecycle (claims, leases, cancel, changes) is [`crate::jobs::repo::JobRepo`]'s;
+//!   the embedded repository is built on this table.
 //! - [`BlobStore`]: immutable, content-addressed bytes (inputs and encoded results), named by the
 //!   BLAKE3 of their content. [`FsBlobStore`] writes each to a temporary file, fsyncs it and
 //!   renames it into place, so a crash leaves either the whole file or nothing. A result
@@ -125,8 +126,29 @@ pub struct BakeRecord {
     pub error: Option<BakeFailure>,
     /// Result name (`horizon_0.png8`, …) → blob hash.
     pub results: BTreeMap<String, String>,
-    /// How many times a worker started this bake (restarts re-run it).
+    /// How many times a worker started this bake (restarts re-run it); the fencing number of
+    /// the current claim.
     pub attempts: u32,
+    /// Progress of a running bake as its worker last reported it (heartbeats).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub progress: Option<LiveProgress>,
+    /// The worker running (or that last ran) this bake.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub worker: Option<String>,
+}
+
+/// Progress as a worker reports it: the stage and the fraction of that stage done.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LiveProgress {
+    pub stage: crate::progress::Stage,
+    pub fraction: f64,
+}
+
+impl LiveProgress {
+    /// A snapshot of `p`.
+    pub fn of(p: &crate::progress::Progress) -> Self {
+        LiveProgress { stage: p.stage(), fraction: p.fraction() }
+    }
 }
 
 impl BakeRecord {
@@ -270,7 +292,7 @@ pub trait BlobWriter: std::io::Write + Send {
     ///
     /// # Errors
     /// The backend's failure.
-    fn commit(self: Box<Self>) -> Result<String>;
+    fn commit(self: Box<Self>, pin: PinHook<'_>) -> Result<String>;
 }
 
 /// Immutable content-addressed bytes.
@@ -281,10 +303,11 @@ pub trait BlobStore: Send + Sync + 'static {
     /// The backend's failure.
     fn writer(&self) -> Result<Box<dyn BlobWriter>>;
     /// Stores `bytes` and returns their hash (hex BLAKE3). Idempotent; durable on return.
+    /// `pin` is called with the hash before the bytes are published (see [`PinHook`]).
     ///
     /// # Errors
     /// The backend's failure.
-    fn put(&self, bytes: &[u8]) -> Result<String>;
+    fn put(&self, bytes: &[u8], pin: PinHook<'_>) -> Result<String>;
     /// The bytes stored under `hash`.
     ///
     /// # Errors
@@ -305,7 +328,18 @@ pub trait BlobStore: Send + Sync + 'static {
     /// # Errors
     /// The backend's failure.
     fn list(&self) -> Result<Vec<(String, u64)>>;
+    /// A reader over the bytes stored under `hash` and their length, for streaming a download
+    /// without holding it in memory.
+    ///
+    /// # Errors
+    /// The backend's failure.
+    fn open(&self, hash: &str) -> Result<Option<(u64, Box<dyn std::io::Read + Send>)>>;
 }
+
+/// Called with a blob's hash after its bytes are hashed and before they become visible under
+/// that hash: the jobs core pins the hash there, so a concurrent sweep cannot remove the blob
+/// between its write and the commit of the record that references it.
+pub type PinHook<'a> = &'a (dyn Fn(&str) -> Result<()> + Sync);
 
 const BAKES: TableDefinition<&str, &[u8]> = TableDefinition::new("bakes");
 const DEDUP: TableDefinition<&str, &str> = TableDefinition::new("dedup");
@@ -479,11 +513,12 @@ impl std::io::Write for FsBlobWriter {
 }
 
 impl BlobWriter for FsBlobWriter {
-    fn commit(self: Box<Self>) -> Result<String> {
+    fn commit(self: Box<Self>, pin: PinHook<'_>) -> Result<String> {
         let FsBlobWriter { mut tmp, hasher, store } = *self;
         tmp.flush()?;
         let hash = hasher.finalize().to_hex().to_string();
         let dest = store.path(&hash)?;
+        pin(&hash)?;
         if dest.exists() {
             // Already stored (content-addressed); the temporary file is removed on drop.
             return Ok(hash);
@@ -508,9 +543,10 @@ impl BlobStore for FsBlobStore {
         }))
     }
 
-    fn put(&self, bytes: &[u8]) -> Result<String> {
+    fn put(&self, bytes: &[u8], pin: PinHook<'_>) -> Result<String> {
         let hash = blake3::hash(bytes).to_hex().to_string();
         let dest = self.path(&hash)?;
+        pin(&hash)?;
         if dest.exists() {
             return Ok(hash);
         }
@@ -537,6 +573,17 @@ impl BlobStore for FsBlobStore {
 
     fn contains(&self, hash: &str) -> Result<bool> {
         Ok(self.path(hash)?.exists())
+    }
+
+    fn open(&self, hash: &str) -> Result<Option<(u64, Box<dyn std::io::Read + Send>)>> {
+        match std::fs::File::open(self.path(hash)?) {
+            Ok(f) => {
+                let len = f.metadata()?.len();
+                Ok(Some((len, Box::new(f))))
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+            Err(e) => Err(e.into()),
+        }
     }
 
     fn delete(&self, hash: &str) -> Result<()> {
@@ -601,6 +648,8 @@ mod tests {
             error: None,
             results: BTreeMap::new(),
             attempts: 0,
+            progress: None,
+            worker: None,
         }
     }
 
@@ -641,9 +690,9 @@ mod tests {
     fn blobs_are_content_addressed_and_atomic() {
         let dir = tempfile::tempdir().unwrap();
         let b = FsBlobStore::open(dir.path()).unwrap();
-        let h = b.put(b"hello").unwrap();
+        let h = b.put(b"hello", &|_| Ok(())).unwrap();
         assert_eq!(h, blake3::hash(b"hello").to_hex().to_string());
-        assert_eq!(b.put(b"hello").unwrap(), h);
+        assert_eq!(b.put(b"hello", &|_| Ok(())).unwrap(), h);
         assert_eq!(b.get(&h).unwrap().unwrap(), b"hello");
         assert_eq!(b.list().unwrap().len(), 1);
         assert!(std::fs::read_dir(dir.path().join("tmp")).unwrap().next().is_none());

@@ -1,0 +1,649 @@
+//! The jobs core: the whole lifecycle of a bake (submit, get, list, cancel, results, watch,
+//! recover, sweep) and the worker loop that claims bakes and runs them, on any backend.
+//!
+//! # Shape
+//! [`Jobs`] owns its background tasks (worker loop, reaper, retention sweeper) and its private
+//! state, as mini-redis's `Db` does: callers (the HTTP handlers, tests) only call methods. It
+//! reaches storage only through two traits:
+//! - [`repo::JobRepo`]: records, queue, claims with leases and fencing numbers, heartbeats,
+//!   cancel requests, blob pins and the change feed. [`embedded::EmbeddedRepo`] (redb + memory)
+//!   on one machine; [`postgres::PgRepo`] across many.
+//! - [`store::BlobStore`]: immutable content-addressed bytes. [`store::FsBlobStore`] on one
+//!   machine; [`s3::S3BlobStore`] across many.
+//!
+//! What a bake computes is not this module's business: the service hands it a [`Runner`] (decode,
+//! bake, encode, store through [`Blobs`]), run on the bake pool, never on the async runtime,
+//! inside `catch_unwind`.
+//!
+//! # Guarantees, and what each rests on
+//! - An accepted bake is never lost: its input blob and `queued` record are durable before the
+//!   submission is answered; a claim that stops heartbeating loses its lease and the reaper
+//!   queues the bake again (embedded: the restart does).
+//! - A bake's results are written once: completion names the claim's attempt and is refused
+//!   when a later claim took the bake over.
+//! - Identical submissions make one bake: insert-if-absent on the deduplication key (a unique
+//!   index in PostgreSQL).
+//! - A cancel reaches the bake wherever it runs: the flag is in the repository and every
+//!   heartbeat returns it.
+//! - A blob is never deleted while a writer is about to reference it: writers pin a blob's hash
+//!   before publishing it, and deletion checks pins and references atomically.
+
+pub mod embedded;
+pub mod postgres;
+pub mod repo;
+pub mod s3;
+pub mod store;
+
+use crate::error::{Error, Result};
+use crate::progress::Progress;
+use repo::{Beat, CancelResult, Claim, Counts, JobRepo, Outcome, Submitted};
+use std::collections::HashMap;
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use store::{
+    now_ms, BakeFailure, BakeRecord, BlobStore, BlobWriter, ListQuery, Listing, LiveProgress,
+    Status,
+};
+use tokio::sync::{broadcast, Semaphore};
+use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
+
+/// Runs one claimed bake on the bake pool: reads the input and writes results through [`Blobs`],
+/// reports through the [`Progress`] (and stops when it is canceled), and returns the record with
+/// its results, input description, radius and timings filled in.
+pub type Runner = Arc<dyn Fn(&BakeRecord, &Progress, &Blobs) -> Result<BakeRecord> + Send + Sync>;
+
+/// Called when a bake this node ran reaches a final status: (status, seconds, texels).
+pub type FinishHook = Arc<dyn Fn(Status, f64, u64) + Send + Sync>;
+
+/// How the core behaves (from the service's flags).
+#[derive(Clone)]
+pub struct JobsConfig {
+    /// This node's name in claims (`--worker-id`).
+    pub worker_id: String,
+    pub lease: Duration,
+    pub heartbeat: Duration,
+    pub max_attempts: u32,
+    pub queue_capacity: usize,
+    /// Bakes this node runs at once (0: this node claims nothing, `--role api`).
+    pub concurrency: usize,
+    pub bake_threads: usize,
+    pub retention: Duration,
+    pub sweep_interval: Duration,
+    /// Blobs no record references are removed once older than this.
+    pub orphan_age: Duration,
+    /// How often an idle worker looks for work when no change notification woke it.
+    pub poll: Duration,
+}
+
+/// A bake this node runs.
+#[derive(Clone)]
+struct LocalRun {
+    progress: Progress,
+    /// Set by shutdown: the cancellation means "hand it back", not "the owner canceled it".
+    requeue: Arc<AtomicBool>,
+}
+
+struct Inner {
+    repo: Arc<dyn JobRepo>,
+    blobs: Arc<dyn BlobStore>,
+    cfg: JobsConfig,
+    runner: Runner,
+    on_finish: Option<FinishHook>,
+    pool: rayon::ThreadPool,
+    local: Mutex<HashMap<String, LocalRun>>,
+    slots: Arc<Semaphore>,
+    /// Stops claiming.
+    stop: CancellationToken,
+    /// Ends background loops and watchers.
+    closing: CancellationToken,
+    tracker: TaskTracker,
+    /// Local fan-out of the repository's change feed (and of local progress).
+    changes: broadcast::Sender<String>,
+    rt: tokio::runtime::Handle,
+}
+
+/// The jobs core. Cheap to clone.
+#[derive(Clone)]
+pub struct Jobs(Arc<Inner>);
+
+/// Blob access for one owner: every hash written through it is pinned for that owner before it
+/// is published, so it survives until the owner's record references it.
+#[derive(Clone)]
+pub struct Blobs {
+    store: Arc<dyn BlobStore>,
+    repo: Arc<dyn JobRepo>,
+    owner: String,
+    rt: tokio::runtime::Handle,
+}
+
+impl Blobs {
+    fn pin(&self, hash: &str) -> Result<()> {
+        // Called on the bake pool or a blocking thread, never on an async worker.
+        self.rt.block_on(self.repo.pin_blob(hash, &self.owner))
+    }
+
+    /// Stores `bytes`; returns their hash.
+    ///
+    /// # Errors
+    /// The store's or the repository's failure.
+    pub fn put(&self, bytes: &[u8]) -> Result<String> {
+        self.store.put(bytes, &|h| self.pin(h))
+    }
+
+    /// A writer for a blob streamed piece by piece.
+    ///
+    /// # Errors
+    /// The store's failure.
+    pub fn writer(&self) -> Result<PinnedWriter> {
+        Ok(PinnedWriter { inner: self.store.writer()?, blobs: self.clone() })
+    }
+
+    /// The bytes of `hash`.
+    ///
+    /// # Errors
+    /// The store's failure.
+    pub fn get(&self, hash: &str) -> Result<Option<Vec<u8>>> {
+        self.store.get(hash)
+    }
+
+    /// Who pins what this handle writes.
+    pub fn owner(&self) -> &str {
+        &self.owner
+    }
+}
+
+/// A [`BlobWriter`] that pins its hash (see [`Blobs`]).
+pub struct PinnedWriter {
+    inner: Box<dyn BlobWriter>,
+    blobs: Blobs,
+}
+
+impl PinnedWriter {
+    /// Publishes the bytes written; returns their hash.
+    ///
+    /// # Errors
+    /// The store's or the repository's failure.
+    pub fn commit(self) -> Result<String> {
+        let blobs = self.blobs;
+        self.inner.commit(&|h| blobs.pin(h))
+    }
+}
+
+impl std::io::Write for PinnedWriter {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.inner.write(buf)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.inner.flush()
+    }
+}
+
+/// Runs a blocking closure off the async workers.
+///
+/// # Errors
+/// The closure's error, or [`Error::Internal`] if it panicked.
+pub async fn blocking<T, F>(f: F) -> Result<T>
+where
+    T: Send + 'static,
+    F: FnOnce() -> Result<T> + Send + 'static,
+{
+    tokio::task::spawn_blocking(f)
+        .await
+        .map_err(|e| Error::Internal(format!("blocking task failed: {e}")))?
+}
+
+impl Jobs {
+    /// The core over `repo` and `blobs`. Call inside a tokio runtime; nothing runs until
+    /// [`Jobs::start`].
+    ///
+    /// # Errors
+    /// When the bake pool cannot start.
+    pub fn new(
+        repo: Arc<dyn JobRepo>,
+        blobs: Arc<dyn BlobStore>,
+        cfg: JobsConfig,
+        runner: Runner,
+        on_finish: Option<FinishHook>,
+    ) -> Result<Self> {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(cfg.bake_threads)
+            .thread_name(|i| format!("bake-{i}"))
+            .panic_handler(|_| tracing::error!("a bake thread panicked outside a job"))
+            .build()
+            .map_err(|e| Error::Internal(format!("cannot start the bake pool: {e}")))?;
+        let rt = tokio::runtime::Handle::try_current()
+            .map_err(|_| Error::Internal("the jobs core needs a tokio runtime".into()))?;
+        let (changes, _) = broadcast::channel(1024);
+        Ok(Jobs(Arc::new(Inner {
+            slots: Arc::new(Semaphore::new(cfg.concurrency.max(1))),
+            repo,
+            blobs,
+            cfg,
+            runner,
+            on_finish,
+            pool,
+            local: Default::default(),
+            stop: CancellationToken::new(),
+            closing: CancellationToken::new(),
+            tracker: TaskTracker::new(),
+            changes,
+            rt,
+        })))
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &JobsConfig {
+        &self.0.cfg
+    }
+
+    /// The repository (tests and metrics read it directly).
+    pub fn repo(&self) -> &Arc<dyn JobRepo> {
+        &self.0.repo
+    }
+
+    /// The blob store, for reading results.
+    pub fn blob_store(&self) -> &Arc<dyn BlobStore> {
+        &self.0.blobs
+    }
+
+    /// Blob access that pins for `owner`.
+    pub fn blobs_for(&self, owner: impl Into<String>) -> Blobs {
+        Blobs {
+            store: self.0.blobs.clone(),
+            repo: self.0.repo.clone(),
+            owner: owner.into(),
+            rt: self.0.rt.clone(),
+        }
+    }
+
+    /// Recovers what a previous run left, then starts the worker loop (unless this node runs
+    /// no bakes), the reaper, the retention sweeper and the change forwarding. Returns how many
+    /// bakes are queued.
+    ///
+    /// # Errors
+    /// When the repository cannot be read.
+    pub async fn start(&self) -> Result<usize> {
+        let queued = self.0.repo.recover().await?;
+        if queued > 0 {
+            tracing::info!(count = queued, "bakes waiting in the queue");
+        }
+        let fwd = self.clone();
+        tokio::spawn(async move { fwd.forward_changes().await });
+        if self.0.cfg.concurrency > 0 {
+            let w = self.clone();
+            tokio::spawn(async move { w.work_loop().await });
+        }
+        let r = self.clone();
+        tokio::spawn(async move { r.reap_loop().await });
+        let s = self.clone();
+        tokio::spawn(async move { s.sweep_loop().await });
+        Ok(queued)
+    }
+
+    async fn forward_changes(&self) {
+        let mut rx = self.0.repo.subscribe();
+        loop {
+            tokio::select! {
+                _ = self.0.closing.cancelled() => return,
+                got = rx.recv() => match got {
+                    Ok(id) => { let _ = self.0.changes.send(id); }
+                    Err(broadcast::error::RecvError::Lagged(_)) => {}
+                    Err(broadcast::error::RecvError::Closed) => return,
+                }
+            }
+        }
+    }
+
+    /// Ids of bakes as they change (anywhere, for a shared repository).
+    pub fn watch(&self) -> broadcast::Receiver<String> {
+        self.0.changes.subscribe()
+    }
+
+    /// Resolves when the core shuts down (long-lived responses end then).
+    pub fn closing(&self) -> CancellationToken {
+        self.0.closing.clone()
+    }
+
+    /// Stores the input, then inserts the bake unless an identical one exists.
+    ///
+    /// # Errors
+    /// Store and repository failures.
+    pub async fn submit(&self, input: Vec<u8>, rec: BakeRecord) -> Result<Submitted> {
+        let owner = format!("submit/{}", rec.id);
+        let blobs = self.blobs_for(owner.clone());
+        let hash = blocking(move || blobs.put(&input)).await?;
+        if hash != rec.input_blob {
+            return Err(Error::Internal("the input's hash changed while it was stored".into()));
+        }
+        self.0.repo.submit(rec, self.0.cfg.queue_capacity, &owner).await
+    }
+
+    /// A bake, with the live progress when this node runs it.
+    ///
+    /// # Errors
+    /// Repository failures.
+    pub async fn get(&self, id: &str) -> Result<Option<BakeRecord>> {
+        let rec = self.0.repo.get(id).await?;
+        Ok(rec.map(|r| self.overlay(r)))
+    }
+
+    fn overlay(&self, mut r: BakeRecord) -> BakeRecord {
+        if r.status == Status::Running {
+            if let Some(l) = self.local().get(&r.id) {
+                r.progress = Some(LiveProgress::of(&l.progress));
+            }
+        }
+        r
+    }
+
+    fn local(&self) -> std::sync::MutexGuard<'_, HashMap<String, LocalRun>> {
+        self.0.local.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// A page of bakes.
+    ///
+    /// # Errors
+    /// Repository failures.
+    pub async fn list(&self, q: &ListQuery) -> Result<Listing> {
+        let mut page = self.0.repo.query(q).await?;
+        page.items = page.items.into_iter().map(|r| self.overlay(r)).collect();
+        Ok(page)
+    }
+
+    /// Bakes per status.
+    ///
+    /// # Errors
+    /// Repository failures.
+    pub async fn counts(&self) -> Result<Counts> {
+        self.0.repo.counts().await
+    }
+
+    /// Bakes this node is running.
+    pub fn running_here(&self) -> usize {
+        self.local().len()
+    }
+
+    /// Cancels a queued bake, stops a running one (here at once, elsewhere at its worker's next
+    /// heartbeat), or removes a finished one with its unreferenced blobs.
+    ///
+    /// # Errors
+    /// Repository and store failures.
+    pub async fn cancel(&self, id: &str) -> Result<CancelResult> {
+        let out = self.0.repo.request_cancel(id).await?;
+        match &out {
+            CancelResult::Requested(_) => {
+                if let Some(l) = self.local().get(id) {
+                    l.progress.cancel();
+                }
+            }
+            CancelResult::Canceled(_) => {
+                if let Some(f) = &self.0.on_finish {
+                    f(Status::Canceled, 0.0, 0);
+                }
+            }
+            CancelResult::Finished(_) => {
+                self.remove(id).await?;
+            }
+            CancelResult::NotFound => {}
+        }
+        Ok(out)
+    }
+
+    /// Removes a finished bake and every blob of it nothing else references.
+    ///
+    /// # Errors
+    /// Repository and store failures.
+    pub async fn remove(&self, id: &str) -> Result<bool> {
+        let Some(rec) = self.0.repo.remove(id).await? else { return Ok(false) };
+        let hashes: Vec<String> = rec.blobs().map(str::to_owned).collect();
+        self.0.repo.delete_blobs_if_unused(hashes, self.0.blobs.clone()).await?;
+        Ok(true)
+    }
+
+    /// Adds results encoded on request (pinned by `owner`) to a succeeded bake.
+    ///
+    /// # Errors
+    /// Repository failures.
+    pub async fn add_results(
+        &self,
+        id: &str,
+        results: &[(String, String)],
+        owner: &str,
+    ) -> Result<bool> {
+        self.0.repo.add_results(id, results, owner).await
+    }
+
+    /// Removes finished bakes past their retention, then blobs no record references that are
+    /// older than `orphan_age`. Returns how many bakes were removed.
+    ///
+    /// # Errors
+    /// Repository and store failures.
+    pub async fn sweep(&self) -> Result<usize> {
+        let retention = self.0.cfg.retention.as_millis() as u64;
+        let mut removed = 0;
+        for id in self.0.repo.expired(now_ms(), retention).await? {
+            if self.remove(&id).await? {
+                removed += 1;
+            }
+        }
+        let blobs = self.0.blobs.clone();
+        let listed = blocking(move || blobs.list()).await?;
+        let referenced = self.0.repo.referenced_blobs().await?;
+        let min_age = self.0.cfg.orphan_age.as_secs();
+        let orphans: Vec<String> = listed
+            .into_iter()
+            .filter(|(h, age)| *age >= min_age && !referenced.contains(h))
+            .map(|(h, _)| h)
+            .collect();
+        let n = self.0.repo.delete_blobs_if_unused(orphans, self.0.blobs.clone()).await?;
+        if n > 0 {
+            tracing::info!(blobs = n, "removed blobs no bake references");
+        }
+        Ok(removed)
+    }
+
+    async fn sweep_loop(&self) {
+        loop {
+            tokio::select! {
+                _ = self.0.closing.cancelled() => return,
+                _ = tokio::time::sleep(self.0.cfg.sweep_interval) => {}
+            }
+            match self.sweep().await {
+                Ok(0) => {}
+                Ok(n) => tracing::info!(removed = n, "retention sweep"),
+                Err(e) => tracing::error!(error = %e, "retention sweep failed"),
+            }
+        }
+    }
+
+    async fn reap_loop(&self) {
+        let every = (self.0.cfg.lease / 2).max(Duration::from_millis(100));
+        loop {
+            tokio::select! {
+                _ = self.0.closing.cancelled() => return,
+                _ = tokio::time::sleep(every) => {}
+            }
+            match self.0.repo.reap(self.0.cfg.max_attempts).await {
+                Ok(ids) if !ids.is_empty() => {
+                    tracing::warn!(bakes = ?ids, "leases expired: bakes given back or failed");
+                }
+                Ok(_) => {}
+                Err(e) => tracing::warn!(error = %e, "reaper failed"),
+            }
+        }
+    }
+
+    /// Claims bakes while slots are free, until [`Jobs::drain`].
+    async fn work_loop(&self) {
+        let mut wake = self.0.repo.subscribe();
+        loop {
+            let permit = tokio::select! {
+                p = self.0.slots.clone().acquire_owned() => match p { Ok(p) => p, Err(_) => return },
+                _ = self.0.stop.cancelled() => return,
+            };
+            let claim = loop {
+                if self.0.stop.is_cancelled() {
+                    return;
+                }
+                match self.0.repo.claim(&self.0.cfg.worker_id, self.0.cfg.lease).await {
+                    Ok(Some(c)) => break c,
+                    Ok(None) => {}
+                    Err(e) => tracing::warn!(error = %e, "cannot claim a bake; retrying"),
+                }
+                tokio::select! {
+                    _ = self.0.stop.cancelled() => return,
+                    _ = wake.recv() => {}
+                    _ = tokio::time::sleep(self.0.cfg.poll) => {}
+                }
+            };
+            let me = self.clone();
+            self.0.tracker.spawn(async move {
+                me.run_claim(claim).await;
+                drop(permit);
+            });
+        }
+    }
+
+    async fn run_claim(&self, claim: Claim) {
+        let id = claim.id.clone();
+        let run = LocalRun { progress: Progress::new(), requeue: Arc::new(AtomicBool::new(false)) };
+        self.local().insert(id.clone(), run.clone());
+        let _ = self.0.changes.send(id.clone());
+        let lost = Arc::new(AtomicBool::new(false));
+        let beat = {
+            let (repo, claim, progress, lost) =
+                (self.0.repo.clone(), claim.clone(), run.progress.clone(), lost.clone());
+            let (every, lease) = (self.0.cfg.heartbeat, self.0.cfg.lease);
+            tokio::spawn(async move {
+                loop {
+                    tokio::time::sleep(every).await;
+                    match repo.heartbeat(&claim, LiveProgress::of(&progress), lease).await {
+                        Ok(Beat::Alive { cancel: true }) => progress.cancel(),
+                        Ok(Beat::Alive { cancel: false }) => {}
+                        Ok(Beat::Lost) => {
+                            tracing::warn!(bake = %claim.id, attempt = claim.attempt,
+                                "lease lost: stopping, the bake belongs to another worker now");
+                            lost.store(true, Ordering::SeqCst);
+                            progress.cancel();
+                            return;
+                        }
+                        Err(e) => tracing::warn!(bake = %claim.id, error = %e, "heartbeat failed"),
+                    }
+                }
+            })
+        };
+
+        let started = Instant::now();
+        let (tx, rx) = tokio::sync::oneshot::channel();
+        let runner = self.0.runner.clone();
+        let blobs = self.blobs_for(claim.owner());
+        let (record, progress) = (claim.record.clone(), run.progress.clone());
+        self.0.pool.spawn(move || {
+            let out = catch_unwind(AssertUnwindSafe(|| runner(&record, &progress, &blobs)));
+            let _ = tx.send(out);
+        });
+        let out = rx.await;
+        beat.abort();
+        let seconds = started.elapsed().as_secs_f64();
+        let texels = claim.record.width as u64 * claim.record.height as u64;
+
+        let outcome = match out {
+            Ok(Ok(Ok(rec))) => Outcome::Succeeded(Box::new(rec)),
+            Ok(Ok(Err(Error::Canceled))) if run.requeue.load(Ordering::SeqCst) => Outcome::Released,
+            Ok(Ok(Err(Error::Canceled))) => Outcome::Canceled,
+            Ok(Ok(Err(e))) => {
+                let message = match &e {
+                    Error::Io(_) | Error::Internal(_) | Error::Unavailable(_) => {
+                        tracing::error!(bake = %id, code = e.code(), error = %e, "bake failed");
+                        "an internal error occurred; it has been logged".to_owned()
+                    }
+                    _ => {
+                        // The input's fault, not ours: one line so an operator can still find it.
+                        tracing::warn!(bake = %id, code = e.code(), error = %e, "bake failed");
+                        e.to_string()
+                    }
+                };
+                Outcome::Failed(BakeFailure { code: e.code().to_owned(), message })
+            }
+            Ok(Err(_)) | Err(_) => {
+                tracing::error!(bake = %id, "bake panicked");
+                Outcome::Failed(BakeFailure {
+                    code: "internal".into(),
+                    message: "an internal error occurred; it has been logged".into(),
+                })
+            }
+        };
+        let status = match &outcome {
+            Outcome::Succeeded(_) => Status::Succeeded,
+            Outcome::Failed(_) => Status::Failed,
+            Outcome::Canceled => Status::Canceled,
+            Outcome::Released => Status::Queued,
+        };
+        if lost.load(Ordering::SeqCst) {
+            // Fenced off: whatever this run produced, the claim that took over decides.
+        } else if self.complete(&claim, outcome).await && status.is_terminal() {
+            if let Some(f) = &self.0.on_finish {
+                f(status, seconds, texels);
+            }
+        }
+        self.local().remove(&id);
+        let _ = self.0.changes.send(id);
+    }
+
+    /// Records an outcome, retrying while the repository is unreachable (until the claim is
+    /// found stale: then another worker has the bake). Returns whether it was recorded.
+    async fn complete(&self, claim: &Claim, outcome: Outcome) -> bool {
+        let mut wait = Duration::from_millis(100);
+        loop {
+            match self.0.repo.complete(claim, outcome.clone()).await {
+                Ok(true) => return true,
+                Ok(false) => {
+                    tracing::warn!(bake = %claim.id, attempt = claim.attempt,
+                        "outcome refused: the claim is stale");
+                    return false;
+                }
+                Err(e) => {
+                    tracing::warn!(bake = %claim.id, error = %e, "cannot record an outcome; retrying");
+                    if self.0.closing.is_cancelled() && wait > Duration::from_secs(5) {
+                        // Shutting down with the repository gone: the lease runs out and the
+                        // reaper gives the bake to another worker.
+                        return false;
+                    }
+                    tokio::time::sleep(wait).await;
+                    wait = (wait * 2).min(Duration::from_secs(5));
+                }
+            }
+        }
+    }
+
+    /// Stops claiming, lets running bakes finish within `grace`, hands the others back to the
+    /// queue, then ends the background loops.
+    pub async fn drain(&self, grace: Duration) {
+        self.0.stop.cancel();
+        self.0.tracker.close();
+        if tokio::time::timeout(grace, self.0.tracker.wait()).await.is_err() {
+            let runs: Vec<LocalRun> = self.local().values().cloned().collect();
+            tracing::warn!(count = runs.len(), "grace period over: handing running bakes back");
+            for r in runs {
+                r.requeue.store(true, Ordering::SeqCst);
+                r.progress.cancel();
+            }
+            self.0.tracker.wait().await;
+        }
+        self.0.closing.cancel();
+    }
+
+    /// Runs `f` to completion from a thread outside the runtime (the bake or preview pool, a
+    /// blocking thread); never call it from an async worker.
+    pub fn block_on<F: std::future::Future>(&self, f: F) -> F::Output {
+        self.0.rt.block_on(f)
+    }
+
+    /// Whether the repository answers.
+    pub async fn ping(&self) -> Result<()> {
+        self.0.repo.ping().await
+    }
+}

@@ -1,0 +1,648 @@
+//! The distributed mode (SPEC §7) against the real engines: PostgreSQL and an S3 server
+//! (SeaweedFS), both on 127.0.0.1, started by `scripts/engines.sh` (which .ci/run calls) and
+//! named by the `HORIZON_TEST_*` variables it writes. API and worker nodes are real
+//! `horizon-bake serve` processes, so kill -9, SIGSTOP and SIGTERM are the real thing.
+//!
+//! Without the engines these tests say so and pass, except under `CI=true`, where a missing
+//! engine is a failure. Each test gets its own database and bucket prefix; they run one at a
+//! time (a global lock), since one of them restarts PostgreSQL.
+
+mod service_common;
+
+use serde_json::Value;
+use service_common::*;
+use std::collections::{BTreeMap, BTreeSet, HashSet};
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+static SERIAL: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
+const BIN: &str = env!("CARGO_BIN_EXE_horizon-bake");
+
+/// A bake slow enough to observe mid-way (a few seconds on a 2-core machine).
+const SLOW: &str = "method=exact&radius=unlimited&bins=64";
+
+struct Engines {
+    admin_url: String,
+    s3_endpoint: String,
+    bucket: String,
+    dir: PathBuf,
+}
+
+fn engines() -> Option<Engines> {
+    let var = |k: &str| std::env::var(k).ok().filter(|v| !v.is_empty());
+    match (
+        var("HORIZON_TEST_DATABASE_URL"),
+        var("HORIZON_TEST_S3_ENDPOINT"),
+        var("HORIZON_TEST_S3_BUCKET"),
+        var("HORIZON_TEST_ENGINES"),
+    ) {
+        (Some(admin_url), Some(s3_endpoint), Some(bucket), Some(dir)) => {
+            Some(Engines { admin_url, s3_endpoint, bucket, dir: PathBuf::from(dir) })
+        }
+        _ => {
+            assert!(
+                std::env::var("CI").as_deref() != Ok("true"),
+                "CI=true but PostgreSQL/S3 are not running: start them with \
+                 `scripts/engines.sh start DIR` and source DIR/env"
+            );
+            eprintln!("distributed tests skipped: run `scripts/engines.sh start DIR; . DIR/env`");
+            None
+        }
+    }
+}
+
+/// One deployment: a fresh database and bucket prefix, and the nodes started on it.
+struct Cluster {
+    eng: Engines,
+    db_url: String,
+    prefix: String,
+    tmp: tempfile::TempDir,
+    nodes: Vec<Node>,
+}
+
+struct Node {
+    child: Child,
+    base: String,
+    worker_id: String,
+}
+
+impl Drop for Cluster {
+    fn drop(&mut self) {
+        for n in &mut self.nodes {
+            let _ = n.child.kill();
+            let _ = n.child.wait();
+        }
+    }
+}
+
+fn signal(pid: u32, sig: &str) {
+    let ok = Command::new("kill").args([&format!("-{sig}"), &pid.to_string()]).status().unwrap();
+    assert!(ok.success(), "kill -{sig} {pid} failed");
+}
+
+impl Cluster {
+    async fn new(name: &str) -> Option<Cluster> {
+        let eng = engines()?;
+        let tag = format!("{name}_{}", std::process::id());
+        let admin = sqlx::PgPool::connect(&eng.admin_url).await.unwrap();
+        sqlx::query(&format!("DROP DATABASE IF EXISTS {tag}")).execute(&admin).await.unwrap();
+        sqlx::query(&format!("CREATE DATABASE {tag}")).execute(&admin).await.unwrap();
+        admin.close().await;
+        let db_url = match eng.admin_url.rsplit_once('/') {
+            Some((base, _)) => format!("{base}/{tag}"),
+            None => unreachable!(),
+        };
+        Some(Cluster { eng, db_url, prefix: tag, tmp: tempfile::tempdir().unwrap(), nodes: vec![] })
+    }
+
+    /// Starts `serve --role role` with the shared stores; returns its index.
+    fn start(&mut self, role: &str, worker_id: &str, extra: &[&str]) -> usize {
+        let i = self.nodes.len();
+        let dir = self.tmp.path().join(format!("node{i}"));
+        std::fs::create_dir_all(&dir).unwrap();
+        let addr_file = dir.join("addr");
+        let log = std::fs::File::create(dir.join("log")).unwrap();
+        let mut args: Vec<String> = [
+            "serve",
+            "--role",
+            role,
+            "--addr",
+            "127.0.0.1:0",
+            "--worker-id",
+            worker_id,
+            "--database-url",
+            &self.db_url,
+            "--s3-endpoint",
+            &self.eng.s3_endpoint,
+            "--s3-bucket",
+            &self.eng.bucket,
+            "--s3-prefix",
+            &self.prefix,
+            "--lease-secs",
+            "2",
+            "--heartbeat-ms",
+            "200",
+            "--bake-threads",
+            "2",
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+        args.push("--addr-file".into());
+        args.push(addr_file.display().to_string());
+        args.push("--data-dir".into());
+        args.push(dir.join("data").display().to_string());
+        args.extend(extra.iter().map(|s| s.to_string()));
+        let child = Command::new(BIN)
+            .args(&args)
+            .env("RUST_LOG", "info")
+            .stdout(Stdio::null())
+            .stderr(log)
+            .spawn()
+            .unwrap();
+        let t = Instant::now();
+        while !addr_file.exists() || std::fs::read_to_string(&addr_file).unwrap().is_empty() {
+            assert!(
+                t.elapsed() < Duration::from_secs(60),
+                "node {i} did not start: {}",
+                std::fs::read_to_string(dir.join("log")).unwrap_or_default()
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        let addr = std::fs::read_to_string(&addr_file).unwrap();
+        self.nodes.push(Node {
+            child,
+            base: format!("http://{}", addr.trim()),
+            worker_id: worker_id.to_owned(),
+        });
+        i
+    }
+
+    fn base(&self, i: usize) -> &str {
+        &self.nodes[i].base
+    }
+
+    fn pid(&self, i: usize) -> u32 {
+        self.nodes[i].child.id()
+    }
+
+    fn log(&self, i: usize) -> String {
+        std::fs::read_to_string(self.tmp.path().join(format!("node{i}/log"))).unwrap_or_default()
+    }
+
+    async fn db(&self) -> sqlx::PgPool {
+        sqlx::PgPool::connect(&self.db_url).await.unwrap()
+    }
+
+    /// Every blob object under this cluster's prefix.
+    async fn bucket_blobs(&self) -> BTreeSet<String> {
+        use futures_util::StreamExt;
+        use object_store::ObjectStore;
+        let s3 = object_store::aws::AmazonS3Builder::new()
+            .with_endpoint(&self.eng.s3_endpoint)
+            .with_bucket_name(&self.eng.bucket)
+            .with_region("us-east-1")
+            .with_allow_http(true)
+            .with_access_key_id(std::env::var("AWS_ACCESS_KEY_ID").unwrap())
+            .with_secret_access_key(std::env::var("AWS_SECRET_ACCESS_KEY").unwrap())
+            .build()
+            .unwrap();
+        let root = object_store::path::Path::from(format!("{}/blobs", self.prefix));
+        let metas: Vec<_> = s3.list(Some(&root)).collect().await;
+        metas.into_iter().map(|m| m.unwrap().location.filename().unwrap().to_owned()).collect()
+    }
+}
+
+async fn submit(c: &reqwest::Client, base: &str, png: &[u8], query: &str) -> (u16, Value) {
+    let r = c
+        .post(format!("{base}/v1/bakes?{query}"))
+        .header("content-type", "image/png")
+        .body(png.to_vec())
+        .send()
+        .await
+        .unwrap();
+    let s = r.status().as_u16();
+    (s, r.json().await.unwrap())
+}
+
+async fn get_json(c: &reqwest::Client, url: &str) -> (u16, Value) {
+    let r = c.get(url).send().await.unwrap();
+    let s = r.status().as_u16();
+    (s, r.json().await.unwrap_or(Value::Null))
+}
+
+/// Polls until the bake is `running` (and returns the resource).
+async fn wait_running(c: &reqwest::Client, url: &str) -> Value {
+    let t = Instant::now();
+    loop {
+        let (_, v) = get_json(c, url).await;
+        if v["status"] == "running" {
+            return v;
+        }
+        assert!(t.elapsed() < Duration::from_secs(60), "never running: {v}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+/// Every result of a succeeded bake, by result name.
+async fn downloads(c: &reqwest::Client, base: &str, id: &str) -> BTreeMap<String, Vec<u8>> {
+    let mut out = BTreeMap::new();
+    for name in ["horizon_0.png8", "horizon_1.png8", "horizon_0.png16", "horizon.ktx2"] {
+        let r = c.get(format!("{base}/v1/bakes/{id}{}", result_path(name))).send().await.unwrap();
+        assert_eq!(r.status(), 200, "{name}");
+        out.insert(name.to_owned(), r.bytes().await.unwrap().to_vec());
+    }
+    for k in 0..2 {
+        let r = c.get(format!("{base}/v1/bakes/{id}/fourier/{k}")).send().await.unwrap();
+        assert_eq!(r.status(), 200, "fourier {k}");
+        out.insert(format!("fourier_{k}.png"), r.bytes().await.unwrap().to_vec());
+    }
+    out
+}
+
+/// Round trip: every result byte-identical to the embedded mode's and to the CLI's.
+#[tokio::test(flavor = "multi_thread")]
+async fn results_are_byte_identical_to_the_embedded_mode_and_the_cli() {
+    let _serial = SERIAL.lock().await;
+    let Some(mut cl) = Cluster::new("roundtrip").await else { return };
+    let api = cl.start("api", "api-a", &[]);
+    cl.start("worker", "w1", &[]);
+    let c = client();
+    let png = terrain_png16(48, 40, 7);
+    let q = "outputs=horizon,fourier&radius=8";
+    let (s, v) = submit(&c, cl.base(api), &png, q).await;
+    assert_eq!(s, 202, "{v}");
+    let id = v["id"].as_str().unwrap().to_owned();
+    let done = wait_done(&c, &cl.url_of(api, &id), Duration::from_secs(60)).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    assert_eq!(done["attempts"], 1);
+    let shared = downloads(&c, cl.base(api), &id).await;
+
+    // The embedded mode, in this process.
+    let server = Server::start(|_| {}).await;
+    let (s, v) = submit(&c, &server.base, &png, q).await;
+    assert_eq!(s, 202);
+    let eid = v["id"].as_str().unwrap().to_owned();
+    let done =
+        wait_done(&c, &server.url(&format!("/v1/bakes/{eid}")), Duration::from_secs(60)).await;
+    assert_eq!(done["status"], "succeeded");
+    let embedded = downloads(&c, &server.base, &eid).await;
+    assert_eq!(shared, embedded, "distributed and embedded results differ");
+
+    // The CLI.
+    let out = cl.tmp.path().join("cli");
+    let input = cl.tmp.path().join("in.png");
+    std::fs::write(&input, &png).unwrap();
+    let st = Command::new(BIN)
+        .args(["bake", input.to_str().unwrap(), "-o", out.to_str().unwrap()])
+        .args(["--outputs", "horizon,fourier", "--radius", "8", "--format", "png8"])
+        .status()
+        .unwrap();
+    assert!(st.success());
+    for (ours, cli) in [
+        ("horizon_0.png8", "horizon_0.png"),
+        ("horizon_1.png8", "horizon_1.png"),
+        ("fourier_0.png", "fourier_0.png"),
+        ("fourier_1.png", "fourier_1.png"),
+    ] {
+        assert_eq!(shared[ours], std::fs::read(out.join(cli)).unwrap(), "{ours} vs the CLI");
+    }
+}
+
+impl Cluster {
+    fn url_of(&self, i: usize, id: &str) -> String {
+        format!("{}/v1/bakes/{id}", self.base(i))
+    }
+}
+
+/// 20 identical submissions at once, across two API nodes, make one bake.
+#[tokio::test(flavor = "multi_thread")]
+async fn identical_submissions_to_two_api_nodes_make_one_bake() {
+    let _serial = SERIAL.lock().await;
+    let Some(mut cl) = Cluster::new("dedup").await else { return };
+    let a = cl.start("api", "api-a", &[]);
+    let b = cl.start("api", "api-b", &[]);
+    let c = client();
+    let png = terrain_png16(32, 32, 11);
+    let mut tasks = Vec::new();
+    for k in 0..20 {
+        let (c, base, png) =
+            (c.clone(), cl.base(if k % 2 == 0 { a } else { b }).to_owned(), png.clone());
+        tasks.push(tokio::spawn(async move { submit(&c, &base, &png, "radius=4").await }));
+    }
+    let mut ids = HashSet::new();
+    let mut created = 0;
+    for t in tasks {
+        let (s, v) = t.await.unwrap();
+        assert!(s == 200 || s == 202, "{s} {v}");
+        created += usize::from(s == 202);
+        ids.insert(v["id"].as_str().unwrap().to_owned());
+    }
+    assert_eq!(ids.len(), 1, "several bakes: {ids:?}");
+    assert_eq!(created, 1, "more than one submission was answered 202");
+    let rows: i64 =
+        sqlx::query_scalar("SELECT count(*) FROM bakes").fetch_one(&cl.db().await).await.unwrap();
+    assert_eq!(rows, 1);
+}
+
+/// 30 bakes across two workers all finish, none twice.
+#[tokio::test(flavor = "multi_thread")]
+async fn thirty_bakes_across_two_workers_all_finish_none_twice() {
+    let _serial = SERIAL.lock().await;
+    let Some(mut cl) = Cluster::new("thirty").await else { return };
+    let api = cl.start("api", "api-a", &[]);
+    cl.start("worker", "w1", &[]);
+    cl.start("worker", "w2", &[]);
+    let c = client();
+    let mut ids = Vec::new();
+    for k in 0..30 {
+        let png = terrain_png16(24, 24, 100 + k);
+        let (s, v) = submit(&c, cl.base(api), &png, "radius=6").await;
+        assert_eq!(s, 202, "{v}");
+        ids.push(v["id"].as_str().unwrap().to_owned());
+    }
+    let mut by_worker: BTreeMap<String, usize> = BTreeMap::new();
+    for id in &ids {
+        let v = wait_done(&c, &cl.url_of(api, id), Duration::from_secs(120)).await;
+        assert_eq!(v["status"], "succeeded", "{v}");
+        assert_eq!(v["attempts"], 1, "a bake ran twice: {v}");
+    }
+    let db = cl.db().await;
+    let rows: Vec<(String, i32)> =
+        sqlx::query_as("SELECT worker, attempt FROM bakes").fetch_all(&db).await.unwrap();
+    assert_eq!(rows.len(), 30);
+    for (w, attempt) in rows {
+        assert_eq!(attempt, 1);
+        *by_worker.entry(w).or_default() += 1;
+    }
+    assert!(
+        by_worker.len() == 2,
+        "both workers should have baked (claims skip locked rows): {by_worker:?}"
+    );
+}
+
+/// DELETE on API node A stops a bake running on worker B within 2 s; SSE on node A shows its
+/// progress rising, then its final state.
+#[tokio::test(flavor = "multi_thread")]
+async fn cancel_and_progress_cross_nodes() {
+    let _serial = SERIAL.lock().await;
+    let Some(mut cl) = Cluster::new("crossnode").await else { return };
+    let a = cl.start("api", "api-a", &[]);
+    cl.start("worker", "w-b", &[]);
+    let c = client();
+
+    // SSE of a bake running on the worker, read on node A.
+    let png = terrain_png16(160, 160, 3);
+    let (s, v) = submit(&c, cl.base(a), &png, SLOW).await;
+    assert_eq!(s, 202, "{v}");
+    let id = v["id"].as_str().unwrap().to_owned();
+    let mut resp = c.get(format!("{}/events", cl.url_of(a, &id))).send().await.unwrap();
+    let mut text = String::new();
+    while let Some(chunk) = resp.chunk().await.unwrap() {
+        text.push_str(&String::from_utf8_lossy(&chunk));
+        if text.contains("event: done") {
+            break;
+        }
+    }
+    let fractions: Vec<f64> = text
+        .lines()
+        .filter_map(|l| l.strip_prefix("data: "))
+        .filter_map(|d| serde_json::from_str::<Value>(d).ok())
+        .filter(|v| v["status"] == "running")
+        .filter_map(|v| v["progress"]["fraction"].as_f64())
+        .collect();
+    let distinct: BTreeSet<u64> = fractions.iter().map(|f| (f * 1e6) as u64).collect();
+    assert!(distinct.len() >= 3, "progress did not rise on node A: {fractions:?}\n{text}");
+    assert!(fractions.windows(2).all(|w| w[1] >= w[0]), "progress went back: {fractions:?}");
+    assert!(text.contains("event: done") && text.contains("\"succeeded\""), "{text}");
+
+    // DELETE on A of a bake running on B.
+    let png = terrain_png16(160, 160, 4);
+    let (_, v) = submit(&c, cl.base(a), &png, SLOW).await;
+    let id = v["id"].as_str().unwrap().to_owned();
+    let running = wait_running(&c, &cl.url_of(a, &id)).await;
+    assert_eq!(running["attempts"], 1);
+    let t = Instant::now();
+    let r = c.delete(cl.url_of(a, &id)).send().await.unwrap();
+    assert_eq!(r.status(), 202);
+    let v = wait_done(&c, &cl.url_of(a, &id), Duration::from_secs(10)).await;
+    let took = t.elapsed();
+    assert_eq!(v["status"], "canceled", "{v}");
+    assert!(took < Duration::from_secs(2), "cancel took {took:?}");
+}
+
+/// Kill -9 of a worker mid-bake: another worker takes the bake over after the lease expires;
+/// it ends `succeeded` with the same results, one record, attempt 2.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_killed_worker_s_bake_is_taken_over() {
+    let _serial = SERIAL.lock().await;
+    let Some(mut cl) = Cluster::new("kill9").await else { return };
+    let api = cl.start("api", "api-a", &[]);
+    let w1 = cl.start("worker", "w1", &[]);
+    let c = client();
+    let png = terrain_png16(128, 128, 5);
+    let (_, v) = submit(&c, cl.base(api), &png, SLOW).await;
+    let id = v["id"].as_str().unwrap().to_owned();
+    let running = wait_running(&c, &cl.url_of(api, &id)).await;
+    assert_eq!(running["worker"], "w1", "{running}");
+    signal(cl.pid(w1), "KILL");
+    cl.start("worker", "w2", &[]);
+    let v = wait_done(&c, &cl.url_of(api, &id), Duration::from_secs(120)).await;
+    assert_eq!(v["status"], "succeeded", "{v}");
+    assert_eq!(v["attempts"], 2, "{v}");
+    assert_eq!(v["worker"], "w2");
+    let rows: i64 =
+        sqlx::query_scalar("SELECT count(*) FROM bakes").fetch_one(&cl.db().await).await.unwrap();
+    assert_eq!(rows, 1);
+    // Same bytes as a bake that was never interrupted.
+    let reference =
+        library_files(&png, &[("method", "exact"), ("radius", "unlimited"), ("bins", "64")]);
+    let r = c.get(format!("{}/horizon/0", cl.url_of(api, &id))).send().await.unwrap();
+    assert_eq!(r.bytes().await.unwrap().to_vec(), reference["horizon_0.png8"]);
+}
+
+/// A worker stopped (SIGSTOP) past its lease, then resumed, cannot overwrite what the worker
+/// that took over wrote.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_stalled_worker_cannot_overwrite_the_takeover() {
+    let _serial = SERIAL.lock().await;
+    let Some(mut cl) = Cluster::new("sigstop").await else { return };
+    let api = cl.start("api", "api-a", &[]);
+    let w1 = cl.start("worker", "w1", &[]);
+    let c = client();
+    let png = terrain_png16(128, 128, 6);
+    let (_, v) = submit(&c, cl.base(api), &png, SLOW).await;
+    let id = v["id"].as_str().unwrap().to_owned();
+    wait_running(&c, &cl.url_of(api, &id)).await;
+    signal(cl.pid(w1), "STOP");
+    cl.start("worker", "w2", &[]);
+    let v = wait_done(&c, &cl.url_of(api, &id), Duration::from_secs(120)).await;
+    assert_eq!((v["status"].as_str(), v["attempts"].as_u64()), (Some("succeeded"), Some(2)));
+    let before = v.clone();
+    signal(cl.pid(w1), "CONT");
+    // w1 wakes up mid-bake: its next heartbeat finds the claim stale and it stops, and any
+    // completion it tries is refused. Give it time to try.
+    tokio::time::sleep(Duration::from_secs(4)).await;
+    let (_, after) = get_json(&c, &cl.url_of(api, &id)).await;
+    for k in ["status", "attempts", "worker", "finished_at", "timings_ms"] {
+        assert_eq!(after[k], before[k], "{k} changed after the stalled worker resumed");
+    }
+    let log = cl.log(w1);
+    assert!(
+        log.contains("lease lost") || log.contains("claim is stale"),
+        "the stalled worker did not notice it was fenced off:\n{log}"
+    );
+}
+
+/// SIGTERM of a worker hands its bake back and another finishes it.
+#[tokio::test(flavor = "multi_thread")]
+async fn sigterm_hands_the_bake_back() {
+    let _serial = SERIAL.lock().await;
+    let Some(mut cl) = Cluster::new("sigterm").await else { return };
+    let api = cl.start("api", "api-a", &[]);
+    let w1 = cl.start("worker", "w1", &["--shutdown-grace-secs", "0"]);
+    let c = client();
+    let png = terrain_png16(128, 128, 8);
+    let (_, v) = submit(&c, cl.base(api), &png, SLOW).await;
+    let id = v["id"].as_str().unwrap().to_owned();
+    wait_running(&c, &cl.url_of(api, &id)).await;
+    let t = Instant::now();
+    signal(cl.pid(w1), "TERM");
+    let st = cl.nodes[w1].child.wait().unwrap();
+    assert!(st.success(), "the worker did not exit cleanly: {st}");
+    // Handed back at once, not after a lease: queued again right away.
+    let (_, v) = get_json(&c, &cl.url_of(api, &id)).await;
+    assert_eq!(v["status"], "queued", "{v}");
+    assert!(t.elapsed() < Duration::from_secs(2), "{:?}", t.elapsed());
+    cl.start("worker", "w2", &[]);
+    let v = wait_done(&c, &cl.url_of(api, &id), Duration::from_secs(120)).await;
+    assert_eq!(v["status"], "succeeded", "{v}");
+    assert_eq!(v["worker"], "w2");
+}
+
+/// After retention and sweeping, the bucket holds exactly the blobs that records reference.
+#[tokio::test(flavor = "multi_thread")]
+async fn after_retention_the_bucket_holds_exactly_the_referenced_blobs() {
+    let _serial = SERIAL.lock().await;
+    let Some(mut cl) = Cluster::new("retention").await else { return };
+    let api = cl.start("all", "n1", &["--retention-secs", "3", "--sweep-interval-secs", "1"]);
+    let c = client();
+    let mut old = Vec::new();
+    for k in 0..3 {
+        let (_, v) = submit(&c, cl.base(api), &terrain_png16(16, 16, 200 + k), "radius=4").await;
+        old.push(v["id"].as_str().unwrap().to_owned());
+    }
+    for id in &old {
+        let v = wait_done(&c, &cl.url_of(api, id), Duration::from_secs(60)).await;
+        assert_eq!(v["status"], "succeeded");
+        // An on-request result too, so blobs written after the bake are covered.
+        let r =
+            c.get(format!("{}/horizon/0?format=png16", cl.url_of(api, id))).send().await.unwrap();
+        assert_eq!(r.status(), 200);
+    }
+    // Wait past the retention of the first three.
+    tokio::time::sleep(Duration::from_secs(5)).await;
+    let mut kept = Vec::new();
+    for k in 0..2 {
+        let (_, v) = submit(
+            &c,
+            cl.base(api),
+            &terrain_png16(16, 16, 300 + k),
+            "radius=4&outputs=horizon,fourier",
+        )
+        .await;
+        kept.push(v["id"].as_str().unwrap().to_owned());
+    }
+    for id in &kept {
+        let v = wait_done(&c, &cl.url_of(api, id), Duration::from_secs(60)).await;
+        assert_eq!(v["status"], "succeeded");
+    }
+    for id in &old {
+        let (s, _) = get_json(&c, &cl.url_of(api, id)).await;
+        assert_eq!(s, 404, "bake {id} outlived its retention");
+    }
+    let db = cl.db().await;
+    let referenced: BTreeSet<String> =
+        sqlx::query_scalar::<_, String>("SELECT hash FROM blob_refs")
+            .fetch_all(&db)
+            .await
+            .unwrap()
+            .into_iter()
+            .collect();
+    let from_records: BTreeSet<String> = {
+        let recs: Vec<Value> =
+            sqlx::query_scalar("SELECT record FROM bakes").fetch_all(&db).await.unwrap();
+        recs.iter()
+            .flat_map(|r| {
+                let mut v = vec![r["input_blob"].as_str().unwrap().to_owned()];
+                v.extend(
+                    r["results"]
+                        .as_object()
+                        .unwrap()
+                        .values()
+                        .map(|h| h.as_str().unwrap().to_owned()),
+                );
+                v
+            })
+            .collect()
+    };
+    assert_eq!(referenced, from_records, "blob_refs disagrees with the records");
+    assert_eq!(cl.bucket_blobs().await, referenced, "the bucket holds other blobs than referenced");
+    assert!(!referenced.is_empty());
+}
+
+/// PostgreSQL restarted mid-run: the API answers 503 meanwhile, then everything recovers.
+#[tokio::test(flavor = "multi_thread")]
+async fn postgres_restart_gives_503_then_recovers() {
+    let _serial = SERIAL.lock().await;
+    let Some(mut cl) = Cluster::new("pgrestart").await else { return };
+    let api = cl.start("api", "api-a", &[]);
+    cl.start("worker", "w1", &[]);
+    let c = client();
+    let png = terrain_png16(128, 128, 9);
+    let (_, v) = submit(&c, cl.base(api), &png, SLOW).await;
+    let id = v["id"].as_str().unwrap().to_owned();
+    wait_running(&c, &cl.url_of(api, &id)).await;
+    let engines = cl.eng.dir.clone();
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/engines.sh");
+    assert!(Command::new(script)
+        .args(["pg-stop", engines.to_str().unwrap()])
+        .status()
+        .unwrap()
+        .success());
+    let (s, v) = get_json(&c, &cl.url_of(api, &id)).await;
+    let down = (s, v["code"].clone());
+    let (ready, _) = get_json(&c, &format!("{}/readyz", cl.base(api))).await;
+    let (s_submit, _) = submit(&c, cl.base(api), &terrain_png16(16, 16, 1), "radius=4").await;
+    // Down for longer than a lease: the worker cannot heartbeat meanwhile.
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    assert!(Command::new(script)
+        .args(["pg-start", engines.to_str().unwrap()])
+        .status()
+        .unwrap()
+        .success());
+    assert_eq!(down, (503, Value::from("store_unavailable")), "GET while the database is down");
+    assert_eq!(ready, 503, "readyz while the database is down");
+    assert_eq!(s_submit, 503, "a submission while the database is down");
+    // Everything recovers: the bake finishes (on the same claim, or after a takeover), and new
+    // work is accepted and done.
+    let v = wait_done(&c, &cl.url_of(api, &id), Duration::from_secs(120)).await;
+    assert_eq!(v["status"], "succeeded", "{v}");
+    let (s, v) = submit(&c, cl.base(api), &terrain_png16(16, 16, 2), "radius=4").await;
+    assert_eq!(s, 202, "{v}");
+    let v =
+        wait_done(&c, &cl.url_of(api, v["id"].as_str().unwrap()), Duration::from_secs(60)).await;
+    assert_eq!(v["status"], "succeeded", "{v}");
+    let (ready, _) = get_json(&c, &format!("{}/readyz", cl.base(api))).await;
+    assert_eq!(ready, 200);
+}
+
+/// A worker serves health and metrics only; flags that cannot work together are refused.
+#[tokio::test(flavor = "multi_thread")]
+async fn roles_serve_what_spec_7_says() {
+    let _serial = SERIAL.lock().await;
+    // Without engines: a role other than `all` needs the shared stores.
+    let out = Command::new(BIN)
+        .args(["serve", "--role", "worker", "--addr", "127.0.0.1:0"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("role"), "{out:?}");
+    let out = Command::new(BIN)
+        .args(["serve", "--database-url", "postgres://x@127.0.0.1:1/x", "--addr", "127.0.0.1:0"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("s3"), "{out:?}");
+    let Some(mut cl) = Cluster::new("roles").await else { return };
+    let w = cl.start("worker", "w1", &[]);
+    let c = client();
+    let (s, v) = get_json(&c, &format!("{}/readyz", cl.base(w))).await;
+    assert_eq!((s, v["role"].as_str()), (200, Some("worker")));
+    assert_eq!(c.get(format!("{}/metrics", cl.base(w))).send().await.unwrap().status(), 200);
+    let (s, v) = get_json(&c, &format!("{}/v1/bakes", cl.base(w))).await;
+    assert_eq!(s, 404, "{v}");
+    assert_eq!(cl.nodes[w].worker_id, "w1");
+}
