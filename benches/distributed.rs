@@ -111,6 +111,10 @@ async fn end_to_end(c: &reqwest::Client, base: &str, png: &[u8]) -> f64 {
     took
 }
 
+fn refs(v: &[String]) -> Vec<&str> {
+    v.iter().map(String::as_str).collect()
+}
+
 fn percentile(v: &mut [f64], p: f64) -> f64 {
     v.sort_by(f64::total_cmp);
     v[((v.len() - 1) as f64 * p).round() as usize]
@@ -141,7 +145,8 @@ async fn claim_ms(c: &reqwest::Client, base: &str, loc: &str, db: Option<&sqlx::
                 let sec: f64 = t[6..].parse().unwrap_or(0.0);
                 ((h * 60.0 + m) * 60.0 + sec) * 1e3
             };
-            ms(v["started_at"].as_str().expect("started")) - ms(v["created_at"].as_str().expect("created"))
+            ms(v["started_at"].as_str().expect("started"))
+                - ms(v["created_at"].as_str().expect("created"))
         }
     }
 }
@@ -182,7 +187,6 @@ async fn main() {
         v.extend(extra.iter().map(|s| s.to_string()));
         v
     };
-    let refs = |v: &Vec<String>| v.iter().map(String::as_str).collect::<Vec<_>>();
     let c = reqwest::Client::builder().timeout(Duration::from_secs(600)).build().expect("client");
 
     // --- e2e
