@@ -123,6 +123,9 @@ impl S3BlobStore {
             return Ok(());
         }
         let upload = self.rt.block_on(self.s3.put_multipart(path)).map_err(s3_err)?;
+        // `WriteMultipart::write` spawns each part's upload as a tokio task: on the bake pool
+        // that needs the runtime entered, not only `block_on`.
+        let _rt = self.rt.enter();
         let mut w = WriteMultipart::new_with_chunk_size(upload, PART);
         let mut buf = vec![0u8; PART];
         loop {
