@@ -17,32 +17,7 @@ use crate::progress::{Progress, Stage};
 use serde::Serialize;
 use std::sync::Mutex;
 
-/// Which sample precisions of the horizon layers to produce.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct Precisions {
-    pub u8: bool,
-    pub u16: bool,
-    pub f32: bool,
-}
-
-impl Precisions {
-    /// Only 8-bit layers (the default `png8` output).
-    pub const U8: Precisions = Precisions { u8: true, u16: false, f32: false };
-    /// Every precision.
-    pub const ALL: Precisions = Precisions { u8: true, u16: true, f32: true };
-}
-
-/// The two RGBA horizon layers (layer 0 = channels 0..3, layer 1 = channels 4..7), each
-/// `height · width · 4` samples row-major from the top row, in every precision asked for.
-/// Values are s, or √s with `encoding=sqrt`.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct HorizonLayers {
-    pub width: usize,
-    pub height: usize,
-    pub u8: Option<[Vec<u8>; 2]>,
-    pub u16: Option<[Vec<u16>; 2]>,
-    pub f32: Option<[Vec<f32>; 2]>,
-}
+pub use crate::layers::{HorizonLayers, Precisions, Sample};
 
 /// How the radius was resolved (reported with the bake).
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -224,33 +199,6 @@ pub fn run_into_layers<K: HorizonRows + ?Sized>(
         })?;
     }
     Ok(HorizonLayers { width: w, height: h, u8: u8s, u16: u16s, f32: f32s })
-}
-
-/// A sample type horizon layers are quantised to (SPEC §2 rounding): `u8`, `u16` or `f32`.
-pub trait Sample: Copy + Default + Send + Sync + 'static {
-    /// The sample of a value in [0, 1].
-    fn quantize(v: f32) -> Self;
-}
-
-impl Sample for u8 {
-    #[inline]
-    fn quantize(v: f32) -> Self {
-        crate::encode::quantize8(v)
-    }
-}
-
-impl Sample for u16 {
-    #[inline]
-    fn quantize(v: f32) -> Self {
-        crate::encode::quantize16(v)
-    }
-}
-
-impl Sample for f32 {
-    #[inline]
-    fn quantize(v: f32) -> Self {
-        v
-    }
 }
 
 /// One finished band as [`stream_rows`] hands it on: image rows `y0 .. y0 + rows` of both RGBA
@@ -502,7 +450,12 @@ pub fn fourier_files(
     const NAMES: [&str; 3] = ["fourier_0.png", "fourier_1.png", "fourier_2.png"];
     let (layers, radius) = bake_fourier(map, params, progress)?;
     let files = (0..layers.layer_count())
-        .map(|i| Ok(crate::encode::OutFile { name: NAMES[i], bytes: layers.png(i)? }))
+        .map(|i| {
+            Ok(crate::encode::OutFile {
+                name: NAMES[i],
+                bytes: crate::encode::fourier_png(&layers, i)?,
+            })
+        })
         .collect::<Result<Vec<_>>>()?;
     Ok((files, radius))
 }

@@ -25,6 +25,7 @@ pub mod eval;
 pub mod heightmap;
 pub mod jobs;
 pub mod kernels;
+pub mod layers;
 pub mod params;
 pub mod preview;
 pub mod progress;

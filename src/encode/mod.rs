@@ -13,8 +13,8 @@ pub mod exr;
 pub mod ktx2;
 pub mod png;
 
-use crate::bake::{HorizonLayers, Precisions};
 use crate::error::{Error, Result};
+use crate::layers::{HorizonLayers, Precisions};
 
 /// Bakes `map` straight into the two RGBA horizon PNGs (`horizon_0.png`, `horizon_1.png`),
 /// written to `outs` band by band in row order ([`crate::bake::stream_horizon`] into
@@ -57,17 +57,7 @@ where
     Ok(([w0.finish()?, w1.finish()?], radius))
 }
 
-/// 8-bit UNORM of a value in [0, 1]: floor(v·255 + 0.5).
-#[inline]
-pub fn quantize8(v: f32) -> u8 {
-    ((v as f64) * 255.0 + 0.5).floor().clamp(0.0, 255.0) as u8
-}
-
-/// 16-bit UNORM of a value in [0, 1]: floor(v·65535 + 0.5).
-#[inline]
-pub fn quantize16(v: f32) -> u16 {
-    ((v as f64) * 65535.0 + 0.5).floor().clamp(0.0, 65535.0) as u16
-}
+pub use crate::layers::{quantize16, quantize8};
 
 /// One image (a layer or a cube face) of RGBA texels, `width · height · 4` samples row-major from
 /// the top row, in one of the sample types the texture containers carry.
@@ -443,4 +433,22 @@ pub fn cube_files(size: usize, formats: CubeFormats) -> Result<Vec<OutFile>> {
         }
     }
     Ok(out)
+}
+
+/// Fourier layer `i` as PNG bytes (`fourier_{i}.png`): 0 and 2 RGBA, 1 gray.
+///
+/// # Errors
+/// [`Error::Param`] (`layer`) for a layer this bake does not have; [`Error::Internal`] if the
+/// encoder fails.
+pub fn fourier_png(f: &crate::kernels::fourier::FourierLayers, i: usize) -> Result<Vec<u8>> {
+    use png::{encode8, PngColor};
+    match (i, &f.high) {
+        (0, _) => encode8(f.width, f.height, PngColor::Rgba, &f.bands),
+        (1, _) => encode8(f.width, f.height, PngColor::Gray, &f.constant),
+        (2, Some(h)) => encode8(f.width, f.height, PngColor::Rgba, h),
+        _ => Err(Error::param(
+            "layer",
+            format!("this bake has Fourier layers 0..{}", f.layer_count() - 1),
+        )),
+    }
 }

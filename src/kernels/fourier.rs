@@ -177,7 +177,7 @@ pub fn compand(c: f64) -> f64 {
 #[inline]
 pub fn encode_coeff(c: f64, range: FourierRange) -> u8 {
     let v = compand(c / range_scale(range)).clamp(-1.0, 1.0);
-    crate::encode::quantize8((v * half_span(range) + 0.5) as f32)
+    crate::layers::quantize8((v * half_span(range) + 0.5) as f32)
 }
 
 /// The byte storing the constant term C_0 ∈ [0, 1]: the write-up's shader decodes it as
@@ -189,7 +189,7 @@ pub fn encode_constant(c0: f64, range: FourierRange) -> u8 {
         FourierRange::Standard => 0.5 + 0.5 * r,
         FourierRange::Expanded => r,
     };
-    crate::encode::quantize8(t as f32)
+    crate::layers::quantize8(t as f32)
 }
 
 /// A non-constant coefficient from its filtered UNORM value `t` ∈ [0, 1].
@@ -290,24 +290,6 @@ impl FourierLayers {
             3
         } else {
             2
-        }
-    }
-
-    /// Layer `i` as PNG bytes (`fourier_{i}.png`): 0 and 2 RGBA, 1 gray.
-    ///
-    /// # Errors
-    /// [`crate::Error::Param`] (`layer`) for a layer this bake does not have;
-    /// [`crate::Error::Internal`] if the encoder fails.
-    pub fn png(&self, i: usize) -> crate::Result<Vec<u8>> {
-        use crate::encode::png::{encode8, PngColor};
-        match (i, &self.high) {
-            (0, _) => encode8(self.width, self.height, PngColor::Rgba, &self.bands),
-            (1, _) => encode8(self.width, self.height, PngColor::Gray, &self.constant),
-            (2, Some(h)) => encode8(self.width, self.height, PngColor::Rgba, h),
-            _ => Err(crate::Error::param(
-                "layer",
-                format!("this bake has Fourier layers 0..{}", self.layer_count() - 1),
-            )),
         }
     }
 }
