@@ -1,0 +1,368 @@
+//! Submission, listing, reading and cancelling bakes: `POST /v1/bakes`, `GET /v1/bakes`,
+//! `GET` and `DELETE /v1/bakes/{id}`. Each parses, calls the jobs core, and answers.
+
+#![allow(clippy::result_large_err)]
+
+use super::*;
+
+/// Media types accepted as a raw-body upload (the bytes are sniffed anyway).
+pub(super) const RAW_TYPES: &[&str] =
+    &["image/png", "image/tiff", "image/x-exr", "image/exr", "application/octet-stream"];
+
+pub(super) fn body_error(e: &(dyn std::error::Error + 'static), timeout: Duration) -> Problem {
+    match upload::fault(e) {
+        upload::BodyFault::TooLarge => Problem::new(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "payload_too_large",
+            "the request body is larger than the server accepts (max_body_bytes)",
+        ),
+        upload::BodyFault::TimedOut => Problem::new(
+            StatusCode::REQUEST_TIMEOUT,
+            "body_timeout",
+            format!(
+                "the request body stalled for {}s (body_timeout_secs); send it without pauses",
+                timeout.as_secs()
+            ),
+        ),
+        upload::BodyFault::Other => Problem::new(
+            StatusCode::BAD_REQUEST,
+            "bad_request",
+            "the request body could not be read",
+        ),
+    }
+}
+
+/// The bake parameters of a query string, and the keys it gave.
+pub(super) fn query_params(uri: &axum::http::Uri) -> Result<(BakeParams, Vec<String>), Problem> {
+    let pairs: Vec<(String, String)> = match Query::<Vec<(String, String)>>::try_from_uri(uri) {
+        Ok(Query(p)) => p,
+        Err(_) => return Err(Problem::param("query", "the query string is malformed")),
+    };
+    let params = BakeParams::from_pairs(pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
+        .map_err(Problem::from)?;
+    Ok((params, pairs.into_iter().map(|(k, _)| k).collect()))
+}
+
+/// Applies the keys of a multipart `params` JSON object on top of `base` (the query's). A key
+/// given in both is refused (422 naming it), as a key given twice in the query or in the JSON is:
+/// one rule everywhere, since which one "wins" would be a guess about what the client meant.
+pub(super) fn merge_json(
+    base: BakeParams,
+    query_keys: &[String],
+    text: &[u8],
+) -> Result<BakeParams, Problem> {
+    if text.iter().all(u8::is_ascii_whitespace) {
+        return Ok(base);
+    }
+    let given = crate::params::json_object_pairs(text).map_err(Problem::from)?;
+    let mut merged = base;
+    for (k, v) in &given {
+        if query_keys.iter().any(|q| q == k) {
+            return Err(Problem::param(
+                k.clone(),
+                "given both in the query string and in the `params` part",
+            ));
+        }
+        if let Some(text) = crate::params::json_value_text(k, v).map_err(Problem::from)? {
+            merged.set(k, &text).map_err(Problem::from)?;
+        }
+    }
+    Ok(merged)
+}
+
+pub(super) async fn read_multipart(
+    st: &AppState,
+    req: Request,
+) -> Result<(Vec<u8>, BakeParams), Problem> {
+    let (query, query_keys) = query_params(req.uri())?;
+    let timeout = st.0.config.body_timeout;
+    let mut mp = axum::extract::Multipart::from_request(req, st).await.map_err(|e| {
+        Problem::new(
+            StatusCode::BAD_REQUEST,
+            "bad_request",
+            format!("malformed multipart body: {}", e.body_text()),
+        )
+    })?;
+    let mut image: Option<Vec<u8>> = None;
+    let mut params: Option<BakeParams> = None;
+    loop {
+        let field = match mp.next_field().await {
+            Ok(Some(f)) => f,
+            Ok(None) => break,
+            Err(e) => return Err(multipart_error(&e, timeout)),
+        };
+        let name = field.name().unwrap_or("").to_owned();
+        match name.as_str() {
+            "heightmap" => {
+                if image.is_some() {
+                    return Err(Problem::param("heightmap", "given more than once"));
+                }
+                let bytes = field.bytes().await.map_err(|e| multipart_error(&e, timeout))?;
+                image = Some(bytes.to_vec());
+            }
+            "params" => {
+                if params.is_some() {
+                    return Err(Problem::param("params", "given more than once"));
+                }
+                let text = field.bytes().await.map_err(|e| multipart_error(&e, timeout))?;
+                params = Some(merge_json(query.clone(), &query_keys, &text)?);
+            }
+            other => {
+                return Err(Problem::param(
+                    if other.is_empty() { "multipart" } else { other },
+                    "unknown multipart part; expected `heightmap` and optionally `params`",
+                ))
+            }
+        }
+    }
+    let image = image
+        .ok_or_else(|| Problem::param("heightmap", "the multipart body has no `heightmap` part"))?;
+    Ok((image, params.unwrap_or(query)))
+}
+
+pub(super) fn multipart_error(
+    e: &axum::extract::multipart::MultipartError,
+    timeout: Duration,
+) -> Problem {
+    match upload::fault(e) {
+        upload::BodyFault::Other if e.status() != StatusCode::PAYLOAD_TOO_LARGE => Problem::new(
+            StatusCode::BAD_REQUEST,
+            "bad_request",
+            format!("malformed multipart body: {}", e.body_text()),
+        ),
+        upload::BodyFault::Other => body_error(&upload::BodyTooLarge(0), timeout),
+        _ => body_error(e, timeout),
+    }
+}
+
+pub(super) async fn read_raw(
+    st: &AppState,
+    req: Request,
+    ct: &str,
+) -> Result<(Vec<u8>, BakeParams), Problem> {
+    let mime = ct.split(';').next().unwrap_or("").trim().to_ascii_lowercase();
+    let (params, _) = query_params(req.uri())?;
+    let timeout = st.0.config.body_timeout;
+    let bytes = axum::body::to_bytes(req.into_body(), usize::MAX)
+        .await
+        .map_err(|e| body_error(&e, timeout))?;
+    // Checked after the body is read, so the client gets this answer rather than a reset.
+    if !mime.is_empty() && !RAW_TYPES.contains(&mime.as_str()) {
+        return Err(Error::Unsupported(format!(
+            "Content-Type `{}` is not accepted; send image/png, image/tiff, image/x-exr or multipart/form-data",
+            crate::service::problem::cap(&mime, 100)
+        ))
+        .into());
+    }
+    Ok((bytes.to_vec(), params))
+}
+
+pub(super) fn retry_after(st: &AppState, waiting: u64) -> u64 {
+    let mean = st.0.metrics.mean_duration().unwrap_or(1.0);
+    let per_slot = waiting as f64 * mean / st.0.config.max_concurrent_bakes.max(1) as f64;
+    per_slot.ceil().clamp(1.0, 300.0) as u64
+}
+
+/// `POST /v1/bakes`: multipart (`heightmap` + optional `params` JSON) or a raw image body with
+/// the parameters in the query string.
+pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
+    if st.is_draining() {
+        return Err(Problem::shutting_down());
+    }
+    let _upload =
+        match tokio::time::timeout(st.0.config.upload_wait, st.0.uploads.clone().acquire_owned())
+            .await
+        {
+            Ok(Ok(p)) => p,
+            _ => {
+                let mut p = Problem::new(
+                    StatusCode::TOO_MANY_REQUESTS,
+                    "too_many_uploads",
+                    "too many uploads in progress; retry later",
+                );
+                p.retry_after = Some(1);
+                return Err(p);
+            }
+        };
+    let ct = req
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("")
+        .to_owned();
+    let (parts, body) = req.into_parts();
+    let body = upload::guarded(body, st.0.config.max_body_bytes, st.0.config.body_timeout);
+    let req = Request::from_parts(parts, body);
+    let (bytes, params) = if ct.to_ascii_lowercase().starts_with("multipart/form-data") {
+        read_multipart(&st, req).await?
+    } else {
+        read_raw(&st, req, &ct).await?
+    };
+    // Format and dimensions from the header against the limits, before any pixel allocation;
+    // then, for float images only, the values (NaN, infinities, out of range), so such an input
+    // is a 422 now rather than a failed bake later. Integer images cannot hold a bad value.
+    let limits = st.0.config.limits;
+    let channel = params.channel;
+    let (bytes, (fmt, width, height)) = blocking(move || {
+        let probed = heightmap::check_submission(&bytes, channel, &limits)?;
+        Ok((bytes, probed))
+    })
+    .await?;
+    let format = match fmt {
+        image::ImageFormat::Png => "png",
+        image::ImageFormat::Tiff => "tiff",
+        _ => "exr",
+    };
+    let pairs: Vec<(String, String)> =
+        params.to_pairs().into_iter().map(|(k, v)| (k.to_owned(), v)).collect();
+    let (bytes, input_hash, key) = blocking(move || {
+        let input_hash = blake3::hash(&bytes).to_hex().to_string();
+        let mut h = blake3::Hasher::new();
+        h.update(input_hash.as_bytes());
+        for (k, v) in &pairs {
+            h.update(b"\n");
+            h.update(k.as_bytes());
+            h.update(b"=");
+            h.update(v.as_bytes());
+        }
+        Ok((bytes, input_hash, h.finalize().to_hex().to_string()))
+    })
+    .await
+    .map_err(store_err)?;
+
+    let rec = BakeRecord {
+        id: new_id(),
+        status: Status::Queued,
+        dedup_key: key,
+        params: params.to_pairs().into_iter().map(|(k, v)| (k.to_owned(), v)).collect(),
+        input_blob: input_hash,
+        input_format: format.into(),
+        input_bytes: bytes.len() as u64,
+        width,
+        height,
+        input: None,
+        radius: None,
+        created_ms: now_ms(),
+        started_ms: None,
+        finished_ms: None,
+        requested_ms: None,
+        timings_ms: None,
+        error: None,
+        results: Default::default(),
+        attempts: 0,
+        progress: None,
+        worker: None,
+    };
+    let (status, rec) = match st.0.jobs.submit(bytes, rec).await.map_err(store_err)? {
+        Submitted::Created(rec) => {
+            st.0.metrics.submitted(false);
+            (StatusCode::ACCEPTED, rec)
+        }
+        Submitted::Existing(rec) => {
+            st.0.metrics.submitted(true);
+            (StatusCode::OK, rec)
+        }
+        Submitted::QueueFull { waiting } => {
+            return Err(Problem::queue_full(st.0.config.queue_capacity, retry_after(&st, waiting)))
+        }
+    };
+    let mut res = json_response(status, &resource(&st, &rec));
+    if let Ok(v) = HeaderValue::from_str(&format!("/v1/bakes/{}", rec.id)) {
+        res.headers_mut().insert(header::LOCATION, v);
+    }
+    Ok(res)
+}
+
+// ---------------------------------------------------------------------------------------------
+// Reading and managing bakes
+
+/// `GET /v1/bakes?limit=&cursor=&status=&order=`: `status` is one status or a comma list,
+/// `order` is `asc` (oldest first, the default) or `desc` (newest first); the answer carries
+/// `total`, how many bakes match the filter in all.
+pub async fn list(State(st): State<AppState>, Query(q): Query<Vec<(String, String)>>) -> Answer {
+    let q = query_map(q, &["limit", "cursor", "status", "order"])?;
+    let limit = match q.get("limit") {
+        None => 50,
+        Some(v) => match v.parse::<usize>() {
+            Ok(n) if (1..=1000).contains(&n) => n,
+            _ => {
+                return Err(Problem::param(
+                    "limit",
+                    format!("`{v}` is not a whole number from 1 to 1000"),
+                ))
+            }
+        },
+    };
+    let mut statuses = Vec::new();
+    if let Some(list) = q.get("status") {
+        for s in list.split(',') {
+            let s = Status::parse(s.trim()).map_err(Problem::from)?;
+            if !statuses.contains(&s) {
+                statuses.push(s);
+            }
+        }
+    }
+    let newest_first = match q.get("order").map(String::as_str) {
+        None | Some("asc") => false,
+        Some("desc") => true,
+        Some(v) => return Err(Problem::param("order", format!("`{v}` is not one of asc, desc"))),
+    };
+    let cursor = q.get("cursor").cloned();
+    // One rule for every malformed cursor: a cursor is a bake id (20 lowercase hex digits), as
+    // `next.cursor` returns it; a well-formed id of a removed bake still pages on after it.
+    if let Some(c) = &cursor {
+        if c.len() != 20 || !c.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b)) {
+            return Err(Problem::param("cursor", "not a cursor returned by this API"));
+        }
+    }
+    let query = store::ListQuery { statuses: statuses.clone(), cursor, limit, newest_first };
+    let page = st.0.jobs.list(&query).await.map_err(store_err)?;
+    let items: Vec<Value> = page.items.iter().map(|r| resource(&st, r)).collect();
+    let next = page.next.map(|c| {
+        let mut link = format!("/v1/bakes?limit={limit}&cursor={c}");
+        if !statuses.is_empty() {
+            let names: Vec<&str> = statuses.iter().map(|s| s.as_str()).collect();
+            link.push_str(&format!("&status={}", names.join(",")));
+        }
+        if newest_first {
+            link.push_str("&order=desc");
+        }
+        json!({"cursor": c, "href": link})
+    });
+    Ok(json_response(StatusCode::OK, &json!({"items": items, "next": next, "total": page.total})))
+}
+
+/// `GET /v1/bakes/{id}`.
+pub async fn get_bake(State(st): State<AppState>, Path(id): Path<String>) -> Answer {
+    let rec = load(&st, &id).await?;
+    Ok(json_response(StatusCode::OK, &resource(&st, &rec)))
+}
+
+/// `DELETE /v1/bakes/{id}`: cancels a queued bake (200, now `canceled`), asks a running one to
+/// stop (202, it turns `canceled` within a band of rows), removes a finished one and its
+/// results (204).
+pub async fn delete_bake(State(st): State<AppState>, Path(id): Path<String>) -> Answer {
+    if id.is_empty() || id.len() > 64 {
+        return Err(Problem::bake_not_found(&id));
+    }
+    match st.0.jobs.cancel(&id).await.map_err(store_err)? {
+        CancelResult::NotFound => Err(Problem::bake_not_found(&id)),
+        CancelResult::Finished(_) => Ok(StatusCode::NO_CONTENT.into_response()),
+        CancelResult::Canceled(rec) => Ok(json_response(StatusCode::OK, &resource(&st, &rec))),
+        // Running: its worker records `canceled` when the kernel stops (within a band of rows
+        // here, within a heartbeat on another machine).
+        CancelResult::Requested(_) => {
+            let rec = load(&st, &id).await?;
+            Ok(json_response(StatusCode::ACCEPTED, &resource(&st, &rec)))
+        }
+    }
+}
+
+/// Removes finished bakes past their retention, then orphaned blobs (see
+/// [`crate::jobs::Jobs::sweep`]); returns how many bakes were removed.
+///
+/// # Errors
+/// Store failures.
+pub async fn sweep(st: &AppState) -> crate::Result<usize> {
+    st.0.jobs.sweep().await
+}

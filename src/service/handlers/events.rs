@@ -1,0 +1,91 @@
+//! `GET /v1/bakes/{id}/events`: Server-Sent Events of a bake, fed by the jobs core's change
+//! feed (every node sees every change) and a short re-read.
+
+#![allow(clippy::result_large_err)]
+
+use super::*;
+
+pub(super) async fn snapshot(st: &AppState, id: &str) -> Option<(Status, Value)> {
+    let rec = st.0.jobs.get(id).await.ok().flatten()?;
+    let res = resource(st, &rec);
+    let status = res.get("status").and_then(Value::as_str).and_then(|s| Status::parse(s).ok())?;
+    Some((status, res))
+}
+
+pub(super) struct Watch {
+    st: AppState,
+    id: String,
+    rx: tokio::sync::broadcast::Receiver<String>,
+    closing: tokio_util::sync::CancellationToken,
+    last: Option<String>,
+    first: bool,
+    done: bool,
+    /// Sequence number of the next event (the SSE `id:` field).
+    seq: u64,
+}
+
+impl Watch {
+    /// The next event with its `id:`; the first one also carries `retry:` (how long a client
+    /// waits before reconnecting after the stream ends without `done`, e.g. a network cut).
+    fn event(&mut self, name: &str, data: String) -> Event {
+        let mut ev = Event::default().event(name).data(data).id(self.seq.to_string());
+        if self.seq == 0 {
+            ev = ev.retry(Duration::from_millis(2000));
+        }
+        self.seq += 1;
+        ev
+    }
+}
+
+/// `GET /v1/bakes/{id}/events`: `progress` events while the bake is in flight, then one `done`
+/// event carrying the final resource (or `deleted`), then the stream ends. Every stream ends
+/// with `done`: on shutdown too, carrying the resource as it stands (still queued or running,
+/// it finishes after the restart), so a client never waits on a stream that silently stopped.
+pub async fn events(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, Problem> {
+    load(&st, &id).await?;
+    let rx = st.0.jobs.watch();
+    let closing = st.0.jobs.closing();
+    let w = Watch { st, id, rx, closing, last: None, first: true, done: false, seq: 0 };
+    let stream = futures_util::stream::unfold(w, |mut w| async move {
+        if w.done {
+            return None;
+        }
+        loop {
+            let mut closing = false;
+            if !w.first {
+                tokio::select! {
+                    _ = w.closing.cancelled() => closing = true,
+                    _ = tokio::time::sleep(Duration::from_millis(250)) => {}
+                    _ = w.rx.recv() => {}
+                }
+            }
+            w.first = false;
+            match snapshot(&w.st, &w.id).await {
+                None => {
+                    w.done = true;
+                    let ev = w.event("deleted", json!({"id": w.id}).to_string());
+                    return Some((Ok(ev), w));
+                }
+                Some((status, res)) if status.is_terminal() || closing => {
+                    w.done = true;
+                    let ev = w.event("done", res.to_string());
+                    return Some((Ok(ev), w));
+                }
+                Some((status, res)) => {
+                    let text =
+                        json!({"id": w.id, "status": status.as_str(), "progress": res["progress"]})
+                            .to_string();
+                    if w.last.as_ref() != Some(&text) {
+                        w.last = Some(text.clone());
+                        let ev = w.event("progress", text);
+                        return Some((Ok(ev), w));
+                    }
+                }
+            }
+        }
+    });
+    Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
+}

@@ -1,0 +1,273 @@
+//! HTTP handlers, one file per resource: validate, call the jobs core, answer. No pixel
+//! arithmetic here; the only CPU work a handler starts runs off the async workers: the cube map
+//! on a blocking thread, previews and on-request encodes on the preview pool.
+//!
+//! This module holds what several resources share (query parsing, the bake resource, loading a
+//! bake, problem mapping); [`bakes`], [`events`], [`results`], [`cubemap`], [`previews`] and
+//! [`ops`] hold the handlers, re-exported here for the router.
+
+// `Problem` is the error answer itself, built at most once per request on the way out; boxing it
+// would add an allocation to every error path for no gain.
+#![allow(clippy::result_large_err)]
+
+use crate::encode::CubeFormats;
+use crate::error::Error;
+use crate::heightmap;
+use crate::jobs::repo::{CancelResult, Submitted};
+use crate::params::BakeParams;
+use crate::preview::{self, PreviewParams};
+use crate::progress::{Progress, Stage};
+use crate::service::problem::Problem;
+use crate::service::store::{self, now_ms, BakeRecord, Status};
+use crate::service::worker::{self, blocking, params_of};
+use crate::service::{upload, AppState};
+use axum::body::Body;
+use axum::extract::{FromRequest, MatchedPath, Path, Query, Request, State};
+use axum::http::{header, HeaderMap, HeaderValue, Method, StatusCode};
+use axum::middleware::Next;
+use axum::response::sse::{Event, KeepAlive, Sse};
+use axum::response::{IntoResponse, Response};
+use axum::Json;
+use futures_util::stream::Stream;
+use serde_json::{json, Value};
+use std::collections::HashMap;
+use std::convert::Infallible;
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::sync::Arc;
+use std::time::Duration;
+
+mod bakes;
+mod cubemap;
+mod events;
+mod ops;
+mod previews;
+mod results;
+
+pub use bakes::*;
+pub use cubemap::*;
+pub use events::*;
+pub use ops::*;
+pub use previews::*;
+pub use results::*;
+
+type Answer = Result<Response, Problem>;
+
+/// The openapi document this server implements.
+pub const OPENAPI_YAML: &str = include_str!("../../../openapi.yaml");
+
+// ---------------------------------------------------------------------------------------------
+// Small helpers
+
+fn store_err(e: Error) -> Problem {
+    Problem::from(e)
+}
+
+/// Parses query pairs, rejecting names not in `allowed` and repeated names (422 naming them).
+fn query_map(
+    pairs: Vec<(String, String)>,
+    allowed: &[&str],
+) -> Result<HashMap<String, String>, Problem> {
+    let mut out = HashMap::new();
+    for (k, v) in pairs {
+        if !allowed.contains(&k.as_str()) {
+            return Err(Problem::param(
+                k,
+                format!(
+                    "unknown query parameter; this route accepts {}",
+                    if allowed.is_empty() { "none".to_owned() } else { allowed.join(", ") }
+                ),
+            ));
+        }
+        if out.insert(k.clone(), v).is_some() {
+            return Err(Problem::param(k, "given more than once"));
+        }
+    }
+    Ok(out)
+}
+
+/// Query pairs of a GET of an immutable result: the keys in `known` are parsed (each at most
+/// once), any other key is ignored, so a cache buster (`?v=123`) does not turn a download into
+/// a 422.
+fn known_query(
+    pairs: Vec<(String, String)>,
+    known: &[&str],
+) -> Result<HashMap<String, String>, Problem> {
+    let mut out = HashMap::new();
+    for (k, v) in pairs {
+        if known.contains(&k.as_str()) && out.insert(k.clone(), v).is_some() {
+            return Err(Problem::param(k, "given more than once"));
+        }
+    }
+    Ok(out)
+}
+
+/// RFC 3339 UTC time of Unix milliseconds (civil-from-days, Howard Hinnant's algorithm).
+pub fn rfc3339(ms: u64) -> String {
+    let secs = ms / 1000;
+    let days = (secs / 86_400) as i64;
+    let rem = secs % 86_400;
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!(
+        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}.{:03}Z",
+        rem / 3600,
+        (rem % 3600) / 60,
+        rem % 60,
+        ms % 1000
+    )
+}
+
+/// Overall progress in [0, 1] from a stage and its fraction (weights: decode 5%, bake 85%,
+/// encode 7%, store 3%).
+fn overall(stage: Stage, f: f64) -> f64 {
+    let (start, span) = match stage {
+        Stage::Queued => (0.0, 0.0),
+        Stage::Decode => (0.0, 0.05),
+        Stage::Bake | Stage::Fourier => (0.05, 0.85),
+        Stage::Encode => (0.90, 0.07),
+        Stage::Store => (0.97, 0.03),
+        Stage::Done => (1.0, 0.0),
+    };
+    (start + span * f).clamp(0.0, 1.0)
+}
+
+fn stage_name(s: Stage) -> Value {
+    serde_json::to_value(s).unwrap_or(Value::Null)
+}
+
+/// The bake resource (SPEC §5) for a record, with live progress when it is in flight.
+pub fn resource(st: &AppState, rec: &BakeRecord) -> Value {
+    let status = rec.status;
+    let progress = match (rec.progress, status) {
+        (Some(p), Status::Running) => {
+            json!({"fraction": overall(p.stage, p.fraction), "stage": stage_name(p.stage)})
+        }
+        (None, Status::Running) => json!({"fraction": 0.0, "stage": "decode"}),
+        (_, Status::Succeeded) => json!({"fraction": 1.0, "stage": "done"}),
+        (_, s) if s.is_terminal() => json!({"fraction": 0.0, "stage": "done"}),
+        _ => json!({"fraction": 0.0, "stage": "queued"}),
+    };
+    let mut params =
+        params_of(rec).ok().and_then(|p| serde_json::to_value(p).ok()).unwrap_or_else(|| json!({}));
+    if let (Some(obj), Some(r)) = (params.as_object_mut(), &rec.radius) {
+        obj.insert("resolved_radius".into(), json!({"texels": r.texels, "reason": r.reason}));
+    }
+    let input = match &rec.input {
+        Some(i) => json!({
+            "width": i.width, "height": i.height, "format": i.format, "color": i.color,
+            "bit_depth": i.bit_depth, "float": i.float, "content_hash": i.content_hash,
+            "bytes": rec.input_bytes,
+        }),
+        None => json!({
+            "width": rec.width, "height": rec.height, "format": rec.input_format,
+            "color": null, "bit_depth": null, "float": null, "content_hash": rec.input_blob,
+            "bytes": rec.input_bytes,
+        }),
+    };
+    let base = format!("/v1/bakes/{}", rec.id);
+    let mut links = json!({"self": base, "events": format!("{base}/events")});
+    if status == Status::Succeeded {
+        if let Some(obj) = links.as_object_mut() {
+            for k in 0..3 {
+                if rec.results.contains_key(&format!("fourier_{k}.png")) {
+                    obj.insert(format!("fourier_{k}"), json!(format!("{base}/fourier/{k}")));
+                }
+            }
+        }
+    }
+    if status == Status::Succeeded && rec.results.contains_key("horizon_0.png8") {
+        if let Some(obj) = links.as_object_mut() {
+            obj.insert("horizon_0".into(), json!(format!("{base}/horizon/0")));
+            obj.insert("horizon_1".into(), json!(format!("{base}/horizon/1")));
+            obj.insert("horizon_ktx2".into(), json!(format!("{base}/horizon.ktx2")));
+            obj.insert("horizon_dds".into(), json!(format!("{base}/horizon.dds")));
+        }
+    }
+    json!({
+        "id": rec.id,
+        "status": status.as_str(),
+        "progress": progress,
+        "params": params,
+        "input": input,
+        "created_at": rfc3339(rec.created_ms),
+        "started_at": rec.started_ms.map(rfc3339),
+        "finished_at": rec.finished_ms.map(rfc3339),
+        "expires_at": rec.expires_ms(st.0.config.retention.as_millis() as u64).map(rfc3339),
+        "timings_ms": rec.timings_ms,
+        "error": rec.error,
+        "attempts": rec.attempts,
+        "worker": rec.worker,
+        "links": links,
+    })
+}
+
+async fn load(st: &AppState, id: &str) -> Result<BakeRecord, Problem> {
+    if id.is_empty() || id.len() > 64 {
+        return Err(Problem::bake_not_found(id));
+    }
+    st.0.jobs.get(id).await.map_err(store_err)?.ok_or_else(|| Problem::bake_not_found(id))
+}
+
+fn json_response(status: StatusCode, body: &Value) -> Response {
+    (status, Json(body)).into_response()
+}
+
+fn new_id() -> String {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static COUNTER: AtomicU64 = AtomicU64::new(0);
+    let n = COUNTER.fetch_add(1, Ordering::Relaxed);
+    let nanos = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_nanos())
+        .unwrap_or(0);
+    let mut h = blake3::Hasher::new();
+    h.update(&n.to_le_bytes());
+    h.update(&nanos.to_le_bytes());
+    h.update(&std::process::id().to_le_bytes());
+    let noise = h.finalize();
+    format!("{:012x}{}", now_ms() & 0xffff_ffff_ffff, &noise.to_hex()[..8])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rfc3339_known_instants() {
+        assert_eq!(rfc3339(0), "1970-01-01T00:00:00.000Z");
+        assert_eq!(rfc3339(951_782_400_123), "2000-02-29T00:00:00.123Z");
+        assert_eq!(rfc3339(1_795_000_000_000), "2026-11-18T11:06:40.000Z");
+    }
+
+    #[test]
+    fn etag_lists_and_wildcards() {
+        let mut h = HeaderMap::new();
+        h.insert(header::IF_NONE_MATCH, HeaderValue::from_static("\"a\", W/\"b\""));
+        assert!(etag_matches(&h, "\"b\""));
+        assert!(!etag_matches(&h, "\"c\""));
+        h.insert(header::IF_NONE_MATCH, HeaderValue::from_static("*"));
+        assert!(etag_matches(&h, "\"c\""));
+    }
+
+    #[test]
+    fn overall_progress_is_monotonic_across_stages() {
+        let seq = [
+            overall(Stage::Queued, 0.0),
+            overall(Stage::Decode, 1.0),
+            overall(Stage::Bake, 0.5),
+            overall(Stage::Bake, 1.0),
+            overall(Stage::Encode, 1.0),
+            overall(Stage::Store, 1.0),
+            overall(Stage::Done, 1.0),
+        ];
+        assert!(seq.windows(2).all(|w| w[0] <= w[1]), "{seq:?}");
+        assert_eq!(seq[6], 1.0);
+    }
+}
