@@ -374,7 +374,8 @@ async fn cancel_and_progress_cross_nodes() {
     let c = client();
 
     // SSE of a bake running on the worker, read on node A.
-    let png = terrain_png16(160, 160, 3);
+    // Long enough for several heartbeats (200 ms) of progress to reach node A.
+    let png = terrain_png16(256, 256, 3);
     let (s, v) = submit(&c, cl.base(a), &png, SLOW).await;
     assert_eq!(s, 202, "{v}");
     let id = v["id"].as_str().unwrap().to_owned();
@@ -422,7 +423,7 @@ async fn a_killed_worker_s_bake_is_taken_over() {
     let api = cl.start("api", "api-a", &[]);
     let w1 = cl.start("worker", "w1", &[]);
     let c = client();
-    let png = terrain_png16(128, 128, 5);
+    let png = terrain_png16(192, 192, 5);
     let (_, v) = submit(&c, cl.base(api), &png, SLOW).await;
     let id = v["id"].as_str().unwrap().to_owned();
     let running = wait_running(&c, &cl.url_of(api, &id)).await;
@@ -452,7 +453,7 @@ async fn a_stalled_worker_cannot_overwrite_the_takeover() {
     let api = cl.start("api", "api-a", &[]);
     let w1 = cl.start("worker", "w1", &[]);
     let c = client();
-    let png = terrain_png16(128, 128, 6);
+    let png = terrain_png16(192, 192, 6);
     let (_, v) = submit(&c, cl.base(api), &png, SLOW).await;
     let id = v["id"].as_str().unwrap().to_owned();
     wait_running(&c, &cl.url_of(api, &id)).await;
@@ -484,7 +485,7 @@ async fn sigterm_hands_the_bake_back() {
     let api = cl.start("api", "api-a", &[]);
     let w1 = cl.start("worker", "w1", &["--shutdown-grace-secs", "0"]);
     let c = client();
-    let png = terrain_png16(128, 128, 8);
+    let png = terrain_png16(192, 192, 8);
     let (_, v) = submit(&c, cl.base(api), &png, SLOW).await;
     let id = v["id"].as_str().unwrap().to_owned();
     wait_running(&c, &cl.url_of(api, &id)).await;
@@ -581,7 +582,7 @@ async fn postgres_restart_gives_503_then_recovers() {
     let api = cl.start("api", "api-a", &[]);
     cl.start("worker", "w1", &[]);
     let c = client();
-    let png = terrain_png16(128, 128, 9);
+    let png = terrain_png16(192, 192, 9);
     let (_, v) = submit(&c, cl.base(api), &png, SLOW).await;
     let id = v["id"].as_str().unwrap().to_owned();
     wait_running(&c, &cl.url_of(api, &id)).await;

@@ -72,6 +72,13 @@ CREATE TABLE blob_pins (
 
 fn pg_err(e: sqlx::Error) -> Error {
     match e {
+        // SQLSTATE classes 08 (connection), 53 (resources), 57 (operator intervention: a
+        // shutdown or restart terminating sessions): the database is away, not our bug.
+        sqlx::Error::Database(d)
+            if d.code().is_some_and(|c| ["08", "53", "57"].iter().any(|k| c.starts_with(k))) =>
+        {
+            Error::Unavailable(format!("database: {d}"))
+        }
         sqlx::Error::Database(d) => Error::Internal(format!("database: {d}")),
         sqlx::Error::RowNotFound | sqlx::Error::ColumnDecode { .. } | sqlx::Error::Decode(_) => {
             Error::Internal(format!("database: {e}"))

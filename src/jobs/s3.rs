@@ -17,7 +17,13 @@ use object_store::{ObjectStore, PutPayload, WriteMultipart};
 use std::io::{Read, Seek, Write};
 use std::sync::Arc;
 
+/// Blobs up to this size are one PUT; larger ones are uploaded in parts.
 const PART: usize = 8 << 20;
+/// Parts of a blob streamed while it is written (S3's smallest part size, so uploading starts
+/// as early as possible).
+const STREAM_PART: usize = 5 << 20;
+/// Staging objects older than this are leftovers of a crash between upload and copy.
+const STAGING_MAX_AGE_SECS: u64 = 3600;
 
 fn s3_err(e: object_store::Error) -> Error {
     Error::Unavailable(format!("object storage: {e}"))
@@ -98,6 +104,25 @@ impl S3BlobStore {
         }
     }
 
+    fn staging_root(&self) -> ObjPath {
+        if self.prefix.is_empty() {
+            ObjPath::from("staging")
+        } else {
+            ObjPath::from(format!("{}/staging", self.prefix))
+        }
+    }
+
+    fn staging_key(&self) -> ObjPath {
+        let mut noise = [0u8; 12];
+        let t = crate::jobs::store::now_ms();
+        let h = blake3::hash(
+            format!("{t}/{}/{:?}", std::process::id(), std::thread::current().id()).as_bytes(),
+        );
+        noise.copy_from_slice(&h.as_bytes()[..12]);
+        let name: String = noise.iter().map(|b| format!("{b:02x}")).collect();
+        self.staging_root().child(format!("{t}-{name}"))
+    }
+
     fn path(&self, hash: &str) -> Result<ObjPath> {
         if !valid_hash(hash) {
             return Err(Error::Internal(format!("malformed blob hash `{hash}`")));
@@ -142,35 +167,96 @@ impl S3BlobStore {
     }
 }
 
+/// A blob being written. Up to [`PART`] bytes are buffered; a larger blob streams its parts to
+/// a staging key as they are produced (overlapping the bake that writes them), and on commit,
+/// once its hash is known and pinned, is copied server-side to its final name and the staging
+/// object removed. A small blob is one PUT at commit.
 struct S3Writer {
-    tmp: tempfile::NamedTempFile,
     hasher: blake3::Hasher,
-    len: u64,
+    buf: Vec<u8>,
+    staging: Option<(ObjPath, WriteMultipart)>,
     store: S3BlobStore,
 }
 
+impl S3Writer {
+    fn start_staging(&mut self) -> std::io::Result<()> {
+        let key = self.store.staging_key();
+        let upload = self
+            .store
+            .rt
+            .block_on(self.store.s3.put_multipart(&key))
+            .map_err(std::io::Error::other)?;
+        let _rt = self.store.rt.enter();
+        let mut w = WriteMultipart::new_with_chunk_size(upload, STREAM_PART);
+        w.write(&self.buf);
+        self.buf = Vec::new();
+        self.staging = Some((key, w));
+        Ok(())
+    }
+}
+
 impl Write for S3Writer {
-    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
-        let n = self.tmp.write(buf)?;
-        self.hasher.update(&buf[..n]);
-        self.len += n as u64;
-        Ok(n)
+    fn write(&mut self, data: &[u8]) -> std::io::Result<usize> {
+        self.hasher.update(data);
+        match &mut self.staging {
+            None => {
+                self.buf.extend_from_slice(data);
+                if self.buf.len() > PART {
+                    self.start_staging()?;
+                }
+            }
+            Some((_, w)) => {
+                // At most two parts in flight: memory stays bounded whatever the blob's size.
+                self.store.rt.block_on(w.wait_for_capacity(2)).map_err(std::io::Error::other)?;
+                let _rt = self.store.rt.enter();
+                w.write(data);
+            }
+        }
+        Ok(data.len())
     }
     fn flush(&mut self) -> std::io::Result<()> {
-        self.tmp.flush()
+        Ok(())
+    }
+}
+
+impl Drop for S3Writer {
+    fn drop(&mut self) {
+        // Dropped without commit (a failed or canceled bake): abandon the staged parts.
+        if let Some((_, w)) = self.staging.take() {
+            self.store.rt.spawn(async move {
+                let _ = w.abort().await;
+            });
+        }
     }
 }
 
 impl BlobWriter for S3Writer {
-    fn commit(self: Box<Self>, pin: PinHook<'_>) -> Result<String> {
-        let S3Writer { mut tmp, hasher, len, store } = *self;
-        tmp.flush()?;
-        let hash = hasher.finalize().to_hex().to_string();
-        let path = store.path(&hash)?;
+    fn commit(mut self: Box<Self>, pin: PinHook<'_>) -> Result<String> {
+        let hash = self.hasher.finalize().to_hex().to_string();
+        let path = self.store.path(&hash)?;
         pin(&hash)?;
-        // Pinned: nobody deletes it now, so an existing object can be kept as it is.
-        if !store.exists(&path)? {
-            store.upload(&path, tmp.as_file_mut(), len)?;
+        let store = &self.store;
+        match self.staging.take() {
+            None => {
+                // Pinned: nobody deletes it now, so an existing object can be kept as it is.
+                if !store.exists(&path)? {
+                    let bytes = std::mem::take(&mut self.buf);
+                    store
+                        .rt
+                        .block_on(store.s3.put(&path, PutPayload::from(bytes)))
+                        .map_err(s3_err)?;
+                }
+            }
+            Some((key, w)) => {
+                store.rt.block_on(w.finish()).map_err(s3_err)?;
+                let published = if store.exists(&path)? {
+                    Ok(())
+                } else {
+                    store.rt.block_on(store.s3.copy(&key, &path)).map_err(s3_err)
+                };
+                let _ = store.rt.block_on(store.s3.delete(&key));
+                published?;
+            }
         }
         Ok(hash)
     }
@@ -202,9 +288,9 @@ impl Read for S3Reader {
 impl BlobStore for S3BlobStore {
     fn writer(&self) -> Result<Box<dyn BlobWriter>> {
         Ok(Box::new(S3Writer {
-            tmp: tempfile::NamedTempFile::new_in(&self.spool)?,
             hasher: blake3::Hasher::new(),
-            len: 0,
+            buf: Vec::new(),
+            staging: None,
             store: S3BlobStore {
                 s3: self.s3.clone(),
                 prefix: self.prefix.clone(),
@@ -263,6 +349,16 @@ impl BlobStore for S3BlobStore {
             .into_iter()
             .collect::<object_store::Result<_>>()
             .map_err(s3_err)?;
+        // Staging objects are never referenced: one left by a crash between its upload and its
+        // copy is removed here, on the sweep's schedule, once it is surely not being copied.
+        let staging = self.staging_root();
+        for m in
+            self.rt.block_on(self.s3.list(Some(&staging)).collect::<Vec<_>>()).into_iter().flatten()
+        {
+            if (now - m.last_modified.timestamp()).max(0) as u64 > STAGING_MAX_AGE_SECS {
+                let _ = self.rt.block_on(self.s3.delete(&m.location));
+            }
+        }
         Ok(metas
             .into_iter()
             .filter_map(|m| {
