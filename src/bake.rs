@@ -177,14 +177,14 @@ pub fn run_into_layers<K: HorizonRows + ?Sized>(
                 if let Some(b) = &b8 {
                     if let Ok(mut dst) = b[layer][bi].lock() {
                         for (d, v) in dst.iter_mut().zip(vals()) {
-                            *d = crate::encode::quantize8(v);
+                            *d = crate::layers::quantize8(v);
                         }
                     }
                 }
                 if let Some(b) = &b16 {
                     if let Ok(mut dst) = b[layer][bi].lock() {
                         for (d, v) in dst.iter_mut().zip(vals()) {
-                            *d = crate::encode::quantize16(v);
+                            *d = crate::layers::quantize16(v);
                         }
                     }
                 }
@@ -435,27 +435,4 @@ pub fn bake_fourier(
         })?;
     }
     Ok((FourierLayers { width: w, height: h, terms, range, bands, constant, high }, radius))
-}
-
-/// Bakes the Fourier coefficients (SPEC §3.4) into `fourier_0.png`, `fourier_1.png` and, with
-/// 7 or 9 terms, `fourier_2.png`.
-///
-/// # Errors
-/// Whatever the bake or the PNG encoder fails with.
-pub fn fourier_files(
-    map: &HeightMap,
-    params: &BakeParams,
-    progress: &Progress,
-) -> Result<(Vec<crate::encode::OutFile>, ResolvedRadius)> {
-    const NAMES: [&str; 3] = ["fourier_0.png", "fourier_1.png", "fourier_2.png"];
-    let (layers, radius) = bake_fourier(map, params, progress)?;
-    let files = (0..layers.layer_count())
-        .map(|i| {
-            Ok(crate::encode::OutFile {
-                name: NAMES[i],
-                bytes: crate::encode::fourier_png(&layers, i)?,
-            })
-        })
-        .collect::<Result<Vec<_>>>()?;
-    Ok((files, radius))
 }

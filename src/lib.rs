@@ -27,6 +27,7 @@ pub mod jobs;
 pub mod kernels;
 pub mod layers;
 pub mod params;
+pub mod pipeline;
 pub mod preview;
 pub mod progress;
 pub mod service;

@@ -513,9 +513,12 @@ async fn fourier_outputs_match_the_cli_function() {
     let params = BakeParams::from_pairs(pairs).unwrap();
     let (map, _) =
         horizon_bake::heightmap::decode(&png, params.channel, &Default::default()).unwrap();
-    let (want, _) =
-        horizon_bake::bake::fourier_files(&map, &params, &horizon_bake::progress::Progress::new())
-            .unwrap();
+    let (want, _) = horizon_bake::pipeline::fourier_files(
+        &map,
+        &params,
+        &horizon_bake::progress::Progress::new(),
+    )
+    .unwrap();
     assert_eq!(want.len(), 3);
     let res = c
         .post(srv.url("/v1/bakes?radius=6&outputs=fourier&fourier_terms=7"))

@@ -7,7 +7,7 @@ mod common;
 
 use common::Rng;
 use horizon_bake::bake::{self, LayerRows, Precisions, Sample};
-use horizon_bake::cli::bake::{stream_png_files, Staging};
+use horizon_bake::cli::bake::Staging;
 use horizon_bake::encode::png::{encode16, encode8, PngColor, PngRowWriter, PngSample};
 use horizon_bake::encode::Formats;
 use horizon_bake::heightmap::HeightMap;
@@ -215,7 +215,7 @@ fn canceled_png_streaming_leaves_the_directory_alone() {
         std::thread::yield_now();
     });
     let mut staging = Staging::new(&out).unwrap();
-    let res = stream_png_files(map, &params, &formats, &progress, &mut staging);
+    let res = horizon_bake::pipeline::produce(map, &params, &formats, &progress, &mut staging);
     assert!(canceller.join().unwrap() > 0);
     assert!(matches!(res, Err(Error::Canceled)), "got {:?}", res.map(|_| ()));
     let (done, total) = progress.counts();

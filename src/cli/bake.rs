@@ -14,12 +14,12 @@
 //! both and `encode` only what is left (Fourier outputs). EXR, KTX2 and DDS need whole layers
 //! and take the whole-layer path.
 
-use crate::bake::{self, ResolvedRadius};
-use crate::encode::png::PngSample;
-use crate::encode::{self, Formats, OutFile, TexturePrecision};
+use crate::bake::ResolvedRadius;
+use crate::encode::{Formats, OutFile, TexturePrecision};
 use crate::error::{Error, Result};
-use crate::heightmap::{self, HeightMap, InputInfo, Limits};
+use crate::heightmap::{self, InputInfo, Limits};
 use crate::params::BakeParams;
+use crate::pipeline;
 use crate::progress::{Progress, Stage};
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -141,48 +141,25 @@ impl BakeArgs {
     }
 }
 
-/// Whether the horizon files can be streamed: only PNGs asked for (EXR, KTX2 and DDS need whole
-/// layers).
-pub fn streamable(formats: &Formats) -> bool {
-    (formats.png8 || formats.png16) && !(formats.exr || formats.ktx2 || formats.dds)
-}
+/// The CLI's [`pipeline::Sink`]: files go into the staging directory, and appear in DIR only
+/// when the whole bake has succeeded ([`Staging::commit`]).
+impl pipeline::Sink for Staging {
+    type Writer = std::fs::File;
 
-/// Bakes `map` straight into `horizon_0.png` and `horizon_1.png` in `staging`, band by band in
-/// row order ([`encode::stream_horizon_pngs`]): no layer and no encoded PNG is ever whole in
-/// memory. 16-bit with `formats.png16`, else 8-bit.
-///
-/// # Errors
-/// [`Error::Canceled`], [`Error::Io`]; the staged files are then incomplete, and dropping
-/// `staging` removes them.
-pub fn stream_png_files(
-    map: HeightMap,
-    params: &BakeParams,
-    formats: &Formats,
-    progress: &Progress,
-    staging: &mut Staging,
-) -> Result<ResolvedRadius> {
-    if formats.png16 {
-        stream_png::<u16>(map, params, progress, staging)
-    } else {
-        stream_png::<u8>(map, params, progress, staging)
+    fn writer(&mut self, name: &'static str) -> Result<std::fs::File> {
+        self.create(name)
     }
-}
 
-fn stream_png<T: bake::Sample + PngSample>(
-    map: HeightMap,
-    params: &BakeParams,
-    progress: &Progress,
-    staging: &mut Staging,
-) -> Result<ResolvedRadius> {
-    const NAMES: [&str; 2] = ["horizon_0.png", "horizon_1.png"];
-    let files = [staging.create(NAMES[0])?, staging.create(NAMES[1])?];
-    let outs = [files[0].try_clone()?, files[1].try_clone()?];
-    let (outs, radius) = encode::stream_horizon_pngs::<T, _>(map, params, progress, outs)?;
-    drop(outs);
-    for (file, name) in files.into_iter().zip(NAMES) {
-        staging.add(name, file)?;
+    fn finish(&mut self, files: [(&'static str, std::fs::File); 2]) -> Result<()> {
+        for (name, file) in files {
+            self.add(name, file)?;
+        }
+        Ok(())
     }
-    Ok(radius)
+
+    fn put(&mut self, file: OutFile) -> Result<()> {
+        self.write(std::slice::from_ref(&file))
+    }
 }
 
 /// Milliseconds of a duration, for `timings_ms`.
@@ -226,70 +203,19 @@ pub fn run(args: BakeArgs) -> Result<()> {
     drop(bytes);
     let decode_ms = ms(t.elapsed());
 
-    // PNG-only horizon outputs stream straight into the staged files; everything else bakes
-    // whole layers first. Streaming consumes the map, so Fourier outputs are baked before it.
+    // One pipeline with the service's worker (crate::pipeline): PNG-only horizon outputs
+    // stream straight into the staged files, everything else bakes whole layers first.
     let mut staging = Staging::new(&args.out)?;
-    let mut names: Vec<&'static str> = Vec::new();
-    let mut radius: Option<ResolvedRadius> = None;
     let size = params.outputs.horizon.then_some((map.width, map.height));
-    let (bake_ms, encode_ms) = if params.outputs.horizon && streamable(&formats) {
-        let t = Instant::now();
-        let fourier = if params.outputs.fourier {
-            let (files, r) = bake::fourier_files(&map, &params, &progress)?;
-            staging.write(&files)?;
-            Some((files.iter().map(|f| f.name).collect::<Vec<_>>(), r))
-        } else {
-            None
-        };
-        let fourier_ms = ms(t.elapsed());
-        // Kernel and PNG encoding overlap here, so both count as the bake; `encode` is what
-        // cannot overlap: finishing and flushing the files, and the Fourier outputs.
-        let t = Instant::now();
-        let label = format!("{}×{}", map.width, map.height);
-        let r = with_progress_bar(&progress, label, || {
-            stream_png_files(map, &params, &formats, &progress, &mut staging)
-        })?;
-        let bake_ms = ms(t.elapsed());
-        names.extend(["horizon_0.png", "horizon_1.png"]);
-        radius = Some(r);
-        if let Some((fnames, r)) = fourier {
-            names.extend(fnames);
-            radius.get_or_insert(r);
-        }
-        (bake_ms, fourier_ms)
-    } else {
-        let t = Instant::now();
-        let layers =
-            with_progress_bar(&progress, format!("{}×{}", map.width, map.height), || {
-                if params.outputs.horizon {
-                    bake::bake_horizon(&map, &params, formats.precisions(), &progress).map(Some)
-                } else {
-                    Ok(None)
-                }
-            })?;
-        let bake_ms = ms(t.elapsed());
-
-        // Encoding includes writing the files (to the staging directory): both are the cost of
-        // producing the outputs. `total` ends before bake.json itself and the final renames.
-        let t = Instant::now();
-        progress.start(Stage::Encode, 1);
-        let mut files = match &layers {
-            Some((l, r)) => {
-                radius = Some(r.clone());
-                encode::horizon_files(l, &formats)?
-            }
-            None => Vec::new(),
-        };
-        drop(layers);
-        if params.outputs.fourier {
-            let (fourier, r) = bake::fourier_files(&map, &params, &progress)?;
-            files.extend(fourier);
-            radius.get_or_insert(r);
-        }
-        staging.write(&files)?;
-        names.extend(files.iter().map(|f| f.name));
-        (bake_ms, ms(t.elapsed()))
-    };
+    let label = format!("{}×{}", map.width, map.height);
+    let produced = with_progress_bar(&progress, label, || {
+        pipeline::produce(map, &params, &formats, &progress, &mut staging)
+    })?;
+    // Encoding includes writing the files (to the staging directory): both are the cost of
+    // producing the outputs. `total` ends before bake.json itself and the final renames.
+    let (bake_ms, encode_ms) = (produced.bake_ms, produced.encode_ms + produced.store_ms);
+    let radius = Some(produced.radius);
+    let names = produced.names;
     let report = BakeReport {
         params: &params,
         resolved_radius: radius.as_ref(),

@@ -16,47 +16,6 @@ pub mod png;
 use crate::error::{Error, Result};
 use crate::layers::{HorizonLayers, Precisions};
 
-/// Bakes `map` straight into the two RGBA horizon PNGs (`horizon_0.png`, `horizon_1.png`),
-/// written to `outs` band by band in row order ([`crate::bake::stream_horizon`] into
-/// [`png::PngRowWriter`]s): no whole layer and, with files as `outs`, no whole encoded image is
-/// ever in memory. `T` = `u8` for png8, `u16` for png16. The CLI (into staged files) and the
-/// service (into memory, for the blob store) both call this, so their PNGs are the same bytes.
-///
-/// # Errors
-/// [`Error::Canceled`] when `progress` is canceled (checked between bands), [`Error::Io`] from
-/// `outs`, [`Error::Internal`] from the encoder.
-pub fn stream_horizon_pngs<T, W>(
-    map: crate::heightmap::HeightMap,
-    params: &crate::params::BakeParams,
-    progress: &crate::progress::Progress,
-    outs: [W; 2],
-) -> Result<([W; 2], crate::bake::ResolvedRadius)>
-where
-    T: crate::bake::Sample + png::PngSample,
-    W: std::io::Write + Send + 'static,
-{
-    let (w, h) = (map.width, map.height);
-    let [o0, o1] = outs;
-    let mut writers = [
-        png::PngRowWriter::<W, T>::new(o0, w, h, png::PngColor::Rgba)?,
-        png::PngRowWriter::<W, T>::new(o1, w, h, png::PngColor::Rgba)?,
-    ];
-    let radius = crate::bake::stream_horizon(
-        map,
-        params,
-        progress,
-        |rows: crate::bake::LayerRows<'_, T>| {
-            // Deflate is single-threaded and as slow as the kernel: the two layers in parallel.
-            let [w0, w1] = &mut writers;
-            let (a, b) =
-                rayon::join(|| w0.write_rows(rows.layers[0]), || w1.write_rows(rows.layers[1]));
-            a.and(b)
-        },
-    )?;
-    let [w0, w1] = writers;
-    Ok(([w0.finish()?, w1.finish()?], radius))
-}
-
 pub use crate::layers::{quantize16, quantize8};
 
 /// One image (a layer or a cube face) of RGBA texels, `width · height · 4` samples row-major from

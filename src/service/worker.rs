@@ -78,7 +78,7 @@ pub fn encode_on_request(
         decode_input(st.0.jobs.blob_store().as_ref(), rec, &params, &st.0.config.limits)?;
     let files: Vec<Vec<u8>> = match group[0] {
         "horizon_0.png8" => {
-            let (pngs, _) = encode::stream_horizon_pngs::<u8, _>(
+            let (pngs, _) = crate::pipeline::stream_horizon_pngs::<u8, _>(
                 map,
                 &params,
                 progress,
@@ -87,7 +87,7 @@ pub fn encode_on_request(
             pngs.into()
         }
         "horizon_0.png16" => {
-            let (pngs, _) = encode::stream_horizon_pngs::<u16, _>(
+            let (pngs, _) = crate::pipeline::stream_horizon_pngs::<u16, _>(
                 map,
                 &params,
                 progress,
@@ -148,6 +148,45 @@ pub fn runner(limits: Limits) -> Runner {
     })
 }
 
+/// The worker's [`crate::pipeline::Sink`]: each file becomes a blob, pinned for the claim until
+/// its record references it, under its result name (`horizon_0.png` is `horizon_0.png8`).
+struct BlobSink<'a> {
+    blobs: &'a Blobs,
+    results: Vec<(String, String)>,
+}
+
+fn result_name(file: &str) -> String {
+    match file {
+        "horizon_0.png" => HORIZON_RESULTS[0].to_owned(),
+        "horizon_1.png" => HORIZON_RESULTS[1].to_owned(),
+        other => other.to_owned(),
+    }
+}
+
+impl crate::pipeline::Sink for BlobSink<'_> {
+    type Writer = crate::jobs::PinnedWriter;
+
+    fn writer(&mut self, _name: &'static str) -> Result<Self::Writer> {
+        self.blobs.writer()
+    }
+
+    fn finish(&mut self, files: [(&'static str, Self::Writer); 2]) -> Result<()> {
+        // Both files are written already: commit them side by side (an fsync and a rename
+        // each, or the last part of an upload).
+        let [(n0, w0), (n1, w1)] = files;
+        let (h0, h1) = rayon::join(|| w0.commit(), || w1.commit());
+        self.results.push((result_name(n0), h0?));
+        self.results.push((result_name(n1), h1?));
+        Ok(())
+    }
+
+    fn put(&mut self, file: crate::encode::OutFile) -> Result<()> {
+        let hash = self.blobs.put(&file.bytes)?;
+        self.results.push((result_name(file.name), hash));
+        Ok(())
+    }
+}
+
 fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
 }
@@ -191,60 +230,31 @@ fn execute(
     progress.advance(1);
     let decode_ms = ms(t);
 
-    let t = Instant::now();
-    let mut encoded: Vec<(String, Vec<u8>)> = Vec::with_capacity(5);
-    let mut radius = None;
-    if params.outputs.fourier {
-        // The CLI's own function: the same files `horizon-bake bake --outputs fourier` writes.
-        // Before the horizon layers, which consume the map as they stream.
-        let (files, r) = crate::bake::fourier_files(&map, &params, progress)?;
-        radius = Some(r);
-        for f in files {
-            encoded.push((f.name.to_owned(), f.bytes));
-        }
+    // The CLI's own pipeline with the CLI's default format (png8): a bake costs what
+    // `horizon-bake bake --format png8` costs, and every other format waits for its first
+    // request. The kernel and the PNG encoders overlap band by band, and the PNGs stream into
+    // blob writers, so no whole layer and no whole encoded image exists.
+    let formats = Formats {
+        png8: true,
+        png16: false,
+        exr: false,
+        ktx2: false,
+        dds: false,
+        ..Formats::default()
+    };
+    let mut sink = BlobSink { blobs, results: Vec::new() };
+    let produced = crate::pipeline::produce(map, &params, &formats, progress, &mut sink)?;
+    progress.start(Stage::Store, 1);
+    for (name, hash) in sink.results {
+        rec.results.insert(name, hash);
     }
-    let mut streamed = None;
-    if params.outputs.horizon {
-        // Kernel and PNG encoder overlap band by band, as in the CLI, so `bake` covers both and
-        // no whole layer exists; the PNGs go straight into blob writers (temporary files), so
-        // no whole encoded image exists either. Every other format waits for its first request.
-        let outs = [blobs.writer()?, blobs.writer()?];
-        let (writers, r) = encode::stream_horizon_pngs::<u8, _>(map, &params, progress, outs)?;
-        radius = Some(r);
-        streamed = Some(writers);
-    } else {
-        drop(map);
-    }
-    let bake_ms = ms(t);
-    let encode_ms = 0.0;
-    let radius = radius.ok_or_else(|| Error::Internal("a bake with no outputs".into()))?;
-
-    if progress.is_canceled() {
-        return Err(Error::Canceled);
-    }
-    progress.start(Stage::Store, encoded.len() as u64 + 3);
-    let t = Instant::now();
-    // Every blob is pinned for this claim as it is published (see `jobs::Blobs`), so a
-    // concurrent sweep never removes one this record is about to reference.
-    if let Some([w0, w1]) = streamed {
-        // Both files are written already; committing is an fsync and a rename each, side by
-        // side.
-        let (h0, h1) = rayon::join(|| w0.commit(), || w1.commit());
-        rec.results.insert(HORIZON_RESULTS[0].to_owned(), h0?);
-        rec.results.insert(HORIZON_RESULTS[1].to_owned(), h1?);
-        progress.advance(2);
-    }
-    for (name, bytes) in &encoded {
-        let hash = blobs.put(bytes)?;
-        rec.results.insert(name.clone(), hash);
-        progress.advance(1);
-    }
+    let radius = produced.radius;
+    let (bake_ms, encode_ms, store_ms) = (produced.bake_ms, produced.encode_ms, produced.store_ms);
     rec.status = Status::Succeeded;
     rec.input = Some(info);
     rec.radius = Some(RadiusInfo { texels: radius.texels, reason: radius.reason });
     rec.finished_ms = Some(now_ms());
     rec.error = None;
-    let store_ms = ms(t);
     let queued = rec.started_ms.unwrap_or(rec.created_ms).saturating_sub(rec.created_ms) as f64;
     rec.timings_ms = Some(Timings {
         queued,

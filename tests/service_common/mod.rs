@@ -65,14 +65,14 @@ pub fn library_files(png: &[u8], pairs: &[(&str, &str)]) -> BTreeMap<String, Vec
     let params = BakeParams::from_pairs(pairs.iter().copied()).unwrap();
     let (map, _) = heightmap::decode(png, params.channel, &Limits::default()).unwrap();
     let mut out = BTreeMap::new();
-    let (p8, _) = encode::stream_horizon_pngs::<u8, _>(
+    let (p8, _) = horizon_bake::pipeline::stream_horizon_pngs::<u8, _>(
         map.clone(),
         &params,
         &Progress::new(),
         [Vec::new(), Vec::new()],
     )
     .unwrap();
-    let (p16, _) = encode::stream_horizon_pngs::<u16, _>(
+    let (p16, _) = horizon_bake::pipeline::stream_horizon_pngs::<u16, _>(
         map.clone(),
         &params,
         &Progress::new(),

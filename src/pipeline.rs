@@ -1,0 +1,213 @@
+//! One bake pipeline, from a decoded height map to encoded files in a [`Sink`], shared by the
+//! CLI (`horizon-bake bake`, into a staging directory) and the service's worker (into the blob
+//! store), so both produce the same bytes by the same steps.
+//!
+//! It is the one module that joins the kernels' output ([`crate::bake`]) to the encoders
+//! ([`crate::encode`]): neither imports the other.
+//! - PNG-only horizon outputs stream: the kernel's bands go in row order into PNG row writers
+//!   over the sink's writers, so no layer and no encoded image is ever whole in memory.
+//! - Anything else (EXR, KTX2, DDS) bakes whole layers at the precisions the formats need, then
+//!   encodes them.
+//! - Fourier outputs are baked before the streamed horizon layers, which consume the map.
+
+use crate::bake::{self, LayerRows, ResolvedRadius, Sample};
+use crate::encode::{self, png, Formats, OutFile};
+use crate::error::{Error, Result};
+use crate::heightmap::HeightMap;
+use crate::params::BakeParams;
+use crate::progress::{Progress, Stage};
+use std::time::Instant;
+
+/// Where a bake's files go.
+pub trait Sink {
+    /// A file being streamed.
+    type Writer: std::io::Write + Send + 'static;
+    /// Starts streaming file `name`.
+    ///
+    /// # Errors
+    /// The sink's failure.
+    fn writer(&mut self, name: &'static str) -> Result<Self::Writer>;
+    /// Keeps the two streamed horizon files, written completely.
+    ///
+    /// # Errors
+    /// The sink's failure.
+    fn finish(&mut self, files: [(&'static str, Self::Writer); 2]) -> Result<()>;
+    /// Keeps a file encoded whole.
+    ///
+    /// # Errors
+    /// The sink's failure.
+    fn put(&mut self, file: OutFile) -> Result<()>;
+}
+
+/// What [`produce`] made.
+#[derive(Debug, Clone)]
+pub struct Produced {
+    /// The files, in the order they were kept.
+    pub names: Vec<&'static str>,
+    pub radius: ResolvedRadius,
+    /// Kernel time (with the PNG encoding it overlaps when streaming), ms.
+    pub bake_ms: f64,
+    /// Encoding that does not overlap the kernel (whole-layer formats, Fourier PNGs), ms.
+    pub encode_ms: f64,
+    /// Handing files to the sink after they were encoded (flushes, uploads), ms.
+    pub store_ms: f64,
+}
+
+/// Milliseconds since `t`, to the microsecond.
+pub fn ms(t: Instant) -> f64 {
+    (t.elapsed().as_secs_f64() * 1e6).round() / 1e3
+}
+
+/// Whether the horizon files can be streamed: only PNGs asked for (EXR, KTX2 and DDS need whole
+/// layers).
+pub fn streamable(formats: &Formats) -> bool {
+    (formats.png8 || formats.png16) && !(formats.exr || formats.ktx2 || formats.dds)
+}
+
+/// Bakes `map` with `params` into the files `formats` and `params.outputs` ask for, into `sink`.
+///
+/// # Errors
+/// [`Error::Canceled`] when `progress` is canceled, the kernels', encoders' and sink's errors.
+pub fn produce<S: Sink>(
+    map: HeightMap,
+    params: &BakeParams,
+    formats: &Formats,
+    progress: &Progress,
+    sink: &mut S,
+) -> Result<Produced> {
+    let mut names: Vec<&'static str> = Vec::new();
+    let mut store_ms = 0.0;
+    let out = if params.outputs.horizon && streamable(formats) {
+        let t = Instant::now();
+        let mut radius = None;
+        if params.outputs.fourier {
+            let (files, r) = fourier_files(&map, params, progress)?;
+            store_ms += keep(sink, files, &mut names)?;
+            radius = Some(r);
+        }
+        let fourier_ms = ms(t);
+        let t = Instant::now();
+        let (writers, r) = if formats.png16 {
+            stream_into::<u16, S>(map, params, progress, sink)?
+        } else {
+            stream_into::<u8, S>(map, params, progress, sink)?
+        };
+        let bake_ms = ms(t);
+        let t = Instant::now();
+        sink.finish(writers)?;
+        store_ms += ms(t);
+        names.extend(["horizon_0.png", "horizon_1.png"]);
+        // Both kernels resolve the radius alike; the horizon's is reported.
+        drop(radius);
+        Produced { names: Vec::new(), radius: r, bake_ms, encode_ms: fourier_ms, store_ms: 0.0 }
+    } else {
+        let t = Instant::now();
+        let layers = if params.outputs.horizon {
+            Some(bake::bake_horizon(&map, params, formats.precisions(), progress)?)
+        } else {
+            None
+        };
+        let bake_ms = ms(t);
+        let t = Instant::now();
+        progress.start(Stage::Encode, 1);
+        let mut radius = None;
+        let mut files = match &layers {
+            Some((l, r)) => {
+                radius = Some(r.clone());
+                encode::horizon_files(l, formats)?
+            }
+            None => Vec::new(),
+        };
+        drop(layers);
+        if params.outputs.fourier {
+            let (fourier, r) = fourier_files(&map, params, progress)?;
+            files.extend(fourier);
+            radius.get_or_insert(r);
+        }
+        let encode_ms = ms(t);
+        store_ms += keep(sink, files, &mut names)?;
+        let radius = radius.ok_or_else(|| Error::Internal("a bake with no outputs".into()))?;
+        Produced { names: Vec::new(), radius, bake_ms, encode_ms, store_ms: 0.0 }
+    };
+    if progress.is_canceled() {
+        return Err(Error::Canceled);
+    }
+    Ok(Produced { names, store_ms, ..out })
+}
+
+/// The two streamed horizon files, named, before the sink keeps them.
+type Streamed<S> = [(&'static str, <S as Sink>::Writer); 2];
+
+/// Hands whole files to the sink; returns the time it took, ms.
+fn keep<S: Sink>(sink: &mut S, files: Vec<OutFile>, names: &mut Vec<&'static str>) -> Result<f64> {
+    let t = Instant::now();
+    for f in files {
+        names.push(f.name);
+        sink.put(f)?;
+    }
+    Ok(ms(t))
+}
+
+fn stream_into<T: Sample + png::PngSample, S: Sink>(
+    map: HeightMap,
+    params: &BakeParams,
+    progress: &Progress,
+    sink: &mut S,
+) -> Result<(Streamed<S>, ResolvedRadius)> {
+    const NAMES: [&str; 2] = ["horizon_0.png", "horizon_1.png"];
+    let outs = [sink.writer(NAMES[0])?, sink.writer(NAMES[1])?];
+    let ([a, b], radius) = stream_horizon_pngs::<T, _>(map, params, progress, outs)?;
+    Ok(([(NAMES[0], a), (NAMES[1], b)], radius))
+}
+
+/// Bakes `map` into two PNGs (layers 0 and 1, 8- or 16-bit RGBA as `T` says), written to `outs`
+/// band by band in row order ([`bake::stream_horizon`] into [`png::PngRowWriter`]s): no whole
+/// layer and, with files as `outs`, no whole encoded image is ever in memory.
+///
+/// # Errors
+/// [`Error::Canceled`] when `progress` is canceled (checked between bands), [`Error::Io`] from
+/// `outs`, [`Error::Internal`] from the encoder.
+pub fn stream_horizon_pngs<T, W>(
+    map: HeightMap,
+    params: &BakeParams,
+    progress: &Progress,
+    outs: [W; 2],
+) -> Result<([W; 2], ResolvedRadius)>
+where
+    T: Sample + png::PngSample,
+    W: std::io::Write + Send + 'static,
+{
+    let (w, h) = (map.width, map.height);
+    let [o0, o1] = outs;
+    let mut writers = [
+        png::PngRowWriter::<W, T>::new(o0, w, h, png::PngColor::Rgba)?,
+        png::PngRowWriter::<W, T>::new(o1, w, h, png::PngColor::Rgba)?,
+    ];
+    let radius = bake::stream_horizon(map, params, progress, |rows: LayerRows<'_, T>| {
+        // Deflate is single-threaded and as slow as the kernel: the two layers in parallel.
+        let [w0, w1] = &mut writers;
+        let (a, b) =
+            rayon::join(|| w0.write_rows(rows.layers[0]), || w1.write_rows(rows.layers[1]));
+        a.and(b)
+    })?;
+    let [w0, w1] = writers;
+    Ok(([w0.finish()?, w1.finish()?], radius))
+}
+
+/// Bakes the Fourier coefficients (SPEC §3.4) into `fourier_0.png`, `fourier_1.png` and, with
+/// 7 or 9 terms, `fourier_2.png`.
+///
+/// # Errors
+/// Whatever the bake or the PNG encoder fails with.
+pub fn fourier_files(
+    map: &HeightMap,
+    params: &BakeParams,
+    progress: &Progress,
+) -> Result<(Vec<OutFile>, ResolvedRadius)> {
+    const NAMES: [&str; 3] = ["fourier_0.png", "fourier_1.png", "fourier_2.png"];
+    let (layers, radius) = bake::bake_fourier(map, params, progress)?;
+    let files = (0..layers.layer_count())
+        .map(|i| Ok(OutFile { name: NAMES[i], bytes: encode::fourier_png(&layers, i)? }))
+        .collect::<Result<Vec<_>>>()?;
+    Ok((files, radius))
+}
