@@ -317,8 +317,11 @@ pub async fn list(State(st): State<AppState>, Query(q): Query<Vec<(String, Strin
     }
     let query = store::ListQuery { statuses: statuses.clone(), cursor, limit, newest_first };
     let page = st.0.jobs.list(&query).await.map_err(store_err)?;
-    let items: Vec<Value> = page.items.iter().map(|r| resource(&st, r)).collect();
-    let next = page.next.map(|c| {
+    let retention = st.0.config.retention.as_millis() as u64;
+    let items: Vec<BakeResource> =
+        page.items.iter().map(|r| BakeResource::of(r, retention)).collect();
+    let next = page.next.map(|cursor| {
+        let c = &cursor;
         let mut link = format!("/v1/bakes?limit={limit}&cursor={c}");
         if !statuses.is_empty() {
             let names: Vec<&str> = statuses.iter().map(|s| s.as_str()).collect();
@@ -327,9 +330,25 @@ pub async fn list(State(st): State<AppState>, Query(q): Query<Vec<(String, Strin
         if newest_first {
             link.push_str("&order=desc");
         }
-        json!({"cursor": c, "href": link})
+        NextPage { cursor: cursor.clone(), href: link }
     });
-    Ok(json_response(StatusCode::OK, &json!({"items": items, "next": next, "total": page.total})))
+    Ok((StatusCode::OK, Json(BakePage { items, next, total: page.total })).into_response())
+}
+
+/// One page of `GET /v1/bakes`.
+#[derive(serde::Serialize)]
+pub struct BakePage {
+    pub items: Vec<BakeResource>,
+    pub next: Option<NextPage>,
+    /// Bakes matching the filter, in all pages.
+    pub total: u64,
+}
+
+/// Where the next page is.
+#[derive(serde::Serialize)]
+pub struct NextPage {
+    pub cursor: String,
+    pub href: String,
 }
 
 /// `GET /v1/bakes/{id}`.

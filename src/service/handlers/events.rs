@@ -66,7 +66,8 @@ pub async fn events(
             match snapshot(&w.st, &w.id).await {
                 None => {
                     w.done = true;
-                    let ev = w.event("deleted", json!({"id": w.id}).to_string());
+                    let gone = Deleted { id: &w.id };
+                    let ev = w.event("deleted", serde_json::to_string(&gone).unwrap_or_default());
                     return Some((Ok(ev), w));
                 }
                 Some((status, res)) if status.is_terminal() || closing => {
@@ -75,9 +76,12 @@ pub async fn events(
                     return Some((Ok(ev), w));
                 }
                 Some((status, res)) => {
-                    let text =
-                        json!({"id": w.id, "status": status.as_str(), "progress": res["progress"]})
-                            .to_string();
+                    let text = serde_json::to_string(&ProgressEvent {
+                        id: &w.id,
+                        status,
+                        progress: &res["progress"],
+                    })
+                    .unwrap_or_default();
                     if w.last.as_ref() != Some(&text) {
                         w.last = Some(text.clone());
                         let ev = w.event("progress", text);
@@ -88,4 +92,18 @@ pub async fn events(
         }
     });
     Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
+}
+
+/// The data of a `progress` event.
+#[derive(serde::Serialize)]
+struct ProgressEvent<'a> {
+    id: &'a str,
+    status: Status,
+    progress: &'a Value,
+}
+
+/// The data of a `deleted` event.
+#[derive(serde::Serialize)]
+struct Deleted<'a> {
+    id: &'a str,
 }

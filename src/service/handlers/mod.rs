@@ -29,7 +29,7 @@ use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
 use futures_util::stream::Stream;
-use serde_json::{json, Value};
+use serde_json::Value;
 use std::collections::HashMap;
 use std::convert::Infallible;
 use std::panic::{catch_unwind, AssertUnwindSafe};
@@ -138,74 +138,133 @@ fn overall(stage: Stage, f: f64) -> f64 {
     (start + span * f).clamp(0.0, 1.0)
 }
 
-fn stage_name(s: Stage) -> Value {
-    serde_json::to_value(s).unwrap_or(Value::Null)
+/// A bake's progress as the API reports it: overall fraction and stage.
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub struct ProgressView {
+    pub fraction: f64,
+    pub stage: Stage,
 }
 
-/// The bake resource (SPEC §5) for a record, with live progress when it is in flight.
-pub fn resource(st: &AppState, rec: &BakeRecord) -> Value {
-    let status = rec.status;
-    let progress = match (rec.progress, status) {
-        (Some(p), Status::Running) => {
-            json!({"fraction": overall(p.stage, p.fraction), "stage": stage_name(p.stage)})
-        }
-        (None, Status::Running) => json!({"fraction": 0.0, "stage": "decode"}),
-        (_, Status::Succeeded) => json!({"fraction": 1.0, "stage": "done"}),
-        (_, s) if s.is_terminal() => json!({"fraction": 0.0, "stage": "done"}),
-        _ => json!({"fraction": 0.0, "stage": "queued"}),
-    };
-    let mut params =
-        params_of(rec).ok().and_then(|p| serde_json::to_value(p).ok()).unwrap_or_else(|| json!({}));
-    if let (Some(obj), Some(r)) = (params.as_object_mut(), &rec.radius) {
-        obj.insert("resolved_radius".into(), json!({"texels": r.texels, "reason": r.reason}));
-    }
-    let input = match &rec.input {
-        Some(i) => json!({
-            "width": i.width, "height": i.height, "format": i.format, "color": i.color,
-            "bit_depth": i.bit_depth, "float": i.float, "content_hash": i.content_hash,
-            "bytes": rec.input_bytes,
-        }),
-        None => json!({
-            "width": rec.width, "height": rec.height, "format": rec.input_format,
-            "color": null, "bit_depth": null, "float": null, "content_hash": rec.input_blob,
-            "bytes": rec.input_bytes,
-        }),
-    };
-    let base = format!("/v1/bakes/{}", rec.id);
-    let mut links = json!({"self": base, "events": format!("{base}/events")});
-    if status == Status::Succeeded {
-        if let Some(obj) = links.as_object_mut() {
+/// The resolved parameters, with the radius the bake used once it is known.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ParamsView {
+    #[serde(flatten)]
+    pub params: Option<BakeParams>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub resolved_radius: Option<store::RadiusInfo>,
+}
+
+/// What the API says of a bake's input (the header's view until the bake decoded it).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct InputView {
+    pub width: u32,
+    pub height: u32,
+    pub format: String,
+    pub color: Option<String>,
+    pub bit_depth: Option<u8>,
+    pub float: Option<bool>,
+    pub content_hash: String,
+    pub bytes: u64,
+}
+
+/// The bake resource (SPEC §5; `Bake` in openapi.yaml).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct BakeResource {
+    pub id: String,
+    pub status: Status,
+    pub progress: ProgressView,
+    pub params: ParamsView,
+    pub input: InputView,
+    pub created_at: String,
+    pub started_at: Option<String>,
+    pub finished_at: Option<String>,
+    pub expires_at: Option<String>,
+    pub timings_ms: Option<store::Timings>,
+    pub error: Option<store::BakeFailure>,
+    pub attempts: u32,
+    pub worker: Option<String>,
+    pub links: std::collections::BTreeMap<String, String>,
+}
+
+impl BakeResource {
+    /// The resource of `rec`, with its live progress when it is running.
+    pub fn of(rec: &BakeRecord, retention_ms: u64) -> Self {
+        let status = rec.status;
+        let progress = match (rec.progress, status) {
+            (Some(p), Status::Running) => {
+                ProgressView { fraction: overall(p.stage, p.fraction), stage: p.stage }
+            }
+            (None, Status::Running) => ProgressView { fraction: 0.0, stage: Stage::Decode },
+            (_, Status::Succeeded) => ProgressView { fraction: 1.0, stage: Stage::Done },
+            (_, s) if s.is_terminal() => ProgressView { fraction: 0.0, stage: Stage::Done },
+            _ => ProgressView { fraction: 0.0, stage: Stage::Queued },
+        };
+        let input = match &rec.input {
+            Some(i) => InputView {
+                width: i.width,
+                height: i.height,
+                format: i.format.clone(),
+                color: Some(i.color.clone()),
+                bit_depth: Some(i.bit_depth),
+                float: Some(i.float),
+                content_hash: i.content_hash.clone(),
+                bytes: rec.input_bytes,
+            },
+            None => InputView {
+                width: rec.width,
+                height: rec.height,
+                format: rec.input_format.clone(),
+                color: None,
+                bit_depth: None,
+                float: None,
+                content_hash: rec.input_blob.clone(),
+                bytes: rec.input_bytes,
+            },
+        };
+        let base = format!("/v1/bakes/{}", rec.id);
+        let mut links = std::collections::BTreeMap::new();
+        links.insert("self".to_owned(), base.clone());
+        links.insert("events".to_owned(), format!("{base}/events"));
+        if status == Status::Succeeded {
             for k in 0..3 {
                 if rec.results.contains_key(&format!("fourier_{k}.png")) {
-                    obj.insert(format!("fourier_{k}"), json!(format!("{base}/fourier/{k}")));
+                    links.insert(format!("fourier_{k}"), format!("{base}/fourier/{k}"));
+                }
+            }
+            if rec.results.contains_key("horizon_0.png8") {
+                for (k, path) in [
+                    ("horizon_0", "/horizon/0"),
+                    ("horizon_1", "/horizon/1"),
+                    ("horizon_ktx2", "/horizon.ktx2"),
+                    ("horizon_dds", "/horizon.dds"),
+                ] {
+                    links.insert(k.to_owned(), format!("{base}{path}"));
                 }
             }
         }
-    }
-    if status == Status::Succeeded && rec.results.contains_key("horizon_0.png8") {
-        if let Some(obj) = links.as_object_mut() {
-            obj.insert("horizon_0".into(), json!(format!("{base}/horizon/0")));
-            obj.insert("horizon_1".into(), json!(format!("{base}/horizon/1")));
-            obj.insert("horizon_ktx2".into(), json!(format!("{base}/horizon.ktx2")));
-            obj.insert("horizon_dds".into(), json!(format!("{base}/horizon.dds")));
+        BakeResource {
+            id: rec.id.clone(),
+            status,
+            progress,
+            params: ParamsView { params: params_of(rec).ok(), resolved_radius: rec.radius.clone() },
+            input,
+            created_at: rfc3339(rec.created_ms),
+            started_at: rec.started_ms.map(rfc3339),
+            finished_at: rec.finished_ms.map(rfc3339),
+            expires_at: rec.expires_ms(retention_ms).map(rfc3339),
+            timings_ms: rec.timings_ms.clone(),
+            error: rec.error.clone(),
+            attempts: rec.attempts,
+            worker: rec.worker.clone(),
+            links,
         }
     }
-    json!({
-        "id": rec.id,
-        "status": status.as_str(),
-        "progress": progress,
-        "params": params,
-        "input": input,
-        "created_at": rfc3339(rec.created_ms),
-        "started_at": rec.started_ms.map(rfc3339),
-        "finished_at": rec.finished_ms.map(rfc3339),
-        "expires_at": rec.expires_ms(st.0.config.retention.as_millis() as u64).map(rfc3339),
-        "timings_ms": rec.timings_ms,
-        "error": rec.error,
-        "attempts": rec.attempts,
-        "worker": rec.worker,
-        "links": links,
-    })
+}
+
+/// The bake resource (SPEC §5) of a record, as JSON.
+pub fn resource(st: &AppState, rec: &BakeRecord) -> Value {
+    let r = BakeResource::of(rec, st.0.config.retention.as_millis() as u64);
+    serde_json::to_value(r).unwrap_or(Value::Null)
 }
 
 async fn load(st: &AppState, id: &str) -> Result<BakeRecord, Problem> {

@@ -7,7 +7,7 @@ use super::*;
 
 /// `GET /healthz`: the process is alive.
 pub async fn healthz() -> Response {
-    json_response(StatusCode::OK, &json!({"status": "ok"}))
+    (StatusCode::OK, Json(Health { status: "ok" })).into_response()
 }
 
 /// `GET /readyz`: 200 while accepting work, 503 while draining.
@@ -18,21 +18,39 @@ pub async fn readyz(State(st): State<AppState>) -> Answer {
     // Ready means the stores answer too: with PostgreSQL away this is 503, so a load
     // balancer stops sending work here until it is back.
     let c = st.0.jobs.counts().await.map_err(store_err)?;
-    Ok(json_response(
-        StatusCode::OK,
-        &json!({
-            "status": "ready",
-            "role": match st.0.config.role {
-                crate::service::config::Role::All => "all",
-                crate::service::config::Role::Api => "api",
-                crate::service::config::Role::Worker => "worker",
-            },
-            "queue_depth": c.queued,
-            "queue_capacity": st.0.config.queue_capacity,
-            "running": c.running,
-            "running_here": st.0.jobs.running_here(),
-        }),
-    ))
+    let ready = Readiness {
+        status: "ready",
+        role: match st.0.config.role {
+            crate::service::config::Role::All => "all",
+            crate::service::config::Role::Api => "api",
+            crate::service::config::Role::Worker => "worker",
+        },
+        queue_depth: c.queued,
+        queue_capacity: st.0.config.queue_capacity,
+        running: c.running,
+        running_here: st.0.jobs.running_here(),
+    };
+    Ok((StatusCode::OK, Json(ready)).into_response())
+}
+
+#[derive(serde::Serialize)]
+struct Health {
+    status: &'static str,
+}
+
+/// `GET /readyz`'s answer.
+#[derive(serde::Serialize)]
+struct Readiness {
+    status: &'static str,
+    /// `all`, `api` or `worker` (SPEC §7).
+    role: &'static str,
+    /// Bakes queued, on every node.
+    queue_depth: u64,
+    queue_capacity: usize,
+    /// Bakes running, on every node.
+    running: u64,
+    /// Bakes running in this process.
+    running_here: usize,
 }
 
 /// `GET /metrics`: Prometheus text.
