@@ -620,8 +620,9 @@ async fn postgres_restart_gives_503_then_recovers() {
     assert_eq!(ready, 200);
 }
 
-/// Blobs larger than one multipart part (8 MiB) go up in parts and stream back, from a thread
-/// outside the async runtime as on the bake pool (a 2048² input or result is that large).
+/// Blobs over a writer's buffer (8 MiB) and over one PUT (64 MiB) go up in parts and stream
+/// back, from a thread outside the async runtime as on the bake pool (2048² and 8192² inputs
+/// and results are that large).
 #[tokio::test(flavor = "multi_thread")]
 async fn large_blobs_round_trip_through_s3_from_the_bake_pool() {
     let _serial = SERIAL.lock().await;
@@ -638,13 +639,14 @@ async fn large_blobs_round_trip_through_s3_from_the_bake_pool() {
         .await
         .unwrap();
     let mut rng = Rng(5);
-    let data: Vec<u8> = (0..20 << 20).map(|_| (rng.next_u64() >> 56) as u8).collect();
+    let data: Vec<u8> = (0..70 << 20).map(|_| (rng.next_u64() >> 56) as u8).collect();
     let want = blake3::hash(&data).to_hex().to_string();
     let (hash, back, via_put) = std::thread::spawn(move || {
         use horizon_bake::jobs::store::BlobStore;
         use std::io::{Read, Write};
         let mut w = store.writer().unwrap();
         for chunk in data.chunks(1 << 20) {
+            // (Written as a bake writes: in pieces, parts going up meanwhile.)
             w.write_all(chunk).unwrap();
         }
         let hash = w.commit(&|_| Ok(())).unwrap();

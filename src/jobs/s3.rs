@@ -4,9 +4,11 @@
 //! The trait is synchronous (bakes stream into writers on the bake pool); each call blocks on
 //! the async client with the runtime handle captured at construction, which is allowed on the
 //! bake pool and on blocking threads (never call it from an async worker).
-//! A writer spools to a local temporary file while hashing, so nothing is uploaded under a name
-//! before its hash is known and pinned; large blobs go up as multipart uploads of 8 MiB parts,
-//! and downloads stream part by part, so no blob is ever whole in memory.
+//! Nothing is published under a name before its hash is known and pinned: a writer buffers
+//! 8 MiB, then streams 5 MiB parts to a staging key while the bake writes (so the upload
+//! overlaps the bake), and on commit copies the object server-side to its hash. Bytes already in
+//! memory up to 64 MiB are one PUT; downloads stream part by part, so no blob is ever whole in
+//! memory.
 
 use crate::error::{Error, Result};
 use crate::jobs::store::{BlobStore, BlobWriter, PinHook};
@@ -17,8 +19,12 @@ use object_store::{ObjectStore, PutPayload, WriteMultipart};
 use std::io::{Read, Seek, Write};
 use std::sync::Arc;
 
-/// Blobs up to this size are one PUT; larger ones are uploaded in parts.
-const PART: usize = 8 << 20;
+/// Bytes already in memory (an upload's input) up to this size are one PUT: a multipart upload
+/// costs two more round trips and the server's reassembly. Larger ones go up in parts.
+const PART: usize = 64 << 20;
+/// A writer buffers this much before it starts streaming parts to a staging key (so the upload
+/// of a large result overlaps the bake that writes it).
+const WRITER_BUFFER: usize = 8 << 20;
 /// Parts of a blob streamed while it is written (S3's smallest part size, so uploading starts
 /// as early as possible).
 const STREAM_PART: usize = 5 << 20;
@@ -151,8 +157,8 @@ impl S3BlobStore {
         // `WriteMultipart::write` spawns each part's upload as a tokio task: on the bake pool
         // that needs the runtime entered, not only `block_on`.
         let _rt = self.rt.enter();
-        let mut w = WriteMultipart::new_with_chunk_size(upload, PART);
-        let mut buf = vec![0u8; PART];
+        let mut w = WriteMultipart::new_with_chunk_size(upload, STREAM_PART);
+        let mut buf = vec![0u8; STREAM_PART];
         loop {
             let n = file.read(&mut buf)?;
             if n == 0 {
@@ -167,7 +173,7 @@ impl S3BlobStore {
     }
 }
 
-/// A blob being written. Up to [`PART`] bytes are buffered; a larger blob streams its parts to
+/// A blob being written. Up to [`WRITER_BUFFER`] bytes are buffered; a larger blob streams its parts to
 /// a staging key as they are produced (overlapping the bake that writes them), and on commit,
 /// once its hash is known and pinned, is copied server-side to its final name and the staging
 /// object removed. A small blob is one PUT at commit.
@@ -201,7 +207,7 @@ impl Write for S3Writer {
         match &mut self.staging {
             None => {
                 self.buf.extend_from_slice(data);
-                if self.buf.len() > PART {
+                if self.buf.len() > WRITER_BUFFER {
                     self.start_staging()?;
                 }
             }
