@@ -13,27 +13,12 @@
 //!
 //! Run: `scripts/engines.sh start /tmp/eng && . /tmp/eng/env && cargo bench --bench distributed`.
 
-use horizon_bake::encode::png::{encode16, PngColor};
-use std::f64::consts::TAU;
+mod common;
+
+use common::terrain_png16 as terrain;
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
-
-fn terrain(n: usize, seed0: u64) -> Vec<u8> {
-    let mut data = Vec::with_capacity(n * n);
-    let mut seed = 0x1234_5678_9abc_def0u64 ^ seed0.wrapping_mul(0x9e37_79b9_7f4a_7c15);
-    for y in 0..n {
-        for x in 0..n {
-            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            let (u, v) = (x as f64 / n as f64, y as f64 / n as f64);
-            let s =
-                (u * TAU * 3.0).sin() * (v * TAU * 2.0).cos() + 0.5 * ((u + v) * TAU * 5.0).sin();
-            let noise = ((seed >> 40) as f64 / (1u64 << 24) as f64 - 0.5) * 0.1;
-            data.push((((s / 1.5 + 1.0) * 0.45 + noise).clamp(0.0, 1.0) * 65535.0) as u16);
-        }
-    }
-    encode16(n, n, PngColor::Gray, &data).expect("encode input")
-}
 
 struct Proc(Child);
 

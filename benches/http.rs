@@ -16,32 +16,17 @@
 //! service's own `timings_ms.bake`.
 //! Run: `cargo bench --bench http` (or `HTTP_BENCH_SIZE=8192 HTTP_BENCH_RUNS=1 …`).
 
+mod common;
+
+use common::terrain_png16;
 use horizon_bake::bake::{self, Precisions};
 use horizon_bake::encode::exr::{encode_rgba_as, ExrPrecision};
-use horizon_bake::encode::png::{encode16, PngColor};
 use horizon_bake::heightmap::{self, Limits};
 use horizon_bake::params::BakeParams;
 use horizon_bake::progress::Progress;
-use std::f64::consts::TAU;
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
-
-fn terrain(n: usize) -> Vec<u8> {
-    let mut data = Vec::with_capacity(n * n);
-    let mut seed = 0x1234_5678_9abc_def0u64;
-    for y in 0..n {
-        for x in 0..n {
-            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            let (u, v) = (x as f64 / n as f64, y as f64 / n as f64);
-            let s =
-                (u * TAU * 3.0).sin() * (v * TAU * 2.0).cos() + 0.5 * ((u + v) * TAU * 5.0).sin();
-            let noise = ((seed >> 40) as f64 / (1u64 << 24) as f64 - 0.5) * 0.1;
-            data.push((((s / 1.5 + 1.0) * 0.45 + noise).clamp(0.0, 1.0) * 65535.0) as u16);
-        }
-    }
-    encode16(n, n, PngColor::Gray, &data).expect("encode input")
-}
 
 /// VmHWM of process `pid` in MiB.
 fn peak_mib(pid: u32) -> Option<f64> {
@@ -180,7 +165,7 @@ fn main() {
         std::env::var("HTTP_BENCH_SIZE").ok().and_then(|v| v.parse().ok()).unwrap_or(2048);
     let runs: usize =
         std::env::var("HTTP_BENCH_RUNS").ok().and_then(|v| v.parse().ok()).unwrap_or(3);
-    let png = terrain(n);
+    let png = terrain_png16(n, 0);
     let dir = tempfile::tempdir().expect("tempdir");
     let input = dir.path().join("in.png");
     std::fs::write(&input, &png).expect("input");

@@ -57,3 +57,23 @@ pub fn cpu_secs() -> f64 {
     // Fields 14 and 15 (utime, stime) are the 12th and 13th after the command name.
     (tick(11) + tick(12)) / 100.0
 }
+
+/// A 16-bit PNG of smooth waves plus 5% noise (N×N), the service benches' input; `seed` varies
+/// the noise (0: the maps earlier runs measured).
+pub fn terrain_png16(n: usize, seed: u64) -> Vec<u8> {
+    use std::f64::consts::TAU;
+    let mut data = Vec::with_capacity(n * n);
+    let mut state = 0x1234_5678_9abc_def0u64 ^ seed.wrapping_mul(0x9e37_79b9_7f4a_7c15);
+    for y in 0..n {
+        for x in 0..n {
+            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            let (u, v) = (x as f64 / n as f64, y as f64 / n as f64);
+            let s =
+                (u * TAU * 3.0).sin() * (v * TAU * 2.0).cos() + 0.5 * ((u + v) * TAU * 5.0).sin();
+            let noise = ((state >> 40) as f64 / (1u64 << 24) as f64 - 0.5) * 0.1;
+            data.push((((s / 1.5 + 1.0) * 0.45 + noise).clamp(0.0, 1.0) * 65535.0) as u16);
+        }
+    }
+    horizon_bake::encode::png::encode16(n, n, horizon_bake::encode::png::PngColor::Gray, &data)
+        .expect("encode input")
+}

@@ -259,36 +259,7 @@ impl JobRepo for EmbeddedRepo {
                     mem.claims.remove(&claim.id);
                     return Ok(false);
                 }
-                let mut rec = current;
-                let mut results = Vec::new();
-                match outcome {
-                    Outcome::Succeeded(done) => {
-                        let mut done = *done;
-                        results = done.results.values().cloned().collect();
-                        done.status = Status::Succeeded;
-                        done.attempts = claim.attempt;
-                        done.progress = None;
-                        done.error = None;
-                        done.finished_ms.get_or_insert_with(now_ms);
-                        rec = done;
-                    }
-                    Outcome::Failed(f) => {
-                        rec.status = Status::Failed;
-                        rec.error = Some(f);
-                        rec.finished_ms = Some(now_ms());
-                        rec.progress = None;
-                    }
-                    Outcome::Canceled => {
-                        rec.status = Status::Canceled;
-                        rec.finished_ms = Some(now_ms());
-                        rec.progress = None;
-                    }
-                    Outcome::Released => {
-                        rec.status = Status::Queued;
-                        rec.started_ms = None;
-                        rec.progress = None;
-                    }
-                }
+                let (rec, results) = outcome.apply(current, &claim);
                 store.put(&rec)?;
                 mem.claims.remove(&claim.id);
                 if rec.status == Status::Queued {

@@ -478,36 +478,7 @@ impl JobRepo for PgRepo {
         {
             return Ok(false);
         }
-        let mut rec = current;
-        let mut results = Vec::new();
-        match outcome {
-            Outcome::Succeeded(done) => {
-                let mut done = *done;
-                results = done.results.values().cloned().collect();
-                done.status = Status::Succeeded;
-                done.attempts = claim.attempt;
-                done.worker = Some(claim.worker.clone());
-                done.error = None;
-                done.finished_ms.get_or_insert_with(now_ms);
-                done.started_ms = rec.started_ms.or(done.started_ms);
-                rec = done;
-            }
-            Outcome::Failed(f) => {
-                rec.status = Status::Failed;
-                rec.error = Some(f);
-                rec.finished_ms = Some(now_ms());
-            }
-            Outcome::Canceled => {
-                rec.status = Status::Canceled;
-                rec.finished_ms = Some(now_ms());
-            }
-            Outcome::Released => {
-                rec.status = Status::Queued;
-                rec.started_ms = None;
-                rec.worker = None;
-            }
-        }
-        rec.progress = None;
+        let (rec, results) = outcome.apply(current, claim);
         write(&mut tx, &rec).await?;
         add_refs(&mut tx, &rec.id, &results, &claim.owner()).await?;
         notify(&mut tx, &rec.id).await?;

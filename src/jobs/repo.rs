@@ -75,6 +75,45 @@ pub enum Outcome {
     Released,
 }
 
+impl Outcome {
+    /// The record `current` (the claimed bake) becomes with this outcome, and the result blobs
+    /// it now references. Both backends apply it, so they cannot disagree on a transition.
+    pub fn apply(self, current: BakeRecord, claim: &Claim) -> (BakeRecord, Vec<String>) {
+        let mut rec = current;
+        let mut results = Vec::new();
+        let now = crate::jobs::store::now_ms();
+        match self {
+            Outcome::Succeeded(done) => {
+                let mut done = *done;
+                results = done.results.values().cloned().collect();
+                done.status = Status::Succeeded;
+                done.attempts = claim.attempt;
+                done.worker = Some(claim.worker.clone());
+                done.error = None;
+                done.finished_ms.get_or_insert(now);
+                done.started_ms = rec.started_ms.or(done.started_ms);
+                rec = done;
+            }
+            Outcome::Failed(f) => {
+                rec.status = Status::Failed;
+                rec.error = Some(f);
+                rec.finished_ms = Some(now);
+            }
+            Outcome::Canceled => {
+                rec.status = Status::Canceled;
+                rec.finished_ms = Some(now);
+            }
+            Outcome::Released => {
+                rec.status = Status::Queued;
+                rec.started_ms = None;
+                rec.worker = None;
+            }
+        }
+        rec.progress = None;
+        (rec, results)
+    }
+}
+
 /// What a cancel request found.
 #[derive(Debug, Clone)]
 pub enum CancelResult {
