@@ -9,12 +9,18 @@
 //! - [`kernels`]: pure numeric code over slices: the Lengyel horizon map (plain oracle and fast
 //!   version), the exact line-of-sight horizon, the channel-factor cube map, Fourier encoding and
 //!   the shading used by previews.
+//! - [`layers`]: the horizon layers and quantisers, the leaf that bake and encode both use.
+//! - [`bake`]: parameters → kernels → quantised layers (or rows streamed to a sink), with
+//!   progress and cancellation.
 //! - [`encode`]: PNG 8/16, OpenEXR, KTX2 and DDS writers.
+//! - [`pipeline`]: the one bake pipeline, decoded map → encoded files in a sink, shared by the
+//!   CLI and the service's worker.
 //! - [`preview`]: the CPU preview of the shading (and the contact sheet), as PNG.
-//! - [`bake`]: one bake = parameters → kernels → encoded outputs, with progress and cancellation.
 //! - [`eval`]: the accuracy/time trade of every model against the exact ground truth (SPEC §4).
 //! - [`cli`]: the `horizon-bake` subcommands, thin wrappers over the above.
-//! - [`service`]: the HTTP job service (axum): queue, rayon bake pool, store, problem+json.
+//! - [`jobs`]: the job lifecycle behind the repository and blob-store traits: embedded (redb +
+//!   files) on one machine, PostgreSQL + S3 across many; the worker loop with leases.
+//! - [`service`]: the HTTP job service (axum): thin handlers over [`jobs`], problem+json.
 //! - [`error`]: the one error type, whose variants say whose fault a failure is.
 
 pub mod bake;

@@ -2,12 +2,14 @@
 //!
 //! Every bake parameter of SPEC §5 is a `--kebab-case` flag taken as text and passed through
 //! [`BakeParams::set`], so a bad value fails with the same message (naming the field) as it does
-//! over HTTP. The files are encoded by [`crate::encode::horizon_files`], written into a temporary
+//! over HTTP. The files come from [`crate::pipeline::produce`] (the service's worker runs the same
+//! pipeline), written into a temporary
 //! directory beside DIR (same file system) and only renamed into DIR once all of them were
 //! written: a failed bake leaves DIR exactly as it was. A progress bar is drawn on stderr only
 //! when stderr is a terminal.
 //!
-//! When the only horizon files asked for are PNGs, the bake is streamed ([`stream_png_files`]):
+//! When the only horizon files asked for are PNGs, the bake is streamed
+//! ([`crate::pipeline::stream_horizon_pngs`]):
 //! bands of quantised rows go straight into row-streaming PNG writers on the staged files, so an
 //! 8192² png16 bake never holds a whole layer or a whole encoded PNG (peak RSS ≈ the decoded
 //! input; see benches/kernels.rs). Kernel and encoding then overlap, so `timings_ms.bake` covers

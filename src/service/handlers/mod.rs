@@ -36,12 +36,12 @@ use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::Arc;
 use std::time::Duration;
 
-mod bakes;
-mod cubemap;
-mod events;
-mod ops;
-mod previews;
-mod results;
+pub mod bakes;
+pub mod cubemap;
+pub mod events;
+pub mod ops;
+pub mod previews;
+pub mod results;
 
 pub use bakes::*;
 pub use cubemap::*;
