@@ -620,9 +620,9 @@ async fn postgres_restart_gives_503_then_recovers() {
     assert_eq!(ready, 200);
 }
 
-/// Blobs over a writer's buffer (8 MiB) and over one PUT (64 MiB) go up in parts and stream
-/// back, from a thread outside the async runtime as on the bake pool (2048² and 8192² inputs
-/// and results are that large).
+/// Blobs over a writer's buffer and over one PUT (64 MiB) go up in parts (staged, then copied to
+/// their hash) and stream back, from a thread outside the async runtime as on the bake pool
+/// (8192² inputs and results are that large).
 #[tokio::test(flavor = "multi_thread")]
 async fn large_blobs_round_trip_through_s3_from_the_bake_pool() {
     let _serial = SERIAL.lock().await;
