@@ -315,6 +315,42 @@ fn exr_of(w: usize, h: usize, samples: exr::prelude::FlatSamples) -> Vec<u8> {
     out.into_inner()
 }
 
+/// A little-endian baseline TIFF of one gray 16-bit float (half) sample per texel, all `v`:
+/// written by hand, as the `tiff` crate's encoder has no half-float colour type.
+fn half_float_tiff(w: u16, h: u16, v: f32) -> Vec<u8> {
+    // f32 → f16 for normal values (v = 0.5 here): sign, rebased exponent, top 10 mantissa bits.
+    let b = v.to_bits();
+    let half =
+        (((b >> 16) & 0x8000) | ((((b >> 23) & 0xff) - 112) << 10) | ((b >> 13) & 0x3ff)) as u16;
+    let entries: [(u16, u16, u32); 10] = [
+        (256, 3, w as u32),                // ImageWidth
+        (257, 3, h as u32),                // ImageLength
+        (258, 3, 16),                      // BitsPerSample
+        (259, 3, 1),                       // Compression: none
+        (262, 3, 1),                       // Photometric: BlackIsZero
+        (273, 4, 8 + 2 + 10 * 12 + 4),     // StripOffsets
+        (277, 3, 1),                       // SamplesPerPixel
+        (278, 3, h as u32),                // RowsPerStrip
+        (279, 4, 2 * w as u32 * h as u32), // StripByteCounts
+        (339, 3, 3),                       // SampleFormat: IEEE float
+    ];
+    let mut out = b"II".to_vec();
+    out.extend_from_slice(&42u16.to_le_bytes());
+    out.extend_from_slice(&8u32.to_le_bytes());
+    out.extend_from_slice(&(entries.len() as u16).to_le_bytes());
+    for (tag, ty, value) in entries {
+        out.extend_from_slice(&tag.to_le_bytes());
+        out.extend_from_slice(&ty.to_le_bytes());
+        out.extend_from_slice(&1u32.to_le_bytes());
+        out.extend_from_slice(&value.to_le_bytes());
+    }
+    out.extend_from_slice(&0u32.to_le_bytes());
+    for _ in 0..w as usize * h as usize {
+        out.extend_from_slice(&half.to_le_bytes());
+    }
+    out
+}
+
 /// Float inputs are checked when they are submitted: NaN/Inf and out-of-range heights are a 422
 /// (blaming the input), unsupported sample formats a 415; nothing is queued for them.
 #[tokio::test]
@@ -340,10 +376,16 @@ async fn float_inputs_are_checked_at_submission() {
             "invalid_input",
         ),
         ("tiff u32", tiff_of::<Gray32>(4, 4, &[7u32; 16]), 415, "unsupported_media_type"),
+        ("tiff f16", half_float_tiff(4, 4, 0.5), 415, "unsupported_media_type"),
     ];
     for (what, bytes, status, code) in cases {
         let (s, p) = oneshot(&app, raw_submit(&bytes, "")).await;
         assert_eq!((s.as_u16(), p["code"].as_str()), (status, Some(code)), "{what}: {p}");
+        if what == "tiff f16" {
+            // Refused for its sample format, not as an unreadable file.
+            let detail = p["detail"].as_str().unwrap();
+            assert!(detail.contains("16-bit"), "{what}: {detail}");
+        }
         if code == "invalid_input" {
             let detail = p["detail"].as_str().unwrap();
             assert!(!detail.contains("height_scale"), "{what} blames height_scale: {detail}");
