@@ -15,47 +15,8 @@
 
 mod common;
 
-use common::terrain_png16 as terrain;
-use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use common::{start_server as serve, terrain_png16 as terrain};
 use std::time::{Duration, Instant};
-
-struct Proc(Child);
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn serve(dir: &Path, args: &[&str]) -> (Proc, String) {
-    std::fs::create_dir_all(dir).expect("dir");
-    let addr_file = dir.join("addr");
-    let child = Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
-        .arg("serve")
-        .args(["--addr", "127.0.0.1:0", "--max-body-bytes", "1073741824", "--data-dir"])
-        .arg(dir.join("data"))
-        .arg("--addr-file")
-        .arg(&addr_file)
-        .args(args)
-        .env_remove("HORIZON_API_KEY")
-        .env("RUST_LOG", "warn")
-        .stdout(Stdio::null())
-        .spawn()
-        .expect("server");
-    let child = Proc(child);
-    let t = Instant::now();
-    loop {
-        if let Ok(a) = std::fs::read_to_string(&addr_file) {
-            if !a.is_empty() {
-                return (child, format!("http://{a}"));
-            }
-        }
-        assert!(t.elapsed() < Duration::from_secs(60), "server did not start");
-        std::thread::sleep(Duration::from_millis(20));
-    }
-}
 
 async fn submit(c: &reqwest::Client, base: &str, png: &[u8], query: &str) -> String {
     let res = c

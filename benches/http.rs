@@ -18,14 +18,14 @@
 
 mod common;
 
-use common::terrain_png16;
+use common::{start_server, terrain_png16};
 use horizon_bake::bake::{self, Precisions};
 use horizon_bake::encode::exr::{encode_rgba_as, ExrPrecision};
 use horizon_bake::heightmap::{self, Limits};
 use horizon_bake::params::BakeParams;
 use horizon_bake::progress::Progress;
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 /// VmHWM of process `pid` in MiB.
@@ -57,39 +57,6 @@ fn cli(input: &Path, out: &Path) -> (f64, f64) {
             }
             None => std::thread::sleep(Duration::from_millis(5)),
         }
-    }
-}
-
-struct ServerChild(Child);
-
-impl Drop for ServerChild {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn start_server(dir: &Path) -> (ServerChild, String) {
-    let addr_file = dir.join("addr");
-    let child = Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
-        .arg("serve")
-        .args(["--addr", "127.0.0.1:0", "--max-body-bytes", "1073741824", "--data-dir"])
-        .arg(dir.join("data"))
-        .arg("--addr-file")
-        .arg(&addr_file)
-        .env_remove("HORIZON_API_KEY")
-        .env("RUST_LOG", "warn")
-        .stdout(Stdio::null())
-        .spawn()
-        .expect("server");
-    let child = ServerChild(child);
-    let t = Instant::now();
-    loop {
-        if let Ok(a) = std::fs::read_to_string(&addr_file) {
-            return (child, format!("http://{a}"));
-        }
-        assert!(t.elapsed() < Duration::from_secs(30), "server did not start");
-        std::thread::sleep(Duration::from_millis(20));
     }
 }
 
@@ -169,7 +136,7 @@ fn main() {
     let dir = tempfile::tempdir().expect("tempdir");
     let input = dir.path().join("in.png");
     std::fs::write(&input, &png).expect("input");
-    let (server, base) = start_server(dir.path());
+    let (server, base) = start_server(dir.path(), &[]);
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()

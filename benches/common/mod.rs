@@ -77,3 +77,45 @@ pub fn terrain_png16(n: usize, seed: u64) -> Vec<u8> {
     horizon_bake::encode::png::encode16(n, n, horizon_bake::encode::png::PngColor::Gray, &data)
         .expect("encode input")
 }
+
+/// A `horizon-bake serve` child process, killed when dropped.
+pub struct ServerChild(pub std::process::Child);
+
+impl Drop for ServerChild {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Starts the real binary as a server on 127.0.0.1:0 with its data in `dir` and `args` added;
+/// returns it and its base URL once it has written its address.
+pub fn start_server(dir: &std::path::Path, args: &[&str]) -> (ServerChild, String) {
+    use std::time::{Duration, Instant};
+    std::fs::create_dir_all(dir).expect("server dir");
+    let addr_file = dir.join("addr");
+    let child = std::process::Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
+        .arg("serve")
+        .args(["--addr", "127.0.0.1:0", "--max-body-bytes", "1073741824", "--data-dir"])
+        .arg(dir.join("data"))
+        .arg("--addr-file")
+        .arg(&addr_file)
+        .args(args)
+        .env_remove("HORIZON_API_KEY")
+        .env("RUST_LOG", "warn")
+        .stdout(std::process::Stdio::null())
+        .spawn()
+        .expect("server");
+    let child = ServerChild(child);
+    let t = Instant::now();
+    loop {
+        // Non-empty: the file may be seen between its creation and its write.
+        if let Ok(a) = std::fs::read_to_string(&addr_file) {
+            if !a.is_empty() {
+                return (child, format!("http://{a}"));
+            }
+        }
+        assert!(t.elapsed() < Duration::from_secs(60), "server did not start");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}

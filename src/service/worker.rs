@@ -15,6 +15,7 @@ use crate::heightmap::Limits;
 use crate::jobs::store::{now_ms, BakeRecord, BlobStore, RadiusInfo, Status, Timings};
 use crate::jobs::{Blobs, Runner};
 use crate::params::BakeParams;
+use crate::pipeline::ms;
 use crate::progress::{Progress, Stage};
 use crate::service::AppState;
 use std::sync::Arc;
@@ -185,10 +186,6 @@ impl crate::pipeline::Sink for BlobSink<'_> {
         self.results.push((result_name(file.name), hash));
         Ok(())
     }
-}
-
-fn ms(t: Instant) -> f64 {
-    t.elapsed().as_secs_f64() * 1e3
 }
 
 /// The bake's stored input, decoded with its `channel` (unscaled heights): what a bake, an
