@@ -6,7 +6,7 @@
 //! - `cli`: the real binary, `horizon-bake bake IN -o DIR --format png8`, wall time and peak
 //!   resident memory (VmHWM sampled from /proc every 5 ms);
 //! - `http`: the real binary as a server (`horizon-bake serve`, a child process): POST the PNG,
-//!   poll until `succeeded`, GET `horizon/0` and `horizon/1` (png8), DELETE. Its peak resident
+//!   wait on its event stream until the bake ends, GET `horizon/0` and `horizon/1` (png8), DELETE. Its peak resident
 //!   memory (VmHWM of the server process) is read at the end.
 //!
 //! Prints both times, the HTTP/CLI ratio (target ≤ 1.3) and both peaks (target for the server at
@@ -74,14 +74,16 @@ async fn submit_and_wait(
         .expect("submit");
     assert_eq!(res.status(), 202, "submit answered {}", res.status());
     let loc = res.headers()["location"].to_str().expect("location").to_owned();
-    loop {
-        let v: serde_json::Value =
-            c.get(format!("{base}{loc}")).send().await.expect("poll").json().await.expect("json");
-        match v["status"].as_str() {
-            Some("succeeded") => return (loc, v),
-            Some("failed") | Some("canceled") => panic!("bake ended {v}"),
-            _ => tokio::time::sleep(Duration::from_millis(5)).await,
-        }
+    // Wait as a pipeline should: on the bake's event stream, which ends when the bake does
+    // (polling every few ms would cost the server CPU the CLI does not spend).
+    let events = c.get(format!("{base}{loc}/events")).send().await.expect("events");
+    assert_eq!(events.status(), 200);
+    let _ = events.bytes().await;
+    let v: serde_json::Value =
+        c.get(format!("{base}{loc}")).send().await.expect("get").json().await.expect("json");
+    match v["status"].as_str() {
+        Some("succeeded") => (loc, v),
+        _ => panic!("bake ended {v}"),
     }
 }
 

@@ -515,15 +515,30 @@ async fn request_ids_cache_headers_and_sse_ids() {
     }
     assert!(blocks.last().unwrap().contains("event: done"), "{text}");
 
-    for path in [format!("{loc}/preview?azimuth=30"), "/v1/cubemap/2?size=8".to_owned()] {
+    // How many previews and cube files the server has computed, from /metrics.
+    let renders = |kind: &'static str| {
+        let (c, url) = (c.clone(), srv.url("/metrics"));
+        async move {
+            let text = c.get(url).send().await.unwrap().text().await.unwrap();
+            let key = format!("horizon_renders_total{{kind=\"{kind}\"}} ");
+            let line = text.lines().find(|l| l.starts_with(&key)).expect("renders counter");
+            line[key.len()..].parse::<u64>().unwrap()
+        }
+    };
+    for (path, kind) in
+        [(format!("{loc}/preview?azimuth=30"), "preview"), ("/v1/cubemap/2?size=8".into(), "cube")]
+    {
+        let before = renders(kind).await;
         let res = c.get(srv.url(&path)).send().await.unwrap();
         assert_eq!(res.status(), 200, "{path}");
         let etag = res.headers()["etag"].to_str().unwrap().to_owned();
         assert!(res.headers()["cache-control"].to_str().unwrap().contains("max-age"), "{path}");
         let body = res.bytes().await.unwrap();
+        assert_eq!(renders(kind).await, before + 1, "{path}: a 200 computes once");
         let res = c.get(srv.url(&path)).header("if-none-match", &etag).send().await.unwrap();
         assert_eq!(res.status(), 304, "{path}");
         assert_eq!(res.headers()["etag"].to_str().unwrap(), etag);
+        assert_eq!(renders(kind).await, before + 1, "{path}: a 304 must compute nothing");
         // Same request, same bytes, same tag; a different request, a different tag.
         let again = c.get(srv.url(&path)).send().await.unwrap();
         assert_eq!(again.headers()["etag"].to_str().unwrap(), etag);
@@ -654,5 +669,34 @@ async fn uri_and_header_limits_answer_problem_json() {
     )
     .await;
     assert_eq!(s, 431);
+
+    // Above hyper's own limits (a 65,534-byte target, a 1 MiB head) and for heads it cannot
+    // parse, hyper answers before any handler; those answers are problem+json too.
+    let addr = srv.url("").trim_start_matches("http://").trim_end_matches('/').to_owned();
+    let raw = |req: Vec<u8>| {
+        let addr = addr.clone();
+        async move {
+            use tokio::io::{AsyncReadExt, AsyncWriteExt};
+            let mut s = tokio::net::TcpStream::connect(&addr).await.unwrap();
+            let _ = s.write_all(&req).await; // hyper may close before it has read everything
+            let mut out = Vec::new();
+            let _ = s.read_to_end(&mut out).await;
+            String::from_utf8_lossy(&out).into_owned()
+        }
+    };
+    let long = format!("GET /v1/bakes?{}=1 HTTP/1.1\r\nhost: x\r\n\r\n", "k".repeat(70_000));
+    let huge = format!("GET /v1/bakes HTTP/1.1\r\nhost: x\r\nx-big: {}\r\n\r\n", "v".repeat(2 << 20));
+    for (req, status, code) in [
+        (long.into_bytes(), 414, "uri_too_long"),
+        (huge.into_bytes(), 431, "headers_too_large"),
+        (b"GET /\x01 HTTP/1.1\r\nhost: x\r\n\r\n".to_vec(), 400, "malformed_request"),
+    ] {
+        let text = raw(req).await;
+        let (head, body) = text.split_once("\r\n\r\n").unwrap_or((&text, ""));
+        assert!(head.starts_with(&format!("HTTP/1.1 {status} ")), "{head}");
+        assert!(head.contains("content-type: application/problem+json"), "{head}");
+        let v: Value = serde_json::from_str(body).unwrap_or_else(|e| panic!("{e}: {body:?}"));
+        assert_eq!((v["status"].as_u64(), v["code"].as_str()), (Some(status), Some(code)));
+    }
     srv.stop().await;
 }

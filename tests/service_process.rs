@@ -17,6 +17,11 @@ struct Proc {
 }
 
 fn spawn(data: &Path, extra: &[&str]) -> Proc {
+    spawn_with(data, extra, Stdio::inherit(), "warn")
+}
+
+/// The server with its stderr (the log) going to `stderr`, at log level `level`.
+fn spawn_with(data: &Path, extra: &[&str], stderr: Stdio, level: &str) -> Proc {
     let addr_file = data.with_extension("addr");
     let _ = std::fs::remove_file(&addr_file);
     let child = Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
@@ -28,9 +33,9 @@ fn spawn(data: &Path, extra: &[&str]) -> Proc {
         .arg(&addr_file)
         .args(extra)
         .env_remove("HORIZON_API_KEY")
-        .env("RUST_LOG", "warn")
+        .env("RUST_LOG", level)
         .stdout(Stdio::null())
-        .stderr(Stdio::inherit())
+        .stderr(stderr)
         .spawn()
         .unwrap();
     // Owned by `Proc` at once, so every path (a failed assert included) kills and reaps it.
@@ -152,6 +157,11 @@ async fn sigterm_drains_then_requeues_and_the_next_start_finishes() {
     assert_eq!(s, 202);
     let small = v["id"].as_str().unwrap().to_owned();
     wait_running(&c, &p.base).await;
+    // A client watching the running bake: its stream must end with a final `done` event when
+    // the server shuts down, not just break off.
+    let events = c.get(format!("{}/v1/bakes/{id}/events", p.base)).send().await.unwrap();
+    assert_eq!(events.status(), 200);
+    let watched = tokio::spawn(async move { events.text().await });
     let pid = p.child.id().to_string();
     assert!(Command::new("kill").args(["-TERM", &pid]).status().unwrap().success());
     let mut p = p;
@@ -164,6 +174,13 @@ async fn sigterm_drains_then_requeues_and_the_next_start_finishes() {
         std::thread::sleep(Duration::from_millis(20));
     };
     assert!(status.success(), "{status:?}");
+    let text = tokio::time::timeout(Duration::from_secs(10), watched)
+        .await
+        .expect("the event stream did not end with the server")
+        .unwrap()
+        .unwrap_or_default();
+    let last = text.split("\n\n").filter(|b| b.contains("event:")).last().unwrap_or("");
+    assert!(last.contains("event: done"), "the stream ended without `done`: {text}");
 
     let p2 = spawn(&data, &[]);
     let v = wait_done(&c, &format!("{}/v1/bakes/{id}", p2.base), Duration::from_secs(300)).await;
@@ -258,4 +275,53 @@ fn serve_refuses_a_locked_or_corrupt_store_before_listening() {
         let path = data.join("bakes.redb");
         assert!(stderr.contains(path.to_str().unwrap()), "{stderr} does not name the store");
     }
+}
+
+/// What an operator reads: one log line per request with method, path, status, latency and
+/// request id; one line per failed bake naming it; no colour codes when the log is a file.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_log_has_a_line_per_request_and_per_failed_bake_without_colours() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let log_path = dir.path().join("server.log");
+    let log = std::fs::File::create(&log_path).unwrap();
+    let mut p = spawn_with(&data, &[], Stdio::from(log), "info");
+    let c = client();
+    let res = c.get(format!("{}/v1/bakes", p.base)).header("x-request-id", "log-a").send();
+    assert_eq!(res.await.unwrap().status(), 200);
+    let res = c.get(format!("{}/v1/bakes/nope", p.base)).header("x-request-id", "log-b").send();
+    assert_eq!(res.await.unwrap().status(), 404);
+    // A PNG whose header is sound but whose pixel data is not: accepted (the header check
+    // passes), then the bake fails when the worker decodes it.
+    let mut png = terrain_png16(64, 64, 3);
+    let n = png.len();
+    for b in &mut png[n / 2..n / 2 + 64] {
+        *b ^= 0x5a;
+    }
+    let (s, v) = submit(&c, &p.base, &png, "radius=4").await;
+    assert_eq!(s, 202, "{v}");
+    let id = v["id"].as_str().unwrap().to_owned();
+    let v = wait_done(&c, &format!("{}/v1/bakes/{id}", p.base), Duration::from_secs(60)).await;
+    assert_eq!(v["status"], "failed", "{v}");
+    let _ = Command::new("kill").args(["-TERM", &p.child.id().to_string()]).status();
+    let _ = p.child.wait();
+
+    let text = std::fs::read_to_string(&log_path).unwrap();
+    assert!(!text.contains('\u{1b}'), "colour codes in a log file:\n{text}");
+    let lines_with = |needle: &str| text.lines().filter(|l| l.contains(needle)).collect::<Vec<_>>();
+    let a = lines_with("request_id=log-a");
+    assert_eq!(a.len(), 1, "one line per request:\n{text}");
+    for part in ["method=GET", "path=/v1/bakes ", "status=200", "latency_ms="] {
+        assert!(a[0].contains(part), "`{part}` missing from {:?}", a[0]);
+    }
+    let b = lines_with("request_id=log-b");
+    assert_eq!(b.len(), 1, "{text}");
+    assert!(b[0].contains("status=404") && b[0].contains("path=/v1/bakes/nope"), "{:?}", b[0]);
+    // Requests without an id of their own get one, so every request line has one.
+    for l in lines_with(" request ") {
+        assert!(l.contains("request_id="), "{l}");
+    }
+    let failed = lines_with("bake failed");
+    assert_eq!(failed.len(), 1, "one line per failed bake:\n{text}");
+    assert!(failed[0].contains(&id), "{:?}", failed[0]);
 }

@@ -11,6 +11,8 @@
 //! - `horizon_texels_baked_total`.
 //! - `horizon_results_encoded_total`: result files encoded on their first request (png16, EXR,
 //!   KTX2, DDS are not encoded with the bake; see `service::worker`).
+//! - `horizon_renders_total{kind}`: previews (`preview`) and cube-map files (`cube`) computed,
+//!   so an operator (and a test) can see that a revalidation answered 304 computed nothing.
 
 use crate::service::store::Status;
 use std::collections::BTreeMap;
@@ -34,6 +36,27 @@ pub struct Metrics {
     duration_sum_us: AtomicU64,
     texels: AtomicU64,
     encoded: AtomicU64,
+    renders: [AtomicU64; 2],
+}
+
+/// What a render counted by [`Metrics::rendered`] produced.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Render {
+    /// A shading preview of a bake.
+    Preview,
+    /// A cube-map face or texture.
+    Cube,
+}
+
+impl Render {
+    const ALL: [Render; 2] = [Render::Preview, Render::Cube];
+
+    fn label(self) -> &'static str {
+        match self {
+            Render::Preview => "preview",
+            Render::Cube => "cube",
+        }
+    }
 }
 
 fn status_index(s: Status) -> usize {
@@ -74,6 +97,11 @@ impl Metrics {
     /// Counts a result encoded on its first request.
     pub fn encoded_on_request(&self) {
         self.encoded.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Counts a preview or cube-map file computed (not answered 304).
+    pub fn rendered(&self, kind: Render) {
+        self.renders[kind as usize].fetch_add(1, Ordering::Relaxed);
     }
 
     /// Mean bake duration so far, in seconds (for `Retry-After`), if any bake finished.
@@ -158,6 +186,15 @@ impl Metrics {
         let _ = writeln!(s, "# TYPE horizon_results_encoded_total counter");
         let _ =
             writeln!(s, "horizon_results_encoded_total {}", self.encoded.load(Ordering::Relaxed));
+        let _ = writeln!(
+            s,
+            "# HELP horizon_renders_total Previews and cube-map files computed (a 304 computes none)."
+        );
+        let _ = writeln!(s, "# TYPE horizon_renders_total counter");
+        for kind in Render::ALL {
+            let n = self.renders[kind as usize].load(Ordering::Relaxed);
+            let _ = writeln!(s, "horizon_renders_total{{kind=\"{}\"}} {n}", kind.label());
+        }
         s
     }
 }

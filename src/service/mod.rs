@@ -21,6 +21,7 @@
 //! others back to the queue.
 
 pub mod config;
+pub mod conn;
 pub mod handlers;
 pub mod metrics;
 pub mod problem;
@@ -310,7 +311,8 @@ pub async fn serve(
             },
         };
         let service = TowerToHyperService::new(router.clone());
-        let conn = graceful.watch(builder.serve_connection(TokioIo::new(stream), service));
+        let io = TokioIo::new(conn::ProblemIo::new(stream));
+        let conn = graceful.watch(builder.serve_connection(io, service));
         tokio::spawn(async move {
             if let Err(e) = conn.await {
                 tracing::debug!(error = %e, "connection ended with an error");

@@ -92,6 +92,24 @@ pub fn guarded(body: Body, limit: u64, idle: Duration) -> Body {
     Body::from_stream(stream)
 }
 
+/// Reads all of `body` into one buffer sized from `expected` (the announced Content-Length,
+/// capped by the caller at the body limit) so a large upload is neither regrown nor copied
+/// again after it is read.
+///
+/// # Errors
+/// The body's own errors (from [`guarded`]: [`BodyTimedOut`], [`BodyTooLarge`]).
+pub async fn read_all(body: Body, expected: usize) -> Result<Vec<u8>, axum::Error> {
+    let mut out = Vec::new();
+    // A client may announce more than it sends: reserving is only a hint, and a refusal of the
+    // allocator is not an error (the buffer then grows as usual).
+    let _ = out.try_reserve_exact(expected);
+    let mut s = body.into_data_stream();
+    while let Some(chunk) = s.next().await {
+        out.extend_from_slice(&chunk?);
+    }
+    Ok(out)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

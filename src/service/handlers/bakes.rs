@@ -143,9 +143,14 @@ pub(super) async fn read_raw(
     let mime = ct.split(';').next().unwrap_or("").trim().to_ascii_lowercase();
     let (params, _) = query_params(req.uri())?;
     let timeout = st.0.config.body_timeout;
-    let bytes = axum::body::to_bytes(req.into_body(), usize::MAX)
-        .await
-        .map_err(|e| body_error(&e, timeout))?;
+    let announced = req
+        .headers()
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok()?.parse::<u64>().ok())
+        .unwrap_or(0)
+        .min(st.0.config.max_body_bytes) as usize;
+    let bytes =
+        upload::read_all(req.into_body(), announced).await.map_err(|e| body_error(&e, timeout))?;
     // Checked after the body is read, so the client gets this answer rather than a reset.
     if !mime.is_empty() && !RAW_TYPES.contains(&mime.as_str()) {
         return Err(Error::Unsupported(format!(
@@ -154,7 +159,7 @@ pub(super) async fn read_raw(
         ))
         .into());
     }
-    Ok((bytes.to_vec(), params))
+    Ok((bytes, params))
 }
 
 pub(super) fn retry_after(st: &AppState, waiting: u64) -> u64 {

@@ -45,6 +45,7 @@ pub(super) const CUBE_CACHE: &str = "public, max-age=86400";
 /// Encodes a cube-map file (the CLI's own function) and answers it with a derived ETag; a
 /// matching `If-None-Match` is answered 304 before anything is computed.
 pub(super) async fn cube_answer(
+    st: &AppState,
     headers: &HeaderMap,
     size: usize,
     formats: CubeFormats,
@@ -62,6 +63,7 @@ pub(super) async fn cube_answer(
         cache_headers(&mut res, &etag, CUBE_CACHE);
         return Ok(res);
     }
+    st.0.metrics.rendered(Render::Cube);
     let file = blocking(move || {
         let mut files = crate::encode::cube_files(size, formats)?;
         if pick >= files.len() {
@@ -94,7 +96,7 @@ pub async fn cubemap_face(
     };
     let size = cube_size(&st, &q)?;
     let formats = CubeFormats { png8: true, ktx2: false, dds: false };
-    cube_answer(&headers, size, formats, face, "image/png").await
+    cube_answer(&st, &headers, size, formats, face, "image/png").await
 }
 
 /// `GET /v1/cubemap.ktx2?size=N`: the six faces as one RGBA8 SNORM cube map.
@@ -105,7 +107,7 @@ pub async fn cubemap_ktx2(
 ) -> Answer {
     let q = known_query(q, &["size"])?;
     let size = cube_size(&st, &q)?;
-    cube_answer(&headers, size, CubeFormats { png8: false, ktx2: true, dds: false }, 0, KTX2_TYPE)
+    cube_answer(&st, &headers, size, CubeFormats { png8: false, ktx2: true, dds: false }, 0, KTX2_TYPE)
         .await
 }
 
@@ -117,6 +119,6 @@ pub async fn cubemap_dds(
 ) -> Answer {
     let q = known_query(q, &["size"])?;
     let size = cube_size(&st, &q)?;
-    cube_answer(&headers, size, CubeFormats { png8: false, ktx2: false, dds: true }, 0, DDS_TYPE)
+    cube_answer(&st, &headers, size, CubeFormats { png8: false, ktx2: false, dds: true }, 0, DDS_TYPE)
         .await
 }

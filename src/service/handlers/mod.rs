@@ -17,6 +17,7 @@ use crate::jobs::repo::{CancelResult, Submitted};
 use crate::params::BakeParams;
 use crate::preview::{self, PreviewParams};
 use crate::progress::{Progress, Stage};
+use crate::service::metrics::Render;
 use crate::service::problem::Problem;
 use crate::service::store::{self, now_ms, BakeRecord, Status};
 use crate::service::worker::{self, blocking, params_of};

@@ -123,6 +123,7 @@ pub async fn preview(
     let params = params_of(&rec).map_err(store_err)?;
     let progress = Progress::new();
     let _cancel = CancelOnDrop(progress.clone());
+    st.0.metrics.rendered(Render::Preview);
     let png = on_pool(&st, &format!("the preview of bake {id}"), move |st| {
         let map = worker::decode_input(
             st.0.jobs.blob_store().as_ref(),
