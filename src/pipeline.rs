@@ -114,7 +114,7 @@ pub fn produce<S: Sink>(
         let mut files = match &layers {
             Some((l, r)) => {
                 radius = Some(r.clone());
-                encode::horizon_files(l, formats)?
+                encode_each(l, formats, progress)?
             }
             None => Vec::new(),
         };
@@ -133,6 +133,32 @@ pub fn produce<S: Sink>(
         return Err(Error::Canceled);
     }
     Ok(Produced { names, store_ms, ..out })
+}
+
+/// Encodes whole layers into the files of `formats`, one format at a time with a cancel check
+/// before each, so a canceled bake does not wait for every encoder (an 8192² float EXR pair
+/// alone takes seconds).
+fn encode_each(
+    layers: &bake::HorizonLayers,
+    formats: &Formats,
+    progress: &Progress,
+) -> Result<Vec<OutFile>> {
+    let none = Formats { png8: false, png16: false, exr: false, ktx2: false, dds: false, ..*formats };
+    let each = [
+        Formats { png8: formats.png8, ..none },
+        Formats { png16: formats.png16, ..none },
+        Formats { exr: formats.exr, ..none },
+        Formats { ktx2: formats.ktx2, ..none },
+        Formats { dds: formats.dds, ..none },
+    ];
+    let mut files = Vec::new();
+    for one in each.iter().filter(|f| **f != none) {
+        if progress.is_canceled() {
+            return Err(Error::Canceled);
+        }
+        files.extend(encode::horizon_files(layers, one)?);
+    }
+    Ok(files)
 }
 
 /// The two streamed horizon files, named, before the sink keeps them.

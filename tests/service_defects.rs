@@ -700,3 +700,126 @@ async fn uri_and_header_limits_answer_problem_json() {
     }
     srv.stop().await;
 }
+
+/// A submission can name the formats to encode with the bake (`formats`, `exr_precision`: the
+/// CLI's `--format` and `--exr-precision`), so a pipeline that wants EXR pays for it once, during
+/// the bake, instead of a re-bake on its first download; the resource says what was asked and
+/// what is stored, and the downloads are the library's bytes with nothing encoded on request.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn formats_named_at_submission_are_encoded_with_the_bake() {
+    let srv = Server::start(|_| {}).await;
+    let c = client();
+    let png = terrain_png16(36, 28, 63);
+    let encoded = || async {
+        let text = c.get(srv.url("/metrics")).send().await.unwrap().text().await.unwrap();
+        text.lines()
+            .find_map(|l| l.strip_prefix("horizon_results_encoded_total "))
+            .map(|n| n.parse::<u64>().unwrap())
+            .unwrap()
+    };
+    // Refused at submission, naming the key, with nothing stored.
+    for (q, field) in [
+        ("?formats=gif", "formats"),
+        ("?formats=png8,png16", "formats"),
+        ("?formats=exr&formats=png8", "formats"),
+        ("?exr_precision=half", "exr_precision"),
+        ("?formats=exr&exr_precision=quarter", "exr_precision"),
+        ("?outputs=fourier&formats=exr", "formats"),
+    ] {
+        let res = c
+            .post(srv.url(&format!("/v1/bakes{q}")))
+            .header("content-type", "image/png")
+            .body(png.clone())
+            .send()
+            .await
+            .unwrap();
+        let (s, p) = problem(res).await;
+        assert_eq!((s, p["field"].as_str()), (422, Some(field)), "{q}: {p}");
+    }
+    assert!(blob_files(srv.dir.path()).is_empty());
+
+    let loc = submit_ok(&c, &srv, &png, "?radius=4&formats=png16,exr,ktx2").await;
+    let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
+    assert_eq!(v["status"], "succeeded", "{v}");
+    assert_eq!(v["formats"]["requested"], "png16,exr,ktx2", "{v}");
+    let stored: Vec<&str> =
+        v["formats"]["stored"].as_array().unwrap().iter().map(|s| s.as_str().unwrap()).collect();
+    assert_eq!(
+        stored,
+        ["horizon.ktx2", "horizon_0.exr", "horizon_0.png16", "horizon_1.exr", "horizon_1.png16"]
+    );
+    assert!(v["links"]["horizon_0"].is_string(), "{v}");
+    let want = library_files(&png, &[("radius", "4")]);
+    for name in ["horizon_0.png16", "horizon_1.exr", "horizon.ktx2"] {
+        let res = c.get(srv.url(&format!("{loc}{}", result_path(name)))).send().await.unwrap();
+        assert_eq!(res.status(), 200, "{name}");
+        assert!(res.bytes().await.unwrap() == want[name], "{name} differs from the library's");
+    }
+    assert_eq!(encoded().await, 0, "nothing was encoded on request");
+    // A format not asked is still there, encoded on its first request.
+    let res = c.get(srv.url(&format!("{loc}/horizon/1"))).send().await.unwrap();
+    assert_eq!(res.status(), 200);
+    assert!(res.bytes().await.unwrap() == want["horizon_1.png8"]);
+    assert_eq!(encoded().await, 2);
+
+    // Formats are not part of the bake's identity: the same input and parameters with other
+    // formats is the same bake. In a multipart `params` part they are JSON like the rest.
+    let form = reqwest::multipart::Form::new()
+        .part("heightmap", reqwest::multipart::Part::bytes(png.clone()))
+        .text("params", r#"{"radius": 4, "formats": ["dds"]}"#);
+    let res = c.post(srv.url("/v1/bakes")).multipart(form).send().await.unwrap();
+    assert_eq!(res.status(), 200);
+    let again: Value = res.json().await.unwrap();
+    assert_eq!(again["id"], v["id"]);
+
+    // Half-float EXR asked at submission is stored as such.
+    let loc = submit_ok(&c, &srv, &png, "?radius=3&formats=png8,exr&exr_precision=half").await;
+    let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
+    assert_eq!(v["formats"]["requested"], "png8,exr,half", "{v}");
+    let stored = v["formats"]["stored"].to_string();
+    assert!(stored.contains("horizon_0.half.exr") && !stored.contains("horizon_0.exr\""), "{v}");
+    let before = encoded().await;
+    let res = c
+        .get(srv.url(&format!("{loc}/horizon/0?format=exr&exr_precision=half")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(res.status(), 200);
+    assert_eq!(encoded().await, before);
+    srv.stop().await;
+}
+
+/// DELETE during the encode stage of a bake that encodes whole-layer formats (asked with
+/// `formats`) stops between encoders instead of waiting for all of them: measured against the
+/// encode time of the same bake left to finish.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn delete_during_the_encode_stage_stops_between_encoders() {
+    let srv = Server::start(|_| {}).await;
+    let c = client();
+    let q = "?radius=1&bins=16&formats=png16,exr,ktx2,dds";
+    let loc = submit_ok(&c, &srv, &terrain_png16(1536, 1536, 71), q).await;
+    let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(120)).await;
+    assert_eq!(v["status"], "succeeded", "{v}");
+    let full_encode = v["timings_ms"]["encode"].as_f64().unwrap();
+
+    let loc = submit_ok(&c, &srv, &terrain_png16(1536, 1536, 72), q).await;
+    let t = Instant::now();
+    loop {
+        let v: Value = c.get(srv.url(&loc)).send().await.unwrap().json().await.unwrap();
+        if v["progress"]["stage"] == "encode" {
+            break;
+        }
+        assert!(v["status"] != "succeeded", "the encode stage was never seen: {v}");
+        assert!(t.elapsed() < Duration::from_secs(120));
+        tokio::time::sleep(Duration::from_millis(2)).await;
+    }
+    let asked = Instant::now();
+    let res = c.delete(srv.url(&loc)).send().await.unwrap();
+    assert!(res.status().is_success(), "{}", res.status());
+    let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
+    let took = asked.elapsed().as_secs_f64() * 1e3;
+    assert_eq!(v["status"], "canceled", "{v}");
+    eprintln!("cancel during encode: {took:.0} ms; the whole encode: {full_encode:.0} ms");
+    assert!(took < 0.8 * full_encode, "cancel took {took:.0} ms of a {full_encode:.0} ms encode");
+    srv.stop().await;
+}

@@ -135,6 +135,11 @@ pub struct BakeRecord {
     /// The worker running (or that last ran) this bake.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub worker: Option<String>,
+    /// The result formats the submission asked to have encoded with the bake (`formats`, plus
+    /// `exr_precision` when not `float`), e.g. `png8` or `png16,exr` or `png8,exr,half`; None
+    /// (records from before the field) is `png8`. Not part of the dedup key.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub formats: Option<String>,
 }
 
 /// Progress as a worker reports it: the stage and the fraction of that stage done.
@@ -650,6 +655,7 @@ mod tests {
             attempts: 0,
             progress: None,
             worker: None,
+            formats: None,
         }
     }
 

@@ -134,6 +134,42 @@ pub fn encode_on_request(
     Ok(stored.into_iter().find(|(n, _)| n == name).map(|(_, h)| h))
 }
 
+/// The record's spelling of the formats a submission asked to encode with the bake: the CLI's
+/// `--format` list in its canonical order, plus `half` for half-float EXR.
+pub fn formats_field(f: &Formats) -> String {
+    let mut parts: Vec<&str> = [
+        (f.png8, "png8"),
+        (f.png16, "png16"),
+        (f.exr, "exr"),
+        (f.exr && f.exr_precision == ExrPrecision::Half, "half"),
+        (f.ktx2, "ktx2"),
+        (f.dds, "dds"),
+    ]
+    .into_iter()
+    .filter_map(|(on, name)| on.then_some(name))
+    .collect();
+    if parts.is_empty() {
+        parts.push("png8");
+    }
+    parts.join(",")
+}
+
+/// The formats a record's bake encodes (see [`formats_field`]; None is `png8`).
+///
+/// # Errors
+/// [`Error::Internal`] for a value this version does not write.
+pub fn formats_of(rec: &BakeRecord) -> Result<Formats> {
+    let list = rec.formats.as_deref().unwrap_or("png8");
+    let half = list.split(',').any(|p| p == "half");
+    let names: Vec<&str> = list.split(',').filter(|p| *p != "half").collect();
+    let mut f = Formats::parse(&names.join(","), TexturePrecision::Unorm8)
+        .map_err(|e| Error::Internal(format!("stored formats `{list}`: {e}")))?;
+    if half {
+        f.exr_precision = ExrPrecision::Half;
+    }
+    Ok(f)
+}
+
 /// The parameters stored in a record.
 ///
 /// # Errors
@@ -154,13 +190,25 @@ pub fn runner(limits: Limits) -> Runner {
 struct BlobSink<'a> {
     blobs: &'a Blobs,
     results: Vec<(String, String)>,
+    /// The formats being produced, which say what the CLI's file names stand for here.
+    formats: Formats,
 }
 
-fn result_name(file: &str) -> String {
-    match file {
-        "horizon_0.png" => HORIZON_RESULTS[0].to_owned(),
-        "horizon_1.png" => HORIZON_RESULTS[1].to_owned(),
-        other => other.to_owned(),
+impl BlobSink<'_> {
+    /// The result name of the CLI's file `file`: `horizon_0.png` is png8 or png16 as asked, an
+    /// EXR is `.half.exr` at half precision.
+    fn result_name(&self, file: &str) -> String {
+        let half = self.formats.exr_precision == ExrPrecision::Half;
+        let pick = match file {
+            "horizon_0.png" if self.formats.png16 => 2,
+            "horizon_1.png" if self.formats.png16 => 3,
+            "horizon_0.png" => 0,
+            "horizon_1.png" => 1,
+            "horizon_0.exr" if half => 6,
+            "horizon_1.exr" if half => 7,
+            other => return other.to_owned(),
+        };
+        HORIZON_RESULTS[pick].to_owned()
     }
 }
 
@@ -176,14 +224,16 @@ impl crate::pipeline::Sink for BlobSink<'_> {
         // each, or the last part of an upload).
         let [(n0, w0), (n1, w1)] = files;
         let (h0, h1) = rayon::join(|| w0.commit(), || w1.commit());
-        self.results.push((result_name(n0), h0?));
-        self.results.push((result_name(n1), h1?));
+        let (r0, r1) = (self.result_name(n0), self.result_name(n1));
+        self.results.push((r0, h0?));
+        self.results.push((r1, h1?));
         Ok(())
     }
 
     fn put(&mut self, file: crate::encode::OutFile) -> Result<()> {
         let hash = self.blobs.put(&file.bytes)?;
-        self.results.push((result_name(file.name), hash));
+        let name = self.result_name(file.name);
+        self.results.push((name, hash));
         Ok(())
     }
 }
@@ -227,19 +277,13 @@ fn execute(
     progress.advance(1);
     let decode_ms = ms(t);
 
-    // The CLI's own pipeline with the CLI's default format (png8): a bake costs what
-    // `horizon-bake bake --format png8` costs, and every other format waits for its first
-    // request. The kernel and the PNG encoders overlap band by band, and the PNGs stream into
-    // blob writers, so no whole layer and no whole encoded image exists.
-    let formats = Formats {
-        png8: true,
-        png16: false,
-        exr: false,
-        ktx2: false,
-        dds: false,
-        ..Formats::default()
-    };
-    let mut sink = BlobSink { blobs, results: Vec::new() };
+    // The CLI's own pipeline with the formats the submission asked for (the CLI's default,
+    // png8, unless told): a bake costs what `horizon-bake bake --format …` costs, and every
+    // other format waits for its first request. With png8 or png16 alone the kernel and the PNG
+    // encoders overlap band by band and the PNGs stream into blob writers, so no whole layer
+    // and no whole encoded image exists; EXR, KTX2 and DDS need whole layers, as in the CLI.
+    let formats = formats_of(&rec)?;
+    let mut sink = BlobSink { blobs, results: Vec::new(), formats };
     let produced = crate::pipeline::produce(map, &params, &formats, progress, &mut sink)?;
     progress.start(Stage::Store, 1);
     for (name, hash) in sink.results {

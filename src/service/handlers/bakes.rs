@@ -32,30 +32,83 @@ pub(super) fn body_error(e: &(dyn std::error::Error + 'static), timeout: Duratio
     }
 }
 
-/// The bake parameters of a query string, and the keys it gave.
-pub(super) fn query_params(uri: &axum::http::Uri) -> Result<(BakeParams, Vec<String>), Problem> {
+/// What a submission asks besides the bake's parameters: which result formats to encode with
+/// the bake (`formats`, the CLI's `--format` list, default `png8`) and at which EXR precision
+/// (`exr_precision`, the CLI's `--exr-precision`). They are not bake parameters: the same input
+/// and parameters are the same bake whatever formats were asked, and a format not asked is
+/// encoded on its first request.
+#[derive(Debug, Clone, Default)]
+pub(super) struct Delivery {
+    formats: Option<String>,
+    exr_precision: Option<String>,
+}
+
+/// The submission keys that are not bake parameters.
+const DELIVERY_KEYS: [&str; 2] = ["formats", "exr_precision"];
+
+impl Delivery {
+    fn set(&mut self, key: &str, value: &str) -> Result<(), Problem> {
+        let slot = if key == "formats" { &mut self.formats } else { &mut self.exr_precision };
+        if slot.is_some() {
+            return Err(Problem::param(key, "given more than once"));
+        }
+        *slot = Some(value.to_owned());
+        Ok(())
+    }
+
+    /// The formats to encode with the bake, checked as the CLI checks `--format` and
+    /// `--exr-precision` (KTX2 and DDS at the service's `unorm8`).
+    pub(super) fn resolve(&self) -> Result<Formats, Problem> {
+        let list = self.formats.as_deref().unwrap_or("png8");
+        let mut f = Formats::parse(list, TexturePrecision::Unorm8).map_err(|e| match e {
+            Error::Param { message, .. } => Problem::param("formats", message),
+            other => Problem::from(other),
+        })?;
+        if let Some(p) = &self.exr_precision {
+            if !f.exr {
+                return Err(Problem::param("exr_precision", "applies only when formats has exr"));
+            }
+            f.exr_precision = ExrPrecision::parse("exr_precision", p)?;
+        }
+        Ok(f)
+    }
+}
+
+/// The bake parameters of a query string, what it asks besides them, and the keys it gave.
+pub(super) fn query_params(
+    uri: &axum::http::Uri,
+) -> Result<(BakeParams, Delivery, Vec<String>), Problem> {
     let pairs: Vec<(String, String)> = match Query::<Vec<(String, String)>>::try_from_uri(uri) {
         Ok(Query(p)) => p,
         Err(_) => return Err(Problem::param("query", "the query string is malformed")),
     };
-    let params = BakeParams::from_pairs(pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
-        .map_err(Problem::from)?;
-    Ok((params, pairs.into_iter().map(|(k, _)| k).collect()))
+    let mut delivery = Delivery::default();
+    for (k, v) in pairs.iter().filter(|(k, _)| DELIVERY_KEYS.contains(&k.as_str())) {
+        delivery.set(k, v)?;
+    }
+    let params = BakeParams::from_pairs(
+        pairs
+            .iter()
+            .filter(|(k, _)| !DELIVERY_KEYS.contains(&k.as_str()))
+            .map(|(k, v)| (k.as_str(), v.as_str())),
+    )
+    .map_err(Problem::from)?;
+    Ok((params, delivery, pairs.into_iter().map(|(k, _)| k).collect()))
 }
 
 /// Applies the keys of a multipart `params` JSON object on top of `base` (the query's). A key
 /// given in both is refused (422 naming it), as a key given twice in the query or in the JSON is:
 /// one rule everywhere, since which one "wins" would be a guess about what the client meant.
 pub(super) fn merge_json(
-    base: BakeParams,
+    base: (BakeParams, Delivery),
     query_keys: &[String],
     text: &[u8],
-) -> Result<BakeParams, Problem> {
+) -> Result<(BakeParams, Delivery), Problem> {
     if text.iter().all(u8::is_ascii_whitespace) {
         return Ok(base);
     }
     let given = crate::params::json_object_pairs(text).map_err(Problem::from)?;
-    let mut merged = base;
+    let (mut merged, mut delivery) = base;
     for (k, v) in &given {
         if query_keys.iter().any(|q| q == k) {
             return Err(Problem::param(
@@ -64,17 +117,22 @@ pub(super) fn merge_json(
             ));
         }
         if let Some(text) = crate::params::json_value_text(k, v).map_err(Problem::from)? {
-            merged.set(k, &text).map_err(Problem::from)?;
+            if DELIVERY_KEYS.contains(&k.as_str()) {
+                delivery.set(k, &text)?;
+            } else {
+                merged.set(k, &text).map_err(Problem::from)?;
+            }
         }
     }
-    Ok(merged)
+    Ok((merged, delivery))
 }
 
 pub(super) async fn read_multipart(
     st: &AppState,
     req: Request,
-) -> Result<(Vec<u8>, BakeParams), Problem> {
-    let (query, query_keys) = query_params(req.uri())?;
+) -> Result<(Vec<u8>, (BakeParams, Delivery)), Problem> {
+    let (query, query_delivery, query_keys) = query_params(req.uri())?;
+    let query = (query, query_delivery);
     let timeout = st.0.config.body_timeout;
     let mut mp = axum::extract::Multipart::from_request(req, st).await.map_err(|e| {
         Problem::new(
@@ -84,7 +142,7 @@ pub(super) async fn read_multipart(
         )
     })?;
     let mut image: Option<Vec<u8>> = None;
-    let mut params: Option<BakeParams> = None;
+    let mut params: Option<(BakeParams, Delivery)> = None;
     loop {
         let field = match mp.next_field().await {
             Ok(Some(f)) => f,
@@ -139,9 +197,9 @@ pub(super) async fn read_raw(
     st: &AppState,
     req: Request,
     ct: &str,
-) -> Result<(Vec<u8>, BakeParams), Problem> {
+) -> Result<(Vec<u8>, (BakeParams, Delivery)), Problem> {
     let mime = ct.split(';').next().unwrap_or("").trim().to_ascii_lowercase();
-    let (params, _) = query_params(req.uri())?;
+    let (params, delivery, _) = query_params(req.uri())?;
     let timeout = st.0.config.body_timeout;
     let announced = req
         .headers()
@@ -159,7 +217,7 @@ pub(super) async fn read_raw(
         ))
         .into());
     }
-    Ok((bytes, params))
+    Ok((bytes, (params, delivery)))
 }
 
 pub(super) fn retry_after(st: &AppState, waiting: u64) -> u64 {
@@ -198,11 +256,20 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
     let (parts, body) = req.into_parts();
     let body = upload::guarded(body, st.0.config.max_body_bytes, st.0.config.body_timeout);
     let req = Request::from_parts(parts, body);
-    let (bytes, params) = if ct.to_ascii_lowercase().starts_with("multipart/form-data") {
+    let (bytes, (params, delivery)) = if ct.to_ascii_lowercase().starts_with("multipart/form-data")
+    {
         read_multipart(&st, req).await?
     } else {
         read_raw(&st, req, &ct).await?
     };
+    let formats = delivery.resolve()?;
+    if !params.outputs.horizon && formats != Formats::default() {
+        // As the CLI: a format of horizon layers that a Fourier-only bake would never write.
+        return Err(Problem::param(
+            "formats",
+            "applies to horizon layers, and `outputs` does not include horizon",
+        ));
+    }
     // Format and dimensions from the header against the limits, before any pixel allocation;
     // then, for float images only, the values (NaN, infinities, out of range), so such an input
     // is a 422 now rather than a failed bake later. Integer images cannot hold a bad value.
@@ -257,6 +324,7 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
         attempts: 0,
         progress: None,
         worker: None,
+        formats: Some(worker::formats_field(&formats)),
     };
     let (status, rec) = match st.0.jobs.submit(bytes, rec).await.map_err(store_err)? {
         Submitted::Created(rec) => {

@@ -10,7 +10,8 @@
 // would add an allocation to every error path for no gain.
 #![allow(clippy::result_large_err)]
 
-use crate::encode::CubeFormats;
+use crate::encode::exr::ExrPrecision;
+use crate::encode::{CubeFormats, Formats, TexturePrecision};
 use crate::error::Error;
 use crate::heightmap;
 use crate::jobs::repo::{CancelResult, Submitted};
@@ -184,7 +185,20 @@ pub struct BakeResource {
     pub error: Option<store::BakeFailure>,
     pub attempts: u32,
     pub worker: Option<String>,
+    /// Result formats: what the submission asked to encode with the bake, and what is stored
+    /// (the rest is encoded on its first request).
+    pub formats: FormatsView,
     pub links: std::collections::BTreeMap<String, String>,
+}
+
+/// The `formats` of a bake resource.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct FormatsView {
+    /// The submission's `formats` (with `half` when `exr_precision=half`).
+    pub requested: String,
+    /// Result files stored so far (`horizon_0.png8`, `horizon_0.half.exr`, `horizon.ktx2`,
+    /// `fourier_0.png`, …).
+    pub stored: Vec<String>,
 }
 
 impl BakeResource {
@@ -232,7 +246,7 @@ impl BakeResource {
                     links.insert(format!("fourier_{k}"), format!("{base}/fourier/{k}"));
                 }
             }
-            if rec.results.contains_key("horizon_0.png8") {
+            if params_of(rec).is_ok_and(|p| p.outputs.horizon) {
                 for (k, path) in [
                     ("horizon_0", "/horizon/0"),
                     ("horizon_1", "/horizon/1"),
@@ -257,6 +271,10 @@ impl BakeResource {
             error: rec.error.clone(),
             attempts: rec.attempts,
             worker: rec.worker.clone(),
+            formats: FormatsView {
+                requested: rec.formats.clone().unwrap_or_else(|| "png8".into()),
+                stored: rec.results.keys().cloned().collect(),
+            },
             links,
         }
     }
