@@ -138,12 +138,16 @@ pub fn produce<S: Sink>(
 /// Encodes whole layers into the files of `formats`, one format at a time with a cancel check
 /// before each, so a canceled bake does not wait for every encoder (an 8192² float EXR pair
 /// alone takes seconds).
-fn encode_each(
+///
+/// # Errors
+/// [`Error::Canceled`], and the encoders' errors.
+pub fn encode_each(
     layers: &bake::HorizonLayers,
     formats: &Formats,
     progress: &Progress,
 ) -> Result<Vec<OutFile>> {
-    let none = Formats { png8: false, png16: false, exr: false, ktx2: false, dds: false, ..*formats };
+    let none =
+        Formats { png8: false, png16: false, exr: false, ktx2: false, dds: false, ..*formats };
     let each = [
         Formats { png8: formats.png8, ..none },
         Formats { png16: formats.png16, ..none },

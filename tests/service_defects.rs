@@ -685,7 +685,8 @@ async fn uri_and_header_limits_answer_problem_json() {
         }
     };
     let long = format!("GET /v1/bakes?{}=1 HTTP/1.1\r\nhost: x\r\n\r\n", "k".repeat(70_000));
-    let huge = format!("GET /v1/bakes HTTP/1.1\r\nhost: x\r\nx-big: {}\r\n\r\n", "v".repeat(2 << 20));
+    let huge =
+        format!("GET /v1/bakes HTTP/1.1\r\nhost: x\r\nx-big: {}\r\n\r\n", "v".repeat(2 << 20));
     for (req, status, code) in [
         (long.into_bytes(), 414, "uri_too_long"),
         (huge.into_bytes(), 431, "headers_too_large"),

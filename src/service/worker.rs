@@ -8,7 +8,7 @@
 
 use crate::bake;
 use crate::encode::exr::ExrPrecision;
-use crate::encode::{self, Formats, TexturePrecision};
+use crate::encode::{Formats, TexturePrecision};
 use crate::error::{Error, Result};
 use crate::heightmap;
 use crate::heightmap::Limits;
@@ -109,10 +109,10 @@ pub fn encode_on_request(
             };
             let (layers, _) = bake::bake_horizon(&map, &params, formats.precisions(), progress)?;
             drop(map);
-            if progress.is_canceled() {
-                return Err(Error::Canceled);
-            }
-            encode::horizon_files(&layers, &formats)?.into_iter().map(|f| f.bytes).collect()
+            crate::pipeline::encode_each(&layers, &formats, progress)?
+                .into_iter()
+                .map(|f| f.bytes)
+                .collect()
         }
     };
     if files.len() != group.len() {

@@ -107,8 +107,15 @@ pub async fn cubemap_ktx2(
 ) -> Answer {
     let q = known_query(q, &["size"])?;
     let size = cube_size(&st, &q)?;
-    cube_answer(&st, &headers, size, CubeFormats { png8: false, ktx2: true, dds: false }, 0, KTX2_TYPE)
-        .await
+    cube_answer(
+        &st,
+        &headers,
+        size,
+        CubeFormats { png8: false, ktx2: true, dds: false },
+        0,
+        KTX2_TYPE,
+    )
+    .await
 }
 
 /// `GET /v1/cubemap.dds?size=N`: the six faces as one RGBA8 SNORM DDS cube map.
@@ -119,6 +126,13 @@ pub async fn cubemap_dds(
 ) -> Answer {
     let q = known_query(q, &["size"])?;
     let size = cube_size(&st, &q)?;
-    cube_answer(&st, &headers, size, CubeFormats { png8: false, ktx2: false, dds: true }, 0, DDS_TYPE)
-        .await
+    cube_answer(
+        &st,
+        &headers,
+        size,
+        CubeFormats { png8: false, ktx2: false, dds: true },
+        0,
+        DDS_TYPE,
+    )
+    .await
 }
