@@ -46,6 +46,15 @@ async fn submit_ok(c: &reqwest::Client, srv: &Server, png: &[u8], query: &str) -
     res.headers()["location"].to_str().unwrap().to_owned()
 }
 
+/// The value of the counter line `series` (name and labels, as exposed) in the server's
+/// /metrics; panics if the server does not expose it.
+async fn counter(c: &reqwest::Client, srv: &Server, series: &str) -> u64 {
+    let text = c.get(srv.url("/metrics")).send().await.unwrap().text().await.unwrap();
+    let key = format!("{series} ");
+    let line = text.lines().find(|l| l.starts_with(&key)).unwrap_or_else(|| panic!("{series}"));
+    line[key.len()..].parse().unwrap()
+}
+
 /// Connections that announce a body and never send it, or never finish their headers, must not
 /// keep upload slots (or connections) forever: after the body timeout a real submission works.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -434,13 +443,8 @@ async fn formats_other_than_png8_are_encoded_once_on_first_request() {
     let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
     assert_eq!(v["status"], "succeeded", "{v}");
     assert_eq!(blob_files(srv.dir.path()).len(), 3, "input + two png8 layers");
-    let encoded = || async {
-        let text = c.get(srv.url("/metrics")).send().await.unwrap().text().await.unwrap();
-        text.lines()
-            .find_map(|l| l.strip_prefix("horizon_results_encoded_total "))
-            .map(|n| n.parse::<u64>().unwrap())
-    };
-    assert_eq!(encoded().await, Some(0));
+    let encoded = || counter(&c, &srv, "horizon_results_encoded_total");
+    assert_eq!(encoded().await, 0);
 
     let url = srv.url(&format!("{loc}/horizon/0?format=exr"));
     let gets = (0..4).map(|_| {
@@ -456,10 +460,10 @@ async fn formats_other_than_png8_are_encoded_once_on_first_request() {
     for b in bodies {
         assert!(b.unwrap()[..] == want["horizon_0.exr"][..], "EXR differs from the library's");
     }
-    assert_eq!(encoded().await, Some(2), "both EXR layers, encoded once");
+    assert_eq!(encoded().await, 2, "both EXR layers, encoded once");
     let res = c.get(srv.url(&format!("{loc}/horizon/1?format=exr"))).send().await.unwrap();
     assert!(res.bytes().await.unwrap()[..] == want["horizon_1.exr"][..]);
-    assert_eq!(encoded().await, Some(2), "layer 1 was encoded with layer 0");
+    assert_eq!(encoded().await, 2, "layer 1 was encoded with layer 0");
     assert_eq!(blob_files(srv.dir.path()).len(), 5);
     srv.stop().await;
 }
@@ -516,14 +520,10 @@ async fn request_ids_cache_headers_and_sse_ids() {
     assert!(blocks.last().unwrap().contains("event: done"), "{text}");
 
     // How many previews and cube files the server has computed, from /metrics.
-    let renders = |kind: &'static str| {
-        let (c, url) = (c.clone(), srv.url("/metrics"));
-        async move {
-            let text = c.get(url).send().await.unwrap().text().await.unwrap();
-            let key = format!("horizon_renders_total{{kind=\"{kind}\"}} ");
-            let line = text.lines().find(|l| l.starts_with(&key)).expect("renders counter");
-            line[key.len()..].parse::<u64>().unwrap()
-        }
+    let renders = |kind: &str| {
+        let series = format!("horizon_renders_total{{kind=\"{kind}\"}}");
+        let (c, srv) = (&c, &srv);
+        async move { counter(c, srv, &series).await }
     };
     for (path, kind) in
         [(format!("{loc}/preview?azimuth=30"), "preview"), ("/v1/cubemap/2?size=8".into(), "cube")]
@@ -711,13 +711,7 @@ async fn formats_named_at_submission_are_encoded_with_the_bake() {
     let srv = Server::start(|_| {}).await;
     let c = client();
     let png = terrain_png16(36, 28, 63);
-    let encoded = || async {
-        let text = c.get(srv.url("/metrics")).send().await.unwrap().text().await.unwrap();
-        text.lines()
-            .find_map(|l| l.strip_prefix("horizon_results_encoded_total "))
-            .map(|n| n.parse::<u64>().unwrap())
-            .unwrap()
-    };
+    let encoded = || counter(&c, &srv, "horizon_results_encoded_total");
     // Refused at submission, naming the key, with nothing stored.
     for (q, field) in [
         ("?formats=gif", "formats"),
