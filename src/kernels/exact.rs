@@ -462,8 +462,169 @@ struct Near {
     /// heights of 1e4 (a DEM in metres) would cost 1e-3 of precision; centred, the error
     /// scales with the range instead.
     reference: f64,
+    /// Per direction, the pieces grouped into spans that one bound can cull together (see
+    /// [`Spans`]).
+    spans: Vec<Spans>,
+    /// Block maxima of `padded`, for the spans' bounds.
+    blocks: PadPyramid,
     avx2: bool,
     avx512: bool,
+}
+
+/// Where a span of pieces can start: nearer, a span's bound (M − h0)/s_start is too loose to
+/// cull much, and single pieces are cheap to cull one by one.
+const SPAN_FROM: f64 = 32.0;
+
+/// Where a coarse span starts being split into fine spans.
+const FINE_FROM: f64 = 96.0;
+
+/// Consecutive pieces `start..end` of one direction whose cells, for every lane of a strip,
+/// lie in the box `c0..=c1`, `r0..=r1` of padded texels relative to the strip's first texel
+/// (lane i's cells are i columns further right, so `c1` includes the lanes). Every sample of
+/// the span is at s ≥ `s_start`, so (max of the box − h0)/`s_start` bounds it (`best` ≥ 0).
+#[derive(Debug, Clone, Copy)]
+struct Span {
+    start: usize,
+    end: usize,
+    /// The first piece's `s_a`, converted exactly as the per-piece cull converts it, so a span
+    /// is culled only when each of its pieces would be (see [`Near::strip_body`]).
+    s_start: f32,
+    c0: i32,
+    r0: i32,
+    c1: i32,
+    r1: i32,
+    /// Level of [`PadPyramid`] whose blocks read the box in at most 3 × 3 lookups.
+    level: u8,
+}
+
+/// A direction's spans, two deep: coarse spans of about s/2 of arc, each made of fine spans
+/// of about s/16. A coarse span is tried first; when it cannot be culled, its fine spans are;
+/// pieces before [`SPAN_FROM`] run one by one.
+#[derive(Debug, Clone, Default)]
+struct Spans {
+    /// Pieces before the first span.
+    head: usize,
+    coarse: Vec<(Span, std::ops::Range<usize>)>,
+    fine: Vec<Span>,
+}
+
+impl Spans {
+    fn new(segs: &[Seg], levels: usize) -> Spans {
+        let head = segs.partition_point(|g| g.s_a < SPAN_FROM);
+        let make = |a: usize, b: usize| -> Span {
+            let (mut c0, mut r0, mut c1, mut r1) = (i32::MAX, i32::MAX, i32::MIN, i32::MIN);
+            for g in &segs[a..b] {
+                c0 = c0.min(g.cxo);
+                r0 = r0.min(g.cyo);
+                c1 = c1.max(g.cxo + 1);
+                r1 = r1.max(g.cyo + 1);
+            }
+            // Lane i reads its cell's columns i further right: up to cxo + 1 + (LANES − 1).
+            c1 += LANES as i32 - 1;
+            let side = (c1 - c0 + 1).max(r1 - r0 + 1) as i64;
+            let mut level = 0usize;
+            while level < levels && 2 * (1i64 << (2 * level)) < side {
+                level += 1;
+            }
+            Span {
+                start: a,
+                end: b,
+                s_start: segs[a].s_a as f32,
+                c0,
+                r0,
+                c1,
+                r1,
+                level: level as u8,
+            }
+        };
+        // Groups pieces from..to into runs of about `frac` of their starting arc length.
+        let group = |from: usize, to: usize, frac: f64, min: f64| -> Vec<(usize, usize)> {
+            let mut out = Vec::new();
+            let mut a = from;
+            while a < to {
+                let s0 = segs[a].s_a;
+                let mut b = a + 1;
+                while b < to && segs[b].s_a + segs[b].len - s0 <= (s0 * frac).max(min) {
+                    b += 1;
+                }
+                out.push((a, b));
+                a = b;
+            }
+            out
+        };
+        let mut spans = Spans { head, ..Spans::default() };
+        for (a, b) in group(head, segs.len(), 0.5, 32.0) {
+            let first = spans.fine.len();
+            // Near spans are short: were their fine spans checked too, the checks would cost
+            // more than they save where the coarse one fails (rough maps).
+            if segs[a].s_a >= FINE_FROM {
+                for (fa, fb) in group(a, b, 1.0 / 8.0, 8.0) {
+                    spans.fine.push(make(fa, fb));
+                }
+            }
+            spans.coarse.push((make(a, b), first..spans.fine.len()));
+        }
+        spans
+    }
+}
+
+/// Maxima of 4^k × 4^k blocks of the padded heights (level k ≥ 1; level 0 is the heights).
+#[derive(Debug, Clone, Default)]
+struct PadPyramid {
+    /// `levels[k - 1]`: (blocks per row, maxima).
+    levels: Vec<(usize, Vec<f32>)>,
+}
+
+impl PadPyramid {
+    fn new(padded: &[f32], pw: usize, ph: usize, top: usize) -> PadPyramid {
+        let mut levels: Vec<(usize, Vec<f32>)> = Vec::new();
+        let (mut src_w, mut src_h) = (pw, ph);
+        for _ in 0..top {
+            let (nw, nh) = (src_w.div_ceil(4), src_h.div_ceil(4));
+            let src: &[f32] = levels.last().map_or(padded, |l| &l.1[..]);
+            let mut max = vec![f32::NEG_INFINITY; nw * nh];
+            for r in 0..src_h {
+                for c in 0..src_w {
+                    let m = &mut max[(r / 4) * nw + c / 4];
+                    *m = m.max(src[r * src_w + c]);
+                }
+            }
+            levels.push((nw, max));
+            (src_w, src_h) = (nw, nh);
+        }
+        PadPyramid { levels }
+    }
+
+    /// The largest padded height in columns `c0..=c1`, rows `r0..=r1`, read at `level`.
+    #[inline]
+    fn box_max(
+        &self,
+        padded: &[f32],
+        pw: usize,
+        level: u8,
+        c0: usize,
+        r0: usize,
+        c1: usize,
+        r1: usize,
+    ) -> f32 {
+        let mut m = f32::NEG_INFINITY;
+        if level == 0 {
+            for r in r0..=r1 {
+                for &v in &padded[r * pw + c0..=r * pw + c1] {
+                    m = m.max(v);
+                }
+            }
+            return m;
+        }
+        let (nw, max) = &self.levels[level as usize - 1];
+        let sh = 2 * level as u32;
+        for r in (r0 >> sh)..=(r1 >> sh) {
+            for &v in &max[r * nw + (c0 >> sh)..=r * nw + (c1 >> sh)] {
+                m = m.max(v);
+            }
+        }
+        m
+    }
 }
 
 impl Near {
@@ -486,7 +647,12 @@ impl Near {
                     (f64::from(grid.heights[y as usize * w + x as usize]) - reference) as f32;
             }
         }
-        let segs = dirs.iter().map(|&(dx, dy)| Self::pieces(dx, dy, s_cut)).collect();
+        let segs: Vec<Vec<Seg>> =
+            dirs.iter().map(|&(dx, dy)| Self::pieces(dx, dy, s_cut)).collect();
+        // Levels up to blocks of 4^5 = 1024: a span's box is at most about s_cut / 2 on a side.
+        let top = (1..=5).take_while(|&k| (1usize << (2 * (k - 1))) < pad).count();
+        let blocks = PadPyramid::new(&padded, pw, ph, top);
+        let spans = segs.iter().map(|g| Spans::new(g, top)).collect();
         #[cfg(target_arch = "x86_64")]
         let avx2 = std::arch::is_x86_feature_detected!("avx2")
             && std::arch::is_x86_feature_detected!("fma");
@@ -496,7 +662,7 @@ impl Near {
         let avx512 = std::arch::is_x86_feature_detected!("avx512f");
         #[cfg(not(target_arch = "x86_64"))]
         let avx512 = false;
-        Near { segs, s_cut, pad, pw, padded, reference, avx2, avx512 }
+        Near { segs, s_cut, pad, pw, padded, reference, spans, blocks, avx2, avx512 }
     }
 
     /// How many pieces of direction `n` end at or before `s_end` (a lane's own end with
@@ -551,20 +717,18 @@ impl Near {
         count: &[u32; LANES],
         hmax: f32,
         best: &mut [f32; LANES],
-    ) {
+    ) -> f64 {
         #[cfg(target_arch = "x86_64")]
         if self.avx512 {
             // SAFETY: the CPU was checked for AVX-512F at construction.
-            unsafe { self.strip_avx512(n, d, x, y, h0, count, hmax, best) };
-            return;
+            return unsafe { self.strip_avx512(n, d, x, y, h0, count, hmax, best) };
         }
         #[cfg(target_arch = "x86_64")]
         if self.avx2 {
             // SAFETY: the CPU was checked for AVX2 and FMA at construction.
-            unsafe { self.strip_avx2(n, d, x, y, h0, count, hmax, best) };
-            return;
+            return unsafe { self.strip_avx2(n, d, x, y, h0, count, hmax, best) };
         }
-        self.strip_body(n, d, x, y, h0, count, hmax, best);
+        self.strip_body(n, d, x, y, h0, count, hmax, best)
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -580,8 +744,8 @@ impl Near {
         count: &[u32; LANES],
         hmax: f32,
         best: &mut [f32; LANES],
-    ) {
-        self.strip_body(n, d, x, y, h0, count, hmax, best);
+    ) -> f64 {
+        self.strip_body(n, d, x, y, h0, count, hmax, best)
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -597,8 +761,8 @@ impl Near {
         count: &[u32; LANES],
         hmax: f32,
         best: &mut [f32; LANES],
-    ) {
-        self.strip_body(n, d, x, y, h0, count, hmax, best);
+    ) -> f64 {
+        self.strip_body(n, d, x, y, h0, count, hmax, best)
     }
 
     /// The vectorised body: per piece, four contiguous loads per lane, a cheap cull against the
@@ -615,26 +779,78 @@ impl Near {
         count: &[u32; LANES],
         hmax: f32,
         best: &mut [f32; LANES],
-    ) {
-        let (dx, dy) = (d.0 as f32, d.1 as f32);
+    ) -> f64 {
         let base_c = (x + self.pad) as i64;
         let base_r = (y + self.pad) as i64;
         *best = [0.0; LANES];
-        for (k, seg) in self.segs[n].iter().enumerate() {
-            let s_b = seg.s_a + seg.len;
-            let s_a = seg.s_a as f32;
-            // All lanes done: nothing left can beat any of them.
-            if k % 8 == 7 {
-                let mut done = true;
-                for i in 0..LANES {
-                    done &= hmax - h0[i] <= best[i] * s_a;
+        let cx = Strip { n, d: (d.0 as f32, d.1 as f32), base_c, base_r, h0, count, hmax };
+        let spans = &self.spans[n];
+        if !self.run(&cx, 0, spans.head, best) {
+            return self.s_cut;
+        }
+        for (coarse, fine) in &spans.coarse {
+            if done(&cx, best, coarse.s_start) {
+                return self.s_cut;
+            }
+            if self.culled(&cx, coarse, best) {
+                continue;
+            }
+            if fine.is_empty() {
+                if !self.run(&cx, coarse.start, coarse.end, best) {
+                    return self.s_cut;
                 }
-                if done {
-                    break;
+                continue;
+            }
+            // Fine spans are checked until two in a row fail: on rough ground a box of any
+            // size holds something higher than the lowest-horizon lane, and the checks would
+            // only add to the pieces' own culls.
+            let mut misses = 0;
+            for sp in &spans.fine[fine.clone()] {
+                if misses < 2 && self.culled(&cx, sp, best) {
+                    misses = 0;
+                    continue;
+                }
+                misses += 1;
+                if !self.run(&cx, sp.start, sp.end, best) {
+                    return self.s_cut;
                 }
             }
-            let c = (base_c + seg.cxo as i64) as usize;
-            let r = (base_r + seg.cyo as i64) as usize;
+        }
+        self.s_cut
+    }
+
+    /// Whether span `sp` can be culled: no lane's bound beats its best. The box's maximum is
+    /// ≥ every corner a piece of the span reads and `s_start` ≤ every piece's s_a, both rounded
+    /// alike, so each piece's own cull in [`Near::run`] would have culled it too: skipping the
+    /// span changes nothing, not even the last bit.
+    #[inline(always)]
+    fn culled(&self, cx: &Strip<'_>, sp: &Span, best: &[f32; LANES]) -> bool {
+        let c0 = (cx.base_c + sp.c0 as i64) as usize;
+        let r0 = (cx.base_r + sp.r0 as i64) as usize;
+        let c1 = (cx.base_c + sp.c1 as i64) as usize;
+        let r1 = (cx.base_r + sp.r1 as i64) as usize;
+        let m = self.blocks.box_max(&self.padded, self.pw, sp.level, c0, r0, c1, r1);
+        let mut any = false;
+        for i in 0..LANES {
+            any |= m - cx.h0[i] > best[i] * sp.s_start;
+        }
+        !any
+    }
+
+    /// Pieces `a..b` of the strip's direction one by one, each culled on its own corners or
+    /// solved in closed form; false once every lane is done.
+    #[inline(always)]
+    fn run(&self, cx: &Strip<'_>, a: usize, b: usize, best: &mut [f32; LANES]) -> bool {
+        let (dx, dy) = cx.d;
+        let (h0, count) = (cx.h0, cx.count);
+        for (k, seg) in self.segs[cx.n].iter().enumerate().take(b).skip(a) {
+            let s_b = seg.s_a + seg.len;
+            let s_a = seg.s_a as f32;
+            if k % 8 == 7 && done(cx, best, s_a) {
+                return false;
+            }
+            let c = (cx.base_c + seg.cxo as i64) as usize;
+            let r = (cx.base_r + seg.cyo as i64) as usize;
             let row0 = &self.padded[r * self.pw + c..r * self.pw + c + LANES + 1];
             let row1 = &self.padded[(r + 1) * self.pw + c..(r + 1) * self.pw + c + LANES + 1];
             let mut any = false;
@@ -654,7 +870,29 @@ impl Near {
                 piece::<false>(row0, row1, (fx, fy, dx, dy), s_a, len, inv_sb, h0, valid, best);
             }
         }
+        true
     }
+}
+
+/// A strip's place and lane state, as the near field's helpers need it.
+struct Strip<'a> {
+    n: usize,
+    d: (f32, f32),
+    base_c: i64,
+    base_r: i64,
+    h0: &'a [f32; LANES],
+    count: &'a [u32; LANES],
+    hmax: f32,
+}
+
+/// All lanes done: nothing left at s ≥ `s_a` can beat any of them.
+#[inline(always)]
+fn done(cx: &Strip<'_>, best: &[f32; LANES], s_a: f32) -> bool {
+    let mut done = true;
+    for i in 0..LANES {
+        done &= cx.hmax - cx.h0[i] <= best[i] * s_a;
+    }
+    done
 }
 
 /// `a > b ? a : b`: one `maxps`, unlike `f32::max` whose NaN rules cost two more instructions
@@ -985,16 +1223,16 @@ impl HorizonRows for ExactHorizon<'_> {
                         }
                     }
                     let mut best = [0.0f32; LANES];
-                    near.strip(n, (dx, dy), x, y, &h0, &count, hmax, &mut best);
-                    if s_end.iter().take(lanes).any(|&e| e > near.s_cut) {
+                    let s_stop = near.strip(n, (dx, dy), x, y, &h0, &count, hmax, &mut best);
+                    if s_end.iter().take(lanes).any(|&e| e > s_stop) {
                         for i in 0..lanes {
                             let t = best[i].max(0.0) as f64;
-                            // The ray goes on past the near field and something there could
-                            // still beat it: continue with the scalar walk, seeded.
+                            // The ray goes on past where the strip stopped and something there
+                            // could still beat it: continue with the scalar walk, seeded.
                             let rise = self.hmax - reference - f64::from(h0[i]);
-                            if s_end[i] > near.s_cut && rise > t * near.s_cut {
+                            if s_end[i] > s_stop && rise > t * s_stop {
                                 let ray = Ray::new(&self.grid, x + i, y, dx, dy, self.radius);
-                                best[i] = self.walk(&ray, near.s_cut, t).0 as f32;
+                                best[i] = self.walk(&ray, s_stop, t).0 as f32;
                             }
                         }
                     }
