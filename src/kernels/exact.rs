@@ -33,7 +33,14 @@
 //!   clamping in the loop), cull the piece when no lane's (max corner − h0)/s_entry beats its
 //!   best value, and otherwise evaluate the per-cell closed form in f32 lanes (the divisions and
 //!   square root only when some lane can have an interior maximum). The strip stops when no
-//!   lane can still be raised by the highest point of the map.
+//!   lane can still be raised by the highest point of the map. Beyond 32 texels the pieces are
+//!   also grouped into spans (about s/2 of arc, split into spans of s/8 beyond 96), each culled
+//!   in one step against the maximum of the box its cells cover for all 16 lanes, read from a
+//!   4^k block pyramid of the padded copy. A culled span is one whose every piece its own cull
+//!   would drop, so the output is bit-identical to culling piece by piece; on flat terrain at
+//!   `unlimited` (fBm, 1024²) it made the kernel 1.6× faster. Fine spans stop being checked
+//!   after two misses in a row: on rough ground every box holds something above the
+//!   lowest-horizon lane, and the checks would only add to the pieces' own culls.
 //! - **Far field, skipping** (rays longer than that, `unlimited` on big maps): a scalar walk
 //!   seeded with the near-field value and a max pyramid of the surface (4×4, 16×16, 64×64, …
 //!   cells) that bounds (h − h0)/s ≤ (M − h0)/s_entry over a whole block, so a block that cannot
@@ -717,18 +724,20 @@ impl Near {
         count: &[u32; LANES],
         hmax: f32,
         best: &mut [f32; LANES],
-    ) -> f64 {
+    ) {
         #[cfg(target_arch = "x86_64")]
         if self.avx512 {
             // SAFETY: the CPU was checked for AVX-512F at construction.
-            return unsafe { self.strip_avx512(n, d, x, y, h0, count, hmax, best) };
+            unsafe { self.strip_avx512(n, d, x, y, h0, count, hmax, best) };
+            return;
         }
         #[cfg(target_arch = "x86_64")]
         if self.avx2 {
             // SAFETY: the CPU was checked for AVX2 and FMA at construction.
-            return unsafe { self.strip_avx2(n, d, x, y, h0, count, hmax, best) };
+            unsafe { self.strip_avx2(n, d, x, y, h0, count, hmax, best) };
+            return;
         }
-        self.strip_body(n, d, x, y, h0, count, hmax, best)
+        self.strip_body(n, d, x, y, h0, count, hmax, best);
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -744,8 +753,8 @@ impl Near {
         count: &[u32; LANES],
         hmax: f32,
         best: &mut [f32; LANES],
-    ) -> f64 {
-        self.strip_body(n, d, x, y, h0, count, hmax, best)
+    ) {
+        self.strip_body(n, d, x, y, h0, count, hmax, best);
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -761,8 +770,8 @@ impl Near {
         count: &[u32; LANES],
         hmax: f32,
         best: &mut [f32; LANES],
-    ) -> f64 {
-        self.strip_body(n, d, x, y, h0, count, hmax, best)
+    ) {
+        self.strip_body(n, d, x, y, h0, count, hmax, best);
     }
 
     /// The vectorised body: per piece, four contiguous loads per lane, a cheap cull against the
@@ -779,25 +788,25 @@ impl Near {
         count: &[u32; LANES],
         hmax: f32,
         best: &mut [f32; LANES],
-    ) -> f64 {
+    ) {
         let base_c = (x + self.pad) as i64;
         let base_r = (y + self.pad) as i64;
         *best = [0.0; LANES];
         let cx = Strip { n, d: (d.0 as f32, d.1 as f32), base_c, base_r, h0, count, hmax };
         let spans = &self.spans[n];
         if !self.run(&cx, 0, spans.head, best) {
-            return self.s_cut;
+            return;
         }
         for (coarse, fine) in &spans.coarse {
             if done(&cx, best, coarse.s_start) {
-                return self.s_cut;
+                return;
             }
             if self.culled(&cx, coarse, best) {
                 continue;
             }
             if fine.is_empty() {
                 if !self.run(&cx, coarse.start, coarse.end, best) {
-                    return self.s_cut;
+                    return;
                 }
                 continue;
             }
@@ -812,11 +821,10 @@ impl Near {
                 }
                 misses += 1;
                 if !self.run(&cx, sp.start, sp.end, best) {
-                    return self.s_cut;
+                    return;
                 }
             }
         }
-        self.s_cut
     }
 
     /// Whether span `sp` can be culled: no lane's bound beats its best. The box's maximum is
@@ -1223,16 +1231,16 @@ impl HorizonRows for ExactHorizon<'_> {
                         }
                     }
                     let mut best = [0.0f32; LANES];
-                    let s_stop = near.strip(n, (dx, dy), x, y, &h0, &count, hmax, &mut best);
-                    if s_end.iter().take(lanes).any(|&e| e > s_stop) {
+                    near.strip(n, (dx, dy), x, y, &h0, &count, hmax, &mut best);
+                    if s_end.iter().take(lanes).any(|&e| e > near.s_cut) {
                         for i in 0..lanes {
                             let t = best[i].max(0.0) as f64;
-                            // The ray goes on past where the strip stopped and something there
-                            // could still beat it: continue with the scalar walk, seeded.
+                            // The ray goes on past the near field and something there could
+                            // still beat it: continue with the scalar walk, seeded.
                             let rise = self.hmax - reference - f64::from(h0[i]);
-                            if s_end[i] > s_stop && rise > t * s_stop {
+                            if s_end[i] > near.s_cut && rise > t * near.s_cut {
                                 let ray = Ray::new(&self.grid, x + i, y, dx, dy, self.radius);
-                                best[i] = self.walk(&ray, s_stop, t).0 as f32;
+                                best[i] = self.walk(&ray, near.s_cut, t).0 as f32;
                             }
                         }
                     }
