@@ -103,7 +103,9 @@ fn main() {
         row("march", &r.to_string(), secs, Some(errors(&bins_of(&k, CROP_ROWS), &want)), &note);
     }
     for r in ["64", "256", "unlimited"] {
-        println!("| sweep | {r} | – | – | – | – | – | not built yet |");
+        println!(
+            "| sweep | {r} | – | – | – | – | – | not built: see `cargo bench --bench sweep_bound` |"
+        );
     }
     for r in [Some(16u32), None] {
         let k = ExactHorizon::new(grid, r, bins, Reduce::Average);
