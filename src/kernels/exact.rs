@@ -609,10 +609,7 @@ impl PadPyramid {
         padded: &[f32],
         pw: usize,
         level: u8,
-        c0: usize,
-        r0: usize,
-        c1: usize,
-        r1: usize,
+        (c0, r0, c1, r1): (usize, usize, usize, usize),
     ) -> f32 {
         let mut m = f32::NEG_INFINITY;
         if level == 0 {
@@ -837,10 +834,10 @@ impl Near {
         let r0 = (cx.base_r + sp.r0 as i64) as usize;
         let c1 = (cx.base_c + sp.c1 as i64) as usize;
         let r1 = (cx.base_r + sp.r1 as i64) as usize;
-        let m = self.blocks.box_max(&self.padded, self.pw, sp.level, c0, r0, c1, r1);
+        let m = self.blocks.box_max(&self.padded, self.pw, sp.level, (c0, r0, c1, r1));
         let mut any = false;
-        for i in 0..LANES {
-            any |= m - cx.h0[i] > best[i] * sp.s_start;
+        for (&h0, &b) in cx.h0.iter().zip(best) {
+            any |= m - h0 > b * sp.s_start;
         }
         !any
     }
@@ -897,8 +894,8 @@ struct Strip<'a> {
 #[inline(always)]
 fn done(cx: &Strip<'_>, best: &[f32; LANES], s_a: f32) -> bool {
     let mut done = true;
-    for i in 0..LANES {
-        done &= cx.hmax - cx.h0[i] <= best[i] * s_a;
+    for (&h0, &b) in cx.h0.iter().zip(best) {
+        done &= cx.hmax - h0 <= b * s_a;
     }
     done
 }
