@@ -8,10 +8,12 @@
 //! surface per azimuth, so q + p must stay small. The 32 bin azimuths are not lattice
 //! directions (tan 11.25° = 0.1989…, whose next good approximation after 1/5 is 36/181), so
 //! such a sweep answers at the nearest lattice azimuth instead. This bench measures that error
-//! alone, with the *exact* kernel at both azimuths: whatever the sweep's hull, near field or
-//! SIMD, it cannot do better than this on these maps. Lines that are not texel-centred instead
-//! (shared lines at the exact azimuth, interpolated between neighbouring lines) miss a thin
-//! occluder by up to half its height, which is worse on the spikes.
+//! alone, with the *exact* kernel at both azimuths: a sweep that *measures* the horizon on the
+//! lattice line, whatever its hull or SIMD, cannot do better than this on these maps. Lines
+//! that are not texel-centred instead (shared lines at the exact azimuth, interpolated between
+//! neighbouring lines) miss a thin occluder by up to half its height, which is worse on the
+//! spikes. `kernels::sweep` therefore uses the lattice line only to *locate* the far occluder
+//! and measures it on the texel's own ray, which meets the tolerance (`tests/sweep.rs`).
 //!
 //! Maps: the eval's generated corpus at 64² and the real-terrain excerpt, as the tolerance
 //! tests of `method=march` read them, plus the random white-noise and spike fields of those

@@ -82,6 +82,25 @@ pub fn direction(phi: f64, row_step: i64) -> (f64, f64) {
     (c / n, s / n * row_step as f64)
 }
 
+/// Exact tan α of texel (`x`, `y`) along image direction `d` over `from < s ≤ to` only, and no
+/// further than the surface reaches (`edge=none`): max(0, sup (h̃ − h0)/s) over that stretch,
+/// by the same closed-form cell analysis as the rest of this module. The sweep kernel re-reads
+/// a short stretch of a texel's own ray with it.
+pub(crate) fn tan_between(
+    grid: &Grid<'_>,
+    x: usize,
+    y: usize,
+    d: (f64, f64),
+    from: f64,
+    to: f64,
+) -> f64 {
+    let ray = Ray::new(grid, x, y, d.0, d.1, Some(to));
+    if from >= ray.s_end {
+        return 0.0;
+    }
+    walk(grid, &ray, None, (0.0, 0.0), from, |cx, cy| corners(grid, cx, cy)).0
+}
+
 /// Image-space directions of the `bins` azimuths φ_n = n·2π/bins.
 fn bin_directions(bins: usize, row_step: i64) -> Vec<(f64, f64)> {
     (0..bins).map(|n| direction(n as f64 * 2.0 * PI / bins as f64, row_step)).collect()

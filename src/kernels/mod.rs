@@ -19,6 +19,7 @@ pub mod lengyel_fast;
 pub mod march;
 pub mod parallax;
 pub mod shade;
+pub mod sweep;
 
 use crate::error::{Error, Result};
 use crate::params::{Edge, YAxis};
