@@ -225,6 +225,31 @@ impl Padded {
     fn at(&self, x: i64, y: i64) -> usize {
         (y + PAD) as usize * self.pw + (x + PAD) as usize
     }
+
+    /// The bilinear surface at image point (x, y): wrapped, or `NaN` off the texel centres'
+    /// hull (`edge=none`).
+    fn bilinear(&self, grid: &Grid<'_>, x: f64, y: f64) -> f64 {
+        let (w, h) = (grid.width as i64, grid.height as i64);
+        let eps = 1e-9;
+        if grid.edge == Edge::None
+            && (x < -eps || y < -eps || x > (w - 1) as f64 + eps || y > (h - 1) as f64 + eps)
+        {
+            return f64::NAN;
+        }
+        let (x0, y0) = (x.floor(), y.floor());
+        let (fx, fy) = (x - x0, y - y0);
+        // One wrap (or clamp) for the cell; its other corners are in the margin.
+        let (c, r) = match grid.edge {
+            Edge::Wrap => ((x0 as i64).rem_euclid(w), (y0 as i64).rem_euclid(h)),
+            Edge::None => ((x0 as i64).clamp(0, w - 1), (y0 as i64).clamp(0, h - 1)),
+        };
+        let (v, pw, i) = (&self.v, self.pw, self.at(c, r));
+        let (h00, h10) = (f64::from(v[i]), f64::from(v[i + 1]));
+        let (h01, h11) = (f64::from(v[i + pw]), f64::from(v[i + pw + 1]));
+        let top = h00 + (h10 - h00) * fx;
+        let bottom = h01 + (h11 - h01) * fx;
+        top + (bottom - top) * fy
+    }
 }
 
 /// For every texel, along lattice vector `step`: the distance (in `unit`s, 0 for none) of the
@@ -298,7 +323,9 @@ fn locate(
                 if k < count {
                     let h_end = if reach.is_finite() {
                         let f = reach / len;
-                        bilinear(grid, x as f64 + f * step.0 as f64, y as f64 + f * step.1 as f64)
+                        let (ex, ey) =
+                            (xw as f64 + f * step.0 as f64, yw as f64 + f * step.1 as f64);
+                        padded.bilinear(grid, ex, ey)
                     } else {
                         f64::NAN
                     };
@@ -307,27 +334,36 @@ fn locate(
                 }
                 // The tap origin: PAD rows and columns up and left of the texel.
                 let base = here - PAD as usize * pw - PAD as usize;
-                for (tap, &o) in taps.iter().zip(&offs) {
-                    if grid.edge == Edge::None {
-                        // Past the last texel the line still crosses the surface until it
-                        // leaves the hull of the texel centres.
-                        let px = x as f64 + tap.t * step.0 as f64;
-                        let py = y as f64 + tap.t * step.1 as f64;
-                        let eps = 1e-9;
-                        if px < -eps
-                            || py < -eps
-                            || px > (w - 1) as f64 + eps
-                            || py > (h - 1) as f64 + eps
-                        {
-                            break;
-                        }
-                    }
+                let on_surface = |t: f64| {
+                    // Past the last texel the line still crosses the surface until it leaves
+                    // the hull of the texel centres (`edge=none`).
+                    let eps = 1e-9;
+                    let (px, py) = (x as f64 + t * step.0 as f64, y as f64 + t * step.1 as f64);
+                    grid.edge == Edge::Wrap
+                        || (px >= -eps
+                            && py >= -eps
+                            && px <= (w - 1) as f64 + eps
+                            && py <= (h - 1) as f64 + eps)
+                };
+                let value = |tap: &Tap, o: usize| {
                     let i = base + o;
                     let (h00, h10) = (f64::from(pv[i]), f64::from(pv[i + 1]));
                     let (h01, h11) = (f64::from(pv[i + pw]), f64::from(pv[i + pw + 1]));
                     let top = h00 + (h10 - h00) * tap.fx;
                     let bottom = h01 + (h11 - h01) * tap.fx;
-                    line.samples.push(((k as f64 + tap.t) * len, top + (bottom - top) * tap.fy));
+                    top + (bottom - top) * tap.fy
+                };
+                // Every sample of the step, in order (on the surface only, with edge=none).
+                let mut gone = false;
+                for (tap, &o) in taps.iter().zip(&offs) {
+                    if !on_surface(tap.t) {
+                        gone = true;
+                        break;
+                    }
+                    line.samples.push(((k as f64 + tap.t) * len, value(tap, o)));
+                }
+                if gone {
+                    break;
                 }
                 k += 1;
             }
@@ -477,31 +513,6 @@ fn tangent(hull: &[(f64, f64)], s0: f64, h0: f64) -> (f64, f64) {
         }
     }
     ((hull[lo].1 - h0) / (hull[lo].0 - s0), hull[lo].0)
-}
-
-/// The bilinear surface at image point (x, y): wrapped, or `NaN` off the texel centres' hull
-/// (`edge=none`).
-fn bilinear(grid: &Grid<'_>, x: f64, y: f64) -> f64 {
-    let (w, h) = (grid.width as i64, grid.height as i64);
-    let eps = 1e-9;
-    if grid.edge == Edge::None
-        && (x < -eps || y < -eps || x > (w - 1) as f64 + eps || y > (h - 1) as f64 + eps)
-    {
-        return f64::NAN;
-    }
-    let (x0, y0) = (x.floor(), y.floor());
-    let (fx, fy) = (x - x0, y - y0);
-    let at = |c: i64, r: i64| {
-        let (c, r) = match grid.edge {
-            Edge::Wrap => (c.rem_euclid(w), r.rem_euclid(h)),
-            Edge::None => (c.clamp(0, w - 1), r.clamp(0, h - 1)),
-        };
-        f64::from(grid.heights[(r * w + c) as usize])
-    };
-    let (c, r) = (x0 as i64, y0 as i64);
-    let top = at(c, r) + (at(c + 1, r) - at(c, r)) * fx;
-    let bottom = at(c, r + 1) + (at(c + 1, r + 1) - at(c, r + 1)) * fx;
-    top + (bottom - top) * fy
 }
 
 fn sin_of_tan(t: f64) -> f64 {
