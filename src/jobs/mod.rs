@@ -181,6 +181,10 @@ impl std::io::Write for PinnedWriter {
     }
 }
 
+/// Attempts after which a bake whose store kept failing under it (`store_unavailable`) fails
+/// instead of going back to the queue once more.
+const UNAVAILABLE_ATTEMPTS: u32 = 5;
+
 /// Runs a blocking closure off the async workers.
 ///
 /// # Errors
@@ -554,6 +558,14 @@ impl Jobs {
             Ok(Ok(Ok(rec))) => Outcome::Succeeded(Box::new(rec)),
             Ok(Ok(Err(Error::Canceled))) if run.requeue.load(Ordering::SeqCst) => Outcome::Released,
             Ok(Ok(Err(Error::Canceled))) => Outcome::Canceled,
+            // The store went away mid-bake (a result blob could not be pinned or written): not
+            // the bake's fault. It goes back to the queue, to be baked again once the store is
+            // back (recording that waits for it too), a bounded number of times.
+            Ok(Ok(Err(e @ Error::Unavailable(_)))) if claim.attempt < UNAVAILABLE_ATTEMPTS => {
+                tracing::warn!(bake = %id, attempt = claim.attempt, error = %e,
+                    "store unavailable during the bake: handing it back to the queue");
+                Outcome::Released
+            }
             Ok(Ok(Err(e))) => {
                 let message = match &e {
                     Error::Io(_) | Error::Internal(_) | Error::Unavailable(_) => {
