@@ -118,3 +118,38 @@ fn an_occluder_beyond_the_radius_never_counts() {
         assert_eq!(v > 0.0, 30 - x <= 29, "texel {x}: {v}");
     }
 }
+
+#[test]
+fn degenerate_maps_and_other_bin_counts_match_exact() {
+    // One texel, one row, one column, 2×2; 16 and 64 bins; both edges, both y axes: the lines
+    // are a single texel or wrap onto themselves at once.
+    let mut rng = Rng(5);
+    for (w, h) in [(1usize, 1usize), (1, 7), (7, 1), (2, 2), (3, 40)] {
+        let heights: Vec<f32> = (0..w * h).map(|_| rng.f32() * 6.0).collect();
+        for edge in [Edge::Wrap, Edge::None] {
+            for y_axis in [YAxis::Up, YAxis::Down] {
+                let g = Grid::new(w, h, &heights, edge, y_axis);
+                for bins in [16u32, 64] {
+                    for radius in [Some(1u32), Some(9), Some(100), None] {
+                        let s = per_bin(&Sweep::new(g, radius, bins, Reduce::Point));
+                        let e = per_bin(&ExactHorizon::new(g, radius, bins, Reduce::Point));
+                        let name = format!("{w}×{h} {edge:?} {y_axis:?} {bins} bins R {radius:?}");
+                        let over = s.iter().zip(&e).map(|(&a, &b)| a - b).fold(f32::MIN, f32::max);
+                        assert!(over <= 2e-5, "{name}: sweep above exact by {over}");
+                        let mut d: Vec<f64> = s
+                            .iter()
+                            .zip(&e)
+                            .map(|(&a, &b)| {
+                                ((a as f64).asin() - (b as f64).asin()).abs().to_degrees()
+                            })
+                            .collect();
+                        let mean = d.iter().sum::<f64>() / d.len() as f64;
+                        d.sort_by(f64::total_cmp);
+                        let p99 = d[((d.len() as f64 * 0.99) as usize).min(d.len() - 1)];
+                        assert!(mean <= 0.05 && p99 <= 0.25, "{name}: mean {mean}° p99 {p99}°");
+                    }
+                }
+            }
+        }
+    }
+}

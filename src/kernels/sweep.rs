@@ -90,7 +90,8 @@ impl<'a> Sweep<'a> {
             (None, Edge::Wrap) => w.max(h) as f64,
             (None, Edge::None) => f64::INFINITY,
         };
-        let near_r = radius.map_or(NEAR, |r| r.clamp(1, NEAR));
+        // Never past R: a wrapped map smaller than the near field has `unlimited` = max(W, H).
+        let near_r = if reach.is_finite() { (reach as u32).clamp(1, NEAR) } else { NEAR };
         let near = ExactHorizon::new(grid, Some(near_r), bins as u32, reduce);
         let row_step = grid.row_step();
         let phis: Vec<f64> = (0..bins).map(|n| n as f64 * 2.0 * PI / bins as f64).collect();
