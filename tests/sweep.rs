@@ -153,3 +153,17 @@ fn degenerate_maps_and_other_bin_counts_match_exact() {
         }
     }
 }
+
+#[test]
+fn a_radius_many_times_a_wrapped_map_changes_nothing_past_one_period() {
+    // On a wrapped 32² map every lattice line repeats within 32 steps of at most 24 texels, so
+    // beyond R ≈ 776 a longer radius only adds farther copies of what is already seen: the
+    // sweep looks one period past its near field, not R, and gives the same values.
+    let mut rng = Rng(77);
+    let heights = waves(&mut rng, 32, 32, 3, 5.0);
+    let g = Grid::new(32, 32, &heights, Edge::Wrap, YAxis::Up);
+    let long = per_bin(&Sweep::new(g, Some(4096), 32, Reduce::Average));
+    let shorter = per_bin(&Sweep::new(g, Some(1000), 32, Reduce::Average));
+    assert_eq!(long, shorter);
+    check("waves 32² (R far past the period)", g, Some(4096));
+}

@@ -98,8 +98,14 @@ impl<'a> Sweep<'a> {
         let dirs = phis.iter().map(|&p| exact::direction(p, row_step)).collect();
         // The longest distance stored: the whole reach (a wrapped ray can be longer than the
         // map), or the map's diagonal (`edge=none`: the surface ends there).
+        // A wrapped line repeats within lcm(W, H) steps of at most LATTICE texels, and nothing
+        // is located past one period beyond the near field (see `locate`), so that bounds it
+        // too: the same map then quantises alike at any R past it.
         let longest = match grid.edge {
-            Edge::Wrap => reach,
+            Edge::Wrap => {
+                let period = (w / gcd(w as i64, h as i64) as usize * h) as f64 * LATTICE as f64;
+                reach.min(period + f64::from(NEAR) + 1.0)
+            }
             Edge::None => reach.min(((w * w + h * h) as f64).sqrt() + 2.0),
         }
         .max(1.0);
@@ -277,6 +283,16 @@ fn locate(
     let mut line = Line::default();
     let mut hull = Vec::new();
     let mut visited = vec![false; (w * h) as usize];
+    // How far a line of `n` texels (a whole cycle when wrapping) needs looking. A wrapped line
+    // repeats every n·len: a sample a period further on has the same height at a larger
+    // distance, so its ratio is lower wherever it is positive, and nothing beyond one period
+    // past the near field can be the best. Capping there keeps the cost per texel bounded
+    // when R is many times the map (the result is the same).
+    let ray_reach = |n: i64| match grid.edge {
+        Edge::Wrap => reach.min(n as f64 * len + near),
+        Edge::None => reach,
+    };
+    let full = reach;
     for y0 in 0..h {
         for x0 in 0..w {
             // Each line once: from its first texel (edge=none), or from any texel of its cycle.
@@ -309,10 +325,11 @@ fn locate(
                         visited[(y * w + x) as usize] = true;
                         n += 1;
                     }
-                    // Enough turns of the cycle that every texel of the first sees `reach`.
-                    (n, n + (reach / len).ceil() as i64 + 1)
+                    // Enough turns of the cycle that every texel of the first sees `ray`.
+                    (n, n + (ray_reach(n) / len).ceil() as i64 + 1)
                 }
             };
+            let reach = ray_reach(count);
             while k < steps {
                 let (x, y) = (x0 + k * step.0, y0 + k * step.1);
                 // The step's texel, wrapped into the map: the taps read around it.
@@ -322,7 +339,9 @@ fn locate(
                 };
                 let here = padded.at(xw, yw);
                 if k < count {
-                    let h_end = if reach.is_finite() {
+                    // Only where the ray is really cut at R (a capped line's cut is dominated,
+                    // see `ray_reach`).
+                    let h_end = if reach.is_finite() && reach == full {
                         let f = reach / len;
                         let (ex, ey) =
                             (xw as f64 + f * step.0 as f64, yw as f64 + f * step.1 as f64);
