@@ -12,7 +12,7 @@
 
 mod common;
 
-use common::{surface, waves, Rng};
+use common::{mean_p99, surface, waves, Rng};
 use horizon_bake::eval::corpus;
 use horizon_bake::kernels::exact::{direction, ExactHorizon};
 use horizon_bake::kernels::lengyel_fast::Isa;
@@ -73,17 +73,9 @@ fn naive(g: &Grid<'_>, x: usize, y: usize, phi: f64, r: f64) -> f64 {
     best / (1.0 + best * best).sqrt()
 }
 
-/// Per-bin sin α of every texel (`bins_out`), computed in bands of 3 rows so band seams are
-/// exercised.
+/// Per-bin sin α of every texel, in bands of 3 rows.
 fn per_bin(k: &dyn HorizonRows) -> Vec<f32> {
-    let (w, h, nb) = (k.width(), k.height(), k.bins());
-    let mut out = vec![0.0f32; w * h * nb];
-    let mut ch = vec![0.0f32; w * 3 * 8];
-    for y0 in (0..h).step_by(3) {
-        let rows = 3.min(h - y0);
-        k.rows(y0, &mut ch[..rows * w * 8], Some(&mut out[y0 * w * nb..(y0 + rows) * w * nb]));
-    }
-    out
+    common::per_bin(k, 3)
 }
 
 fn white(rng: &mut Rng, w: usize, h: usize, amp: f32) -> Vec<f32> {
@@ -209,12 +201,6 @@ fn against_exact(g: Grid<'_>, radius: u32) -> (Vec<f64>, f64) {
         .map(|(&a, &b)| ((a as f64).asin() - (b as f64).asin()).abs().to_degrees())
         .collect();
     (d, over)
-}
-
-fn mean_p99(mut d: Vec<f64>) -> (f64, f64) {
-    let mean = d.iter().sum::<f64>() / d.len() as f64;
-    d.sort_by(f64::total_cmp);
-    (mean, d[((d.len() as f64 * 0.99) as usize).min(d.len() - 1)])
 }
 
 #[test]

@@ -10,7 +10,7 @@
 
 mod common;
 
-use common::{waves, Rng};
+use common::{mean_p99, waves, Rng};
 use horizon_bake::eval::corpus;
 use horizon_bake::kernels::exact::ExactHorizon;
 use horizon_bake::kernels::sweep::Sweep;
@@ -19,14 +19,7 @@ use horizon_bake::params::{Edge, Reduce, YAxis};
 
 /// Per-bin sin α of every texel, in bands of 5 rows.
 fn per_bin(k: &dyn HorizonRows) -> Vec<f32> {
-    let (w, h, nb) = (k.width(), k.height(), k.bins());
-    let mut out = vec![0.0f32; w * h * nb];
-    let mut ch = vec![0.0f32; w * 5 * 8];
-    for y0 in (0..h).step_by(5) {
-        let rows = 5.min(h - y0);
-        k.rows(y0, &mut ch[..rows * w * 8], Some(&mut out[y0 * w * nb..(y0 + rows) * w * nb]));
-    }
-    out
+    common::per_bin(k, 5)
 }
 
 /// Mean and p99 |Δα| (degrees) of the sweep against exact, and its largest overshoot in sin α.
@@ -34,14 +27,16 @@ fn against_exact(g: Grid<'_>, radius: Option<u32>) -> (f64, f64, f64) {
     let s = per_bin(&Sweep::new(g, radius, 32, Reduce::Average));
     let e = per_bin(&ExactHorizon::new(g, radius, 32, Reduce::Average));
     let over = s.iter().zip(&e).map(|(&a, &b)| a as f64 - b as f64).fold(f64::MIN, f64::max);
-    let mut d: Vec<f64> = s
-        .iter()
-        .zip(&e)
+    let (mean, p99) = mean_p99(degrees_apart(&s, &e));
+    (mean, p99, over)
+}
+
+/// |Δα| in degrees between two sets of sin α.
+fn degrees_apart(a: &[f32], b: &[f32]) -> Vec<f64> {
+    a.iter()
+        .zip(b)
         .map(|(&a, &b)| ((a as f64).asin() - (b as f64).asin()).abs().to_degrees())
-        .collect();
-    let mean = d.iter().sum::<f64>() / d.len() as f64;
-    d.sort_by(f64::total_cmp);
-    (mean, d[((d.len() as f64 * 0.99) as usize).min(d.len() - 1)], over)
+        .collect()
 }
 
 fn check(name: &str, g: Grid<'_>, radius: Option<u32>) {
@@ -136,16 +131,7 @@ fn degenerate_maps_and_other_bin_counts_match_exact() {
                         let name = format!("{w}×{h} {edge:?} {y_axis:?} {bins} bins R {radius:?}");
                         let over = s.iter().zip(&e).map(|(&a, &b)| a - b).fold(f32::MIN, f32::max);
                         assert!(over <= 2e-5, "{name}: sweep above exact by {over}");
-                        let mut d: Vec<f64> = s
-                            .iter()
-                            .zip(&e)
-                            .map(|(&a, &b)| {
-                                ((a as f64).asin() - (b as f64).asin()).abs().to_degrees()
-                            })
-                            .collect();
-                        let mean = d.iter().sum::<f64>() / d.len() as f64;
-                        d.sort_by(f64::total_cmp);
-                        let p99 = d[((d.len() as f64 * 0.99) as usize).min(d.len() - 1)];
+                        let (mean, p99) = mean_p99(degrees_apart(&s, &e));
                         assert!(mean <= 0.05 && p99 <= 0.25, "{name}: mean {mean}° p99 {p99}°");
                     }
                 }

@@ -64,7 +64,7 @@
 //!   [s_entry, R]); `None` (unlimited) runs to the map edge with `edge=none` and max(W, H) texels
 //!   with `edge=wrap` (SPEC §3.2).
 
-use super::{reduce_average, reduce_point, Grid, HorizonRows};
+use super::{reduce_into, Grid, HorizonRows};
 use crate::params::{Edge, Reduce};
 use crate::progress::Progress;
 use std::f64::consts::PI;
@@ -106,10 +106,14 @@ fn bin_directions(bins: usize, row_step: i64) -> Vec<(f64, f64)> {
     (0..bins).map(|n| direction(n as f64 * 2.0 * PI / bins as f64, row_step)).collect()
 }
 
-/// sin α from tan α ≥ 0.
+/// sin α from tan α ≥ 0 (1 for a vertical horizon, t = ∞).
 #[inline]
-fn sin_of_tan(t: f64) -> f64 {
-    t / (1.0 + t * t).sqrt()
+pub(crate) fn sin_of_tan(t: f64) -> f64 {
+    if t.is_infinite() {
+        1.0
+    } else {
+        t / (1.0 + t * t).sqrt()
+    }
 }
 
 /// The ray from texel (x0, y0) along image direction (dx, dy) and the arc length where it ends.
@@ -1010,17 +1014,6 @@ fn piece<const FIRST: bool>(
     *best = out;
 }
 
-/// Fills `out` (8 channels) from per-bin values.
-#[inline]
-fn reduce(reduce: Reduce, bins: &[f32], out: &mut [f32]) {
-    let mut ch = [0.0f32; 8];
-    match reduce {
-        Reduce::Average => reduce_average(bins, &mut ch),
-        Reduce::Point => reduce_point(bins, &mut ch),
-    }
-    out.copy_from_slice(&ch);
-}
-
 /// The plain oracle: every cell of every ray, no skipping. Slow (O(R) per ray); the tests check
 /// [`ExactHorizon`] against it, and it against a brute-force fine-step march.
 #[derive(Debug, Clone)]
@@ -1065,7 +1058,7 @@ impl HorizonRows for ExactMarch<'_> {
         let mut s = vec![0.0f32; b];
         for (k, out) in channels.chunks_exact_mut(8).enumerate() {
             self.texel_bins(k % w, y0 + k / w, &mut s);
-            reduce(self.reduce, &s, out);
+            reduce_into(self.reduce, &s, out);
             if let Some(bo) = bins_out.as_deref_mut() {
                 bo[k * b..(k + 1) * b].copy_from_slice(&s);
             }
@@ -1270,7 +1263,7 @@ impl HorizonRows for ExactHorizon<'_> {
                 for i in 0..lanes {
                     let k = r * w + x + i;
                     let s = &strip[i * nb..(i + 1) * nb];
-                    reduce(self.reduce, s, &mut channels[k * 8..k * 8 + 8]);
+                    reduce_into(self.reduce, s, &mut channels[k * 8..k * 8 + 8]);
                     if let Some(bo) = bins_out.as_deref_mut() {
                         bo[k * nb..(k + 1) * nb].copy_from_slice(s);
                     }

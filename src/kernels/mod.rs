@@ -239,6 +239,17 @@ pub fn reduce_average(bins: &[f32], out: &mut [f32; 8]) {
     }
 }
 
+/// Fills `out` (8 channels) from per-bin values with `reduce` (SPEC §3.2).
+#[inline]
+pub fn reduce_into(reduce: crate::params::Reduce, bins: &[f32], out: &mut [f32]) {
+    let mut ch = [0.0f32; 8];
+    match reduce {
+        crate::params::Reduce::Average => reduce_average(bins, &mut ch),
+        crate::params::Reduce::Point => reduce_point(bins, &mut ch),
+    }
+    out.copy_from_slice(&ch);
+}
+
 /// Reduces per-bin values to 8 channels by taking the bin at each channel's azimuth.
 #[inline]
 pub fn reduce_point(bins: &[f32], out: &mut [f32; 8]) {

@@ -47,7 +47,7 @@
 //! run texels.
 
 use super::exact::{self, ExactHorizon};
-use super::{reduce_average, reduce_point, Grid, HorizonRows};
+use super::{reduce_into, Grid, HorizonRows};
 use crate::params::{Edge, Reduce};
 use rayon::prelude::*;
 use std::f64::consts::PI;
@@ -124,18 +124,9 @@ impl<'a> Sweep<'a> {
     }
 }
 
-impl Sweep<'_> {
-    /// Where the sweep located the far occluder of texel (`x`, `y`) in bin `n`: its distance
-    /// along the lattice line (to within 1/65535 of the longest ray), or 0 for none.
-    pub fn located(&self, x: usize, y: usize, n: usize) -> f64 {
-        let texels = self.grid.width * self.grid.height;
-        f64::from(self.far[n * texels + y * self.grid.width + x]) * self.unit
-    }
-}
-
 /// The lattice vector (q, p) (tangent space, gcd 1, |q| + |p| ≤ [`LATTICE`]) nearest in
 /// azimuth to `phi`.
-pub fn lattice(phi: f64) -> (i64, i64) {
+fn lattice(phi: f64) -> (i64, i64) {
     let mut best = (f64::MAX, (1, 0));
     for q in -LATTICE..=LATTICE {
         let room = LATTICE - q.abs();
@@ -535,14 +526,6 @@ fn tangent(hull: &[(f64, f64)], s0: f64, h0: f64) -> (f64, f64) {
     ((hull[lo].1 - h0) / (hull[lo].0 - s0), hull[lo].0)
 }
 
-fn sin_of_tan(t: f64) -> f64 {
-    if t.is_infinite() {
-        1.0
-    } else {
-        t / (1.0 + t * t).sqrt()
-    }
-}
-
 impl HorizonRows for Sweep<'_> {
     fn width(&self) -> usize {
         self.grid.width
@@ -573,16 +556,11 @@ impl HorizonRows for Sweep<'_> {
                         let from = (d - WINDOW).max(0.0);
                         let to = (d + WINDOW).min(self.reach);
                         let t = exact::tan_between(&self.grid, x, y, self.dirs[n], from, to);
-                        best = best.max(sin_of_tan(t));
+                        best = best.max(exact::sin_of_tan(t));
                     }
                     *v = best as f32;
                 }
-                let mut ch = [0f32; 8];
-                match self.reduce {
-                    Reduce::Average => reduce_average(&s, &mut ch),
-                    Reduce::Point => reduce_point(&s, &mut ch),
-                }
-                channels[o * 8..o * 8 + 8].copy_from_slice(&ch);
+                reduce_into(self.reduce, &s, &mut channels[o * 8..o * 8 + 8]);
                 if let Some(b) = bins_out.as_deref_mut() {
                     b[o * nb..(o + 1) * nb].copy_from_slice(&s);
                 }

@@ -1,7 +1,7 @@
 //! Helpers shared by the integration tests.
 #![allow(dead_code)]
 
-use horizon_bake::kernels::Grid;
+use horizon_bake::kernels::{Grid, HorizonRows};
 use horizon_bake::params::Edge;
 use std::path::PathBuf;
 
@@ -85,4 +85,24 @@ pub fn waves(rng: &mut Rng, w: usize, h: usize, max_freq: usize, amp: f32) -> Ve
         }
     }
     v
+}
+
+/// Per-bin sin α of every texel of `k` (`bins_out`), computed in bands of `band` rows so band
+/// seams are exercised.
+pub fn per_bin(k: &dyn HorizonRows, band: usize) -> Vec<f32> {
+    let (w, h, nb) = (k.width(), k.height(), k.bins());
+    let mut out = vec![0.0f32; w * h * nb];
+    let mut ch = vec![0.0f32; w * band * 8];
+    for y0 in (0..h).step_by(band) {
+        let rows = band.min(h - y0);
+        k.rows(y0, &mut ch[..rows * w * 8], Some(&mut out[y0 * w * nb..(y0 + rows) * w * nb]));
+    }
+    out
+}
+
+/// Mean and 99th percentile of `d`.
+pub fn mean_p99(mut d: Vec<f64>) -> (f64, f64) {
+    let mean = d.iter().sum::<f64>() / d.len() as f64;
+    d.sort_by(f64::total_cmp);
+    (mean, d[((d.len() as f64 * 0.99) as usize).min(d.len() - 1)])
 }
