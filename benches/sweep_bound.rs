@@ -17,7 +17,7 @@
 //!
 //! Maps: the eval's generated corpus at 64² and the real-terrain excerpt, as the tolerance
 //! tests of `method=march` read them, plus the random white-noise and spike fields of those
-//! tests. Run: `cargo bench --bench sweep_bound` (about a minute); argument: the largest
+//! tests. Run: `cargo bench --bench sweep_bound` (about 15 s); argument: the largest
 //! q + p allowed (default: 8, 24 and 64 in turn).
 
 use horizon_bake::eval::corpus;
