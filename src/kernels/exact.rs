@@ -177,8 +177,11 @@ fn corners(grid: &Grid<'_>, cx: i64, cy: i64) -> [f64; 4] {
     let (w, h) = (grid.width as i64, grid.height as i64);
     let (c0, c1, r0, r1) = match grid.edge {
         Edge::Wrap => {
-            let c0 = cx.rem_euclid(w);
-            let r0 = cy.rem_euclid(h);
+            // Most cells are already inside the map: the division of `rem_euclid` was a large
+            // part of re-reading a short stretch of a ray (the sweep kernel's refine).
+            let wrap = |v: i64, n: i64| if (0..n).contains(&v) { v } else { v.rem_euclid(n) };
+            let c0 = wrap(cx, w);
+            let r0 = wrap(cy, h);
             (c0, if c0 + 1 == w { 0 } else { c0 + 1 }, r0, if r0 + 1 == h { 0 } else { r0 + 1 })
         }
         Edge::None => {
