@@ -55,7 +55,7 @@
 //! finds the grazed spikes but then picks the wrong occluder on rough maps (white noise p99
 //! 1.6°); only both (a plain and a bounding hull, both re-read, 5 sub-lines) met the tolerance
 //! everywhere (worst p99 0.03°), and that is 5 × 2 hulls per texel: 55–84 s at 2048² against
-//! this design's 46–52 s (`cargo bench --bench frontier`), so it was not kept.
+//! this design's 43–53 s (`cargo bench --bench frontier`), so it was not kept.
 
 use super::exact::{self, ExactHorizon};
 use super::{reduce_into, Grid, HorizonRows};
