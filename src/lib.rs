@@ -17,6 +17,8 @@
 //!   CLI and the service's worker.
 //! - [`preview`]: the CPU preview of the shading (and the contact sheet), as PNG.
 //! - [`eval`]: the accuracy/time trade of every model against the exact ground truth (SPEC §4).
+//! - [`shaders`]: the shader includes (GLSL, HLSL, WGSL, Godot) that decode the maps in an
+//!   engine, embedded in the binary; the web viewer compiles the GLSL one.
 //! - [`cli`]: the `horizon-bake` subcommands, thin wrappers over the above.
 //! - [`jobs`]: the job lifecycle behind the repository and blob-store traits: embedded (redb +
 //!   files) on one machine, PostgreSQL + S3 across many; the worker loop with leases.
@@ -37,5 +39,6 @@ pub mod pipeline;
 pub mod preview;
 pub mod progress;
 pub mod service;
+pub mod shaders;
 
 pub use error::{Error, Result};

@@ -486,7 +486,8 @@ async fn router_serves_exactly_the_declared_routes() {
             .replace("{id}", "0123456789abcdef0123")
             .replace("{layer}", "0")
             .replace("{face}", "0")
-            .replace("{asset}", "app.js");
+            .replace("{asset}", "app.js")
+            .replace("{file}", "horizon.glsl");
         for m in ["GET", "POST", "PUT", "PATCH", "DELETE"] {
             let req = Request::builder().method(m).uri(&concrete).body(Body::empty()).unwrap();
             let (s, _, body) = oneshot(&app, req).await;

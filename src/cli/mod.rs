@@ -8,6 +8,7 @@ pub mod cubemap;
 pub mod eval;
 pub mod preview;
 pub mod serve;
+pub mod shaders;
 
 use clap::{Parser, Subcommand};
 
@@ -28,6 +29,8 @@ pub enum Command {
     Bake(bake::BakeArgs),
     /// Write the channel-factor cube map.
     Cubemap(cubemap::CubemapArgs),
+    /// Write the shader includes (GLSL, HLSL, WGSL, Godot) and their examples.
+    Shaders(shaders::ShadersArgs),
     /// Render a CPU preview of the shading.
     Preview(preview::PreviewArgs),
     /// Measure accuracy against the exact ground truth, beside the time (SPEC §4).
@@ -43,6 +46,7 @@ pub fn run(cli: Cli) -> crate::Result<()> {
         Command::Serve(a) => serve::run(*a),
         Command::Bake(a) => bake::run(a),
         Command::Cubemap(a) => cubemap::run(a),
+        Command::Shaders(a) => shaders::run(a),
         Command::Preview(a) => preview::run(a),
         Command::Eval(a) => eval::run(a),
     }

@@ -64,6 +64,8 @@ pub const ROUTES: &[(&str, &[&str])] = &[
     ("/v1/cubemap/{face}", &["GET"]),
     ("/v1/cubemap.ktx2", &["GET"]),
     ("/v1/cubemap.dds", &["GET"]),
+    ("/v1/shaders", &["GET"]),
+    ("/v1/shaders/{file}", &["GET"]),
     ("/healthz", &["GET"]),
     ("/readyz", &["GET"]),
     ("/metrics", &["GET"]),
@@ -240,6 +242,9 @@ pub fn app(st: AppState) -> Router {
         .route("/readyz", get(handlers::readyz))
         .route("/metrics", get(handlers::metrics))
         .route("/openapi.yaml", get(handlers::openapi))
+        // Shader includes hold no data; the page's viewer loads one before a key is entered.
+        .route("/v1/shaders", get(handlers::shaders_list))
+        .route("/v1/shaders/{file}", get(handlers::shader_file))
         // The page loads before anyone can type an API key into it; it holds no data.
         .route("/", get(ui::index))
         .route("/ui/{asset}", get(ui::asset))

@@ -299,6 +299,41 @@ def test_recent_list_links_to_the_bake(baked, browser, srv):
         other.close()
 
 
+def test_viewer_shades_with_the_shipped_glsl_include(baked, browser, srv):
+    """Issue 21: the viewer's decode is the GLSL include the binary ships (GET
+    /v1/shaders/horizon.glsl), not a copy of its own: the page fetches it, and with an include
+    whose F is always 1 (no shadows) the canvas no longer matches the CPU preview where the
+    real one does (test_canvas_matches_cpu_preview_near_cube_edges)."""
+    status, headers, shipped = srv.request("/v1/shaders/horizon.glsl")
+    assert status == 200 and headers["content-type"].startswith("text/plain")
+    lit = shipped.decode().replace(
+        "return clamp(hardness * (lz - s) + 1.0, 0.0, 1.0);", "return 1.0;")
+    assert lit != shipped.decode(), "the include's F changed: update this test"
+    ctx = browser.new_context(viewport={"width": 1280, "height": 900})
+    page = ctx.new_page()
+    fetched = []
+
+    def swap(route):
+        res = route.fetch()
+        fetched.append(res.body())
+        route.fulfill(status=200, content_type="text/plain; charset=utf-8", body=lit)
+
+    page.route("**/v1/shaders/horizon.glsl", swap)
+    try:
+        page.goto(f"{srv.url}/#{baked.bake_id}")
+        page.wait_for_function("() => window.__horizon !== undefined")
+        wait_loaded(page, baked.bake_id, 120_000)
+        assert fetched == [shipped], "the viewer did not fetch the shipped include once"
+        low = (200.0, 6.0)   # long shadows on this terrain
+        page.evaluate("l => window.__horizon.setLight(l)",
+                      {"azimuth": low[0], "elevation": low[1], "hardness": 8})
+        gpu = decode_rgba(page.evaluate("() => window.__horizon.readCanvas()"))
+        frac, _ = compare(gpu, srv.preview(baked.bake_id, *low), TOLERANCE)
+        assert frac < 0.99, f"an include without shadows still matched on {frac:.4f} of pixels"
+    finally:
+        ctx.close()
+
+
 def test_bad_file_shows_the_415_code_and_detail(browser, srv):
     payload = b"this is not an image, just text\n" * 4
     status, problem = srv.json("/v1/bakes", method="POST", body=payload,

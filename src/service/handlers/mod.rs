@@ -3,8 +3,8 @@
 //! on a blocking thread, previews and on-request encodes on the preview pool.
 //!
 //! This module holds what several resources share (query parsing, the bake resource, loading a
-//! bake, problem mapping); [`bakes`], [`events`], [`results`], [`cubemap`], [`previews`] and
-//! [`ops`] hold the handlers, re-exported here for the router.
+//! bake, problem mapping); [`bakes`], [`events`], [`results`], [`cubemap`], [`shaders`], [`previews`]
+//! and [`ops`] hold the handlers, re-exported here for the router.
 
 // `Problem` is the error answer itself, built at most once per request on the way out; boxing it
 // would add an allocation to every error path for no gain.
@@ -44,6 +44,7 @@ pub mod events;
 pub mod ops;
 pub mod previews;
 pub mod results;
+pub mod shaders;
 
 pub use bakes::*;
 pub use cubemap::*;
@@ -51,6 +52,7 @@ pub use events::*;
 pub use ops::*;
 pub use previews::*;
 pub use results::*;
+pub use shaders::*;
 
 type Answer = Result<Response, Problem>;
 

@@ -17,6 +17,11 @@
 //    tangent-plane direction;
 //  - colour = albedo·(ambient + F·max(N·L, 0)) + (F·ks·(N·H)^24 + env)·HO with HO = saturate(1 +
 //    fade·R.z), R = reflect(−V, N), then sRGB as floor(s·255 + 0.5) into an RGBA8 target.
+//
+// The decode itself (f, s, F and the Fourier form) is not written here: it is the GLSL include
+// horizon-bake ships to engines (src/shaders/horizon.glsl), fetched from this server
+// (GET /v1/shaders/horizon.glsl, same origin) when this module loads and compiled into the
+// fragment shader, so the browser test proves the shipped include against the CPU preview.
 
 export const ALBEDO = 0.8;
 export const AMBIENT = 0.12;
@@ -52,6 +57,21 @@ export function decodeImage(blob) {
   return createImageBitmap(blob, { premultiplyAlpha: 'none', colorSpaceConversion: 'none' });
 }
 
+/** URL of the shipped GLSL include, beside this module's /ui/ (works under a path prefix). */
+export const INCLUDE_URL = new URL('../v1/shaders/horizon.glsl', import.meta.url);
+
+// Fetched once, before app.js runs (a module's top-level await delays its importers). Without
+// it the viewer cannot be built: Viewer.create throws, and the page shows the CPU preview.
+let includeSource = null;
+let includeError = '';
+try {
+  const res = await fetch(INCLUDE_URL, { cache: 'no-cache' });
+  if (!res.ok) throw new Error(`GET ${INCLUDE_URL.pathname} answered ${res.status}`);
+  includeSource = await res.text();
+} catch (e) {
+  includeError = e.message;
+}
+
 const VERTEX = `#version 300 es
 void main() {
   // One triangle that covers the viewport.
@@ -59,11 +79,15 @@ void main() {
   gl_Position = vec4(p * 2.0 - 1.0, 0.0, 1.0);
 }`;
 
-const FRAGMENT = `#version 300 es
+const FRAGMENT_HEAD = `#version 300 es
 precision highp float;
 precision highp int;
 precision highp sampler2D;
 precision highp samplerCube;
+`;
+
+// Everything of the fragment shader after the include: the viewer's own lighting and debug views.
+const FRAGMENT_BODY = `
 
 uniform sampler2D u_layer0;
 uniform sampler2D u_layer1;
@@ -84,7 +108,6 @@ uniform int u_shading;         // 0 horizon, 1 fourier, 2 none
 uniform int u_layerIndex;
 uniform int u_channel;
 uniform int u_terms;
-uniform float u_fourierScale;  // 1 (standard) or 2/pi (expanded)
 uniform bool u_fourierExpanded;
 uniform vec3 u_light;
 uniform vec3 u_half;
@@ -131,45 +154,22 @@ vec3 normalAt(vec2 t) {
   return l > 0.0 ? n / l : vec3(0.0, 0.0, 1.0);
 }
 
-float illumination(float lz, float s) {
-  if (lz <= 0.0) return 0.0;
-  return clamp(u_hardness * (lz - s) + 1.0, 0.0, 1.0);
-}
-
+// The layers and the UNORM cube map (cube_N.png) decoded by the include.
 float horizonS(vec2 uv) {
-  vec4 f = textureLod(u_cube, u_light, 0.0) * 2.0 - 1.0;
+  vec4 f = horizon_cube_factors(textureLod(u_cube, u_light, 0.0));
   vec4 h0 = textureLod(u_layer0, uv, 0.0);
   vec4 h1 = textureLod(u_layer1, uv, 0.0);
   if (u_sqrt) {
-    h0 *= h0;
-    h1 *= h1;
+    h0 = horizon_decode_sqrt(h0);
+    h1 = horizon_decode_sqrt(h1);
   }
-  vec4 p = max(f, 0.0) * h0 + max(-f, 0.0) * h1;
-  return ((p.x + p.y) + p.z) + p.w;
+  return horizon_s(f, h0, h1);
 }
 
-// SPEC §3.4's shader. fourier_range=standard: lq = t·4 − 2 and c = t·2 − 1 for the constant,
-// each then v·|v|; expanded (the two changed lines): v = t·2 − 1, C = v·|v|·2/π, C_0 = t².
+// SPEC §3.4's shader, both fourier_ranges, by the include.
 float fourierS(vec2 uv) {
-  float x = u_lightXY.x;
-  float y = u_lightXY.y;
-  float t0 = textureLod(u_four1, uv, 0.0).r;
-  vec4 t = textureLod(u_four0, uv, 0.0);
-  vec4 lq = u_fourierExpanded ? t * 2.0 - 1.0 : t * 4.0 - 2.0;
-  float c = u_fourierExpanded ? t0 : t0 * 2.0 - 1.0;
-  lq = lq * abs(lq) * u_fourierScale;
-  c = c * abs(c);
-  float s = c + lq.x * x + lq.y * y;
-  if (u_terms >= 5) s += lq.z * 2.0 * x * y + lq.w * (y * y - x * x);
-  if (u_terms >= 7) {
-    vec4 th = textureLod(u_four2, uv, 0.0);
-    vec4 hq = u_fourierExpanded ? th * 2.0 - 1.0 : th * 4.0 - 2.0;
-    hq = hq * abs(hq) * u_fourierScale;
-    float c2 = x * x - y * y;
-    s += hq.x * x * (x * x - 3.0 * y * y) + hq.y * y * (3.0 * x * x - y * y);
-    if (u_terms >= 9) s += hq.z * 4.0 * x * y * c2 + hq.w * (c2 * c2 - 4.0 * x * x * y * y);
-  }
-  return s;
+  return horizon_fourier(textureLod(u_four0, uv, 0.0), textureLod(u_four1, uv, 0.0).r,
+    textureLod(u_four2, uv, 0.0), u_lightXY, u_terms, u_fourierExpanded);
 }
 
 // preview::srgb8, returned as the exact UNORM value byte/255.
@@ -251,8 +251,8 @@ void main() {
   float reflZ = 2.0 * nv * n.z - u_view.z;
   float ho = clamp(1.0 + u_fade * reflZ, 0.0, 1.0);
   float F = 1.0;
-  if (u_shading == 0) F = illumination(l.z, horizonS(uv));
-  else if (u_shading == 1) F = illumination(l.z, fourierS(uv));
+  if (u_shading == 0) F = horizon_illumination(l.z, horizonS(uv), u_hardness);
+  else if (u_shading == 1) F = horizon_illumination(l.z, fourierS(uv), u_hardness);
   float lit = ${ALBEDO.toFixed(6)} * (${AMBIENT.toFixed(6)} + F * ndl) + (F * spec + ${ENV_REFLECTION.toFixed(6)}) * ho;
   outColor = vec4(srgb8(vec3(lit)), 1.0);
 }`;
@@ -270,7 +270,15 @@ function compile(gl, type, src) {
   return s;
 }
 
-/** The WebGL2 renderer of one canvas. `Viewer.create` returns null without WebGL2. */
+/** The viewer's fragment shader: its header, the shipped include, its own body. */
+function fragmentSource(include) {
+  return `${FRAGMENT_HEAD}\n${include}\n${FRAGMENT_BODY}`;
+}
+
+/**
+ * The WebGL2 renderer of one canvas. `Viewer.create` returns null without WebGL2 and throws
+ * when the shader include could not be fetched.
+ */
 export class Viewer {
   static create(canvas) {
     const gl = canvas.getContext('webgl2', {
@@ -281,6 +289,7 @@ export class Viewer {
       stencil: false,
     });
     if (!gl) return null;
+    if (includeSource === null) throw new Error(`the GLSL shader include is missing: ${includeError}`);
     return new Viewer(canvas, gl);
   }
 
@@ -289,7 +298,7 @@ export class Viewer {
     this.gl = gl;
     const p = gl.createProgram();
     gl.attachShader(p, compile(gl, gl.VERTEX_SHADER, VERTEX));
-    gl.attachShader(p, compile(gl, gl.FRAGMENT_SHADER, FRAGMENT));
+    gl.attachShader(p, compile(gl, gl.FRAGMENT_SHADER, fragmentSource(includeSource)));
     gl.linkProgram(p);
     if (!gl.getProgramParameter(p, gl.LINK_STATUS)) {
       throw new Error(`program: ${gl.getProgramInfoLog(p)}`);
@@ -487,7 +496,6 @@ export class Viewer {
     set('u_channel', 'uniform1i', opts.channel || 0);
     const f = this.fourier || { terms: 5, range: 'standard' };
     set('u_terms', 'uniform1i', f.terms);
-    set('u_fourierScale', 'uniform1f', f.range === 'expanded' ? 2 / Math.PI : 1);
     set('u_fourierExpanded', 'uniform1i', f.range === 'expanded' ? 1 : 0);
     set('u_light', 'uniform3f', light[0], light[1], light[2]);
     set('u_half', 'uniform3f', half[0], half[1], half[2]);
