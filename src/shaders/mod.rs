@@ -309,7 +309,8 @@ mod tests {
             let l = [0.7 * phi.cos(), 0.7 * phi.sin(), 0.714_142_8];
             let (x, y) = (l[0] as f32, l[1] as f32);
             let phi32 = if x.hypot(y) > 0.0 { y.atan2(x) } else { 0.0 };
-            let mut pos = phi32 / 0.785_398_16_f32;
+            // HORIZON_QUARTER_PI = 0.78539816 rounds to this f32.
+            let mut pos = phi32 / std::f32::consts::FRAC_PI_4;
             if pos < 0.0 {
                 pos += 8.0;
             }
