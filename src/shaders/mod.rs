@@ -23,15 +23,21 @@
 //!   its example (`horizon_es300_example.frag`, `horizon_450_example.frag`);
 //! - `horizon.gdshaderinc` is byte-for-byte the GLSL decode after its own header (Godot's
 //!   shading language accepts that subset), checked by a test;
-//! - `horizon.hlsl` and `horizon.wgsl` declare the same functions with the same parameter counts
-//!   and the same constants with the same values as the GLSL file, checked by a test;
+//! - `horizon.hlsl` is the GLSL decode statement for statement: with HLSL's spellings mapped
+//!   back (`float4` → `vec4`, `atan2` → `atan`, `fmod` → `mod` on a positive operand, a scalar
+//!   for a splatted vector) and comments and whitespace removed, the two texts are equal;
+//! - `horizon.wgsl` declares the same functions with the same parameter counts (read by naga in
+//!   tests/shaders.rs) and the same constants with the same values; its bodies follow the GLSL
+//!   ones line by line in WGSL's syntax (`select`, `let`, braces), which no test compares;
 //! - tests/shaders.rs compiles every file with real compilers (glslangValidator for GLSL and
 //!   HLSL, naga for WGSL). Godot's language has no offline compiler here, so the Godot files are
 //!   held to the GLSL text instead.
 //!
 //! The numbers are proven in GLSL: the viewer renders through [`GLSL`] and the browser test
-//! compares it with the CPU preview (src/kernels/shade.rs); the other languages are held to the
-//! GLSL text function by function, statement for statement as their syntax allows.
+//! compares it with the CPU preview (src/kernels/shade.rs), which also proves Godot's copy and,
+//! through the statement-for-statement test, HLSL's. `horizon_factors_analytic`, which the
+//! viewer does not use, is checked by a port of its expressions against the cube map's
+//! definition (`cubemap::factors_for_azimuth`) below.
 
 use crate::encode::OutFile;
 
@@ -265,6 +271,50 @@ mod tests {
         // And nothing after the GLSL header that a Godot shader cannot hold.
         for word in ["#version", "precision ", "#extension", "uniform "] {
             assert!(!body(GLSL).contains(word), "{word}");
+        }
+    }
+
+    /// The code of `src` with comments, preprocessor lines and all whitespace removed.
+    fn code(src: &str) -> String {
+        src.lines()
+            .map(|l| l.split("//").next().unwrap_or(""))
+            .filter(|l| !l.trim_start().starts_with('#'))
+            .flat_map(|l| l.chars())
+            .filter(|c| !c.is_whitespace())
+            .collect()
+    }
+
+    #[test]
+    fn hlsl_is_the_glsl_decode_statement_for_statement() {
+        // Spelling only: HLSL's type names, atan2/fmod (fmod is GLSL's mod on the positive
+        // operand it gets), `static const`, a scalar swizzle for a vector constructor, and a
+        // scalar where GLSL writes a splatted vector (HLSL promotes it).
+        let mut hlsl = HLSL.to_owned();
+        for (from, to) in [
+            ("float4", "vec4"),
+            ("float3", "vec3"),
+            ("float2", "vec2"),
+            ("atan2(", "atan("),
+            ("fmod(", "mod("),
+            ("static const", "const"),
+            ("pos.xxxx", "vec4(pos)"),
+        ] {
+            hlsl = hlsl.replace(from, to);
+        }
+        let splats = |mut s: String| {
+            for v in ["0.0", "1.0", "3.0"] {
+                s = s.replace(&format!("vec4({v})"), v);
+            }
+            s
+        };
+        let (glsl, hlsl) = (splats(code(GLSL)), splats(code(&hlsl)));
+        if glsl != hlsl {
+            let at = glsl.chars().zip(hlsl.chars()).take_while(|(a, b)| a == b).count();
+            panic!(
+                "horizon.hlsl departs from horizon.glsl at: glsl `{}` vs hlsl `{}`",
+                glsl.chars().skip(at).take(60).collect::<String>(),
+                hlsl.chars().skip(at).take(60).collect::<String>()
+            );
         }
     }
 
