@@ -25,9 +25,11 @@ vec4 horizon_cube_factors(vec4 texel) {
 // 1 - t on the channel at or below the light's azimuth, t on the next one, a layer-1 channel's
 // factor negated in its slot. Straight up takes azimuth 0.
 vec4 horizon_factors_analytic(vec3 light) {
-    float phi = length(light.xy) > 0.0 ? atan(light.y, light.x) : 0.0;
+    float phi = (length(light.xy) > 0.0 ? atan(light.y, light.x) : 0.0);
     float pos = phi / HORIZON_QUARTER_PI;
-    if (pos < 0.0) pos += 8.0;
+    if (pos < 0.0) {
+        pos += 8.0;
+    }
     // Distance in channels from the light to channels 0..3 (around the circle, 0..4); channel
     // c + 4 is 4 minus it away.
     vec4 d = abs(mod(vec4(pos) - vec4(0.0, 1.0, 2.0, 3.0) + 4.0, 8.0) - 4.0);
@@ -55,7 +57,9 @@ float horizon_s_bc5(vec4 f, vec2 l0, vec2 l1, vec2 l2, vec2 l3) {
 
 // The illumination factor F = clamp(k*(L_z - s) + 1, 0, 1); 0 at or below the tangent plane.
 float horizon_illumination(float lz, float s, float hardness) {
-    if (lz <= 0.0) return 0.0;
+    if (lz <= 0.0) {
+        return 0.0;
+    }
     return clamp(hardness * (lz - s) + 1.0, 0.0, 1.0);
 }
 
@@ -67,19 +71,19 @@ float horizon_illumination_layers(vec3 light, vec4 f, vec4 h0, vec4 h1, float ha
 // The light's azimuth direction (x, y) = (cos phi, sin phi); (1, 0) straight up.
 vec2 horizon_light_dir(vec3 light) {
     float r = length(light.xy);
-    return r > 0.0 ? light.xy / r : vec2(1.0, 0.0);
+    return (r > 0.0 ? light.xy / r : vec2(1.0, 0.0));
 }
 
 // SPEC 3.4: band coefficients from a texel of fourier_0 (or fourier_2). fourier_range=standard:
 // v = t*4 - 2, C = v*|v|; expanded: v = t*2 - 1, C = v*|v|*2/pi.
 vec4 horizon_fourier_bands(vec4 t, bool expanded) {
-    vec4 v = expanded ? t * 2.0 - 1.0 : t * 4.0 - 2.0;
+    vec4 v = (expanded ? t * 2.0 - 1.0 : t * 4.0 - 2.0);
     return v * abs(v) * (expanded ? HORIZON_TWO_OVER_PI : 1.0);
 }
 
 // SPEC 3.4: the constant term from fourier_1. standard: c = t*2 - 1, C_0 = c*|c|; expanded: t*t.
 float horizon_fourier_const(float t, bool expanded) {
-    float c = expanded ? t : t * 2.0 - 1.0;
+    float c = (expanded ? t : t * 2.0 - 1.0);
     return c * abs(c);
 }
 
@@ -91,12 +95,16 @@ float horizon_fourier(vec4 t_bands, float t_const, vec4 t_high, vec2 dir, int te
     float y = dir.y;
     vec4 lq = horizon_fourier_bands(t_bands, expanded);
     float s = horizon_fourier_const(t_const, expanded) + lq.x * x + lq.y * y;
-    if (terms >= 5) s += lq.z * 2.0 * x * y + lq.w * (y * y - x * x);
+    if (terms >= 5) {
+        s += lq.z * 2.0 * x * y + lq.w * (y * y - x * x);
+    }
     if (terms >= 7) {
         vec4 hq = horizon_fourier_bands(t_high, expanded);
         float c2 = x * x - y * y;
         s += hq.x * x * (x * x - 3.0 * y * y) + hq.y * y * (3.0 * x * x - y * y);
-        if (terms >= 9) s += hq.z * 4.0 * x * y * c2 + hq.w * (c2 * c2 - 4.0 * x * x * y * y);
+        if (terms >= 9) {
+            s += hq.z * 4.0 * x * y * c2 + hq.w * (c2 * c2 - 4.0 * x * x * y * y);
+        }
     }
     return s;
 }

@@ -29,9 +29,11 @@ float4 horizon_cube_factors(float4 texel)
 // factor negated in its slot. Straight up takes azimuth 0.
 float4 horizon_factors_analytic(float3 light)
 {
-    float phi = length(light.xy) > 0.0 ? atan2(light.y, light.x) : 0.0;
+    float phi = (length(light.xy) > 0.0 ? atan2(light.y, light.x) : 0.0);
     float pos = phi / HORIZON_QUARTER_PI;
-    if (pos < 0.0) pos += 8.0;
+    if (pos < 0.0) {
+        pos += 8.0;
+    }
     // Distance in channels from the light to channels 0..3 (around the circle, 0..4); channel
     // c + 4 is 4 minus it away. The operand of fmod is positive, so fmod is GLSL's mod here.
     float4 d = abs(fmod(pos.xxxx - float4(0.0, 1.0, 2.0, 3.0) + 4.0, 8.0) - 4.0);
@@ -63,7 +65,9 @@ float horizon_s_bc5(float4 f, float2 l0, float2 l1, float2 l2, float2 l3)
 // The illumination factor F = clamp(k*(L_z - s) + 1, 0, 1); 0 at or below the tangent plane.
 float horizon_illumination(float lz, float s, float hardness)
 {
-    if (lz <= 0.0) return 0.0;
+    if (lz <= 0.0) {
+        return 0.0;
+    }
     return clamp(hardness * (lz - s) + 1.0, 0.0, 1.0);
 }
 
@@ -77,21 +81,21 @@ float horizon_illumination_layers(float3 light, float4 f, float4 h0, float4 h1, 
 float2 horizon_light_dir(float3 light)
 {
     float r = length(light.xy);
-    return r > 0.0 ? light.xy / r : float2(1.0, 0.0);
+    return (r > 0.0 ? light.xy / r : float2(1.0, 0.0));
 }
 
 // SPEC 3.4: band coefficients from a texel of fourier_0 (or fourier_2). fourier_range=standard:
 // v = t*4 - 2, C = v*|v|; expanded: v = t*2 - 1, C = v*|v|*2/pi.
 float4 horizon_fourier_bands(float4 t, bool expanded)
 {
-    float4 v = expanded ? t * 2.0 - 1.0 : t * 4.0 - 2.0;
+    float4 v = (expanded ? t * 2.0 - 1.0 : t * 4.0 - 2.0);
     return v * abs(v) * (expanded ? HORIZON_TWO_OVER_PI : 1.0);
 }
 
 // SPEC 3.4: the constant term from fourier_1. standard: c = t*2 - 1, C_0 = c*|c|; expanded: t*t.
 float horizon_fourier_const(float t, bool expanded)
 {
-    float c = expanded ? t : t * 2.0 - 1.0;
+    float c = (expanded ? t : t * 2.0 - 1.0);
     return c * abs(c);
 }
 
@@ -104,13 +108,17 @@ float horizon_fourier(float4 t_bands, float t_const, float4 t_high, float2 dir, 
     float y = dir.y;
     float4 lq = horizon_fourier_bands(t_bands, expanded);
     float s = horizon_fourier_const(t_const, expanded) + lq.x * x + lq.y * y;
-    if (terms >= 5) s += lq.z * 2.0 * x * y + lq.w * (y * y - x * x);
+    if (terms >= 5) {
+        s += lq.z * 2.0 * x * y + lq.w * (y * y - x * x);
+    }
     if (terms >= 7)
     {
         float4 hq = horizon_fourier_bands(t_high, expanded);
         float c2 = x * x - y * y;
         s += hq.x * x * (x * x - 3.0 * y * y) + hq.y * y * (3.0 * x * x - y * y);
-        if (terms >= 9) s += hq.z * 4.0 * x * y * c2 + hq.w * (c2 * c2 - 4.0 * x * x * y * y);
+        if (terms >= 9) {
+            s += hq.z * 4.0 * x * y * c2 + hq.w * (c2 * c2 - 4.0 * x * x * y * y);
+        }
     }
     return s;
 }

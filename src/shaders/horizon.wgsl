@@ -69,10 +69,7 @@ fn horizon_illumination_layers(light: vec3<f32>, f: vec4<f32>, h0: vec4<f32>, h1
 // The light's azimuth direction (x, y) = (cos phi, sin phi); (1, 0) straight up.
 fn horizon_light_dir(light: vec3<f32>) -> vec2<f32> {
     let r = length(light.xy);
-    if (r > 0.0) {
-        return light.xy / r;
-    }
-    return vec2<f32>(1.0, 0.0);
+    return select(vec2<f32>(1.0, 0.0), light.xy / r, r > 0.0);
 }
 
 // SPEC 3.4: band coefficients from a texel of fourier_0 (or fourier_2). fourier_range=standard:

@@ -26,16 +26,17 @@
 //! - `horizon.hlsl` is the GLSL decode statement for statement: with HLSL's spellings mapped
 //!   back (`float4` → `vec4`, `atan2` → `atan`, `fmod` → `mod` on a positive operand, a scalar
 //!   for a splatted vector) and comments and whitespace removed, the two texts are equal;
-//! - `horizon.wgsl` declares the same functions with the same parameter counts (read by naga in
-//!   tests/shaders.rs) and the same constants with the same values; its bodies follow the GLSL
-//!   ones line by line in WGSL's syntax (`select`, `let`, braces), which no test compares;
+//! - `horizon.wgsl` is the GLSL decode statement for statement too: with both brought to one
+//!   normal form (untyped signatures, constants and locals, `select(a, b, c)` as `(c ? b : a)`,
+//!   WGSL's `%` for the one `mod`), the texts are equal; naga reads its function list in
+//!   tests/shaders.rs. (So every ternary in the GLSL is parenthesised and every `if` braced.)
 //! - tests/shaders.rs compiles every file with real compilers (glslangValidator for GLSL and
 //!   HLSL, naga for WGSL). Godot's language has no offline compiler here, so the Godot files are
 //!   held to the GLSL text instead.
 //!
 //! The numbers are proven in GLSL: the viewer renders through [`GLSL`] and the browser test
 //! compares it with the CPU preview (src/kernels/shade.rs), which also proves Godot's copy and,
-//! through the statement-for-statement test, HLSL's. `horizon_factors_analytic`, which the
+//! through the statement-for-statement tests, HLSL's and WGSL's. `horizon_factors_analytic`, which the
 //! viewer does not use, is checked by a port of its expressions against the cube map's
 //! definition (`cubemap::factors_for_azimuth`) below.
 
@@ -316,6 +317,139 @@ mod tests {
                 hlsl.chars().skip(at).take(60).collect::<String>()
             );
         }
+    }
+
+    /// Lines of code: comments and preprocessor lines dropped.
+    fn code_lines(src: &str) -> Vec<&str> {
+        src.lines()
+            .map(|l| l.split("//").next().unwrap_or(""))
+            .filter(|l| !l.trim_start().starts_with('#'))
+            .collect()
+    }
+
+    /// `fn name(a,b,…)` from a parameter list, each parameter named by `name_of`.
+    fn signature(name: &str, params: &str, name_of: impl Fn(&str) -> String) -> String {
+        let names: Vec<String> =
+            params.split(',').map(str::trim).filter(|p| !p.is_empty()).map(name_of).collect();
+        format!("fn {name}({})", names.join(","))
+    }
+
+    /// GLSL in a form WGSL can be brought to: untyped signatures, constants and locals (`let`),
+    /// no whitespace, and WGSL's `%` spelling of the one `mod`.
+    fn glsl_normal(src: &str) -> String {
+        let mut out = String::new();
+        for line in code_lines(src) {
+            let trimmed = line.trim_start();
+            let indented = trimmed.len() != line.len();
+            let open = line.find('(');
+            if !indented && line.starts_with("const ") {
+                // const TYPE NAME = v;
+                let (lhs, rhs) = line.split_once('=').unwrap();
+                let name = lhs.split_whitespace().last().unwrap();
+                out += &format!("const {name} ={rhs}");
+            } else if let (false, Some(open), Some(close)) = (indented, open, line.rfind(')')) {
+                if trimmed.is_empty() {
+                    continue;
+                }
+                let name = line[..open].split_whitespace().last().unwrap();
+                out += &signature(name, &line[open + 1..close], |p| {
+                    p.split_whitespace().last().unwrap().to_owned()
+                });
+                out += &line[close + 1..];
+            } else if let Some(rest) = ["float ", "vec2 ", "vec3 ", "vec4 ", "int ", "bool "]
+                .iter()
+                .find_map(|t| trimmed.strip_prefix(t).filter(|r| r.contains(" = ")))
+            {
+                out += &format!("let {rest}");
+            } else {
+                out += line;
+            }
+        }
+        let mut s: String = out.chars().filter(|c| !c.is_whitespace()).collect();
+        s = s.replace(
+            "mod(vec4(pos)-vec4(0.0,1.0,2.0,3.0)+4.0,8.0)",
+            "(vec4(pos)-vec4(0.0,1.0,2.0,3.0)+4.0)%vec4(8.0)",
+        );
+        s
+    }
+
+    /// `select(a, b, c)` → `(c?b:a)`, innermost last, in whitespace-free text.
+    fn unselect(mut s: String) -> String {
+        while let Some(i) = s.find("select(") {
+            let start = i + "select(".len();
+            let (mut depth, mut end) = (1, start);
+            let mut commas = Vec::new();
+            for (k, ch) in s[start..].char_indices() {
+                match ch {
+                    '(' => depth += 1,
+                    ')' => depth -= 1,
+                    ',' if depth == 1 => commas.push(start + k),
+                    _ => {}
+                }
+                if depth == 0 {
+                    end = start + k;
+                    break;
+                }
+            }
+            assert_eq!(commas.len(), 2, "select with {} arguments", commas.len() + 1);
+            let a = &s[start..commas[0]];
+            let b = &s[commas[0] + 1..commas[1]];
+            let c = &s[commas[1] + 1..end];
+            s = format!("{}({c}?{b}:{a}){}", &s[..i], &s[end + 1..]);
+        }
+        s
+    }
+
+    /// WGSL brought to the form of [`glsl_normal`]: untyped signatures and constants, `var` as
+    /// `let`, GLSL's type and `atan` names, `select` as a ternary, no whitespace.
+    fn wgsl_normal(src: &str) -> String {
+        let mut out = String::new();
+        for line in code_lines(src) {
+            if let Some(rest) = line.strip_prefix("fn ") {
+                let open = rest.find('(').unwrap();
+                let close = rest.rfind(')').unwrap();
+                out += &signature(&rest[..open], &rest[open + 1..close], |p| {
+                    p.split(':').next().unwrap().trim().to_owned()
+                });
+                out += &rest[rest.find('{').unwrap()..];
+            } else if let Some(rest) = line.strip_prefix("const ") {
+                // const NAME: T = v;
+                let (lhs, rhs) = rest.split_once('=').unwrap();
+                out += &format!("const {} ={rhs}", lhs.split(':').next().unwrap().trim());
+            } else if let Some(rest) = line.trim_start().strip_prefix("var ") {
+                out += &format!("let {rest}");
+            } else {
+                out += line;
+            }
+        }
+        let mut s: String = out.chars().filter(|c| !c.is_whitespace()).collect();
+        for (from, to) in [
+            ("vec4<f32>", "vec4"),
+            ("vec3<f32>", "vec3"),
+            ("vec2<f32>", "vec2"),
+            ("atan2(", "atan("),
+        ] {
+            s = s.replace(from, to);
+        }
+        unselect(s)
+    }
+
+    #[test]
+    fn wgsl_is_the_glsl_decode_statement_for_statement() {
+        let (glsl, wgsl) = (glsl_normal(GLSL), wgsl_normal(WGSL));
+        if glsl != wgsl {
+            let at = glsl.chars().zip(wgsl.chars()).take_while(|(a, b)| a == b).count();
+            panic!(
+                "horizon.wgsl departs from horizon.glsl at: glsl `{}` vs wgsl `{}`",
+                glsl.chars().skip(at).take(60).collect::<String>(),
+                wgsl.chars().skip(at).take(60).collect::<String>()
+            );
+        }
+        // The normal form still says something: the decode's statements are in it.
+        assert!(
+            glsl.contains("fnhorizon_s(f,h0,h1){letp=max(f,vec4(0.0))*h0+max(-f,vec4(0.0))*h1;")
+        );
+        assert!(glsl.contains("letv=(expanded?t*2.0-1.0:t*4.0-2.0);"), "{glsl}");
     }
 
     #[test]
