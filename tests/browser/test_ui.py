@@ -7,8 +7,9 @@ through the file input is accepted (202), shows a progress value strictly betwee
 then `succeeded`, with the resolved radius, its reason and the timings; the WebGL2 canvas
 matches the server's CPU preview within 2 levels on >= 99.9% of pixels at 8 lights near
 cube-face edges, for horizon, fourier and none shading, edge=wrap/none, y_axis=up/down,
-encoding=linear/sqrt and both Fourier ranges; the tiled view repeats the map; dragging the
-light changes the readout and the image, which still matches; error answers are shown (415
+encoding=linear/sqrt and both Fourier ranges, with the decode of the shipped GLSL include
+(GET /v1/shaders/horizon.glsl: an include without shadows stops matching); the tiled view
+repeats the map; dragging the light changes the readout and the image, which still matches; error answers are shown (415
 code and detail in an alert, a parameter's message next to its field, 429 with Retry-After);
 Cancel stops a bake; every download link answers 200 with its content type; the list links to
 bakes by `#id`; without WebGL2 the CPU preview is shown; with --api-key the page works once the
