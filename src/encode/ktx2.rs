@@ -52,13 +52,16 @@ fn describe(f: PixelFormat) -> (u32, u32, u8, u32, u32) {
     }
 }
 
+/// A DFD sample: bitOffset, bitLength, channel id.
+type Sample = (u32, u32, u8);
+
 /// The DFD: its total size, then one basic block (BT.709 primaries, linear transfer, straight
 /// alpha). Uncompressed: the RGBSDA model with four samples R, G, B, A. BC7: its model, 4×4
 /// blocks of 16 bytes, one 128-bit sample; BC5: two 64-bit samples, red then green.
 fn dfd(f: PixelFormat) -> Vec<u8> {
     let (_, type_size, flags, lower, upper) = describe(f);
     // (bitOffset, bitLength, channel id) of each sample.
-    let (model, dims, bytes_plane, samples): (u8, [u8; 4], u32, Vec<(u32, u32, u8)>) = match f {
+    let (model, dims, bytes_plane, samples): (u8, [u8; 4], u32, Vec<Sample>) = match f {
         PixelFormat::Bc7Unorm => (134, [3, 3, 0, 0], 16, vec![(0, 128, 0)]),
         PixelFormat::Bc5Unorm => (132, [3, 3, 0, 0], 16, vec![(0, 64, 0), (64, 64, 1)]),
         _ => {
