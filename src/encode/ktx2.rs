@@ -17,6 +17,7 @@
 use super::texture::{PixelFormat, Texture};
 use super::{Shape, Texels};
 use crate::error::Result;
+use rayon::prelude::*;
 
 /// The KTX2 file identifier «KTX 20»\r\n\x1A\n.
 pub const IDENTIFIER: [u8; 12] =
@@ -111,18 +112,21 @@ pub fn write(t: &Texture, zstd_level: Option<i32>) -> Result<Vec<u8>> {
     let dfd_offset = header_len + levels * 3 * 8;
     // Raw level data: images in layer/face order, each level on its own.
     let raw: Vec<Vec<u8>> = t.levels.iter().map(|l| l.concat()).collect();
-    let (stored, align): (Vec<Vec<u8>>, usize) = match zstd_level {
-        None => (raw.clone(), t.format.block_bytes()),
-        Some(level) => {
-            let c = raw
-                .iter()
+    // Each level compressed on its own (independent: side by side on rayon).
+    let compressed: Option<Vec<Vec<u8>>> = match zstd_level {
+        None => None,
+        Some(level) => Some(
+            raw.par_iter()
                 .map(|r| {
                     zstd::bulk::compress(r, level)
                         .map_err(|e| crate::Error::Internal(format!("zstd: {e}")))
                 })
-                .collect::<Result<Vec<_>>>()?;
-            (c, 1)
-        }
+                .collect::<Result<Vec<_>>>()?,
+        ),
+    };
+    let (stored, align): (Vec<&[u8]>, usize) = match &compressed {
+        Some(c) => (c.iter().map(Vec::as_slice).collect(), 1),
+        None => (raw.iter().map(Vec::as_slice).collect(), t.format.block_bytes()),
     };
     // Levels are stored smallest first (KTX2 §3.9), each aligned to lcm(block size, 4) when not
     // supercompressed (block sizes here are 4, 8 or 16: multiples of 4).
@@ -162,7 +166,7 @@ pub fn write(t: &Texture, zstd_level: Option<i32>) -> Result<Vec<u8>> {
     out.extend(&dfd);
     for l in (0..levels).rev() {
         out.resize(offsets[l], 0);
-        out.extend(&stored[l]);
+        out.extend_from_slice(stored[l]);
     }
     Ok(out)
 }
