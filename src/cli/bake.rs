@@ -76,7 +76,7 @@ pub struct TextureFlags {
     /// KTX2 supercompression: none (default) or zstd (each level on its own).
     #[arg(long)]
     pub supercompression: Option<String>,
-    /// Zstandard level, 1..=22 (default 3; with --supercompression zstd).
+    /// Zstandard level, 1..=19 (default 3; with --supercompression zstd).
     #[arg(long, allow_hyphen_values = true)]
     pub zstd_level: Option<String>,
     /// array (default: one array texture) or separate (horizon_0.ktx2, horizon_1.ktx2, …).
