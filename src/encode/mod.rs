@@ -1,4 +1,6 @@
-//! Output encoders: PNG 8/16-bit, OpenEXR f32, KTX2 and DDS array textures and cube maps.
+//! Output encoders: PNG 8/16-bit, OpenEXR f32, KTX2 and DDS array textures and cube maps, the
+//! latter with the SPEC §8 options ([`texture`]: mip chains from [`mips`], BC7/BC5 blocks from
+//! [`bcn`], KTX2 zstd supercompression, separate layers, legacy DDS headers).
 //!
 //! Encoders take finished, quantised buffers and return bytes; they never compute. Quantisation
 //! lives here too ([`quantize8`], [`quantize16`]) so every producer rounds the same way

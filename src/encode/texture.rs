@@ -306,16 +306,17 @@ impl TextureOptions {
                     }
                 }
                 "zstd_level" => {
-                    level =
-                        Some(match v.trim().parse::<i32>() {
-                            Ok(n) if (1..=19).contains(&n) => n,
-                            _ => return Err(Error::param(
+                    level = Some(match v.trim().parse::<i32>() {
+                        Ok(n) if (1..=19).contains(&n) => n,
+                        _ => {
+                            return Err(Error::param(
                                 "zstd_level",
                                 format!(
                                     "`{v}` is not a whole number from 1 to 19 (no --ultra levels)"
                                 ),
-                            )),
-                        })
+                            ))
+                        }
+                    })
                 }
                 "texture_layout" => {
                     o.layout = match v.trim().to_ascii_lowercase().as_str() {
