@@ -31,6 +31,13 @@ fn cli_file(
     files.into_iter().find(|f| f.name == name).unwrap_or_else(|| panic!("{name}")).bytes
 }
 
+/// `horizon_results_encoded_total` of the server's /metrics.
+async fn encoded(c: &reqwest::Client, srv: &Server) -> u64 {
+    let text = c.get(srv.url("/metrics")).send().await.unwrap().text().await.unwrap();
+    let line = text.lines().find(|l| l.starts_with("horizon_results_encoded_total ")).unwrap();
+    line.rsplit(' ').next().unwrap().parse().unwrap()
+}
+
 fn query(pairs: &[(&str, &str)]) -> String {
     pairs.iter().map(|(k, v)| format!("{k}={v}")).collect::<Vec<_>>().join("&")
 }
@@ -61,11 +68,15 @@ async fn texture_variants_are_query_parameters_encoded_once() {
         ("mips", "full"),
         ("mip_filter", "max"),
     ];
-    for (route, opts, extra, list, name) in [
-        ("horizon.ktx2", &bc7[..], "", "ktx2", "horizon.ktx2"),
-        ("horizon.dds", &bc5[..], "&layer=3", "dds", "horizon_3.dds"),
-        ("horizon.ktx2", &[][..], "", "ktx2", "horizon.ktx2"),
+    // Files encoded on request: one per variant, four for the separate BC5 one (all its layers
+    // come from one encode), none on the repeated requests.
+    for (route, opts, extra, list, name, files) in [
+        ("horizon.ktx2", &bc7[..], "", "ktx2", "horizon.ktx2", 1),
+        ("horizon.dds", &bc5[..], "&layer=3", "dds", "horizon_3.dds", 4),
+        ("horizon.dds", &bc5[..], "&layer=1", "dds", "horizon_1.dds", 0),
+        ("horizon.ktx2", &[][..], "", "ktx2", "horizon.ktx2", 1),
     ] {
+        let before = encoded(&c, &srv).await;
         let url = srv.url(&format!("{loc}/{route}?{}{extra}", query(opts)));
         let first = c.get(&url).send().await.unwrap();
         assert_eq!(first.status(), 200, "{url}");
@@ -78,6 +89,7 @@ async fn texture_variants_are_query_parameters_encoded_once() {
         );
         let again = c.get(&url).send().await.unwrap();
         assert_eq!(again.headers()["etag"].to_str().unwrap(), etag, "{url}: kept, not re-encoded");
+        assert_eq!(encoded(&c, &srv).await - before, files, "{url}: files encoded");
     }
     let v: Value = c.get(srv.url(&loc)).send().await.unwrap().json().await.unwrap();
     let stored: Vec<&str> =
