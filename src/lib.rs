@@ -12,7 +12,8 @@
 //! - [`layers`]: the horizon layers and quantisers, the leaf that bake and encode both use.
 //! - [`bake`]: parameters → kernels → quantised layers (or rows streamed to a sink), with
 //!   progress and cancellation.
-//! - [`encode`]: PNG 8/16, OpenEXR, KTX2 and DDS writers.
+//! - [`encode`]: PNG 8/16, OpenEXR, KTX2 and DDS writers; the engine-ready textures of SPEC §8
+//!   (mip filters, BC7/BC5 blocks, zstd, layouts, DDS headers).
 //! - [`pipeline`]: the one bake pipeline, decoded map → encoded files in a sink, shared by the
 //!   CLI and the service's worker.
 //! - [`preview`]: the CPU preview of the shading (and the contact sheet), as PNG.

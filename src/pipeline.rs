@@ -160,7 +160,7 @@ pub fn encode_each(
         if progress.is_canceled() {
             return Err(Error::Canceled);
         }
-        files.extend(encode::horizon_files(layers, one)?);
+        files.extend(encode::horizon_files_with(layers, one, progress)?);
     }
     Ok(files)
 }

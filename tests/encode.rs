@@ -295,3 +295,38 @@ fn sqrt_encoding_stores_the_root() {
     }
     assert!(nonzero > 0);
 }
+
+/// Little-endian u32 at byte `o`.
+fn u32_at(b: &[u8], o: usize) -> u32 {
+    u32::from_le_bytes(b[o..o + 4].try_into().unwrap())
+}
+
+/// SPEC §8: a DX10 DDS sets only DDPF_FOURCC (0x4) in its pixel format, FourCC `DX10`, zero
+/// bit count and masks (a reader that sees DDPF_RGB reads the zero masks instead of the DXGI
+/// format: Pillow decoded 1.9% of a layer right), mip count and array size filled.
+#[test]
+fn dds_pixel_format_is_fourcc_only_next_to_dx10() {
+    let (w, h) = (6, 5);
+    let a8 = u8_images(w, h, 2);
+    let t8 = [Texels::Unorm8(&a8[0]), Texels::Unorm8(&a8[1])];
+    let size = 4;
+    let snorm: Vec<i8> = cubemap::cube_factors(size).iter().map(|&f| cubemap::snorm8(f)).collect();
+    let faces: Vec<Texels<'_>> = snorm.chunks_exact(size * size * 4).map(Texels::Snorm8).collect();
+    for (bytes, array_size, what) in [
+        (dds::encode(w, h, Shape::Array(2), &t8).unwrap(), 2, "horizon array"),
+        (dds::encode(size, size, Shape::Cube, &faces).unwrap(), 1, "cube map"),
+    ] {
+        assert_eq!(&bytes[..4], b"DDS ", "{what}");
+        assert_eq!(u32_at(&bytes, 4), 124, "{what}: header size");
+        assert_eq!(u32_at(&bytes, 76), 32, "{what}: pixel format size");
+        assert_eq!(u32_at(&bytes, 80), 0x4, "{what}: pixel format flags must be DDPF_FOURCC alone");
+        assert_eq!(&bytes[84..88], b"DX10", "{what}");
+        assert!(bytes[88..108].iter().all(|&b| b == 0), "{what}: bit count and masks must be 0");
+        let flags = u32_at(&bytes, 8);
+        assert_eq!(flags & 0x1007, 0x1007, "{what}: CAPS | HEIGHT | WIDTH | PIXELFORMAT");
+        assert_ne!(flags & 0x20000, 0, "{what}: DDSD_MIPMAPCOUNT");
+        assert_eq!(u32_at(&bytes, 28), 1, "{what}: mip count");
+        assert_eq!(u32_at(&bytes, 140), array_size, "{what}: DX10 array size");
+        assert_eq!(u32_at(&bytes, 132), 3, "{what}: resource dimension TEXTURE2D");
+    }
+}

@@ -17,7 +17,7 @@
 //! and take the whole-layer path.
 
 use crate::bake::ResolvedRadius;
-use crate::encode::{Formats, OutFile, TexturePrecision};
+use crate::encode::{Formats, OutFile, TextureOptions, TexturePrecision};
 use crate::error::{Error, Result};
 use crate::heightmap::{self, InputInfo, Limits};
 use crate::params::BakeParams;
@@ -40,9 +40,13 @@ pub struct BakeArgs {
     /// Comma list of png8 (default), png16, exr, ktx2, dds.
     #[arg(long, default_value = "png8")]
     pub format: String,
-    /// Sample type of horizon.ktx2 / horizon.dds: unorm8 (default), unorm16, float32.
+    /// Sample type of horizon.ktx2 / horizon.dds: unorm8 (default), unorm16, float32, or the
+    /// block formats bc7 (2 RGBA layers) and bc5 (4 RG layers), encoded from the 8-bit layers.
     #[arg(long, default_value = "unorm8")]
     pub texture_precision: String,
+    /// The KTX2/DDS delivery options of SPEC §8 (mips, supercompression, layout, DDS header).
+    #[command(flatten)]
+    pub texture: TextureFlags,
     /// Sample type of horizon_0.exr / horizon_1.exr: float (default, bit-exact) or half (half
     /// the size). Both uncompressed: no EXR compression pays for itself on horizon layers.
     #[arg(long, default_value = "float")]
@@ -57,6 +61,63 @@ pub struct BakeArgs {
     /// Largest accepted width × height of the input.
     #[arg(long, default_value_t = Limits::default().max_texels)]
     pub max_texels: u64,
+}
+
+/// The SPEC §8 options of the KTX2 and DDS files, as text (checked by
+/// [`TextureOptions::from_pairs`], as over HTTP). Shared by `bake` and `cubemap`.
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct TextureFlags {
+    /// none (default) or full: every mip level down to 1×1.
+    #[arg(long)]
+    pub mips: Option<String>,
+    /// How a level is made from the one above (with --mips full): box (default), min or max.
+    #[arg(long)]
+    pub mip_filter: Option<String>,
+    /// KTX2 supercompression: none (default) or zstd (each level on its own).
+    #[arg(long)]
+    pub supercompression: Option<String>,
+    /// Zstandard level, 1..=19 (default 3; with --supercompression zstd).
+    #[arg(long, allow_hyphen_values = true)]
+    pub zstd_level: Option<String>,
+    /// array (default: one array texture) or separate (horizon_0.ktx2, horizon_1.ktx2, …).
+    #[arg(long)]
+    pub texture_layout: Option<String>,
+    /// dx10 (default) or legacy (FourCC ATI2 / RGBA masks, no DX10 header; one 2D texture).
+    #[arg(long)]
+    pub dds_header: Option<String>,
+}
+
+impl TextureFlags {
+    /// The options these flags (and `precision`, when given) set.
+    ///
+    /// # Errors
+    /// [`Error::Param`] naming the first invalid option.
+    pub fn options(&self, precision: Option<&str>) -> Result<TextureOptions> {
+        let pairs = [
+            ("texture_precision", precision),
+            ("mips", self.mips.as_deref()),
+            ("mip_filter", self.mip_filter.as_deref()),
+            ("supercompression", self.supercompression.as_deref()),
+            ("zstd_level", self.zstd_level.as_deref()),
+            ("texture_layout", self.texture_layout.as_deref()),
+            ("dds_header", self.dds_header.as_deref()),
+        ];
+        TextureOptions::from_pairs(pairs.iter().filter_map(|(k, v)| v.map(|v| (*k, v))))
+    }
+
+    /// The first option given, if any (for "applies only to KTX2/DDS" errors).
+    pub fn first_given(&self) -> Option<&'static str> {
+        [
+            ("mips", &self.mips),
+            ("mip_filter", &self.mip_filter),
+            ("supercompression", &self.supercompression),
+            ("zstd_level", &self.zstd_level),
+            ("texture_layout", &self.texture_layout),
+            ("dds_header", &self.dds_header),
+        ]
+        .into_iter()
+        .find_map(|(k, v)| v.is_some().then_some(k))
+    }
 }
 
 /// Every SPEC §5 parameter as a `--kebab-case` flag, as text.
@@ -179,6 +240,12 @@ pub fn run(args: BakeArgs) -> Result<()> {
     let params = args.params()?;
     let precision = TexturePrecision::parse(&args.texture_precision)?;
     let mut formats = Formats::parse(&args.format, precision)?;
+    formats.texture = args.texture.options(Some(&args.texture_precision))?;
+    if formats.ktx2 || formats.dds {
+        formats.texture.check_for(formats.ktx2, formats.dds, false)?;
+    } else if let Some(option) = args.texture.first_given() {
+        return Err(Error::param(option, "applies only with --format ktx2 or dds"));
+    }
     formats.exr_precision =
         crate::encode::exr::ExrPrecision::parse("exr_precision", &args.exr_precision)?;
     // Without the horizon output there are no layers to write as png16, EXR, KTX2 or DDS;

@@ -19,6 +19,11 @@ pub struct CubemapArgs {
     /// Comma list of png8 (default), ktx2, dds.
     #[arg(long, default_value = "png8")]
     pub format: String,
+    /// The SPEC §8 options of cubemap.ktx2 / cubemap.dds: --mips, --mip-filter,
+    /// --supercompression, --zstd-level, --dds-header (the cube map stays one RGBA8 SNORM cube:
+    /// --texture-layout is refused).
+    #[command(flatten)]
+    pub texture: super::bake::TextureFlags,
 }
 
 fn parse_formats(list: &str) -> Result<CubeFormats> {
@@ -65,7 +70,13 @@ fn parse_size(value: &str) -> Result<usize> {
 /// untouched).
 pub fn run(args: CubemapArgs) -> Result<()> {
     let size = parse_size(&args.size)?;
-    let formats = parse_formats(&args.format)?;
+    let mut formats = parse_formats(&args.format)?;
+    formats.texture = args.texture.options(None)?;
+    if formats.ktx2 || formats.dds {
+        formats.texture.check_for(formats.ktx2, formats.dds, true)?;
+    } else if let Some(option) = args.texture.first_given() {
+        return Err(Error::param(option, "applies only with --format ktx2 or dds"));
+    }
     let files = cube_files(size, formats)?;
     super::bake::write_dir_atomically(&args.out, &files)
 }
@@ -93,7 +104,8 @@ mod tests {
 
     #[test]
     fn files_per_format() {
-        let f = cube_files(1, CubeFormats { png8: true, ktx2: true, dds: false }).unwrap();
+        let f =
+            cube_files(1, CubeFormats { png8: true, ktx2: true, ..Default::default() }).unwrap();
         let names: Vec<&str> = f.iter().map(|f| f.name).collect();
         assert_eq!(
             names[..6],

@@ -1,19 +1,23 @@
-//! KTX2 writer for uncompressed RGBA array textures and cube maps (Khronos KTX 2.0 spec).
+//! KTX2 writer for RGBA and BC7/BC5 array textures and cube maps, with mip levels and Zstandard
+//! supercompression (Khronos KTX 2.0 spec).
 //!
 //! No Rust crate both writes KTX2 and builds offline (NOTES.md), and the container is small, so
-//! it is written here by hand: identifier, header, one level, a basic data format descriptor
-//! (DFD), no key/value data and no supercompression. `tests/encode.rs` proves it by reading
+//! it is written here by hand: identifier, header, the level index, a basic data format descriptor
+//! (DFD), no key/value data, then the levels smallest first. `tests/encode.rs` proves it by reading
 //! every texel back with the independent `ktx2` crate and comparing the DFD with the one that
 //! crate generates for the same format.
 //!
 //! Layout (all little-endian): 12-byte identifier, 9 × u32 header, the index (DFD and KVD offset
 //! and length as u32, SGD offset and length as u64), the level index (offset, length,
-//! uncompressed length as u64), the DFD, then the level data aligned to lcm(texel size, 4).
+//! uncompressed length as u64, level 0 first), the DFD, then the level data, smallest level
+//! first, each aligned to lcm(texel or block size, 4) (to 1 when supercompressed).
 //! Within the level, images follow in layer order, then face order (+X, −X, +Y, −Y, +Z, −Z),
 //! each row-major from the top row.
 
-use super::{check_images, Shape, Texels};
+use super::texture::{PixelFormat, Texture};
+use super::{Shape, Texels};
 use crate::error::Result;
+use rayon::prelude::*;
 
 /// The KTX2 file identifier «KTX 20»\r\n\x1A\n.
 pub const IDENTIFIER: [u8; 12] =
@@ -27,37 +31,59 @@ pub const VK_FORMAT_R8G8B8A8_SNORM: u32 = 38;
 pub const VK_FORMAT_R16G16B16A16_UNORM: u32 = 91;
 /// IEEE f32 RGBA.
 pub const VK_FORMAT_R32G32B32A32_SFLOAT: u32 = 109;
+/// BC5 (RG) blocks.
+pub const VK_FORMAT_BC5_UNORM_BLOCK: u32 = 141;
+/// BC7 blocks.
+pub const VK_FORMAT_BC7_UNORM_BLOCK: u32 = 145;
+/// supercompressionScheme of Zstandard.
+pub const SUPERCOMPRESSION_ZSTD: u32 = 2;
 
-/// (vkFormat, typeSize, sample flags, lower, upper) of a sample type.
-fn describe(t: &Texels<'_>) -> (u32, u32, u8, u32, u32) {
+/// (vkFormat, typeSize, sample flags, lower, upper) of a pixel format.
+fn describe(f: PixelFormat) -> (u32, u32, u8, u32, u32) {
     // Channel-type qualifier bits of a DFD sample: 0x80 float, 0x40 signed.
-    match t {
-        Texels::Unorm8(_) => (VK_FORMAT_R8G8B8A8_UNORM, 1, 0, 0, 255),
-        Texels::Snorm8(_) => (VK_FORMAT_R8G8B8A8_SNORM, 1, 0x40, (-127i32) as u32, 127),
-        Texels::Unorm16(_) => (VK_FORMAT_R16G16B16A16_UNORM, 2, 0, 0, 65535),
-        Texels::Float32(_) => {
+    match f {
+        PixelFormat::Rgba8Unorm => (VK_FORMAT_R8G8B8A8_UNORM, 1, 0, 0, 255),
+        PixelFormat::Rgba8Snorm => (VK_FORMAT_R8G8B8A8_SNORM, 1, 0x40, (-127i32) as u32, 127),
+        PixelFormat::Rgba16Unorm => (VK_FORMAT_R16G16B16A16_UNORM, 2, 0, 0, 65535),
+        PixelFormat::Rgba32Float => {
             (VK_FORMAT_R32G32B32A32_SFLOAT, 4, 0xC0, (-1.0f32).to_bits(), 1.0f32.to_bits())
         }
+        PixelFormat::Bc5Unorm => (VK_FORMAT_BC5_UNORM_BLOCK, 1, 0, 0, u32::MAX),
+        PixelFormat::Bc7Unorm => (VK_FORMAT_BC7_UNORM_BLOCK, 1, 0, 0, u32::MAX),
     }
 }
 
-/// The DFD: its total size, then one basic block (RGBSDA model, BT.709 primaries, linear
-/// transfer, straight alpha) with four samples R, G, B, A.
-fn dfd(t: &Texels<'_>) -> Vec<u8> {
-    let (_, type_size, flags, lower, upper) = describe(t);
-    let bits = type_size * 8;
-    let block_size = 24 + 16 * 4u32;
+/// A DFD sample: bitOffset, bitLength, channel id.
+type Sample = (u32, u32, u8);
+
+/// The DFD: its total size, then one basic block (BT.709 primaries, linear transfer, straight
+/// alpha). Uncompressed: the RGBSDA model with four samples R, G, B, A. BC7: its model, 4×4
+/// blocks of 16 bytes, one 128-bit sample; BC5: two 64-bit samples, red then green.
+fn dfd(f: PixelFormat) -> Vec<u8> {
+    let (_, type_size, flags, lower, upper) = describe(f);
+    // (bitOffset, bitLength, channel id) of each sample.
+    let (model, dims, bytes_plane, samples): (u8, [u8; 4], u32, Vec<Sample>) = match f {
+        PixelFormat::Bc7Unorm => (134, [3, 3, 0, 0], 16, vec![(0, 128, 0)]),
+        PixelFormat::Bc5Unorm => (132, [3, 3, 0, 0], 16, vec![(0, 64, 0), (64, 64, 1)]),
+        _ => {
+            let bits = type_size * 8;
+            let s =
+                [0u8, 1, 2, 15].into_iter().enumerate().map(|(k, c)| (k as u32 * bits, bits, c));
+            (1, [0, 0, 0, 0], 4 * type_size, s.collect())
+        }
+    };
+    let block_size = 24 + 16 * samples.len() as u32;
     let mut d = Vec::with_capacity(4 + block_size as usize);
     d.extend((4 + block_size).to_le_bytes());
     d.extend(0u32.to_le_bytes()); // vendorId 0 (Khronos), descriptorType 0 (basic)
     d.extend(2u16.to_le_bytes()); // versionNumber
     d.extend((block_size as u16).to_le_bytes());
-    d.extend([1, 1, 1, 0]); // colorModel RGBSDA, primaries BT709, transfer linear, flags straight
-    d.extend([0, 0, 0, 0]); // texelBlockDimension0..3 (stored minus one)
-    d.extend([(4 * type_size) as u8, 0, 0, 0, 0, 0, 0, 0]); // bytesPlane0..7
-    for (k, channel_id) in [0u8, 1, 2, 15].into_iter().enumerate() {
-        d.extend(((k as u32 * bits) as u16).to_le_bytes()); // bitOffset
-        d.push((bits - 1) as u8); // bitLength − 1
+    d.extend([model, 1, 1, 0]); // colorModel, primaries BT709, transfer linear, flags straight
+    d.extend(dims); // texelBlockDimension0..3 (stored minus one)
+    d.extend([bytes_plane as u8, 0, 0, 0, 0, 0, 0, 0]); // bytesPlane0..7
+    for (offset, len, channel_id) in samples {
+        d.extend((offset as u16).to_le_bytes()); // bitOffset
+        d.push((len - 1) as u8); // bitLength − 1
         d.push(channel_id | flags);
         d.extend([0, 0, 0, 0]); // samplePosition0..3
         d.extend(lower.to_le_bytes());
@@ -66,42 +92,63 @@ fn dfd(t: &Texels<'_>) -> Vec<u8> {
     d
 }
 
-/// Encodes one single-level texture: `Shape::Array(n)` with `n` images (layerCount = n), or
-/// `Shape::Cube` with 6 faces (faceCount = 6, layerCount = 0). The vkFormat follows the sample
-/// type of `images`: R8G8B8A8_UNORM, R8G8B8A8_SNORM, R16G16B16A16_UNORM or R32G32B32A32_SFLOAT.
+/// Writes `t` as KTX2: `Shape::Array(n)` as layerCount = n, `Shape::Cube` as faceCount = 6
+/// (layerCount 0); every level of `t`; with `zstd_level`, supercompressionScheme 2 (Zstandard),
+/// each level compressed on its own as KTX-Software's `ktxTexture2_DeflateZstd` does (level
+/// alignment then 1, the DFD unchanged, uncompressedByteLength the raw level size).
 ///
 /// # Errors
-/// [`crate::Error::Internal`] when the images do not fit `width × height` RGBA or `shape`.
-pub fn encode(width: usize, height: usize, shape: Shape, images: &[Texels<'_>]) -> Result<Vec<u8>> {
-    check_images(width, height, shape, images)?;
-    let first = &images[0];
-    let (vk_format, type_size, ..) = describe(first);
-    let (layer_count, face_count) = match shape {
+/// [`crate::Error::Internal`] when the levels do not fit the texture's size, or zstd fails.
+pub fn write(t: &Texture, zstd_level: Option<i32>) -> Result<Vec<u8>> {
+    t.check()?;
+    let (vk_format, type_size, ..) = describe(t.format);
+    let (layer_count, face_count) = match t.shape {
         Shape::Array(n) => (n, 1u32),
         Shape::Cube => (0, 6),
     };
-    let dfd = dfd(first);
+    let levels = t.levels.len();
+    let dfd = dfd(t.format);
     let header_len = 12 + 9 * 4 + 4 * 4 + 2 * 8;
-    let level_index_len = 3 * 8;
-    let dfd_offset = header_len + level_index_len;
-    let texel_bytes = 4 * type_size as usize;
-    // lcm(texel block size, 4): texel sizes here are 4, 8 or 16, all multiples of 4.
-    let align = texel_bytes;
-    let data_offset = (dfd_offset + dfd.len()).div_ceil(align) * align;
-    let data_len = images.iter().map(|i| i.len() * i.sample_bytes()).sum::<usize>();
-
-    let mut out = Vec::with_capacity(data_offset + data_len);
+    let dfd_offset = header_len + levels * 3 * 8;
+    // Raw level data: images in layer/face order, each level on its own.
+    let raw: Vec<Vec<u8>> = t.levels.iter().map(|l| l.concat()).collect();
+    // Each level compressed on its own (independent: side by side on rayon).
+    let compressed: Option<Vec<Vec<u8>>> = match zstd_level {
+        None => None,
+        Some(level) => Some(
+            raw.par_iter()
+                .map(|r| {
+                    zstd::bulk::compress(r, level)
+                        .map_err(|e| crate::Error::Internal(format!("zstd: {e}")))
+                })
+                .collect::<Result<Vec<_>>>()?,
+        ),
+    };
+    let (stored, align): (Vec<&[u8]>, usize) = match &compressed {
+        Some(c) => (c.iter().map(Vec::as_slice).collect(), 1),
+        None => (raw.iter().map(Vec::as_slice).collect(), t.format.block_bytes()),
+    };
+    // Levels are stored smallest first (KTX2 §3.9), each aligned to lcm(block size, 4) when not
+    // supercompressed (block sizes here are 4, 8 or 16: multiples of 4).
+    let mut offsets = vec![0usize; levels];
+    let mut end = dfd_offset + dfd.len();
+    for l in (0..levels).rev() {
+        end = end.div_ceil(align) * align;
+        offsets[l] = end;
+        end += stored[l].len();
+    }
+    let mut out = Vec::with_capacity(end);
     out.extend(IDENTIFIER);
     for v in [
         vk_format,
         type_size,
-        width as u32,
-        height as u32,
+        t.width as u32,
+        t.height as u32,
         0, // pixelDepth: 2D
         layer_count,
         face_count,
-        1, // levelCount
-        0, // supercompressionScheme: none
+        levels as u32,
+        if zstd_level.is_some() { SUPERCOMPRESSION_ZSTD } else { 0 },
     ] {
         out.extend(v.to_le_bytes());
     }
@@ -111,15 +158,27 @@ pub fn encode(width: usize, height: usize, shape: Shape, images: &[Texels<'_>]) 
     out.extend(0u32.to_le_bytes()); // kvdByteLength
     out.extend(0u64.to_le_bytes()); // sgdByteOffset
     out.extend(0u64.to_le_bytes()); // sgdByteLength
-    out.extend((data_offset as u64).to_le_bytes());
-    out.extend((data_len as u64).to_le_bytes());
-    out.extend((data_len as u64).to_le_bytes());
+    for l in 0..levels {
+        out.extend((offsets[l] as u64).to_le_bytes());
+        out.extend((stored[l].len() as u64).to_le_bytes());
+        out.extend((raw[l].len() as u64).to_le_bytes());
+    }
     out.extend(&dfd);
-    out.resize(data_offset, 0);
-    for img in images {
-        img.extend_le(&mut out);
+    for l in (0..levels).rev() {
+        out.resize(offsets[l], 0);
+        out.extend_from_slice(stored[l]);
     }
     Ok(out)
+}
+
+/// Encodes one single-level, uncompressed texture: `Shape::Array(n)` with `n` images, or
+/// `Shape::Cube` with 6 faces. The vkFormat follows the sample type of `images`:
+/// R8G8B8A8_UNORM, R8G8B8A8_SNORM, R16G16B16A16_UNORM or R32G32B32A32_SFLOAT.
+///
+/// # Errors
+/// [`crate::Error::Internal`] when the images do not fit `width × height` RGBA or `shape`.
+pub fn encode(width: usize, height: usize, shape: Shape, images: &[Texels<'_>]) -> Result<Vec<u8>> {
+    write(&Texture::single(width, height, shape, images)?, None)
 }
 
 #[cfg(test)]

@@ -1,4 +1,6 @@
-//! Output encoders: PNG 8/16-bit, OpenEXR f32, KTX2 and DDS array textures and cube maps.
+//! Output encoders: PNG 8/16-bit, OpenEXR f32, KTX2 and DDS array textures and cube maps, the
+//! latter with the SPEC §8 options ([`texture`]: mip chains from [`mips`], BC7/BC5 blocks from
+//! [`bcn`], KTX2 zstd supercompression, separate layers, legacy DDS headers).
 //!
 //! Encoders take finished, quantised buffers and return bytes; they never compute. Quantisation
 //! lives here too ([`quantize8`], [`quantize16`]) so every producer rounds the same way
@@ -8,15 +10,20 @@
 //! the service produce byte-identical outputs from one place; [`Formats`] says which files a
 //! caller asked for and which layer precisions the bake must therefore produce.
 
+pub mod bcn;
 pub mod dds;
 pub mod exr;
 pub mod ktx2;
+pub mod mips;
 pub mod png;
+pub mod texture;
 
 use crate::error::{Error, Result};
 use crate::layers::{HorizonLayers, Precisions};
 
 pub use crate::layers::{quantize16, quantize8};
+pub use mips::MipFilter;
+pub use texture::{DdsHeader, TextureLayout, TextureOptions, TexturePrecision};
 
 /// One image (a layer or a cube face) of RGBA texels, `width · height · 4` samples row-major from
 /// the top row, in one of the sample types the texture containers carry.
@@ -111,36 +118,6 @@ fn check_images(width: usize, height: usize, shape: Shape, images: &[Texels<'_>]
     Ok(())
 }
 
-/// Sample precision of the KTX2 and DDS horizon textures (`--texture-precision`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
-#[serde(rename_all = "lowercase")]
-pub enum TexturePrecision {
-    /// R8G8B8A8_UNORM (the default, the precision of `png8`).
-    Unorm8,
-    /// R16G16B16A16_UNORM.
-    Unorm16,
-    /// R32G32B32A32_SFLOAT.
-    Float32,
-}
-
-impl TexturePrecision {
-    /// Parses `unorm8`, `unorm16` or `float32`.
-    ///
-    /// # Errors
-    /// [`Error::Param`] naming `texture_precision`.
-    pub fn parse(value: &str) -> Result<Self> {
-        match value.trim().to_ascii_lowercase().as_str() {
-            "unorm8" => Ok(TexturePrecision::Unorm8),
-            "unorm16" => Ok(TexturePrecision::Unorm16),
-            "float32" => Ok(TexturePrecision::Float32),
-            _ => Err(Error::param(
-                "texture_precision",
-                format!("`{value}` is not one of unorm8, unorm16, float32"),
-            )),
-        }
-    }
-}
-
 /// Which horizon files to write (SPEC §6 `--format`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
 pub struct Formats {
@@ -149,8 +126,10 @@ pub struct Formats {
     pub exr: bool,
     pub ktx2: bool,
     pub dds: bool,
-    /// Precision of `horizon.ktx2` / `horizon.dds`.
-    pub texture_precision: TexturePrecision,
+    /// Precision, mips, supercompression, layout and DDS header of the KTX2/DDS files
+    /// (serialised as their own keys: `texture_precision`, `mips`, …).
+    #[serde(flatten)]
+    pub texture: TextureOptions,
     /// Sample type of `horizon_0.exr` / `horizon_1.exr` (float unless asked otherwise).
     pub exr_precision: exr::ExrPrecision,
 }
@@ -163,7 +142,7 @@ impl Default for Formats {
             exr: false,
             ktx2: false,
             dds: false,
-            texture_precision: TexturePrecision::Unorm8,
+            texture: TextureOptions::default(),
             exr_precision: exr::ExrPrecision::Float,
         }
     }
@@ -184,7 +163,7 @@ impl Formats {
             exr: false,
             ktx2: false,
             dds: false,
-            texture_precision,
+            texture: TextureOptions { precision: texture_precision, ..Default::default() },
             exr_precision: exr::ExrPrecision::Float,
         };
         for part in list.split(',').map(str::trim).filter(|p| !p.is_empty()) {
@@ -219,9 +198,13 @@ impl Formats {
 
     /// The layer precisions a bake must produce for these files.
     pub fn precisions(&self) -> Precisions {
-        let tex = (self.ktx2 || self.dds).then_some(self.texture_precision);
+        let tex = (self.ktx2 || self.dds).then_some(self.texture.precision);
+        let eight = matches!(
+            tex,
+            Some(TexturePrecision::Unorm8 | TexturePrecision::Bc7 | TexturePrecision::Bc5)
+        );
         Precisions {
-            u8: self.png8 || tex == Some(TexturePrecision::Unorm8),
+            u8: self.png8 || eight,
             u16: self.png16 || tex == Some(TexturePrecision::Unorm16),
             f32: self.exr || tex == Some(TexturePrecision::Float32),
         }
@@ -240,14 +223,34 @@ fn missing(what: &str) -> Error {
     Error::Internal(format!("the bake did not produce the {what} layers an output needs"))
 }
 
-/// Encodes the horizon layers into the files `formats` asks for (SPEC §6): `horizon_0.png` and
-/// `horizon_1.png` (8- or 16-bit RGBA), `horizon_0.exr` and `horizon_1.exr` (f32 RGBA),
-/// `horizon.ktx2` and `horizon.dds` (one 2-layer array texture).
+/// File names of the `separate` layout (SPEC §8): one 2D texture per layer, 2 or 4 (`bc5`).
+const SEPARATE_KTX2: [&str; 4] =
+    ["horizon_0.ktx2", "horizon_1.ktx2", "horizon_2.ktx2", "horizon_3.ktx2"];
+const SEPARATE_DDS: [&str; 4] =
+    ["horizon_0.dds", "horizon_1.dds", "horizon_2.dds", "horizon_3.dds"];
+
+/// Encodes the horizon layers into the files `formats` asks for (SPEC §6, §8): `horizon_0.png`
+/// and `horizon_1.png` (8- or 16-bit RGBA), `horizon_0.exr` and `horizon_1.exr` (f32 RGBA),
+/// `horizon.ktx2` and `horizon.dds` (one array texture; `horizon_{i}.ktx2`/`.dds` per layer with
+/// `texture_layout=separate`).
 ///
 /// # Errors
 /// [`Error::Internal`] when `layers` lacks a precision `formats` needs (bake with
-/// [`Formats::precisions`]) or an encoder fails.
+/// [`Formats::precisions`]) or an encoder fails; [`Error::Param`] for texture options that
+/// cannot apply (see [`TextureOptions::check_for`]).
 pub fn horizon_files(layers: &HorizonLayers, formats: &Formats) -> Result<Vec<OutFile>> {
+    horizon_files_with(layers, formats, &crate::progress::Progress::new())
+}
+
+/// [`horizon_files`], checking `progress` for cancellation between texture levels and layers.
+///
+/// # Errors
+/// As [`horizon_files`], and [`Error::Canceled`].
+pub fn horizon_files_with(
+    layers: &HorizonLayers,
+    formats: &Formats,
+    progress: &crate::progress::Progress,
+) -> Result<Vec<OutFile>> {
     let (w, h) = (layers.width, layers.height);
     let mut out = Vec::new();
     if formats.png8 {
@@ -284,8 +287,12 @@ pub fn horizon_files(layers: &HorizonLayers, formats: &Formats) -> Result<Vec<Ou
         out.push(OutFile { name: "horizon_1.exr", bytes: b? });
     }
     if formats.ktx2 || formats.dds {
-        let images: [Texels<'_>; 2] = match formats.texture_precision {
-            TexturePrecision::Unorm8 => {
+        let opts = &formats.texture;
+        // The caller checked the options against every container it asked for (zstd is for
+        // KTX2 alone); a call per container (pipeline::encode_each) ignores the other's options.
+        opts.check_for(true, true, false)?;
+        let images: [Texels<'_>; 2] = match opts.precision {
+            TexturePrecision::Unorm8 | TexturePrecision::Bc7 | TexturePrecision::Bc5 => {
                 let l = layers.u8.as_ref().ok_or_else(|| missing("8-bit"))?;
                 [Texels::Unorm8(&l[0]), Texels::Unorm8(&l[1])]
             }
@@ -298,17 +305,19 @@ pub fn horizon_files(layers: &HorizonLayers, formats: &Formats) -> Result<Vec<Ou
                 [Texels::Float32(&l[0]), Texels::Float32(&l[1])]
             }
         };
+        let textures = texture::build(w, h, Shape::Array(2), &images, opts, progress)?;
+        let separate = opts.layout == TextureLayout::Separate;
         if formats.ktx2 {
-            out.push(OutFile {
-                name: "horizon.ktx2",
-                bytes: ktx2::encode(w, h, Shape::Array(2), &images)?,
-            });
+            for (i, t) in textures.iter().enumerate() {
+                let name = if separate { SEPARATE_KTX2[i] } else { "horizon.ktx2" };
+                out.push(OutFile { name, bytes: ktx2::write(t, opts.zstd_level)? });
+            }
         }
         if formats.dds {
-            out.push(OutFile {
-                name: "horizon.dds",
-                bytes: dds::encode(w, h, Shape::Array(2), &images)?,
-            });
+            for (i, t) in textures.iter().enumerate() {
+                let name = if separate { SEPARATE_DDS[i] } else { "horizon.dds" };
+                out.push(OutFile { name, bytes: dds::write(t, opts.dds_header)? });
+            }
         }
     }
     Ok(out)
@@ -351,12 +360,15 @@ pub struct CubeFormats {
     pub png8: bool,
     pub ktx2: bool,
     pub dds: bool,
+    /// Mips, supercompression and DDS header of `cubemap.ktx2`/`cubemap.dds` (SPEC §8; the
+    /// cube map stays RGBA8 SNORM in one cube texture).
+    pub texture: TextureOptions,
 }
 
 /// The cube-map files for face size `size`: PNG faces, KTX2 and DDS as `formats` asks.
 ///
 /// # Errors
-/// An encoder failure.
+/// [`Error::Param`] for texture options the cube map does not take; an encoder failure.
 pub fn cube_files(size: usize, formats: CubeFormats) -> Result<Vec<OutFile>> {
     const NAMES: [&str; 6] =
         ["cube_0.png", "cube_1.png", "cube_2.png", "cube_3.png", "cube_4.png", "cube_5.png"];
@@ -378,16 +390,20 @@ pub fn cube_files(size: usize, formats: CubeFormats) -> Result<Vec<OutFile>> {
     if formats.ktx2 || formats.dds {
         let snorm: Vec<i8> = factors.iter().map(|&f| crate::kernels::cubemap::snorm8(f)).collect();
         let faces: Vec<Texels<'_>> = snorm.chunks_exact(face_len).map(Texels::Snorm8).collect();
+        let opts = &formats.texture;
+        opts.check_for(formats.ktx2, formats.dds, true)?;
+        let progress = crate::progress::Progress::new();
+        let cube = texture::build(size, size, Shape::Cube, &faces, opts, &progress)?;
         if formats.ktx2 {
             out.push(OutFile {
                 name: "cubemap.ktx2",
-                bytes: ktx2::encode(size, size, Shape::Cube, &faces)?,
+                bytes: ktx2::write(&cube[0], opts.zstd_level)?,
             });
         }
         if formats.dds {
             out.push(OutFile {
                 name: "cubemap.dds",
-                bytes: dds::encode(size, size, Shape::Cube, &faces)?,
+                bytes: dds::write(&cube[0], opts.dds_header)?,
             });
         }
     }

@@ -8,7 +8,7 @@
 
 use crate::bake;
 use crate::encode::exr::ExrPrecision;
-use crate::encode::{Formats, TexturePrecision};
+use crate::encode::{Formats, TextureLayout, TextureOptions, TexturePrecision};
 use crate::error::{Error, Result};
 use crate::heightmap;
 use crate::heightmap::Limits;
@@ -43,17 +43,67 @@ pub const HORIZON_RESULTS: [&str; 10] = [
     "horizon.dds",
 ];
 
-/// The results one on-request encode produces together (both layers of a layered format).
-pub fn result_group(name: &str) -> Option<&'static [&'static str]> {
-    Some(match name {
+/// The results one on-request encode produces together (both layers of a layered format; every
+/// file of a `texture_layout=separate` texture variant).
+pub fn result_group(name: &str) -> Option<Vec<String>> {
+    let fixed: &[&str] = match name {
         "horizon_0.png8" | "horizon_1.png8" => &HORIZON_RESULTS[0..2],
         "horizon_0.png16" | "horizon_1.png16" => &HORIZON_RESULTS[2..4],
         "horizon_0.exr" | "horizon_1.exr" => &HORIZON_RESULTS[4..6],
         "horizon_0.half.exr" | "horizon_1.half.exr" => &HORIZON_RESULTS[6..8],
         "horizon.ktx2" => &HORIZON_RESULTS[8..9],
         "horizon.dds" => &HORIZON_RESULTS[9..10],
-        _ => return None,
-    })
+        _ => {
+            let (ext, opts) = texture_variant(name)?;
+            return Some(texture_group(ext, &opts));
+        }
+    };
+    Some(fixed.iter().map(|n| (*n).to_owned()).collect())
+}
+
+/// The result name of a texture variant (SPEC §8 options other than the defaults): the file
+/// name, then `?` and the options in canonical order, e.g.
+/// `horizon.ktx2?texture_precision=bc7&mips=full`; the defaults are `horizon.ktx2` itself.
+/// `layer` picks a file of the `separate` layout (`horizon_1.ktx2?texture_layout=separate`).
+pub fn texture_result_name(ext: &str, opts: &TextureOptions, layer: Option<usize>) -> String {
+    let file = match layer {
+        Some(i) => format!("horizon_{i}.{ext}"),
+        None => format!("horizon.{ext}"),
+    };
+    let pairs: Vec<String> = opts.pairs().into_iter().map(|(k, v)| format!("{k}={v}")).collect();
+    if pairs.is_empty() {
+        file
+    } else {
+        format!("{file}?{}", pairs.join("&"))
+    }
+}
+
+/// Every result name one encode of the texture variant `opts` produces.
+fn texture_group(ext: &str, opts: &TextureOptions) -> Vec<String> {
+    if opts.layout == TextureLayout::Separate {
+        let n = if opts.precision == TexturePrecision::Bc5 { 4 } else { 2 };
+        (0..n).map(|i| texture_result_name(ext, opts, Some(i))).collect()
+    } else {
+        vec![texture_result_name(ext, opts, None)]
+    }
+}
+
+/// The extension (`ktx2` or `dds`) and options of a texture variant's result name.
+fn texture_variant(name: &str) -> Option<(&'static str, TextureOptions)> {
+    let (file, query) = name.split_once('?').unwrap_or((name, ""));
+    let ext = if file.ends_with(".ktx2") {
+        "ktx2"
+    } else if file.ends_with(".dds") {
+        "dds"
+    } else {
+        return None;
+    };
+    let pairs =
+        query.split('&').filter(|p| !p.is_empty()).map(|p| p.split_once('=').unwrap_or((p, "")));
+    let opts = TextureOptions::from_pairs(pairs).ok()?;
+    (texture_result_name(ext, &opts, None) == name
+        || texture_group(ext, &opts).iter().any(|n| n == name))
+    .then_some((ext, opts))
 }
 
 /// Encodes the result group of `name` for the succeeded bake `rec` (on the calling thread: the
@@ -77,7 +127,7 @@ pub fn encode_on_request(
     let params = params_of(rec)?;
     let (map, _) =
         decode_input(st.0.jobs.blob_store().as_ref(), rec, &params, &st.0.config.limits)?;
-    let files: Vec<Vec<u8>> = match group[0] {
+    let files: Vec<Vec<u8>> = match group[0].as_str() {
         "horizon_0.png8" => {
             let (pngs, _) = crate::pipeline::stream_horizon_pngs::<u8, _>(
                 map,
@@ -98,13 +148,14 @@ pub fn encode_on_request(
         }
         first => {
             let half = first == "horizon_0.half.exr";
+            let texture = texture_variant(first);
             let formats = Formats {
                 png8: false,
                 png16: false,
                 exr: half || first == "horizon_0.exr",
-                ktx2: first == "horizon.ktx2",
-                dds: first == "horizon.dds",
-                texture_precision: TexturePrecision::Unorm8,
+                ktx2: texture.is_some_and(|(e, _)| e == "ktx2"),
+                dds: texture.is_some_and(|(e, _)| e == "dds"),
+                texture: texture.map(|(_, o)| o).unwrap_or_default(),
                 exr_precision: if half { ExrPrecision::Half } else { ExrPrecision::Float },
             };
             let (layers, _) = bake::bake_horizon(&map, &params, formats.precisions(), progress)?;
@@ -124,7 +175,7 @@ pub fn encode_on_request(
     let blobs = st.0.jobs.blobs_for(owner.clone());
     let mut stored = Vec::with_capacity(group.len());
     for (n, bytes) in group.iter().zip(&files) {
-        stored.push(((*n).to_owned(), blobs.put(bytes)?));
+        stored.push((n.clone(), blobs.put(bytes)?));
         st.0.metrics.encoded_on_request();
     }
     let added = st.0.jobs.block_on(st.0.jobs.add_results(&rec.id, &stored, &owner))?;

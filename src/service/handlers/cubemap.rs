@@ -57,6 +57,7 @@ pub(super) async fn cube_answer(
         &size.to_string(),
         &format!("{}{}{}", formats.png8, formats.ktx2, formats.dds),
         &pick.to_string(),
+        &formats.texture.pairs().iter().map(|(k, v)| format!("{k}={v}&")).collect::<String>(),
     ]);
     if etag_matches(headers, &etag) {
         let mut res = StatusCode::NOT_MODIFIED.into_response();
@@ -95,44 +96,52 @@ pub async fn cubemap_face(
         _ => return Err(Problem::param("face", format!("`{face}` is not a face index 0..5"))),
     };
     let size = cube_size(&st, &q)?;
-    let formats = CubeFormats { png8: true, ktx2: false, dds: false };
+    let formats = CubeFormats { png8: true, ..Default::default() };
     cube_answer(&st, &headers, size, formats, face, "image/png").await
 }
 
-/// `GET /v1/cubemap.ktx2?size=N`: the six faces as one RGBA8 SNORM cube map.
+/// The SPEC §8 options a cube-map texture takes (`mips`, `mip_filter`, `supercompression`,
+/// `zstd_level` for KTX2, `dds_header` for DDS) from the query.
+fn cube_texture(
+    q: &HashMap<String, String>,
+    ktx2: bool,
+) -> Result<crate::encode::TextureOptions, Problem> {
+    let keys: &[&str] = if ktx2 {
+        &["mips", "mip_filter", "supercompression", "zstd_level"]
+    } else {
+        &["mips", "mip_filter", "dds_header"]
+    };
+    let opts = crate::encode::TextureOptions::from_pairs(
+        keys.iter().filter_map(|k| q.get(*k).map(|v| (*k, v.as_str()))),
+    )?;
+    opts.check_for(ktx2, !ktx2, true)?;
+    Ok(opts)
+}
+
+/// `GET /v1/cubemap.ktx2?size=N`: the six faces as one RGBA8 SNORM cube map (with `mips`,
+/// `mip_filter`, `supercompression`, `zstd_level` as SPEC §8 says).
 pub async fn cubemap_ktx2(
     State(st): State<AppState>,
     Query(q): Query<Vec<(String, String)>>,
     headers: HeaderMap,
 ) -> Answer {
-    let q = known_query(q, &["size"])?;
+    let q = known_query(q, &["size", "mips", "mip_filter", "supercompression", "zstd_level"])?;
     let size = cube_size(&st, &q)?;
-    cube_answer(
-        &st,
-        &headers,
-        size,
-        CubeFormats { png8: false, ktx2: true, dds: false },
-        0,
-        KTX2_TYPE,
-    )
-    .await
+    let texture = cube_texture(&q, true)?;
+    let formats = CubeFormats { ktx2: true, texture, ..Default::default() };
+    cube_answer(&st, &headers, size, formats, 0, KTX2_TYPE).await
 }
 
-/// `GET /v1/cubemap.dds?size=N`: the six faces as one RGBA8 SNORM DDS cube map.
+/// `GET /v1/cubemap.dds?size=N`: the six faces as one RGBA8 SNORM DDS cube map (with `mips`,
+/// `mip_filter`, `dds_header`).
 pub async fn cubemap_dds(
     State(st): State<AppState>,
     Query(q): Query<Vec<(String, String)>>,
     headers: HeaderMap,
 ) -> Answer {
-    let q = known_query(q, &["size"])?;
+    let q = known_query(q, &["size", "mips", "mip_filter", "dds_header"])?;
     let size = cube_size(&st, &q)?;
-    cube_answer(
-        &st,
-        &headers,
-        size,
-        CubeFormats { png8: false, ktx2: false, dds: true },
-        0,
-        DDS_TYPE,
-    )
-    .await
+    let texture = cube_texture(&q, false)?;
+    let formats = CubeFormats { dds: true, texture, ..Default::default() };
+    cube_answer(&st, &headers, size, formats, 0, DDS_TYPE).await
 }

@@ -216,16 +216,54 @@ pub(super) async fn horizon_texture(
     name: &'static str,
     content_type: &'static str,
 ) -> Answer {
-    known_query(q, &[])?;
+    let mut keys = crate::encode::texture::OPTION_KEYS.to_vec();
+    keys.push("layer");
+    let mut q = known_query(q, &keys)?;
+    let (ext, is_ktx2) = if name.ends_with(".ktx2") { ("ktx2", true) } else { ("dds", false) };
+    // SPEC §8 delivery options: each variant is one more result of the same bake.
+    let layer = q.remove("layer");
+    let opts = crate::encode::TextureOptions::from_pairs(
+        keys.iter().filter_map(|k| q.get(*k).map(|v| (*k, v.as_str()))),
+    )?;
+    opts.check_for(is_ktx2, !is_ktx2, false)?;
+    let separate = opts.layout == crate::encode::TextureLayout::Separate;
+    let layer = match (layer, separate) {
+        (None, false) => None,
+        (Some(_), false) => {
+            return Err(Problem::param("layer", "applies only with texture_layout=separate"))
+        }
+        (None, true) => {
+            return Err(Problem::param("layer", "texture_layout=separate needs layer=0, 1, …"))
+        }
+        (Some(v), true) => {
+            let n = if opts.precision == crate::encode::TexturePrecision::Bc5 { 4 } else { 2 };
+            match v.parse::<usize>() {
+                Ok(i) if i < n && v.len() == 1 => Some(i),
+                _ => {
+                    return Err(Problem::param(
+                        "layer",
+                        format!("`{v}` is not a layer 0..{}", n - 1),
+                    ))
+                }
+            }
+        }
+    };
     let rec = finished(&st, &id).await?;
     if !params_of(&rec).is_ok_and(|p| p.outputs.horizon) {
         return Err(not_produced(&id, "horizon"));
     }
-    let hash = result_hash(&st, rec, name).await?;
-    blob_response(&st, &headers, &hash, content_type, name).await
+    let result = worker::texture_result_name(ext, &opts, layer);
+    let hash = result_hash(&st, rec, &result).await?;
+    let file = match layer {
+        Some(i) => format!("horizon_{i}.{ext}"),
+        None => name.to_owned(),
+    };
+    blob_response(&st, &headers, &hash, content_type, &file).await
 }
 
-/// `GET /v1/bakes/{id}/horizon.ktx2`: both layers as one 2-layer RGBA8 UNORM array texture.
+/// `GET /v1/bakes/{id}/horizon.ktx2`: both layers as one 2-layer RGBA8 UNORM array texture, or
+/// the variant the SPEC §8 query parameters ask for (`texture_precision`, `mips`, `mip_filter`,
+/// `supercompression`, `zstd_level`, `texture_layout` with `layer`).
 pub async fn horizon_ktx2(
     State(st): State<AppState>,
     Path(id): Path<String>,
@@ -235,7 +273,9 @@ pub async fn horizon_ktx2(
     horizon_texture(st, id, q, headers, "horizon.ktx2", KTX2_TYPE).await
 }
 
-/// `GET /v1/bakes/{id}/horizon.dds`: both layers as one DX10 2-element RGBA8 UNORM array.
+/// `GET /v1/bakes/{id}/horizon.dds`: both layers as one DX10 2-element RGBA8 UNORM array, or
+/// the variant the SPEC §8 query parameters ask for (as `.ktx2`, with `dds_header` instead of
+/// supercompression).
 pub async fn horizon_dds(
     State(st): State<AppState>,
     Path(id): Path<String>,

@@ -1,0 +1,143 @@
+//! SPEC §8 texture variants over HTTP (issue 21): query parameters of the existing texture
+//! routes, not bake identity. Each variant answers the bytes the CLI writes for the same
+//! options, is encoded once and kept (a second request answers the stored blob, same ETag), and
+//! an option that cannot apply is a 422 naming it.
+
+mod service_common;
+
+use horizon_bake::bake::{self, Precisions};
+use horizon_bake::encode::{self, CubeFormats, Formats, TextureOptions, TexturePrecision};
+use horizon_bake::heightmap::{self, Limits};
+use horizon_bake::params::BakeParams;
+use horizon_bake::progress::Progress;
+use serde_json::Value;
+use service_common::*;
+use std::time::Duration;
+
+/// The CLI's file `name` for `png`, `pairs` and the texture options of `query`.
+fn cli_file(
+    png: &[u8],
+    pairs: &[(&str, &str)],
+    list: &str,
+    query: &[(&str, &str)],
+    name: &str,
+) -> Vec<u8> {
+    let params = BakeParams::from_pairs(pairs.iter().copied()).unwrap();
+    let (map, _) = heightmap::decode(png, params.channel, &Limits::default()).unwrap();
+    let (layers, _) = bake::bake_horizon(&map, &params, Precisions::ALL, &Progress::new()).unwrap();
+    let mut f = Formats::parse(list, TexturePrecision::Unorm8).unwrap();
+    f.texture = TextureOptions::from_pairs(query.iter().copied()).unwrap();
+    let files = encode::horizon_files(&layers, &f).unwrap();
+    files.into_iter().find(|f| f.name == name).unwrap_or_else(|| panic!("{name}")).bytes
+}
+
+/// `horizon_results_encoded_total` of the server's /metrics.
+async fn encoded(c: &reqwest::Client, srv: &Server) -> u64 {
+    let text = c.get(srv.url("/metrics")).send().await.unwrap().text().await.unwrap();
+    let line = text.lines().find(|l| l.starts_with("horizon_results_encoded_total ")).unwrap();
+    line.rsplit(' ').next().unwrap().parse().unwrap()
+}
+
+fn query(pairs: &[(&str, &str)]) -> String {
+    pairs.iter().map(|(k, v)| format!("{k}={v}")).collect::<Vec<_>>().join("&")
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn texture_variants_are_query_parameters_encoded_once() {
+    let srv = Server::start(|_| {}).await;
+    let c = client();
+    let png = terrain_png16(40, 28, 3);
+    let pairs = [("radius", "6"), ("height_scale", "10")];
+    let res = c
+        .post(srv.url(&format!("/v1/bakes?{}", query(&pairs))))
+        .header("content-type", "image/png")
+        .body(png.clone())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(res.status(), 202);
+    let loc = res.headers()["location"].to_str().unwrap().to_owned();
+    let done = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+
+    let bc7 = [("texture_precision", "bc7"), ("mips", "full"), ("supercompression", "zstd")];
+    let bc5 = [
+        ("texture_precision", "bc5"),
+        ("texture_layout", "separate"),
+        ("dds_header", "legacy"),
+        ("mips", "full"),
+        ("mip_filter", "max"),
+    ];
+    // Files encoded on request: one per variant, four for the separate BC5 one (all its layers
+    // come from one encode), none on the repeated requests.
+    for (route, opts, extra, list, name, files) in [
+        ("horizon.ktx2", &bc7[..], "", "ktx2", "horizon.ktx2", 1),
+        ("horizon.dds", &bc5[..], "&layer=3", "dds", "horizon_3.dds", 4),
+        ("horizon.dds", &bc5[..], "&layer=1", "dds", "horizon_1.dds", 0),
+        ("horizon.ktx2", &[][..], "", "ktx2", "horizon.ktx2", 1),
+    ] {
+        let before = encoded(&c, &srv).await;
+        let url = srv.url(&format!("{loc}/{route}?{}{extra}", query(opts)));
+        let first = c.get(&url).send().await.unwrap();
+        assert_eq!(first.status(), 200, "{url}");
+        let etag = first.headers()["etag"].to_str().unwrap().to_owned();
+        let bytes = first.bytes().await.unwrap();
+        assert_eq!(
+            &bytes[..],
+            &cli_file(&png, &pairs, list, opts, name)[..],
+            "{url}: the CLI's bytes"
+        );
+        let again = c.get(&url).send().await.unwrap();
+        assert_eq!(again.headers()["etag"].to_str().unwrap(), etag, "{url}: kept, not re-encoded");
+        assert_eq!(encoded(&c, &srv).await - before, files, "{url}: files encoded");
+    }
+    let v: Value = c.get(srv.url(&loc)).send().await.unwrap().json().await.unwrap();
+    let stored: Vec<&str> =
+        v["formats"]["stored"].as_array().unwrap().iter().map(|s| s.as_str().unwrap()).collect();
+    assert!(
+        stored.contains(&"horizon.ktx2?texture_precision=bc7&mips=full&supercompression=zstd"),
+        "{stored:?}"
+    );
+    // One encode made all four files of the separate BC5 variant.
+    let bc5_files = stored.iter().filter(|s| s.contains("texture_precision=bc5")).count();
+    assert_eq!(bc5_files, 4, "{stored:?}");
+
+    for (route, q, field) in [
+        ("horizon.dds", "supercompression=zstd", "supercompression"),
+        ("horizon.ktx2", "texture_layout=separate", "layer"),
+        ("horizon.ktx2", "layer=0", "layer"),
+        ("horizon.ktx2", "texture_layout=separate&layer=2", "layer"),
+        ("horizon.dds", "dds_header=legacy", "dds_header"),
+        ("horizon.ktx2", "mip_filter=min", "mip_filter"),
+        ("horizon.ktx2", "texture_precision=bc1", "texture_precision"),
+        ("horizon.ktx2", "supercompression=zstd&zstd_level=30", "zstd_level"),
+    ] {
+        let res = c.get(srv.url(&format!("{loc}/{route}?{q}"))).send().await.unwrap();
+        assert_eq!(res.status(), 422, "{route}?{q}");
+        let p: Value = res.json().await.unwrap();
+        assert!(
+            p["detail"].as_str().unwrap_or_default().contains(field) || p["field"] == field,
+            "{route}?{q}: {p}"
+        );
+    }
+
+    // The cube map takes mips (and zstd for KTX2, the legacy header for DDS).
+    let url = srv.url("/v1/cubemap.ktx2?size=8&mips=full&supercompression=zstd");
+    let res = c.get(&url).send().await.unwrap();
+    assert_eq!(res.status(), 200);
+    let texture =
+        TextureOptions::from_pairs([("mips", "full"), ("supercompression", "zstd")]).unwrap();
+    let want =
+        encode::cube_files(8, CubeFormats { ktx2: true, texture, ..Default::default() }).unwrap();
+    assert_eq!(&res.bytes().await.unwrap()[..], &want[0].bytes[..]);
+    let res =
+        c.get(srv.url("/v1/cubemap.dds?size=8&mips=full&dds_header=legacy")).send().await.unwrap();
+    assert_eq!(res.status(), 200);
+    let res = c.get(srv.url("/v1/cubemap.dds?supercompression=zstd")).send().await.unwrap();
+    assert_eq!(
+        res.status(),
+        200,
+        "a KTX2-only key on the DDS route is ignored like any unknown key"
+    );
+    srv.stop().await;
+}
