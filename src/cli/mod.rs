@@ -7,6 +7,7 @@ pub mod bake;
 pub mod cubemap;
 pub mod eval;
 pub mod preview;
+pub mod profile;
 pub mod serve;
 
 use clap::{Parser, Subcommand};
@@ -32,6 +33,8 @@ pub enum Command {
     Preview(preview::PreviewArgs),
     /// Measure accuracy against the exact ground truth, beside the time (SPEC §4).
     Eval(eval::EvalArgs),
+    /// Print the exact horizon profile at one point (CSV, or JSON with --json).
+    Profile(profile::ProfileArgs),
 }
 
 /// Runs a parsed command line.
@@ -45,5 +48,6 @@ pub fn run(cli: Cli) -> crate::Result<()> {
         Command::Cubemap(a) => cubemap::run(a),
         Command::Preview(a) => preview::run(a),
         Command::Eval(a) => eval::run(a),
+        Command::Profile(a) => profile::run(a),
     }
 }

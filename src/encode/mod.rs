@@ -10,6 +10,7 @@
 
 pub mod dds;
 pub mod exr;
+pub mod geotiff;
 pub mod ktx2;
 pub mod png;
 

@@ -125,6 +125,9 @@ struct Ray {
     dy: f64,
     h0: f64,
     s_end: f64,
+    /// Earth-curvature drop per texel² (texels): a point at arc length s is lowered by
+    /// `curv`·s² (0: flat earth).
+    curv: f64,
 }
 
 impl Ray {
@@ -150,7 +153,7 @@ impl Ray {
                 radius.map_or(e, |r| r.min(e))
             }
         };
-        Ray { x0, y0, dx, dy, h0, s_end }
+        Ray { x0, y0, dx, dy, h0, s_end, curv: 0.0 }
     }
 
     /// The first cell: texel (x0, y0) is one of its corners, chosen so the ray enters it.
@@ -214,9 +217,12 @@ fn cell_max(
     let bxy = k[3] - k[1] - k[2] + k[0];
     // h(t) = d0 + d1 t + d2 t² along the segment.
     let d0 = k[0] + bx * fx + by * fy + bxy * fx * fy;
-    let d1 = bx * dx + by * dy + bxy * (fx * dy + fy * dx);
-    let d2 = bxy * dx * dy;
-    let a = if first { 0.0 } else { d0 - ray.h0 };
+    // The curvature drop c·(s_a + t)² keeps h a quadratic in t (SPEC §3.7): it moves the
+    // coefficients, so the closed form below stays exact.
+    let c = ray.curv;
+    let d1 = bx * dx + by * dy + bxy * (fx * dy + fy * dx) - 2.0 * c * s_a;
+    let d2 = bxy * dx * dy - c;
+    let a = if first { 0.0 } else { d0 - ray.h0 - c * s_a * s_a };
     let s_b = s_a + len;
     let mut best =
         if s_b > 0.0 { ((a + (d1 + d2 * len) * len) / s_b, s_b) } else { (f64::NEG_INFINITY, 0.0) };
@@ -1086,6 +1092,8 @@ pub struct ExactHorizon<'a> {
     cols: Vec<u32>,
     rows: Vec<u32>,
     near: Near,
+    /// Earth-curvature drop per texel² (see [`ExactHorizon::with_curvature`]).
+    curv: f64,
 }
 
 impl<'a> ExactHorizon<'a> {
@@ -1139,7 +1147,23 @@ impl<'a> ExactHorizon<'a> {
             cols,
             rows,
             near,
+            curv: 0.0,
         }
+    }
+
+    /// Lowers a point at arc length s by `curv`·s² texels (the earth's curvature, SPEC §3.7:
+    /// `curv` = cell_size² · height_scale / (2 R_e)). The drop only lowers the surface, so the
+    /// pyramid's skips stay conservative; rays then take the scalar cell walk from the start
+    /// (the vectorised near field has no curvature term), still exact.
+    pub fn with_curvature(mut self, curv: f64) -> Self {
+        self.curv = if curv.is_finite() && curv > 0.0 { curv } else { 0.0 };
+        self
+    }
+
+    fn ray(&self, x: usize, y: usize, dx: f64, dy: f64) -> Ray {
+        let mut ray = Ray::new(&self.grid, x, y, dx, dy, self.radius);
+        ray.curv = self.curv;
+        ray
     }
 
     /// The accelerated walk of one ray from arc length `start`, where `seed` is a value of the
@@ -1178,7 +1202,7 @@ impl<'a> ExactHorizon<'a> {
         assert!(x < self.grid.width && y < self.grid.height, "texel outside the grid");
         assert!(phi.is_finite(), "azimuth must be finite");
         let (dx, dy) = direction(phi, self.grid.row_step());
-        let ray = Ray::new(&self.grid, x, y, dx, dy, self.radius);
+        let ray = self.ray(x, y, dx, dy);
         sin_of_tan(self.walk(&ray, 0.0, 0.0).0)
     }
 
@@ -1186,7 +1210,7 @@ impl<'a> ExactHorizon<'a> {
     /// vectorised path is [`HorizonRows::rows`]).
     pub fn texel_bins(&self, x: usize, y: usize, s: &mut [f32]) {
         for (o, &(dx, dy)) in s.iter_mut().zip(&self.dirs) {
-            let ray = Ray::new(&self.grid, x, y, dx, dy, self.radius);
+            let ray = self.ray(x, y, dx, dy);
             *o = sin_of_tan(self.walk(&ray, 0.0, 0.0).0) as f32;
         }
     }
@@ -1205,6 +1229,21 @@ impl HorizonRows for ExactHorizon<'_> {
     fn rows(&self, y0: usize, channels: &mut [f32], mut bins_out: Option<&mut [f32]>) {
         let (w, nb) = (self.grid.width, self.dirs.len());
         let n_rows = channels.len() / (w * 8);
+        if self.curv > 0.0 {
+            // With the curvature drop: the scalar exact walk for every ray.
+            let mut s = vec![0.0f32; nb];
+            for (k, out) in channels.chunks_exact_mut(8).enumerate() {
+                if k % w == 0 && self.progress.as_ref().is_some_and(Progress::is_canceled) {
+                    return;
+                }
+                self.texel_bins(k % w, y0 + k / w, &mut s);
+                reduce_into(self.reduce, &s, out);
+                if let Some(bo) = bins_out.as_deref_mut() {
+                    bo[k * nb..(k + 1) * nb].copy_from_slice(&s);
+                }
+            }
+            return;
+        }
         // Per strip: LANES texels × bins values, texel-major.
         let mut strip = vec![0.0f32; LANES * nb];
         let near = &self.near;
