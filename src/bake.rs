@@ -81,6 +81,19 @@ pub fn make_kernel<'a>(
     radius: u32,
     progress: &Progress,
 ) -> Box<dyn HorizonRows + 'a> {
+    make_kernel_for(params, grid, radius, progress, None)
+}
+
+/// [`make_kernel`] for a map with nodata `holes`: `exact` skips the cells that touch a hole
+/// exactly (SPEC §2); the other methods see the holes' fill far below the map
+/// ([`crate::heightmap::HOLE_DEPTH`]). Outputs at holes are masked by the callers.
+pub fn make_kernel_for<'a>(
+    params: &BakeParams,
+    grid: Grid<'a>,
+    radius: u32,
+    progress: &Progress,
+    holes: Option<&'a [bool]>,
+) -> Box<dyn HorizonRows + 'a> {
     match params.method {
         Method::Lengyel => Box::new(
             kernels::lengyel_fast::LengyelFast::new(grid, radius, params.bins)
@@ -94,7 +107,8 @@ pub fn make_kernel<'a>(
             Box::new(
                 kernels::exact::ExactHorizon::new(grid, r, params.bins, params.reduce)
                     .with_cancel(progress)
-                    .with_curvature(curvature(params)),
+                    .with_curvature(curvature(params))
+                    .with_holes(holes),
             )
         }
         // `unlimited` is max(W, H) texels here, as for Lengyel: a march's cost grows with R.
@@ -180,7 +194,8 @@ pub fn bake_horizon(
     check_scaled(&heights)?;
     let radius = resolve_radius(params, map.width, map.height, &heights);
     let grid = Grid::new(map.width, map.height, &heights, params.edge, params.y_axis);
-    let kernel = make_kernel(params, grid, radius.texels, progress);
+    let kernel =
+        make_kernel_for(params, grid, radius.texels, progress, map.terrain.holes.as_deref());
     let kernel = masked(kernel, map.terrain.holes.as_deref());
     progress.start(Stage::Bake, map.height as u64);
     let layers = run_into_layers(kernel.as_ref(), params.encoding, precisions, progress)?;
@@ -306,7 +321,7 @@ where
     let heights = map.into_scaled(params.height_scale);
     let radius = resolve_radius(params, w, h, &heights);
     let grid = Grid::new(w, h, &heights, params.edge, params.y_axis);
-    let kernel = make_kernel(params, grid, radius.texels, progress);
+    let kernel = make_kernel_for(params, grid, radius.texels, progress, holes.as_deref());
     let kernel = masked(kernel, holes.as_deref());
     progress.start(Stage::Bake, h as u64);
     stream_rows(kernel.as_ref(), params.encoding, progress, sink)?;
@@ -484,7 +499,8 @@ pub fn bake_fourier(
     check_scaled(&heights)?;
     let radius = resolve_radius(params, map.width, map.height, &heights);
     let grid = Grid::new(map.width, map.height, &heights, params.edge, params.y_axis);
-    let kernel = make_kernel(params, grid, radius.texels, progress);
+    let kernel =
+        make_kernel_for(params, grid, radius.texels, progress, map.terrain.holes.as_deref());
     let kernel = masked(kernel, map.terrain.holes.as_deref());
     let (w, h, nb) = (kernel.width(), kernel.height(), kernel.bins());
     let terms = params.fourier_terms as usize;
@@ -561,7 +577,8 @@ pub fn bake_terrain(
     check_scaled(&heights)?;
     let radius = resolve_radius(params, w, h, &heights);
     let grid = Grid::new(w, h, &heights, params.edge, params.y_axis);
-    let kernel = make_kernel(params, grid, radius.texels, progress);
+    let kernel =
+        make_kernel_for(params, grid, radius.texels, progress, map.terrain.holes.as_deref());
     if kernel.bins() != nb {
         return Err(crate::Error::param(
             "bins",
@@ -638,7 +655,8 @@ pub fn horizon_profile(
     let r = (params.radius != Radius::Unlimited || params.max_distance.is_some())
         .then_some(radius.texels);
     let k = kernels::exact::ExactHorizon::new(grid, r, 16, crate::params::Reduce::Point)
-        .with_curvature(curvature(params));
+        .with_curvature(curvature(params))
+        .with_holes(map.terrain.holes.as_deref());
     Ok(crate::terrain::profile::profile(bins, params.azimuth_from, params.y_axis, |phi| {
         k.horizon_sin(x, y, phi)
     }))

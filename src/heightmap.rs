@@ -8,12 +8,12 @@
 //!
 //! A GeoTIFF DEM ([`georef`]) keeps its samples as they are (metres, any sample type) and carries
 //! its georeferencing and nodata holes in [`Terrain`] to the bake and the GeoTIFF writer.
-//! Holes (SPEC §2 "Nodata") are filled here with a height far below the map,
-//! [`HOLE_DEPTH`] × the map's height range under its lowest texel: a bilinear cell with a hole
-//! corner then lies below every observer except within 1/[`HOLE_DEPTH`] of a texel width of its
-//! valid edges, so a hole occludes nothing and rays pass over it; every output of a hole texel
-//! is masked to nodata by the bake. (A pragmatic reading of "cells touching a hole are not
-//! surface", tested against a reference that skips those cells exactly.)
+//! Holes (SPEC §2 "Nodata") are marked in [`Terrain::holes`] and filled here with a height far
+//! below the map, [`HOLE_DEPTH`] × the map's height range under its lowest texel. `exact` skips
+//! the cells touching a hole outright (see `kernels::exact`); for the other kernels the fill makes
+//! a cell with a hole corner lie below every observer except within about 1/[`HOLE_DEPTH`] of a
+//! texel of its valid edges, so a hole occludes nothing. Every output of a hole texel is masked
+//! to nodata by the bake.
 
 pub mod georef;
 

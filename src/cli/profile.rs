@@ -22,7 +22,7 @@ pub struct ProfileArgs {
     #[arg(long)]
     pub json: bool,
     /// The bake parameters (method is always exact; `--bins` is the profile's azimuth count,
-    /// default 360, any 1..3600).
+    /// default 360, any 1..3600; `--radius` defaults to unlimited).
     #[command(flatten)]
     pub params: Box<ParamFlags>,
 }
@@ -47,6 +47,10 @@ pub fn run(args: ProfileArgs) -> Result<()> {
     };
     if !(1..=3600).contains(&bins) {
         return Err(Error::param("bins", "must be between 1 and 3600 for a profile"));
+    }
+    // A profile looks to the edge of the map unless told otherwise (as PVGIS's does).
+    if flags.radius.is_none() && flags.max_distance.is_none() {
+        flags.radius = Some("unlimited".into());
     }
     let mut params = flags.params()?;
     if params.method != crate::params::Method::Exact {
@@ -75,13 +79,7 @@ pub fn run(args: ProfileArgs) -> Result<()> {
             format!("({x}, {y}) is outside the {}×{} map", map.width, map.height),
         ));
     }
-    let p = crate::bake::horizon_profile(
-        &map,
-        &params,
-        xr as usize,
-        yr as usize,
-        bins as usize,
-    )?;
+    let p = crate::bake::horizon_profile(&map, &params, xr as usize, yr as usize, bins as usize)?;
     let text = if args.json {
         let v = serde_json::json!({
             "x": xr, "y": yr,

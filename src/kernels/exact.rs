@@ -229,6 +229,13 @@ fn cell_max(
     if first && d1 > best.0 {
         best = (d1, 0.0);
     }
+    // The entry point is the previous cell's exit and was analysed there, unless that cell was
+    // skipped: a cell that cannot beat the best value (its exit cannot either), or a cell
+    // touching a nodata hole, which is no surface while this cell's edge is. Only the second
+    // needs it, at one division per cell.
+    if s_a > 0.0 && a / s_a > best.0 {
+        best = (a / s_a, s_a);
+    }
     if d2 != 0.0 {
         // Interior critical point: (s_a + t)² = s_a² − (d1·s_a − a)/d2.
         let q = s_a * s_a - (d1 * s_a - a) / d2;
@@ -1094,6 +1101,8 @@ pub struct ExactHorizon<'a> {
     near: Near,
     /// Earth-curvature drop per texel² (see [`ExactHorizon::with_curvature`]).
     curv: f64,
+    /// Nodata holes (see [`ExactHorizon::with_holes`]).
+    holes: Option<&'a [bool]>,
 }
 
 impl<'a> ExactHorizon<'a> {
@@ -1148,7 +1157,18 @@ impl<'a> ExactHorizon<'a> {
             rows,
             near,
             curv: 0.0,
+            holes: None,
         }
+    }
+
+    /// Treats the cells that touch a hole texel (`holes[row · W + col]`) as no surface (SPEC §2
+    /// "Nodata"): a ray passes over them and they occlude nothing, the slope at s → 0 included.
+    /// Such a cell is skipped whole by the walk, exactly as a cell that cannot beat the best
+    /// value is; the pyramid's block maxima stay upper bounds of what is left. Rays then take
+    /// the scalar walk from the start, as with the curvature.
+    pub fn with_holes(mut self, holes: Option<&'a [bool]>) -> Self {
+        self.holes = holes.filter(|h| h.len() == self.grid.width * self.grid.height);
+        self
     }
 
     /// Lowers a point at arc length s by `curv`·s² texels (the earth's curvature, SPEC §3.7:
@@ -1173,15 +1193,17 @@ impl<'a> ExactHorizon<'a> {
     fn walk(&self, ray: &Ray, start: f64, seed: f64) -> (f64, f64) {
         let hs = self.grid.heights;
         let (cols, rows, lo) = (&self.cols[..], &self.rows[..], self.lo);
+        let holes = self.holes;
         let corners = |cx: i64, cy: i64| {
             let (i, j) = ((cx - lo) as usize, (cy - lo) as usize);
             let (c0, c1, r0, r1) = (cols[i], cols[i + 1], rows[j], rows[j + 1]);
-            [
-                hs[(r0 + c0) as usize] as f64,
-                hs[(r0 + c1) as usize] as f64,
-                hs[(r1 + c0) as usize] as f64,
-                hs[(r1 + c1) as usize] as f64,
-            ]
+            let k =
+                [(r0 + c0) as usize, (r0 + c1) as usize, (r1 + c0) as usize, (r1 + c1) as usize];
+            if holes.is_some_and(|m| k.iter().any(|&t| m[t])) {
+                // No surface: below everything, so the walk skips the cell.
+                return [f64::NEG_INFINITY; 4];
+            }
+            k.map(|t| hs[t] as f64)
         };
         walk(&self.grid, ray, Some((&self.pyramid, self.hmax)), (seed, 0.0), start, corners)
     }
@@ -1229,8 +1251,8 @@ impl HorizonRows for ExactHorizon<'_> {
     fn rows(&self, y0: usize, channels: &mut [f32], mut bins_out: Option<&mut [f32]>) {
         let (w, nb) = (self.grid.width, self.dirs.len());
         let n_rows = channels.len() / (w * 8);
-        if self.curv > 0.0 {
-            // With the curvature drop: the scalar exact walk for every ray.
+        if self.curv > 0.0 || self.holes.is_some() {
+            // With the curvature drop or holes: the scalar exact walk for every ray.
             let mut s = vec![0.0f32; nb];
             for (k, out) in channels.chunks_exact_mut(8).enumerate() {
                 if k % w == 0 && self.progress.as_ref().is_some_and(Progress::is_canceled) {
