@@ -661,3 +661,59 @@ pub fn horizon_profile(
         k.horizon_sin(x, y, phi)
     }))
 }
+
+/// The sun shadow of every texel (SPEC §3.7): [`crate::terrain::shadow::LIT`] where the sun at
+/// `azimuth_deg` (counted as `params.azimuth_from` says) and `elevation_deg` stands above the
+/// exact horizon at its own azimuth, with the bake's radius, edge, curvature and holes (holes:
+/// [`crate::terrain::shadow::NODATA`]). One exact ray per texel, whatever `params.method`.
+///
+/// # Errors
+/// [`crate::Error::Canceled`] when `progress` is canceled.
+pub fn shadow(
+    map: &HeightMap,
+    params: &BakeParams,
+    azimuth_deg: f64,
+    elevation_deg: f64,
+    progress: &Progress,
+) -> Result<Vec<u8>> {
+    use crate::terrain::shadow::{lit, LIT, NODATA, SHADOW};
+    use rayon::prelude::*;
+    let (w, h) = (map.width, map.height);
+    let holes = map.terrain.holes.as_deref();
+    let mut out = vec![SHADOW; w * h];
+    if let Some(m) = holes {
+        for (o, &hole) in out.iter_mut().zip(m) {
+            if hole {
+                *o = NODATA;
+            }
+        }
+    }
+    if elevation_deg <= 0.0 {
+        return Ok(out);
+    }
+    let heights = map.scaled(params.height_scale);
+    check_scaled(&heights)?;
+    let radius = resolve_radius(params, w, h, &heights);
+    let grid = Grid::new(w, h, &heights, params.edge, params.y_axis);
+    let r = (params.radius != Radius::Unlimited || params.max_distance.is_some())
+        .then_some(radius.texels);
+    let k = kernels::exact::ExactHorizon::new(grid, r, 16, crate::params::Reduce::Point)
+        .with_curvature(curvature(params))
+        .with_holes(holes);
+    let phi =
+        crate::terrain::profile::tangent_azimuth(azimuth_deg, params.azimuth_from, params.y_axis);
+    progress.start(Stage::Bake, h as u64);
+    out.par_chunks_mut(w).enumerate().try_for_each(|(y, row)| {
+        if progress.is_canceled() {
+            return Err(crate::Error::Canceled);
+        }
+        for (x, o) in row.iter_mut().enumerate() {
+            if *o != NODATA {
+                *o = if lit(k.horizon_sin(x, y, phi), elevation_deg) { LIT } else { SHADOW };
+            }
+        }
+        progress.advance(1);
+        Ok(())
+    })?;
+    Ok(out)
+}

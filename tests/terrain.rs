@@ -282,12 +282,14 @@ fn curvature_lowers_a_far_wall_exactly() {
 fn dem_products_read_by_gdal() {
     let ci = std::env::var("CI").is_ok_and(|v| v == "true");
     let has = std::process::Command::new("python3")
-        .args(["-c", "import rasterio, numpy"])
+        .args(["-c", "import rasterio, numpy, pvlib"])
         .status()
         .is_ok_and(|s| s.success());
     if !has {
-        assert!(!ci, "CI=true: python3 with rasterio and numpy is required (pip install rasterio)");
-        eprintln!("skipped: python3 with rasterio is missing (pip install rasterio)");
+        assert!(!ci, "CI=true: python3 with rasterio, numpy and pvlib is required (pip install rasterio pvlib)");
+        eprintln!(
+            "skipped: python3 with rasterio or pvlib is missing (pip install rasterio pvlib)"
+        );
         return;
     }
     let work = tempfile::tempdir().unwrap();

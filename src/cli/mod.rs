@@ -9,6 +9,7 @@ pub mod eval;
 pub mod preview;
 pub mod profile;
 pub mod serve;
+pub mod shadow;
 
 use clap::{Parser, Subcommand};
 
@@ -35,6 +36,8 @@ pub enum Command {
     Eval(eval::EvalArgs),
     /// Print the exact horizon profile at one point (CSV, or JSON with --json).
     Profile(profile::ProfileArgs),
+    /// Write the sun shadow of a height map or DEM as a GeoTIFF.
+    Shadow(shadow::ShadowArgs),
 }
 
 /// Runs a parsed command line.
@@ -49,5 +52,6 @@ pub fn run(cli: Cli) -> crate::Result<()> {
         Command::Preview(a) => preview::run(a),
         Command::Eval(a) => eval::run(a),
         Command::Profile(a) => profile::run(a),
+        Command::Shadow(a) => shadow::run(a),
     }
 }

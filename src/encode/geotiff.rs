@@ -121,13 +121,13 @@ fn tile_bytes(
 }
 
 /// XML of GDAL's GDAL_METADATA tag (42112) carrying the band descriptions.
-fn gdal_metadata(bands: &[Band<'_>]) -> String {
+fn gdal_metadata(descriptions: &[&str]) -> String {
     let esc = |s: &str| s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;");
     let mut x = String::from("<GDALMetadata>\n");
-    for (i, b) in bands.iter().enumerate() {
+    for (i, d) in descriptions.iter().enumerate() {
         x.push_str(&format!(
             "  <Item name=\"DESCRIPTION\" sample=\"{i}\" role=\"description\">{}</Item>\n",
-            esc(&b.description)
+            esc(d)
         ));
     }
     x.push_str("</GDALMetadata>");
@@ -158,6 +158,71 @@ pub fn encode(
             tile_bytes(bands[b].plane, width, height, t % tx, t / tx, nodata)
         })
         .collect();
+    let descriptions: Vec<&str> = bands.iter().map(|b| b.description.as_str()).collect();
+    let layout = Layout { bits: 32, sample_format: 3, predictor: 3 };
+    assemble(width, height, tiles, &descriptions, layout, georef, &nodata_text(nodata))
+}
+
+/// Encodes one uint8 band (`shadow.tif`: 1 lit, 0 shadowed) as a tiled GeoTIFF, DEFLATE with
+/// horizontal differencing (predictor 2), with `georef`'s tags and GDAL_NODATA = `nodata`.
+///
+/// # Errors
+/// As [`encode`].
+pub fn encode_u8(
+    width: usize,
+    height: usize,
+    plane: &[u8],
+    description: &str,
+    georef: Option<&Georef>,
+    nodata: u8,
+) -> Result<Vec<u8>> {
+    if plane.len() != width * height || plane.is_empty() {
+        return Err(Error::Internal("GeoTIFF band does not match the map size".into()));
+    }
+    let (tx, ty) = (width.div_ceil(TILE), height.div_ceil(TILE));
+    let tiles: Vec<Vec<u8>> = (0..tx * ty)
+        .into_par_iter()
+        .map(|t| {
+            let (x0, y0) = ((t % tx) * TILE, (t / tx) * TILE);
+            let mut z = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::new(4));
+            let mut row = vec![nodata; TILE];
+            for r in 0..TILE {
+                row.fill(nodata);
+                if y0 + r < height {
+                    let n = TILE.min(width - x0);
+                    let at = (y0 + r) * width + x0;
+                    row[..n].copy_from_slice(&plane[at..at + n]);
+                }
+                for j in (1..TILE).rev() {
+                    row[j] = row[j].wrapping_sub(row[j - 1]);
+                }
+                let _ = z.write_all(&row);
+            }
+            z.finish().unwrap_or_default()
+        })
+        .collect();
+    let layout = Layout { bits: 8, sample_format: 1, predictor: 2 };
+    assemble(width, height, tiles, &[description], layout, georef, &nodata.to_string())
+}
+
+/// Sample layout of a file: bits per sample, SampleFormat (1 uint, 3 float), Predictor.
+#[derive(Clone, Copy)]
+struct Layout {
+    bits: u16,
+    sample_format: u16,
+    predictor: u16,
+}
+
+/// The file around compressed `tiles` (band-major, row-major within a band).
+fn assemble(
+    width: usize,
+    height: usize,
+    tiles: Vec<Vec<u8>>,
+    descriptions: &[&str],
+    layout: Layout,
+    georef: Option<&Georef>,
+    nodata: &str,
+) -> Result<Vec<u8>> {
     let mut out: Vec<u8> = Vec::with_capacity(8 + tiles.iter().map(Vec::len).sum::<usize>());
     out.extend_from_slice(b"II*\0");
     out.extend_from_slice(&[0; 4]);
@@ -172,23 +237,23 @@ pub fn encode(
     if out.len() as u64 > u32::MAX as u64 - (1 << 20) {
         return Err(Error::Internal("a GeoTIFF beyond 4 GiB needs BigTIFF, not written".into()));
     }
-    let spp = bands.len() as u16;
+    let spp = descriptions.len() as u16;
     let mut e = vec![
         longs(256, &[width as u32]),
         longs(257, &[height as u32]),
-        shorts(258, &vec![32; spp as usize]),
+        shorts(258, &vec![layout.bits; spp as usize]),
         shorts(259, &[8]),
         shorts(262, &[1]),
         shorts(277, &[spp]),
         shorts(284, &[if spp > 1 { 2 } else { 1 }]),
-        shorts(317, &[3]),
+        shorts(317, &[layout.predictor]),
         longs(322, &[TILE as u32]),
         longs(323, &[TILE as u32]),
         longs(324, &offsets.iter().map(|&o| o as u32).collect::<Vec<_>>()),
         longs(325, &counts),
-        shorts(339, &vec![3; spp as usize]),
-        ascii(42112, &gdal_metadata(bands)),
-        ascii(georef::TAG_GDAL_NODATA, &nodata_text(nodata)),
+        shorts(339, &vec![layout.sample_format; spp as usize]),
+        ascii(42112, &gdal_metadata(descriptions)),
+        ascii(georef::TAG_GDAL_NODATA, nodata),
     ];
     if spp > 1 {
         e.push(shorts(338, &vec![0; spp as usize - 1]));

@@ -6,7 +6,11 @@
 //! - [`angles`]: horizon angles per azimuth band, in the unit and azimuth convention asked.
 //! - [`svf`]: the sky-view factor, radiative or visual.
 //! - [`profile`]: the horizon profile at one point.
+//! - [`shadow`]: lit or shadowed for a sun position.
+//! - [`sun`]: the sun position of a time and place (NREL SPA).
 
 pub mod angles;
 pub mod profile;
+pub mod shadow;
+pub mod sun;
 pub mod svf;

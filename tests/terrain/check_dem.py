@@ -6,7 +6,7 @@ it is not copied into this repository): taken from $HB_ELEV_TIF, or extracted fr
 package r-cran-terra (`apt-get download` + `dpkg-deb -x`, no install). A float32 UTM version with
 nodata -9999 is made here with rasterio.warp.reproject.
 
-Checks, each against something we did not write:
+Checks, each against something we did not write (GDAL, pvlib's SPA, numpy references):
 - refusals (exit 2, one line naming the fix): geographic CRS without cell_size, rotated grid,
   non-square cells, all-nodata map, NaN without nodata, ZSTD compression;
 - GDAL reads angles.tif and svf.tif with the input's CRS, transform and nodata, one band per bin;
@@ -276,6 +276,62 @@ if p.returncode == 0:
     check(csv[0] == "azimuth_deg,elevation_deg" and len(csv) == 9
           and abs(float(csv[1].split(",")[1]) - horizon_deg(col, row, 0.0)) <= 0.01,
           f"profile CSV, 8 azimuths east_ccw: {csv[:3]}")
+
+# --- sun shadow (CLI `shadow`): uint8 GeoTIFF, one exact ray per texel at the sun's azimuth ---
+SUN_AZ, SUN_EL = 203.7, 2.5  # compass degrees: a low sun from the south-south-west
+SHADOW = os.path.join(WORK, "shadow.tif")
+code, err = run("shadow", UTM, "-o", SHADOW, "--sun-azimuth", str(SUN_AZ), "--sun-elevation",
+                str(SUN_EL), "--azimuth-from", "north_cw")
+check(code == 0, f"shadow (exit {code} {err[:200]})")
+if code == 0:
+    with rasterio.open(SHADOW) as o:
+        check(o.dtypes[0] == "uint8" and o.crs == crs and o.transform.almost_equals(transform, 1e-9)
+              and o.nodata == 255, f"shadow.tif uint8, CRS, transform, nodata {o.nodata}")
+        sh = o.read(1)
+    check(np.all(sh[holes] == 255) and np.all(np.isin(sh[~holes], [0, 1])),
+          "shadow.tif: 255 exactly at holes, 0/1 elsewhere")
+    phi_sun = math.radians(90 - SUN_AZ)
+    agree = total = 0
+    for row, col in pick:
+        ref = horizon_deg(col, row, phi_sun)
+        if abs(ref - SUN_EL) < 0.01:
+            continue
+        total += 1
+        agree += int(sh[row, col] == (1 if SUN_EL > ref else 0))
+    print(f"shadow agrees with the reference on {agree}/{total} texels; "
+          f"{np.mean(sh[~holes] == 0):.1%} of the map in shadow")
+    check(agree == total, "shadow = (sun above the reference horizon at the sun's azimuth)")
+
+# --- the sun of a time and place (NREL SPA) against pvlib's SPA, and its shadow ---
+import pandas as pd  # noqa: E402  (pvlib brings it)
+import pvlib  # noqa: E402
+
+SUN_TIME, LAT, LON = "2026-12-21T09:10:00+01:00", 49.75, 6.1
+SHADOW2 = os.path.join(WORK, "shadow_time.tif")
+p = subprocess.run([BIN, "shadow", UTM, "-o", SHADOW2, "--sun-time", SUN_TIME, "--latitude",
+                    str(LAT), "--longitude", str(LON)], capture_output=True, text=True)
+check(p.returncode == 0, f"shadow --sun-time (exit {p.returncode} {p.stderr[:200]})")
+if p.returncode == 0:
+    words = p.stderr.replace("°", " ").split()
+    our_az = float(words[words.index("azimuth") + 1])
+    our_el = float(words[words.index("elevation") + 1])
+    sp = pvlib.solarposition.spa_python(pd.DatetimeIndex([pd.Timestamp(SUN_TIME)]), LAT, LON,
+                                        altitude=0, pressure=101325, temperature=12)
+    pv_az, pv_el = float(sp["azimuth"].iloc[0]), float(sp["apparent_elevation"].iloc[0])
+    print(f"sun: ours {our_az:.4f}/{our_el:.4f}, pvlib SPA {pv_az:.4f}/{pv_el:.4f}")
+    check(abs(our_az - pv_az) < 0.01 and abs(our_el - pv_el) < 0.01,
+          "SPA sun position within 0.01 deg of pvlib's")
+    with rasterio.open(SHADOW2) as o:
+        sh2 = o.read(1)
+    phi = math.radians(90 - pv_az)
+    agree = total = 0
+    for row, col in pick:
+        ref = horizon_deg(col, row, phi)
+        total += 1
+        agree += int(sh2[row, col] == (1 if pv_el > ref else 0))
+    print(f"shadow at pvlib's sun: {agree}/{total} texels agree; "
+          f"{np.mean(sh2[~holes] == 0):.1%} of the map in shadow")
+    check(agree >= 0.995 * total, "shadow at the SPA sun agrees with the reference on >= 99.5%")
 
 # --- compass bands are the same rays renumbered ---
 OUT2 = os.path.join(WORK, "utm_north")
