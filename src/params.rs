@@ -686,7 +686,7 @@ impl BakeParams {
         let b = self.bins;
         let ray = matches!(self.method, Method::Exact | Method::March);
         let layers = self.outputs.horizon || self.outputs.fourier;
-        if (layers || !ray) && (b < 16 || b % 16 != 0 || b > MAX_BINS) {
+        if (layers || !ray) && (b < 16 || !b.is_multiple_of(16) || b > MAX_BINS) {
             let why =
                 if ray { "with the horizon or fourier outputs" } else { "with method=lengyel" };
             return Err(Error::param(
@@ -697,7 +697,10 @@ impl BakeParams {
                 ),
             ));
         }
-        if self.outputs.terrain() && self.azimuth_from == AzimuthFrom::NorthCw && b % 4 != 0 {
+        if self.outputs.terrain()
+            && self.azimuth_from == AzimuthFrom::NorthCw
+            && !b.is_multiple_of(4)
+        {
             return Err(Error::param(
                 "azimuth_from",
                 format!(

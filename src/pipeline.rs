@@ -352,3 +352,33 @@ pub fn terrain_files(
     }
     Ok((files, radius, serde_json::Value::Object(info)))
 }
+
+/// The sun shadow (SPEC §3.7) of `map` as `shadow.tif`: uint8, 1 lit, 0 shadowed, 255 at holes
+/// (its GDAL_NODATA), with the input's georeferencing.
+///
+/// # Errors
+/// Whatever [`bake::shadow`] or the GeoTIFF encoder fails with.
+pub fn shadow_tif(
+    map: &HeightMap,
+    params: &BakeParams,
+    azimuth_deg: f64,
+    elevation_deg: f64,
+    progress: &Progress,
+) -> Result<Vec<u8>> {
+    let plane = bake::shadow(map, params, azimuth_deg, elevation_deg, progress)?;
+    let from = match params.azimuth_from {
+        crate::params::AzimuthFrom::EastCcw => "east_ccw",
+        crate::params::AzimuthFrom::NorthCw => "north_cw",
+    };
+    let description = format!(
+        "sun shadow at azimuth {azimuth_deg}° ({from}), elevation {elevation_deg}° (1 lit, 0 shadow)"
+    );
+    encode::geotiff::encode_u8(
+        map.width,
+        map.height,
+        &plane,
+        &description,
+        map.terrain.georef.as_ref(),
+        crate::terrain::shadow::NODATA,
+    )
+}

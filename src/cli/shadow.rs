@@ -3,7 +3,6 @@
 //! and the sun's azimuth (counted as `--azimuth-from` says) and elevation in degrees.
 
 use crate::cli::bake::ParamFlags;
-use crate::encode::geotiff;
 use crate::error::{Error, Result};
 use crate::heightmap::{self, Limits};
 use crate::progress::Progress;
@@ -51,59 +50,26 @@ pub fn run(args: ShadowArgs) -> Result<()> {
     if params.method != crate::params::Method::Exact {
         params.set("method", "exact")?;
     }
-    let (az, el) = match (&args.sun_azimuth, &args.sun_elevation, &args.sun_time) {
-        (Some(a), Some(e), None) => {
-            let az = crate::params::parse_f64("sun_azimuth", a)?;
-            let el = crate::params::parse_f64("sun_elevation", e)?;
-            if !(-90.0..=90.0).contains(&el) {
-                return Err(Error::param("sun_elevation", "must be between -90 and 90 degrees"));
-            }
-            (az, el)
-        }
-        (None, None, Some(t)) => {
-            let num = |k: &str, v: &Option<String>| {
-                crate::params::parse_f64(k, v.as_deref().unwrap_or_default())
-            };
-            let (lat, lon) = (num("latitude", &args.latitude)?, num("longitude", &args.longitude)?);
-            let sun = crate::terrain::sun::position(t, lat, lon)?;
-            // The compass azimuth in the convention the flags count azimuths in.
-            let az = match params.azimuth_from {
-                crate::params::AzimuthFrom::NorthCw => sun.azimuth_north_cw,
-                crate::params::AzimuthFrom::EastCcw => crate::terrain::profile::tangent_azimuth(
-                    sun.azimuth_north_cw,
-                    crate::params::AzimuthFrom::NorthCw,
-                    params.y_axis,
-                )
-                .to_degrees(),
-            };
-            eprintln!(
-                "sun at {t}: azimuth {:.4}° (from north, clockwise), elevation {:.4}°",
-                sun.azimuth_north_cw, sun.elevation
-            );
-            (az, sun.elevation)
-        }
-        _ => {
-            return Err(Error::param(
-                "sun_azimuth",
-                "give --sun-azimuth and --sun-elevation, or --sun-time with --latitude and \
-                 --longitude",
-            ))
-        }
-    };
+    let (az, el, sun) = crate::terrain::sun::resolve(
+        args.sun_azimuth.as_deref(),
+        args.sun_elevation.as_deref(),
+        args.sun_time.as_deref(),
+        args.latitude.as_deref(),
+        args.longitude.as_deref(),
+        params.azimuth_from,
+        params.y_axis,
+    )?;
+    if let (Some(sun), Some(t)) = (sun, &args.sun_time) {
+        eprintln!(
+            "sun at {t}: azimuth {:.4}° (from north, clockwise), elevation {:.4}°",
+            sun.azimuth_north_cw, sun.elevation
+        );
+    }
     let bytes = std::fs::read(&args.input)
         .map_err(|e| Error::InvalidInput(format!("cannot read {}: {e}", args.input.display())))?;
     let (map, _) = heightmap::decode_for(&bytes, &mut params, &Limits::default())?;
     drop(bytes);
-    let plane = crate::bake::shadow(&map, &params, az, el, &Progress::new())?;
-    let description = format!("sun shadow at azimuth {az}°, elevation {el}° (1 lit, 0 shadow)");
-    let tif = geotiff::encode_u8(
-        map.width,
-        map.height,
-        &plane,
-        &description,
-        map.terrain.georef.as_ref(),
-        crate::terrain::shadow::NODATA,
-    )?;
+    let tif = crate::pipeline::shadow_tif(&map, &params, az, el, &Progress::new())?;
     // Written beside the target and renamed: a failure leaves no half-written file.
     let dir = args.out.parent().filter(|d| !d.as_os_str().is_empty()).map(PathBuf::from);
     let dir = dir.unwrap_or_else(|| PathBuf::from("."));

@@ -73,6 +73,53 @@ pub fn position(time: &str, latitude: f64, longitude: f64) -> Result<Sun> {
     Ok(Sun { azimuth_north_cw: pos.azimuth(), elevation: pos.elevation_angle() })
 }
 
+/// The sun a shadow is asked for, as text from flags or a query: `sun_azimuth` + `sun_elevation`
+/// (azimuth counted as `from` says), or `sun_time` + `latitude` + `longitude` (SPA). Returns the
+/// azimuth in the `from` convention, the elevation, and the SPA sun when one was computed.
+///
+/// # Errors
+/// [`Error::Param`] naming the missing or invalid field.
+pub fn resolve(
+    azimuth: Option<&str>,
+    elevation: Option<&str>,
+    time: Option<&str>,
+    latitude: Option<&str>,
+    longitude: Option<&str>,
+    from: crate::params::AzimuthFrom,
+    y_axis: crate::params::YAxis,
+) -> Result<(f64, f64, Option<Sun>)> {
+    use crate::params::{parse_f64, AzimuthFrom};
+    match (azimuth, elevation, time) {
+        (Some(a), Some(e), None) => {
+            let az = parse_f64("sun_azimuth", a)?;
+            let el = parse_f64("sun_elevation", e)?;
+            if !(-90.0..=90.0).contains(&el) {
+                return Err(Error::param("sun_elevation", "must be between -90 and 90 degrees"));
+            }
+            Ok((az, el, None))
+        }
+        (None, None, Some(t)) => {
+            let lat = parse_f64("latitude", latitude.unwrap_or_default())?;
+            let lon = parse_f64("longitude", longitude.unwrap_or_default())?;
+            let sun = position(t, lat, lon)?;
+            let az = match from {
+                AzimuthFrom::NorthCw => sun.azimuth_north_cw,
+                AzimuthFrom::EastCcw => crate::terrain::profile::tangent_azimuth(
+                    sun.azimuth_north_cw,
+                    AzimuthFrom::NorthCw,
+                    y_axis,
+                )
+                .to_degrees(),
+            };
+            Ok((az, sun.elevation, Some(sun)))
+        }
+        _ => Err(Error::param(
+            "sun_azimuth",
+            "give sun_azimuth and sun_elevation, or sun_time with latitude and longitude",
+        )),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
