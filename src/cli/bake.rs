@@ -31,8 +31,8 @@ use std::time::{Duration, Instant};
 /// [`BakeParams::set`], not by clap, so messages are the same everywhere.
 #[derive(Debug, Clone, clap::Args)]
 pub struct BakeArgs {
-    /// The height map: PNG (8/16-bit gray, gray+alpha, RGB, RGBA), TIFF (8/16-bit, 32-bit float)
-    /// or OpenEXR.
+    /// The height map: PNG (8/16-bit gray, gray+alpha, RGB, RGBA), TIFF (8/16-bit unsigned,
+    /// 8/16/32-bit signed, 32/64-bit float; a GeoTIFF DEM gets the DEM defaults) or OpenEXR.
     pub input: PathBuf,
     /// Output directory (created if missing; files in it with the same names are replaced).
     #[arg(short = 'o', long = "out")]

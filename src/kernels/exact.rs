@@ -200,7 +200,8 @@ fn corners(grid: &Grid<'_>, cx: i64, cy: i64) -> [f64; 4] {
 /// The exact maximum of (h(s) − h0)/s over the part s ∈ [s_a, s_a + len] of a ray inside one
 /// cell, given the corner heights `k` and the ray's local position (fx, fy) ∈ [0,1]² at s_a.
 /// `first`: s_a = 0 and the ray starts at a corner of this cell, at height h0; the supremum then
-/// includes the limit s → 0⁺, the directional slope.
+/// includes the limit s → 0⁺, the directional slope. `entry`: the entry point s_a counts too
+/// (the ray comes out of a skipped nodata cell, whose exit was not analysed).
 #[inline]
 fn cell_max(
     k: [f64; 4],
@@ -209,7 +210,7 @@ fn cell_max(
     ray: &Ray,
     s_a: f64,
     len: f64,
-    first: bool,
+    (first, entry): (bool, bool),
 ) -> (f64, f64) {
     let (dx, dy) = (ray.dx, ray.dy);
     let bx = k[1] - k[0];
@@ -231,9 +232,9 @@ fn cell_max(
     }
     // The entry point is the previous cell's exit and was analysed there, unless that cell was
     // skipped: a cell that cannot beat the best value (its exit cannot either), or a cell
-    // touching a nodata hole, which is no surface while this cell's edge is. Only the second
-    // needs it, at one division per cell.
-    if s_a > 0.0 && a / s_a > best.0 {
+    // touching a nodata hole, which is no surface while this cell's edge is. `entry` says the
+    // ray comes from such a hole cell.
+    if entry && s_a > 0.0 && a / s_a > best.0 {
         best = (a / s_a, s_a);
     }
     if d2 != 0.0 {
@@ -370,6 +371,7 @@ where
     };
     let mut s = start;
     let mut level = 0usize;
+    let mut after_hole = false;
     let max_level = accel.map_or(0, |(p, _)| p.levels.len());
     loop {
         if let Some((_, hmax)) = accel {
@@ -380,6 +382,11 @@ where
         let shift = 2 * level as u32;
         let (bx, by) = (cx >> shift, cy >> shift);
         let k = if level == 0 { Some(corners(cx, cy)) } else { None };
+        // A nodata cell (corners at −∞, see `ExactHorizon::with_holes`): the next analysed
+        // cell's entry point has to be looked at.
+        if k.is_some_and(|k| k[0] == f64::NEG_INFINITY) {
+            after_hole = true;
+        }
         let skip = match accel {
             None => false,
             Some((p, _)) => {
@@ -407,7 +414,8 @@ where
             let fx = (ray.x0 + s * ray.dx - cx as f64).clamp(0.0, 1.0);
             let fy = (ray.y0 + s * ray.dy - cy as f64).clamp(0.0, 1.0);
             let len = s_exit.min(ray.s_end) - s;
-            let (v, at) = cell_max(k, fx, fy, ray, s, len, s == 0.0);
+            let (v, at) = cell_max(k, fx, fy, ray, s, len, (s == 0.0, after_hole));
+            after_hole = false;
             if v > best {
                 (best, best_s) = (v, at);
             }
@@ -1362,7 +1370,7 @@ mod tests {
         let r =
             Ray { dx: std::f64::consts::FRAC_1_SQRT_2, dy: std::f64::consts::FRAC_1_SQRT_2, ..ray };
         let len = std::f64::consts::SQRT_2;
-        let got = cell_max(k, fx, fy, &r, 1.0, len, false).0;
+        let got = cell_max(k, fx, fy, &r, 1.0, len, (false, false)).0;
         let mut want = f64::NEG_INFINITY;
         for i in 0..=100_000 {
             let t = len * i as f64 / 100_000.0;
