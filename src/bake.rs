@@ -37,6 +37,15 @@ pub fn resolve_radius(
     heights: &[f32],
 ) -> ResolvedRadius {
     let cap = width.max(height).max(1) as u32;
+    if let (Some(d), Some(cell)) = (params.max_distance, params.cell_size) {
+        // SPEC §3.7: ceil(max_distance / cell_size) texels (capped like a fixed radius).
+        let raw = (d / cell * (1.0 - 1e-12)).ceil();
+        let texels = raw.clamp(1.0, crate::params::MAX_RADIUS.max(cap) as f64) as u32;
+        return ResolvedRadius {
+            texels,
+            reason: format!("max_distance: ceil({d} / cell_size {cell}) = {texels} texels"),
+        };
+    }
     match params.radius {
         Radius::Texels(r) => ResolvedRadius { texels: r, reason: "as requested".into() },
         Radius::Unlimited => {
@@ -72,6 +81,19 @@ pub fn make_kernel<'a>(
     radius: u32,
     progress: &Progress,
 ) -> Box<dyn HorizonRows + 'a> {
+    make_kernel_for(params, grid, radius, progress, None)
+}
+
+/// [`make_kernel`] for a map with nodata `holes`: `exact` skips the cells that touch a hole
+/// exactly (SPEC §2); the other methods see the holes' fill far below the map
+/// ([`crate::heightmap::HOLE_DEPTH`]). Outputs at holes are masked by the callers.
+pub fn make_kernel_for<'a>(
+    params: &BakeParams,
+    grid: Grid<'a>,
+    radius: u32,
+    progress: &Progress,
+    holes: Option<&'a [bool]>,
+) -> Box<dyn HorizonRows + 'a> {
     match params.method {
         Method::Lengyel => Box::new(
             kernels::lengyel_fast::LengyelFast::new(grid, radius, params.bins)
@@ -80,10 +102,13 @@ pub fn make_kernel<'a>(
         Method::Exact => {
             // Unlimited means "to the map edge" with edge=none, which can be longer than
             // max(W, H) on a diagonal; the kernel resolves it itself.
-            let r = (params.radius != Radius::Unlimited).then_some(radius);
+            let r = (params.radius != Radius::Unlimited || params.max_distance.is_some())
+                .then_some(radius);
             Box::new(
                 kernels::exact::ExactHorizon::new(grid, r, params.bins, params.reduce)
-                    .with_cancel(progress),
+                    .with_cancel(progress)
+                    .with_curvature(curvature(params))
+                    .with_holes(holes),
             )
         }
         // `unlimited` is max(W, H) texels here, as for Lengyel: a march's cost grows with R.
@@ -91,6 +116,67 @@ pub fn make_kernel<'a>(
             kernels::march::March::new(grid, radius, params.bins, params.reduce)
                 .with_cancel(progress),
         ),
+    }
+}
+
+/// Mean earth radius, metres (SPEC §3.7).
+pub const EARTH_RADIUS_M: f64 = 6_371_000.0;
+
+/// The earth-curvature drop per texel² in texels (0 when off or without a cell size): a point s
+/// texels away is s·cell metres away and drops (s·cell)² / (2 R_e) metres, which is that times
+/// `height_scale` texels, R_e = 6 371 km / (1 − refraction).
+pub fn curvature(params: &BakeParams) -> f64 {
+    match (params.earth_curvature, params.cell_size) {
+        (crate::params::EarthCurvature::On, Some(cell)) => {
+            let re = EARTH_RADIUS_M / (1.0 - params.refraction);
+            cell * cell * params.height_scale / (2.0 * re)
+        }
+        _ => 0.0,
+    }
+}
+
+/// A kernel whose outputs at hole texels (SPEC §2 "Nodata") are 0, channels and bins alike.
+pub struct Masked<'a> {
+    inner: Box<dyn HorizonRows + 'a>,
+    holes: &'a [bool],
+}
+
+/// `kernel`, masked where `holes` says (unchanged without holes).
+pub fn masked<'a>(
+    kernel: Box<dyn HorizonRows + 'a>,
+    holes: Option<&'a [bool]>,
+) -> Box<dyn HorizonRows + 'a> {
+    match holes {
+        Some(holes) => Box::new(Masked { inner: kernel, holes }),
+        None => kernel,
+    }
+}
+
+impl HorizonRows for Masked<'_> {
+    fn width(&self) -> usize {
+        self.inner.width()
+    }
+    fn height(&self) -> usize {
+        self.inner.height()
+    }
+    fn bins(&self) -> usize {
+        self.inner.bins()
+    }
+    fn texel_cost(&self) -> f64 {
+        self.inner.texel_cost()
+    }
+    fn rows(&self, y0: usize, channels: &mut [f32], mut bins_out: Option<&mut [f32]>) {
+        self.inner.rows(y0, channels, bins_out.as_deref_mut());
+        let (w, nb) = (self.width(), self.bins());
+        let start = y0 * w;
+        for (k, ch) in channels.chunks_exact_mut(8).enumerate() {
+            if self.holes[start + k] {
+                ch.fill(0.0);
+                if let Some(bo) = bins_out.as_deref_mut() {
+                    bo[k * nb..(k + 1) * nb].fill(0.0);
+                }
+            }
+        }
     }
 }
 
@@ -108,7 +194,9 @@ pub fn bake_horizon(
     check_scaled(&heights)?;
     let radius = resolve_radius(params, map.width, map.height, &heights);
     let grid = Grid::new(map.width, map.height, &heights, params.edge, params.y_axis);
-    let kernel = make_kernel(params, grid, radius.texels, progress);
+    let kernel =
+        make_kernel_for(params, grid, radius.texels, progress, map.terrain.holes.as_deref());
+    let kernel = masked(kernel, map.terrain.holes.as_deref());
     progress.start(Stage::Bake, map.height as u64);
     let layers = run_into_layers(kernel.as_ref(), params.encoding, precisions, progress)?;
     Ok((layers, radius))
@@ -228,10 +316,13 @@ where
     S: FnMut(LayerRows<'_, T>) -> Result<()> + Send,
 {
     let (w, h) = (map.width, map.height);
+    let mut map = map;
+    let holes = map.terrain.holes.take();
     let heights = map.into_scaled(params.height_scale);
     let radius = resolve_radius(params, w, h, &heights);
     let grid = Grid::new(w, h, &heights, params.edge, params.y_axis);
-    let kernel = make_kernel(params, grid, radius.texels, progress);
+    let kernel = make_kernel_for(params, grid, radius.texels, progress, holes.as_deref());
+    let kernel = masked(kernel, holes.as_deref());
     progress.start(Stage::Bake, h as u64);
     stream_rows(kernel.as_ref(), params.encoding, progress, sink)?;
     Ok(radius)
@@ -408,7 +499,9 @@ pub fn bake_fourier(
     check_scaled(&heights)?;
     let radius = resolve_radius(params, map.width, map.height, &heights);
     let grid = Grid::new(map.width, map.height, &heights, params.edge, params.y_axis);
-    let kernel = make_kernel(params, grid, radius.texels, progress);
+    let kernel =
+        make_kernel_for(params, grid, radius.texels, progress, map.terrain.holes.as_deref());
+    let kernel = masked(kernel, map.terrain.holes.as_deref());
     let (w, h, nb) = (kernel.width(), kernel.height(), kernel.bins());
     let terms = params.fourier_terms as usize;
     let range = params.fourier_range;
@@ -435,4 +528,192 @@ pub fn bake_fourier(
         })?;
     }
     Ok((FourierLayers { width: w, height: h, terms, range, bands, constant, high }, radius))
+}
+
+/// The terrain products of one bake (SPEC §3.7), band-major f32 planes of `width × height`;
+/// hole texels hold `nodata` (NaN when none was declared).
+#[derive(Debug, Clone)]
+pub struct TerrainProducts {
+    pub width: usize,
+    pub height: usize,
+    /// `bins` planes: band n is the horizon at n·360°/bins (`azimuth_from`), in `angle_unit`.
+    pub angles: Option<Vec<f32>>,
+    pub bins: usize,
+    /// One plane.
+    pub svf: Option<Vec<f32>>,
+    /// The value written at holes.
+    pub nodata: f32,
+}
+
+/// Largest `angles` output held in memory, in values (W·H·bins): 1 GiB of f32.
+pub const MAX_ANGLE_VALUES: u64 = 1 << 28;
+
+/// Bakes the terrain products `params.outputs` asks for (`angles`, `svf`) from the per-bin
+/// horizons of the bake's method at its radius, bins, edge and curvature: the kernels' bins
+/// before any channel reduction ([`crate::terrain`] turns them into products).
+///
+/// # Errors
+/// [`crate::Error::Canceled`]; [`crate::Error::Param`] when `angles` would not fit
+/// ([`MAX_ANGLE_VALUES`]) or the method cannot give the bins asked.
+pub fn bake_terrain(
+    map: &HeightMap,
+    params: &BakeParams,
+    progress: &Progress,
+) -> Result<(TerrainProducts, ResolvedRadius)> {
+    use crate::terrain::{angles, svf};
+    let (w, h) = (map.width, map.height);
+    let nb = params.bins as usize;
+    if params.outputs.angles && (w * h) as u64 * nb as u64 > MAX_ANGLE_VALUES {
+        return Err(crate::Error::param(
+            "bins",
+            format!(
+                "angles of a {w}×{h} map at {nb} bins are {} values, above the limit of \
+                 {MAX_ANGLE_VALUES}; use fewer bins or a smaller map",
+                (w * h) as u64 * nb as u64
+            ),
+        ));
+    }
+    let heights = map.scaled(params.height_scale);
+    check_scaled(&heights)?;
+    let radius = resolve_radius(params, w, h, &heights);
+    let grid = Grid::new(w, h, &heights, params.edge, params.y_axis);
+    let kernel =
+        make_kernel_for(params, grid, radius.texels, progress, map.terrain.holes.as_deref());
+    if kernel.bins() != nb {
+        return Err(crate::Error::param(
+            "bins",
+            format!("method={:?} computes at least {} bins", params.method, kernel.bins())
+                .to_lowercase(),
+        ));
+    }
+    let holes = map.terrain.holes.as_deref();
+    let nodata = map.terrain.nodata.map_or(f32::NAN, |v| v as f32);
+    let order = angles::band_bins(nb, params.azimuth_from, params.y_axis);
+    let plane = w * h;
+    let mut ang = params.outputs.angles.then(|| vec![0f32; plane * nb]);
+    let mut sv = params.outputs.svf.then(|| vec![0f32; plane]);
+    let band = kernels::band_rows_for(kernel.as_ref());
+    progress.start(Stage::Bake, h as u64);
+    {
+        // Planes are written band by band: each kernel band owns the same rows of every plane.
+        let ang_rows: Option<Vec<Vec<Mutex<&mut [f32]>>>> =
+            ang.as_mut().map(|a| a.chunks_mut(plane).map(|p| split(p, band * w)).collect());
+        let sv_rows = sv.as_mut().map(|s| split(s, band * w));
+        kernels::run_bands(kernel.as_ref(), band, true, progress, |bi, b: Band<'_>| {
+            let Some(bins) = b.bins else { return };
+            let mut planes: Vec<_> = match &ang_rows {
+                Some(a) => a.iter().filter_map(|p| p[bi].lock().ok()).collect(),
+                None => Vec::new(),
+            };
+            let mut svf_rows = sv_rows.as_ref().and_then(|s| s[bi].lock().ok());
+            for (t, s) in bins.chunks_exact(nb).enumerate() {
+                let hole = holes.is_some_and(|m| m[b.y0 * w + t]);
+                if !planes.is_empty() {
+                    if hole {
+                        planes.iter_mut().for_each(|p| p[t] = nodata);
+                    } else {
+                        angles::texel_angles(s, &order, params.angle_unit, |band, v| {
+                            planes[band][t] = v
+                        });
+                    }
+                }
+                if let Some(out) = svf_rows.as_mut() {
+                    out[t] = if hole { nodata } else { svf::svf(s, params.svf_model) };
+                }
+            }
+        })?;
+    }
+    Ok((TerrainProducts { width: w, height: h, angles: ang, bins: nb, svf: sv, nodata }, radius))
+}
+
+/// The exact horizon profile (SPEC §3.7) of texel (`x`, `y`): (azimuth, elevation) in degrees
+/// at `bins` azimuths counted as `params.azimuth_from` says, with the bake's radius, edge and
+/// earth curvature (always `method=exact`: one ray per azimuth).
+///
+/// # Errors
+/// [`crate::Error::Param`] naming `at` for a texel outside the map or on a hole.
+pub fn horizon_profile(
+    map: &HeightMap,
+    params: &BakeParams,
+    x: usize,
+    y: usize,
+    bins: usize,
+) -> Result<Vec<(f64, f64)>> {
+    if x >= map.width || y >= map.height {
+        return Err(crate::Error::param(
+            "at",
+            format!("texel ({x}, {y}) is outside the {}×{} map", map.width, map.height),
+        ));
+    }
+    if map.terrain.holes.as_ref().is_some_and(|h| h[y * map.width + x]) {
+        return Err(crate::Error::param("at", format!("texel ({x}, {y}) is nodata (a hole)")));
+    }
+    let heights = map.scaled(params.height_scale);
+    check_scaled(&heights)?;
+    let radius = resolve_radius(params, map.width, map.height, &heights);
+    let grid = Grid::new(map.width, map.height, &heights, params.edge, params.y_axis);
+    let r = (params.radius != Radius::Unlimited || params.max_distance.is_some())
+        .then_some(radius.texels);
+    let k = kernels::exact::ExactHorizon::new(grid, r, 16, crate::params::Reduce::Point)
+        .with_curvature(curvature(params))
+        .with_holes(map.terrain.holes.as_deref());
+    Ok(crate::terrain::profile::profile(bins, params.azimuth_from, params.y_axis, |phi| {
+        k.horizon_sin(x, y, phi)
+    }))
+}
+
+/// The sun shadow of every texel (SPEC §3.7): [`crate::terrain::shadow::LIT`] where the sun at
+/// `azimuth_deg` (counted as `params.azimuth_from` says) and `elevation_deg` stands above the
+/// exact horizon at its own azimuth, with the bake's radius, edge, curvature and holes (holes:
+/// [`crate::terrain::shadow::NODATA`]). One exact ray per texel, whatever `params.method`.
+///
+/// # Errors
+/// [`crate::Error::Canceled`] when `progress` is canceled.
+pub fn shadow(
+    map: &HeightMap,
+    params: &BakeParams,
+    azimuth_deg: f64,
+    elevation_deg: f64,
+    progress: &Progress,
+) -> Result<Vec<u8>> {
+    use crate::terrain::shadow::{lit, LIT, NODATA, SHADOW};
+    use rayon::prelude::*;
+    let (w, h) = (map.width, map.height);
+    let holes = map.terrain.holes.as_deref();
+    let mut out = vec![SHADOW; w * h];
+    if let Some(m) = holes {
+        for (o, &hole) in out.iter_mut().zip(m) {
+            if hole {
+                *o = NODATA;
+            }
+        }
+    }
+    if elevation_deg <= 0.0 {
+        return Ok(out);
+    }
+    let heights = map.scaled(params.height_scale);
+    check_scaled(&heights)?;
+    let radius = resolve_radius(params, w, h, &heights);
+    let grid = Grid::new(w, h, &heights, params.edge, params.y_axis);
+    let r = (params.radius != Radius::Unlimited || params.max_distance.is_some())
+        .then_some(radius.texels);
+    let k = kernels::exact::ExactHorizon::new(grid, r, 16, crate::params::Reduce::Point)
+        .with_curvature(curvature(params))
+        .with_holes(holes);
+    let phi =
+        crate::terrain::profile::tangent_azimuth(azimuth_deg, params.azimuth_from, params.y_axis);
+    progress.start(Stage::Bake, h as u64);
+    out.par_chunks_mut(w).enumerate().try_for_each(|(y, row)| {
+        if progress.is_canceled() {
+            return Err(crate::Error::Canceled);
+        }
+        for (x, o) in row.iter_mut().enumerate() {
+            if *o != NODATA {
+                *o = if lit(k.horizon_sin(x, y, phi), elevation_deg) { LIT } else { SHADOW };
+            }
+        }
+        progress.advance(1);
+        Ok(())
+    })?;
+    Ok(out)
 }

@@ -4,10 +4,21 @@
 //! the magic bytes, read the dimensions from the header, check them against [`Limits`], and only
 //! then let a decoder allocate pixel buffers. Integer images are normalised to [0, 1] (v/255,
 //! v/65535); float images are used as they are; RGB(A) images pick a channel or luma on the
-//! stored (non-linearised) values. Non-finite heights are rejected.
+//! stored (non-linearised) values. Non-finite heights are rejected unless they are nodata.
+//!
+//! A GeoTIFF DEM ([`georef`]) keeps its samples as they are (metres, any sample type) and carries
+//! its georeferencing and nodata holes in [`Terrain`] to the bake and the GeoTIFF writer.
+//! Holes (SPEC §2 "Nodata") are marked in [`Terrain::holes`] and filled here with a height far
+//! below the map, [`HOLE_DEPTH`] × the map's height range under its lowest texel. `exact` skips
+//! the cells touching a hole outright (see `kernels::exact`); for the other kernels the fill makes
+//! a cell with a hole corner lie below every observer except within about 1/[`HOLE_DEPTH`] of a
+//! texel of its valid edges, so a hole occludes nothing. Every output of a hole texel is masked
+//! to nodata by the bake.
+
+pub mod georef;
 
 use crate::error::{Error, LimitError, Result};
-use crate::params::Channel;
+use crate::params::{BakeParams, Channel, NoData};
 use serde::{Deserialize, Serialize};
 use std::io::Cursor;
 
@@ -52,7 +63,23 @@ pub struct HeightMap {
     pub height: usize,
     /// Row-major from the top image row.
     pub values: Vec<f32>,
+    /// Georeferencing and nodata holes (empty for a plain image).
+    pub terrain: Terrain,
 }
+
+/// What a DEM carries beside its heights, from decode to encode as one value.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Terrain {
+    /// The GeoTIFF tags, copied into GeoTIFF outputs.
+    pub georef: Option<georef::Georef>,
+    /// The nodata value in effect (NaN for `nan`), written as GDAL_NODATA of the outputs.
+    pub nodata: Option<f64>,
+    /// `true` for a hole texel (row-major), when there is any hole.
+    pub holes: Option<Vec<bool>>,
+}
+
+/// How far below the map holes are filled, in map height ranges (see the module docs).
+pub const HOLE_DEPTH: f32 = 1000.0;
 
 impl HeightMap {
     /// Heights in texel units: value × `height_scale`.
@@ -82,7 +109,7 @@ impl HeightMap {
             )));
         }
         check_finite(&values, width)?;
-        Ok(HeightMap { width, height, values })
+        Ok(HeightMap { width, height, values, terrain: Terrain::default() })
     }
 }
 
@@ -94,10 +121,12 @@ pub const MAX_ABS_HEIGHT: f32 = 1e29;
 fn check_finite(values: &[f32], width: usize) -> Result<()> {
     if let Some(k) = values.iter().position(|v| !v.is_finite()) {
         return Err(Error::InvalidInput(format!(
-            "height at column {}, row {} is {} (heights must be finite)",
+            "height at column {}, row {} is {} (heights must be finite; if it marks missing \
+             data, declare it with `nodata={}`)",
             k % width.max(1),
             k / width.max(1),
-            values[k]
+            values[k],
+            if values[k].is_nan() { "nan".to_string() } else { values[k].to_string() }
         )));
     }
     Ok(())
@@ -363,12 +392,37 @@ pub fn check_submission(
     Ok(probed)
 }
 
+/// [`check_submission`] for a bake with `params`: TIFF and OpenEXR (and any input with a
+/// `nodata` declaration) are decoded whole with the bake's `channel` and `nodata`, and the DEM
+/// defaults of SPEC §2 are applied to `params`, so a refusal (a geographic CRS, an all-nodata
+/// map, NaN without nodata) is the submission's 422 and the stored parameters are the resolved
+/// ones.
+///
+/// # Errors
+/// As [`decode_for`].
+pub fn check_submission_for(
+    bytes: &[u8],
+    params: &mut BakeParams,
+    limits: &Limits,
+) -> Result<(image::ImageFormat, u32, u32)> {
+    let probed = probe(bytes, limits)?;
+    if probed.0 != image::ImageFormat::Png || !matches!(params.nodata, NoData::Auto) {
+        decode_for(bytes, params, limits)?;
+    } else {
+        georef::apply_dem_defaults(params, None)?;
+    }
+    Ok(probed)
+}
+
 /// Samples decoded from an image, before the channel pick.
 struct Decoded {
     values: Vec<f32>,
     color: &'static str,
     bit_depth: u8,
     float: bool,
+    /// Stored value = value × `stored` (255 or 65535 for normalised integers, else 1).
+    stored: f64,
+    georef: Option<georef::Georef>,
 }
 
 /// Decodes `bytes` into a height map, picking `channel` from colour images.
@@ -378,6 +432,35 @@ struct Decoded {
 /// header before decoding), [`Error::Decode`] (broken data), [`Error::InvalidInput`] (0×0,
 /// non-finite heights).
 pub fn decode(bytes: &[u8], channel: Channel, limits: &Limits) -> Result<(HeightMap, InputInfo)> {
+    decode_with(bytes, channel, NoData::Auto, limits)
+}
+
+/// Decodes `bytes` for a bake with `params`: the `channel` and `nodata` it asks for, then the
+/// DEM defaults of SPEC §2 applied to `params` ([`georef::apply_dem_defaults`]).
+///
+/// # Errors
+/// As [`decode_with`], and the refusals of the DEM defaults.
+pub fn decode_for(
+    bytes: &[u8],
+    params: &mut BakeParams,
+    limits: &Limits,
+) -> Result<(HeightMap, InputInfo)> {
+    let (map, info) = decode_with(bytes, params.channel, params.nodata, limits)?;
+    georef::apply_dem_defaults(params, map.terrain.georef.as_ref())?;
+    Ok((map, info))
+}
+
+/// [`decode`] with a nodata declaration: texels equal to it (as stored in the file) are holes.
+///
+/// # Errors
+/// As [`decode`]; a map with no texel left, and a non-finite value that is not nodata, are
+/// [`Error::InvalidInput`].
+pub fn decode_with(
+    bytes: &[u8],
+    channel: Channel,
+    nodata: NoData,
+    limits: &Limits,
+) -> Result<(HeightMap, InputInfo)> {
     let (fmt, w, h) = probe_format(bytes, limits)?;
     // Room for the decoded image at up to 4 × f32 per texel plus the decoders' own buffers.
     let max_alloc = limits.max_texels.saturating_mul(16).saturating_add(64 << 20);
@@ -392,8 +475,21 @@ pub fn decode(bytes: &[u8], channel: Channel, limits: &Limits) -> Result<(Height
             d.values.len()
         )));
     }
-    check_finite(&d.values, w as usize)?;
-    check_range(&d.values, w as usize)?;
+    let mut d = d;
+    let nodata = match nodata {
+        NoData::Auto => d.georef.as_ref().and_then(|g| g.nodata()),
+        NoData::None => None,
+        NoData::Nan => Some(f64::NAN),
+        NoData::Value(v) => Some(v),
+    };
+    let holes = nodata.map(|nd| mark_holes(&d.values, d.stored, nd)).transpose()?.flatten();
+    match &holes {
+        Some(holes) => fill_holes(&mut d.values, holes, w as usize)?,
+        None => {
+            check_finite(&d.values, w as usize)?;
+            check_range(&d.values, w as usize)?;
+        }
+    }
     let info = InputInfo {
         width: w,
         height: h,
@@ -403,7 +499,64 @@ pub fn decode(bytes: &[u8], channel: Channel, limits: &Limits) -> Result<(Height
         float: d.float,
         content_hash: blake3::hash(bytes).to_hex().to_string(),
     };
-    Ok((HeightMap { width: w as usize, height: h as usize, values: d.values }, info))
+    let terrain = Terrain { georef: d.georef, nodata, holes };
+    Ok((HeightMap { width: w as usize, height: h as usize, values: d.values, terrain }, info))
+}
+
+/// The hole mask for nodata value `nd` (NaN: NaN texels), `None` when no texel is a hole.
+/// Normalised integer samples are compared as stored (value × `stored`, rounded).
+fn mark_holes(values: &[f32], stored: f64, nd: f64) -> Result<Option<Vec<bool>>> {
+    let holes: Vec<bool> = if nd.is_nan() {
+        values.iter().map(|v| v.is_nan()).collect()
+    } else if stored != 1.0 {
+        values.iter().map(|&v| (v as f64 * stored).round() == nd).collect()
+    } else {
+        let nd32 = nd as f32;
+        values.iter().map(|&v| v == nd32 || v as f64 == nd).collect()
+    };
+    if holes.iter().all(|&h| h) {
+        return Err(Error::InvalidInput(format!(
+            "every texel is nodata ({nd}): the map has no height left to bake"
+        )));
+    }
+    Ok(holes.iter().any(|&h| h).then_some(holes))
+}
+
+/// Checks the texels that are not holes, and fills the holes [`HOLE_DEPTH`] map height ranges
+/// below the lowest of them (see the module docs).
+fn fill_holes(values: &mut [f32], holes: &[bool], width: usize) -> Result<()> {
+    let mut lo = f32::INFINITY;
+    let mut hi = f32::NEG_INFINITY;
+    for (k, (&v, &hole)) in values.iter().zip(holes).enumerate() {
+        if hole {
+            continue;
+        }
+        if !v.is_finite() || v.abs() > MAX_ABS_HEIGHT {
+            check_finite(&values[k..k + 1], 1).map_err(|_| {
+                Error::InvalidInput(format!(
+                    "height at column {}, row {} is {v}: heights must be finite and within \
+                     ±{MAX_ABS_HEIGHT:e} (declare missing data with `nodata`)",
+                    k % width.max(1),
+                    k / width.max(1)
+                ))
+            })?;
+            return Err(Error::InvalidInput(format!(
+                "height at column {}, row {} is {v:e}, beyond ±{MAX_ABS_HEIGHT:e}: the input's \
+                 values are out of range",
+                k % width.max(1),
+                k / width.max(1)
+            )));
+        }
+        lo = lo.min(v);
+        hi = hi.max(v);
+    }
+    let fill = lo - HOLE_DEPTH * (hi - lo).max(1.0);
+    for (v, &hole) in values.iter_mut().zip(holes) {
+        if hole {
+            *v = fill;
+        }
+    }
+    Ok(())
 }
 
 fn decode_png(bytes: &[u8], channel: Channel, limits: &Limits, max_alloc: u64) -> Result<Decoded> {
@@ -417,8 +570,26 @@ fn decode_png(bytes: &[u8], channel: Channel, limits: &Limits, max_alloc: u64) -
     Ok(extract(&img, channel))
 }
 
+/// TIFF compressions the `tiff` crate decodes here (its default features).
+const TIFF_COMPRESSIONS: &[u16] = &[1, 2, 3, 4, 5, 6, 7, 8, 32773, 32946];
+
+/// The name of a TIFF compression code, for a refusal that says which one it was.
+fn compression_name(c: u16) -> String {
+    match c {
+        34712 => "JPEG 2000 (34712)".into(),
+        34887 => "LERC (34887)".into(),
+        34925 => "LZMA (34925)".into(),
+        50000 => "ZSTD (50000)".into(),
+        50001 => "WebP (50001)".into(),
+        50002 => "JPEG XL (50002)".into(),
+        32809 => "ThunderScan (32809)".into(),
+        other => format!("code {other}"),
+    }
+}
+
 /// TIFF through the `tiff` crate directly: `image` has no gray-f32 type, and 32-bit float gray
-/// is exactly what terrain tools export.
+/// is exactly what terrain tools export. Signed integers are used as they are (DEM convention),
+/// and a georeferenced DEM keeps every sample type as it is (heights in metres).
 fn decode_tiff(bytes: &[u8], channel: Channel, max_alloc: u64) -> Result<Decoded> {
     use tiff::decoder::DecodingResult as R;
     use tiff::ColorType as C;
@@ -427,6 +598,19 @@ fn decode_tiff(bytes: &[u8], channel: Channel, max_alloc: u64) -> Result<Decoded
     tl.decoding_buffer_size = cap;
     tl.intermediate_buffer_size = cap;
     let mut dec = tiff_decoder(bytes)?.with_limits(tl);
+    let compression = dec
+        .find_tag_unsigned::<u16>(tiff::tags::Tag::Compression)
+        .map_err(tiff_error)?
+        .unwrap_or(1);
+    if !TIFF_COMPRESSIONS.contains(&compression) {
+        return Err(Error::Unsupported(format!(
+            "TIFF compression {} is not supported; rewrite the file with DEFLATE or LZW \
+             (`gdal_translate -co COMPRESS=DEFLATE in.tif out.tif`)",
+            compression_name(compression)
+        )));
+    }
+    let georef = georef::Georef::read(&mut dec)?;
+    let dem = georef.as_ref().is_some_and(|g| g.is_dem());
     let ct = dec.colortype().map_err(tiff_error)?;
     let (n, color) = match ct {
         C::Gray(_) => (1, "gray"),
@@ -440,22 +624,28 @@ fn decode_tiff(bytes: &[u8], channel: Channel, max_alloc: u64) -> Result<Decoded
         }
     };
     let img = dec.read_image().map_err(tiff_error)?;
-    let n8 = |v: u8| v as f32 / 255.0;
-    let n16 = |v: u16| (v as f64 / 65535.0) as f32;
+    let (s8, s16): (f64, f64) = if dem { (1.0, 1.0) } else { (255.0, 65535.0) };
+    let n8 = |v: u8| if dem { v as f32 } else { v as f32 / 255.0 };
+    let n16 = |v: u16| (v as f64 / s16) as f32;
     let id = |v: f32| v;
-    let (values, bit_depth, float) = match &img {
-        R::U8(b) => (samples(b, n, channel, n8), 8, false),
-        R::U16(b) => (samples(b, n, channel, n16), 16, false),
-        R::F32(b) => (samples(b, n, channel, id), 32, true),
-        R::F64(b) => (samples(b, n, channel, |v: f64| v as f32), 64, true),
+    let (values, bit_depth, float, stored) = match &img {
+        R::U8(b) => (samples(b, n, channel, n8), 8, false, s8),
+        R::U16(b) => (samples(b, n, channel, n16), 16, false, s16),
+        R::I8(b) => (samples(b, n, channel, |v: i8| v as f32), 8, false, 1.0),
+        R::I16(b) => (samples(b, n, channel, |v: i16| v as f32), 16, false, 1.0),
+        R::I32(b) => (samples(b, n, channel, |v: i32| v as f32), 32, false, 1.0),
+        R::U32(b) if dem => (samples(b, n, channel, |v: u32| v as f32), 32, false, 1.0),
+        R::F32(b) => (samples(b, n, channel, id), 32, true, 1.0),
+        R::F64(b) => (samples(b, n, channel, |v: f64| v as f32), 64, true, 1.0),
         _ => {
             return Err(Error::Unsupported(format!(
-                "TIFF sample type of a {}-bit {color} image; use 8/16-bit integer or 32-bit float",
+                "TIFF sample type of a {}-bit {color} image; use 8/16-bit unsigned, \
+                 8/16/32-bit signed integer or 32/64-bit float",
                 ct.bit_depth()
             )))
         }
     };
-    Ok(Decoded { values, color, bit_depth, float })
+    Ok(Decoded { values, color, bit_depth, float, stored, georef })
 }
 
 /// OpenEXR through the `exr` crate directly: `image`'s decoder insists on R, G and B channels,
@@ -511,14 +701,21 @@ fn decode_exr(bytes: &[u8], channel: Channel) -> Result<Decoded> {
                 )
             })
             .collect();
-        return Ok(Decoded { values, color, bit_depth, float: true });
+        return Ok(Decoded { values, color, bit_depth, float: true, stored: 1.0, georef: None });
     }
     // A gray map: `Y`, or the only channel whatever its name.
     let gray = find("Y").or(if list.len() == 1 { list.first() } else { None });
     match gray {
         Some(y) => {
             let color = if a.is_some() && list.len() == 2 { "gray_alpha" } else { "gray" };
-            Ok(Decoded { values: to_f32(y)?, color, bit_depth: depth(&[y]), float: true })
+            Ok(Decoded {
+                values: to_f32(y)?,
+                color,
+                bit_depth: depth(&[y]),
+                float: true,
+                stored: 1.0,
+                georef: None,
+            })
         }
         None => {
             let names: Vec<String> = list.iter().map(|c| c.name.to_string()).collect();
@@ -563,7 +760,18 @@ fn extract(img: &image::DynamicImage, channel: Channel) -> Decoded {
     let n8 = |v: u8| v as f32 / 255.0;
     let n16 = |v: u16| (v as f64 / 65535.0) as f32;
     let id = |v: f32| v;
-    let d = |values, color, bit_depth, float| Decoded { values, color, bit_depth, float };
+    let d = |values, color, bit_depth: u8, float| Decoded {
+        values,
+        color,
+        bit_depth,
+        float,
+        stored: match (float, bit_depth) {
+            (false, 8) => 255.0,
+            (false, _) => 65535.0,
+            _ => 1.0,
+        },
+        georef: None,
+    };
     match img {
         D::ImageLuma8(b) => d(samples(b.as_raw(), 1, channel, n8), "gray", 8, false),
         D::ImageLumaA8(b) => d(samples(b.as_raw(), 2, channel, n8), "gray_alpha", 8, false),

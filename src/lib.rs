@@ -12,8 +12,9 @@
 //! - [`layers`]: the horizon layers and quantisers, the leaf that bake and encode both use.
 //! - [`bake`]: parameters → kernels → quantised layers (or rows streamed to a sink), with
 //!   progress and cancellation.
-//! - [`encode`]: PNG 8/16, OpenEXR, KTX2 and DDS writers; the engine-ready textures of SPEC §8
-//!   (mip filters, BC7/BC5 blocks, zstd, layouts, DDS headers).
+//! - [`terrain`]: terrain products (angles per azimuth, sky-view factor) from per-bin horizons.
+//! - [`encode`]: PNG 8/16, OpenEXR, KTX2, DDS and GeoTIFF writers; the engine-ready textures of
+//!   SPEC §8 (mip filters, BC7/BC5 blocks, zstd, layouts, DDS headers).
 //! - [`pipeline`]: the one bake pipeline, decoded map → encoded files in a sink, shared by the
 //!   CLI and the service's worker.
 //! - [`preview`]: the CPU preview of the shading (and the contact sheet), as PNG.
@@ -41,5 +42,6 @@ pub mod preview;
 pub mod progress;
 pub mod service;
 pub mod shaders;
+pub mod terrain;
 
 pub use error::{Error, Result};

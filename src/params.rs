@@ -121,11 +121,24 @@ pub enum FourierRange {
 pub struct Outputs {
     pub horizon: bool,
     pub fourier: bool,
+    /// Horizon angles at every bin, no channel reduction (SPEC §3.7), as `angles.tif`.
+    #[serde(default)]
+    pub angles: bool,
+    /// The sky-view factor (SPEC §3.7), as `svf.tif`.
+    #[serde(default)]
+    pub svf: bool,
+}
+
+impl Outputs {
+    /// Whether a terrain product (SPEC §3.7) is asked for.
+    pub fn terrain(&self) -> bool {
+        self.angles || self.svf
+    }
 }
 
 impl Default for Outputs {
     fn default() -> Self {
-        Outputs { horizon: true, fourier: false }
+        Outputs { horizon: true, fourier: false, angles: false, svf: false }
     }
 }
 
@@ -138,12 +151,116 @@ impl fmt::Display for Outputs {
         if self.fourier {
             parts.push("fourier");
         }
+        if self.angles {
+            parts.push("angles");
+        }
+        if self.svf {
+            parts.push("svf");
+        }
         f.write_str(&parts.join(","))
+    }
+}
+
+/// Unit of the horizon angles in `angles.tif` (SPEC §3.7).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Hash)]
+#[serde(rename_all = "lowercase")]
+pub enum AngleUnit {
+    Degrees,
+    Radians,
+    /// sin α, as the horizon layers store it.
+    Sin,
+}
+
+/// How the bands of `angles.tif` count azimuths (SPEC §3.7).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Hash)]
+#[serde(rename_all = "snake_case")]
+pub enum AzimuthFrom {
+    /// φ of SPEC §2: counter-clockwise from +x (east on a north-up map), as GRASS counts.
+    EastCcw,
+    /// Compass: clockwise from north (+y with `y_axis=up`), as Whitebox and PVGIS count.
+    NorthCw,
+}
+
+/// Which sky-view factor (SPEC §3.7).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Hash)]
+#[serde(rename_all = "lowercase")]
+pub enum SvfModel {
+    /// mean cos² α: the share of isotropic diffuse light on a horizontal surface.
+    Radiative,
+    /// 1 − mean sin α (Zakšek et al. 2011, RVT).
+    Visual,
+}
+
+/// Whether far terrain drops with the earth's curvature (SPEC §3.7).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Hash)]
+#[serde(rename_all = "lowercase")]
+pub enum EarthCurvature {
+    Off,
+    On,
+}
+
+/// Which input value is a hole (SPEC §2 "Nodata").
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum NoData {
+    /// The file's GDAL_NODATA tag, if any (default).
+    Auto,
+    /// No value is a hole, whatever the file says.
+    None,
+    /// Texels holding NaN.
+    Nan,
+    /// Texels holding this value (as stored in the file).
+    Value(f64),
+}
+
+impl Serialize for NoData {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        match self {
+            NoData::Value(v) => s.serialize_f64(*v),
+            other => s.serialize_str(&other.to_string()),
+        }
+    }
+}
+
+impl fmt::Display for NoData {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            NoData::Auto => f.write_str("auto"),
+            NoData::None => f.write_str("none"),
+            NoData::Nan => f.write_str("nan"),
+            NoData::Value(v) => write!(f, "{v}"),
+        }
+    }
+}
+
+/// Which parameters were set explicitly (by name, as a bit per [`PARAM_NAMES`] index), so the
+/// DEM defaults of SPEC §2 apply only to the others. It is bookkeeping, not a parameter: two
+/// parameter sets compare equal whatever was explicit.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Explicit(u64);
+
+impl PartialEq for Explicit {
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
+}
+
+impl Explicit {
+    fn mark(&mut self, key: &str) {
+        if let Some(i) = PARAM_NAMES.iter().position(|n| *n == key) {
+            self.0 |= 1 << i;
+        }
+    }
+
+    /// Whether `key` was given.
+    pub fn has(&self, key: &str) -> bool {
+        PARAM_NAMES.iter().position(|n| *n == key).is_some_and(|i| self.0 & (1 << i) != 0)
     }
 }
 
 /// Upper bounds that keep a single bake's cost finite; each is documented in the README.
 pub const MAX_BINS: u32 = 256;
+/// Most azimuths of `angles`/`svf` with a ray method (SPEC §3.7).
+pub const MAX_TERRAIN_BINS: u32 = 720;
 /// Largest fixed radius accepted (the Lengyel splat costs O(R²) per texel).
 pub const MAX_RADIUS: u32 = 4096;
 /// Largest absolute `height_scale` accepted.
@@ -167,6 +284,23 @@ pub struct BakeParams {
     pub outputs: Outputs,
     pub fourier_terms: u32,
     pub fourier_range: FourierRange,
+    /// Which value is a hole (SPEC §2).
+    pub nodata: NoData,
+    /// Map units per texel; `None`: from the georeferencing, if any.
+    pub cell_size: Option<f64>,
+    /// The radius in map units; resolves to ceil(max_distance / cell_size) texels and then
+    /// takes the place of `radius`.
+    pub max_distance: Option<f64>,
+    /// Off by default; on for georeferenced input unless given (SPEC §2).
+    pub earth_curvature: EarthCurvature,
+    /// Refraction coefficient of the curvature drop (R_e = 6 371 km / (1 − refraction)).
+    pub refraction: f64,
+    pub angle_unit: AngleUnit,
+    pub azimuth_from: AzimuthFrom,
+    pub svf_model: SvfModel,
+    /// Which of the above were given (the rest may take the DEM defaults).
+    #[serde(skip)]
+    pub explicit: Explicit,
 }
 
 impl Default for BakeParams {
@@ -185,6 +319,15 @@ impl Default for BakeParams {
             outputs: Outputs::default(),
             fourier_terms: 5,
             fourier_range: FourierRange::Standard,
+            nodata: NoData::Auto,
+            cell_size: None,
+            max_distance: None,
+            earth_curvature: EarthCurvature::Off,
+            refraction: 0.0,
+            angle_unit: AngleUnit::Degrees,
+            azimuth_from: AzimuthFrom::EastCcw,
+            svf_model: SvfModel::Radiative,
+            explicit: Explicit::default(),
         }
     }
 }
@@ -204,6 +347,14 @@ pub const PARAM_NAMES: &[&str] = &[
     "outputs",
     "fourier_terms",
     "fourier_range",
+    "nodata",
+    "cell_size",
+    "max_distance",
+    "earth_curvature",
+    "refraction",
+    "angle_unit",
+    "azimuth_from",
+    "svf_model",
 ];
 
 pub(crate) fn parse_enum<T: Copy>(field: &str, value: &str, options: &[(&str, T)]) -> Result<T> {
@@ -375,11 +526,12 @@ impl BakeParams {
                 }
             }
             "bins" => {
+                // The multiple-of-16 rule depends on `method` and `outputs`: see `check`.
                 let b = parse_u32(key, value)?;
-                if b < 16 || b % 16 != 0 || b > MAX_BINS {
+                if b == 0 || b > MAX_TERRAIN_BINS {
                     return Err(Error::param(
                         key,
-                        format!("must be a multiple of 16 between 16 and {MAX_BINS}, got {b}"),
+                        format!("must be between 1 and {MAX_TERRAIN_BINS}, got {b}"),
                     ));
                 }
                 self.bins = b;
@@ -406,21 +558,26 @@ impl BakeParams {
                 )?
             }
             "outputs" => {
-                let mut o = Outputs { horizon: false, fourier: false };
+                let mut o = Outputs { horizon: false, fourier: false, angles: false, svf: false };
                 for part in value.split(',').map(str::trim).filter(|p| !p.is_empty()) {
                     match part.to_ascii_lowercase().as_str() {
                         "horizon" => o.horizon = true,
                         "fourier" => o.fourier = true,
+                        "angles" => o.angles = true,
+                        "svf" => o.svf = true,
                         _ => {
                             return Err(Error::param(
                                 key,
-                                format!("`{part}` is not one of horizon, fourier"),
+                                format!("`{part}` is not one of horizon, fourier, angles, svf"),
                             ))
                         }
                     }
                 }
-                if !o.horizon && !o.fourier {
-                    return Err(Error::param(key, "must name at least one of horizon, fourier"));
+                if !o.horizon && !o.fourier && !o.terrain() {
+                    return Err(Error::param(
+                        key,
+                        "must name at least one of horizon, fourier, angles, svf",
+                    ));
                 }
                 self.outputs = o;
             }
@@ -438,12 +595,118 @@ impl BakeParams {
                     &[("standard", FourierRange::Standard), ("expanded", FourierRange::Expanded)],
                 )?
             }
+            "nodata" => {
+                self.nodata = match value.trim().to_ascii_lowercase().as_str() {
+                    "auto" | "" => NoData::Auto,
+                    "none" => NoData::None,
+                    "nan" => NoData::Nan,
+                    _ => NoData::Value(parse_f64(key, value).map_err(|_| {
+                        Error::param(
+                            key,
+                            format!("`{value}` is not a number, `nan`, `none` or `auto`"),
+                        )
+                    })?),
+                }
+            }
+            "cell_size" | "max_distance" => {
+                let v = match value.trim().to_ascii_lowercase().as_str() {
+                    "auto" | "" => None,
+                    _ => {
+                        let v = parse_f64(key, value)?;
+                        if !(v > 0.0 && v < 1e12) {
+                            return Err(Error::param(
+                                key,
+                                "must be a positive number of map units (below 1e12)",
+                            ));
+                        }
+                        Some(v)
+                    }
+                };
+                if key == "cell_size" {
+                    self.cell_size = v;
+                } else {
+                    self.max_distance = v;
+                }
+            }
+            "earth_curvature" => {
+                self.earth_curvature = parse_enum(
+                    key,
+                    value,
+                    &[("off", EarthCurvature::Off), ("on", EarthCurvature::On)],
+                )?
+            }
+            "refraction" => {
+                let v = parse_f64(key, value)?;
+                if !(0.0..1.0).contains(&v) {
+                    return Err(Error::param(key, "must be at least 0 and below 1"));
+                }
+                self.refraction = v;
+            }
+            "angle_unit" => {
+                self.angle_unit = parse_enum(
+                    key,
+                    value,
+                    &[
+                        ("degrees", AngleUnit::Degrees),
+                        ("radians", AngleUnit::Radians),
+                        ("sin", AngleUnit::Sin),
+                    ],
+                )?
+            }
+            "azimuth_from" => {
+                self.azimuth_from = parse_enum(
+                    key,
+                    value,
+                    &[("east_ccw", AzimuthFrom::EastCcw), ("north_cw", AzimuthFrom::NorthCw)],
+                )?
+            }
+            "svf_model" => {
+                self.svf_model = parse_enum(
+                    key,
+                    value,
+                    &[("radiative", SvfModel::Radiative), ("visual", SvfModel::Visual)],
+                )?
+            }
             _ => {
                 return Err(Error::param(
                     key,
                     format!("unknown parameter; known ones are {}", PARAM_NAMES.join(", ")),
                 ))
             }
+        }
+        self.explicit.mark(key);
+        Ok(())
+    }
+
+    /// Rules that join several parameters, checked once all are set.
+    ///
+    /// # Errors
+    /// [`Error::Param`] naming the field to change.
+    pub fn check(&self) -> Result<()> {
+        let b = self.bins;
+        let ray = matches!(self.method, Method::Exact | Method::March);
+        let layers = self.outputs.horizon || self.outputs.fourier;
+        if (layers || !ray) && (b < 16 || !b.is_multiple_of(16) || b > MAX_BINS) {
+            let why =
+                if ray { "with the horizon or fourier outputs" } else { "with method=lengyel" };
+            return Err(Error::param(
+                "bins",
+                format!(
+                    "must be a multiple of 16 between 16 and {MAX_BINS} {why}, got {b} \
+                     (any 1..{MAX_TERRAIN_BINS} for outputs=angles,svf with method=exact or march)"
+                ),
+            ));
+        }
+        if self.outputs.terrain()
+            && self.azimuth_from == AzimuthFrom::NorthCw
+            && !b.is_multiple_of(4)
+        {
+            return Err(Error::param(
+                "azimuth_from",
+                format!(
+                    "north_cw needs bins divisible by 4 (so north is one of the bins), got {b}"
+                ),
+            ));
         }
         Ok(())
     }
@@ -465,6 +728,7 @@ impl BakeParams {
             p.set(k, v)?;
             seen.push(k);
         }
+        p.check()?;
         Ok(p)
     }
 
@@ -482,6 +746,7 @@ impl BakeParams {
                 p.set(k, &text)?;
             }
         }
+        p.check()?;
         Ok(p)
     }
 
@@ -507,6 +772,14 @@ impl BakeParams {
             ("outputs", self.outputs.to_string()),
             ("fourier_terms", self.fourier_terms.to_string()),
             ("fourier_range", name(&self.fourier_range)),
+            ("nodata", self.nodata.to_string()),
+            ("cell_size", self.cell_size.map_or("auto".into(), |v| v.to_string())),
+            ("max_distance", self.max_distance.map_or("auto".into(), |v| v.to_string())),
+            ("earth_curvature", name(&self.earth_curvature)),
+            ("refraction", self.refraction.to_string()),
+            ("angle_unit", name(&self.angle_unit)),
+            ("azimuth_from", name(&self.azimuth_from)),
+            ("svf_model", name(&self.svf_model)),
         ]
     }
 }

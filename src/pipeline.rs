@@ -51,6 +51,9 @@ pub struct Produced {
     pub encode_ms: f64,
     /// Handing files to the sink after they were encoded (flushes, uploads), ms.
     pub store_ms: f64,
+    /// What each terrain product file holds (bands, units, conventions), for bake.json;
+    /// `null` without terrain outputs.
+    pub products: serde_json::Value,
 }
 
 /// Milliseconds since `t`, to the microsecond.
@@ -77,6 +80,22 @@ pub fn produce<S: Sink>(
 ) -> Result<Produced> {
     let mut names: Vec<&'static str> = Vec::new();
     let mut store_ms = 0.0;
+    // Terrain products first: the streamed horizon layers below consume the map.
+    let mut terrain = None;
+    if params.outputs.terrain() {
+        let t = Instant::now();
+        let (files, r, products) = terrain_files(&map, params, progress)?;
+        let bake_ms = ms(t);
+        store_ms += keep(sink, files, &mut names)?;
+        terrain = Some((r, products, bake_ms));
+    }
+    let products = terrain.as_ref().map_or(serde_json::Value::Null, |t| t.1.clone());
+    let terrain_ms = terrain.as_ref().map_or(0.0, |t| t.2);
+    if !params.outputs.horizon && !params.outputs.fourier {
+        let (radius, products, bake_ms) =
+            terrain.ok_or_else(|| Error::Internal("a bake with no outputs".into()))?;
+        return Ok(Produced { names, radius, bake_ms, encode_ms: 0.0, store_ms, products });
+    }
     let out = if params.outputs.horizon && streamable(formats) {
         let t = Instant::now();
         let mut radius = None;
@@ -99,7 +118,14 @@ pub fn produce<S: Sink>(
         names.extend(["horizon_0.png", "horizon_1.png"]);
         // Both kernels resolve the radius alike; the horizon's is reported.
         drop(radius);
-        Produced { names: Vec::new(), radius: r, bake_ms, encode_ms: fourier_ms, store_ms: 0.0 }
+        Produced {
+            names: Vec::new(),
+            radius: r,
+            bake_ms: bake_ms + terrain_ms,
+            encode_ms: fourier_ms,
+            store_ms: 0.0,
+            products: products.clone(),
+        }
     } else {
         let t = Instant::now();
         let layers = if params.outputs.horizon {
@@ -127,7 +153,14 @@ pub fn produce<S: Sink>(
         let encode_ms = ms(t);
         store_ms += keep(sink, files, &mut names)?;
         let radius = radius.ok_or_else(|| Error::Internal("a bake with no outputs".into()))?;
-        Produced { names: Vec::new(), radius, bake_ms, encode_ms, store_ms: 0.0 }
+        Produced {
+            names: Vec::new(),
+            radius,
+            bake_ms: bake_ms + terrain_ms,
+            encode_ms,
+            store_ms: 0.0,
+            products: products.clone(),
+        }
     };
     if progress.is_canceled() {
         return Err(Error::Canceled);
@@ -240,4 +273,112 @@ pub fn fourier_files(
         .map(|i| Ok(OutFile { name: NAMES[i], bytes: encode::fourier_png(&layers, i)? }))
         .collect::<Result<Vec<_>>>()?;
     Ok((files, radius))
+}
+
+/// Bakes the terrain products `params.outputs` asks for into GeoTIFFs (SPEC §3.7): `angles.tif`
+/// (one band per bin) and `svf.tif`, with the input's georeferencing; and what they hold, for
+/// bake.json.
+///
+/// # Errors
+/// Whatever the bake or the GeoTIFF encoder fails with.
+pub fn terrain_files(
+    map: &HeightMap,
+    params: &BakeParams,
+    progress: &Progress,
+) -> Result<(Vec<OutFile>, ResolvedRadius, serde_json::Value)> {
+    use crate::encode::geotiff;
+    use crate::params::{AngleUnit, AzimuthFrom};
+    let (p, radius) = bake::bake_terrain(map, params, progress)?;
+    progress.start(Stage::Encode, 1);
+    let georef = map.terrain.georef.as_ref();
+    let plane = p.width * p.height;
+    let mut files = Vec::new();
+    let mut info = serde_json::Map::new();
+    let nodata = serde_json::json!(geotiff::nodata_text(p.nodata));
+    if let Some(a) = &p.angles {
+        let from = match params.azimuth_from {
+            AzimuthFrom::EastCcw => "east_ccw",
+            AzimuthFrom::NorthCw => "north_cw",
+        };
+        let unit = match params.angle_unit {
+            AngleUnit::Degrees => "degrees",
+            AngleUnit::Radians => "radians",
+            AngleUnit::Sin => "sin",
+        };
+        let azimuths: Vec<f64> =
+            (0..p.bins).map(|n| crate::terrain::angles::band_azimuth_deg(n, p.bins)).collect();
+        let bands: Vec<geotiff::Band<'_>> = a
+            .chunks_exact(plane)
+            .zip(&azimuths)
+            .map(|(plane, az)| geotiff::Band {
+                plane,
+                description: format!("horizon {unit} at azimuth {az}° ({from})"),
+            })
+            .collect();
+        if progress.is_canceled() {
+            return Err(Error::Canceled);
+        }
+        let bytes = geotiff::encode(p.width, p.height, &bands, georef, p.nodata)?;
+        files.push(OutFile { name: "angles.tif", bytes });
+        info.insert(
+            "angles.tif".into(),
+            serde_json::json!({
+                "bands": bands.iter().map(|b| b.description.clone()).collect::<Vec<_>>(),
+                "azimuths_deg": azimuths,
+                "azimuth_from": from,
+                "unit": unit,
+                "nodata": nodata,
+            }),
+        );
+    }
+    if let Some(v) = &p.svf {
+        let model = match params.svf_model {
+            crate::params::SvfModel::Radiative => "radiative",
+            crate::params::SvfModel::Visual => "visual",
+        };
+        let description = format!("sky-view factor ({model}, {} azimuths)", p.bins);
+        let bands = [geotiff::Band { plane: v, description: description.clone() }];
+        let bytes = geotiff::encode(p.width, p.height, &bands, georef, p.nodata)?;
+        files.push(OutFile { name: "svf.tif", bytes });
+        info.insert(
+            "svf.tif".into(),
+            serde_json::json!({
+                "bands": [description],
+                "model": model,
+                "unit": "fraction of the sky",
+                "nodata": nodata,
+            }),
+        );
+    }
+    Ok((files, radius, serde_json::Value::Object(info)))
+}
+
+/// The sun shadow (SPEC §3.7) of `map` as `shadow.tif`: uint8, 1 lit, 0 shadowed, 255 at holes
+/// (its GDAL_NODATA), with the input's georeferencing.
+///
+/// # Errors
+/// Whatever [`bake::shadow`] or the GeoTIFF encoder fails with.
+pub fn shadow_tif(
+    map: &HeightMap,
+    params: &BakeParams,
+    azimuth_deg: f64,
+    elevation_deg: f64,
+    progress: &Progress,
+) -> Result<Vec<u8>> {
+    let plane = bake::shadow(map, params, azimuth_deg, elevation_deg, progress)?;
+    let from = match params.azimuth_from {
+        crate::params::AzimuthFrom::EastCcw => "east_ccw",
+        crate::params::AzimuthFrom::NorthCw => "north_cw",
+    };
+    let description = format!(
+        "sun shadow at azimuth {azimuth_deg}° ({from}), elevation {elevation_deg}° (1 lit, 0 shadow)"
+    );
+    encode::geotiff::encode_u8(
+        map.width,
+        map.height,
+        &plane,
+        &description,
+        map.terrain.georef.as_ref(),
+        crate::terrain::shadow::NODATA,
+    )
 }

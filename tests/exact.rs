@@ -421,7 +421,8 @@ fn unlimited_edge_none_reaches_the_far_corner() {
     }
     p.set("height_scale", "1").unwrap();
     p.set("reduce", "point").unwrap();
-    let map = HeightMap { width: n, height: n, values: heights.clone() };
+    let map =
+        HeightMap { width: n, height: n, values: heights.clone(), terrain: Default::default() };
     let (layers, _) = bake::bake_horizon(&map, &p, Precisions::ALL, &Progress::new()).unwrap();
     // Channel 1 (45°) of texel (0, 7) is layer 0 G.
     let f = layers.f32.as_ref().unwrap();
@@ -556,7 +557,8 @@ fn bake_uses_the_exact_kernel() {
     let mut rng = Rng(11);
     let (w, h) = (13usize, 10usize);
     let values: Vec<f32> = (0..w * h).map(|_| rng.f32()).collect();
-    let map = HeightMap { width: w, height: h, values: values.clone() };
+    let map =
+        HeightMap { width: w, height: h, values: values.clone(), terrain: Default::default() };
     let mut p = BakeParams::default();
     p.set("method", "exact").unwrap();
     p.set("radius", "6").unwrap();

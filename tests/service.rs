@@ -792,3 +792,84 @@ async fn ui_dir_serves_the_page_from_disk() {
         oneshot(&app, Request::get("/ui/..%2Fsecret.txt").body(Body::empty()).unwrap()).await;
     assert_eq!(s, 404);
 }
+
+/// Issue 24: a bake with `outputs=angles,svf` serves the same GeoTIFFs as the library writes;
+/// shadow and profile are computed on request.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn terrain_products_over_http() {
+    use horizon_bake::params::BakeParams;
+    let srv = Server::start(|_| {}).await;
+    let c = client();
+    let png = terrain_png16(37, 29, 24);
+    let q = "method=exact&radius=unlimited&edge=none&outputs=angles,svf&bins=12&svf_model=visual";
+    let params = BakeParams::from_pairs(q.split('&').filter_map(|kv| kv.split_once('='))).unwrap();
+    let (map, _) =
+        horizon_bake::heightmap::decode(&png, params.channel, &Default::default()).unwrap();
+    let progress = horizon_bake::progress::Progress::new();
+    let (want, _, _) = horizon_bake::pipeline::terrain_files(&map, &params, &progress).unwrap();
+    let res = c
+        .post(srv.url(&format!("/v1/bakes?{q}")))
+        .header("content-type", "image/png")
+        .body(png)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(res.status(), 202);
+    let loc = res.headers()["location"].to_str().unwrap().to_owned();
+    let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
+    assert_eq!(v["status"], "succeeded", "{v}");
+    for (route, file) in [("angles", "angles.tif"), ("svf", "svf.tif")] {
+        let res = c.get(srv.url(&format!("{loc}/{route}"))).send().await.unwrap();
+        assert_eq!(res.status(), 200);
+        assert_eq!(res.headers()["content-type"], "image/tiff");
+        let body = res.bytes().await.unwrap();
+        let f = want.iter().find(|f| f.name == file).unwrap();
+        assert!(body[..] == f.bytes[..], "{file} differs from the library's");
+    }
+    // The shadow: a sun at 90° elevation lights every texel; a 1° sun from the east shadows some.
+    let res = c
+        .get(srv.url(&format!("{loc}/shadow?sun_azimuth=0&sun_elevation=90")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(res.status(), 200);
+    let etag = res.headers()["etag"].to_str().unwrap().to_owned();
+    let body = res.bytes().await.unwrap();
+    let mut dec = tiff::decoder::Decoder::new(std::io::Cursor::new(&body[..])).unwrap();
+    match dec.read_image().unwrap() {
+        tiff::decoder::DecodingResult::U8(v) => assert!(v.iter().all(|&b| b == 1)),
+        other => panic!("shadow.tif is not uint8: {other:?}"),
+    }
+    let res = c
+        .get(srv.url(&format!("{loc}/shadow?sun_azimuth=0&sun_elevation=90")))
+        .header("if-none-match", etag)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(res.status(), 304);
+    let res = c.get(srv.url(&format!("{loc}/shadow?sun_elevation=10"))).send().await.unwrap();
+    assert_eq!(res.status(), 422);
+    // The profile, JSON and CSV, against the library.
+    let want = horizon_bake::bake::horizon_profile(&map, &params, 5, 7, 24).unwrap();
+    let res = c.get(srv.url(&format!("{loc}/profile?x=5&y=7&bins=24"))).send().await.unwrap();
+    assert_eq!(res.status(), 200);
+    let p: Value = res.json().await.unwrap();
+    let got: Vec<f64> =
+        p["profile"].as_array().unwrap().iter().map(|e| e["elevation"].as_f64().unwrap()).collect();
+    assert_eq!(got.len(), 24);
+    for (g, w) in got.iter().zip(&want) {
+        // JSON numbers round-trip to within an ulp or two.
+        assert!((g - w.1).abs() < 1e-9, "{g} vs {}", w.1);
+    }
+    let res = c
+        .get(srv.url(&format!("{loc}/profile?x=5&y=7&bins=24")))
+        .header("accept", "text/csv")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(res.headers()["content-type"], "text/csv");
+    assert_eq!(res.text().await.unwrap(), horizon_bake::terrain::profile::to_csv(&want));
+    let res = c.get(srv.url(&format!("{loc}/profile?x=99&y=7"))).send().await.unwrap();
+    assert_eq!(res.status(), 422);
+    srv.stop().await;
+}

@@ -31,13 +31,14 @@ use std::time::{Duration, Instant};
 /// [`BakeParams::set`], not by clap, so messages are the same everywhere.
 #[derive(Debug, Clone, clap::Args)]
 pub struct BakeArgs {
-    /// The height map: PNG (8/16-bit gray, gray+alpha, RGB, RGBA), TIFF (8/16-bit, 32-bit float)
-    /// or OpenEXR.
+    /// The height map: PNG (8/16-bit gray, gray+alpha, RGB, RGBA), TIFF (8/16-bit unsigned,
+    /// 8/16/32-bit signed, 32/64-bit float; a GeoTIFF DEM gets the DEM defaults) or OpenEXR.
     pub input: PathBuf,
     /// Output directory (created if missing; files in it with the same names are replaced).
     #[arg(short = 'o', long = "out")]
     pub out: PathBuf,
-    /// Comma list of png8 (default), png16, exr, ktx2, dds.
+    /// Comma list of png8 (default), png16, exr, ktx2, dds, geotiff (the terrain products of
+    /// --outputs angles,svf).
     #[arg(long, default_value = "png8")]
     pub format: String,
     /// Sample type of horizon.ktx2 / horizon.dds: unorm8 (default), unorm16, float32, or the
@@ -141,7 +142,8 @@ pub struct ParamFlags {
     /// Search radius in texels (default 16), `unlimited` or `auto`.
     #[arg(long, allow_hyphen_values = true)]
     pub radius: Option<String>,
-    /// Azimuth bins, a multiple of 16 (default 32).
+    /// Azimuth bins, a multiple of 16 (default 32); 1..720 for --outputs angles,svf alone with
+    /// method exact or march.
     #[arg(long, allow_hyphen_values = true)]
     pub bins: Option<String>,
     /// average (default) or point (method=exact).
@@ -162,6 +164,30 @@ pub struct ParamFlags {
     /// standard (default) or expanded.
     #[arg(long)]
     pub fourier_range: Option<String>,
+    /// Nodata value (holes): a number, nan, none, or auto (default: the file's GDAL_NODATA).
+    #[arg(long, allow_hyphen_values = true)]
+    pub nodata: Option<String>,
+    /// Map units per texel (default: a GeoTIFF's pixel scale).
+    #[arg(long, allow_hyphen_values = true)]
+    pub cell_size: Option<String>,
+    /// Radius in map units (needs a cell size); replaces --radius.
+    #[arg(long, allow_hyphen_values = true)]
+    pub max_distance: Option<String>,
+    /// on or off (default: on for a GeoTIFF DEM with method=exact).
+    #[arg(long)]
+    pub earth_curvature: Option<String>,
+    /// Refraction coefficient of the curvature drop (default 0).
+    #[arg(long, allow_hyphen_values = true)]
+    pub refraction: Option<String>,
+    /// Unit of angles.tif: degrees (default), radians or sin.
+    #[arg(long)]
+    pub angle_unit: Option<String>,
+    /// Azimuths of angles.tif: east_ccw (default) or north_cw.
+    #[arg(long)]
+    pub azimuth_from: Option<String>,
+    /// Sky-view factor: radiative (default, mean cos² α) or visual (1 − mean sin α).
+    #[arg(long)]
+    pub svf_model: Option<String>,
 }
 
 impl ParamFlags {
@@ -185,6 +211,14 @@ impl ParamFlags {
             ("outputs", &self.outputs),
             ("fourier_terms", &self.fourier_terms),
             ("fourier_range", &self.fourier_range),
+            ("nodata", &self.nodata),
+            ("cell_size", &self.cell_size),
+            ("max_distance", &self.max_distance),
+            ("earth_curvature", &self.earth_curvature),
+            ("refraction", &self.refraction),
+            ("angle_unit", &self.angle_unit),
+            ("azimuth_from", &self.azimuth_from),
+            ("svf_model", &self.svf_model),
         ];
         BakeParams::from_pairs(pairs.iter().filter_map(|(k, v)| v.as_deref().map(|v| (*k, v))))
     }
@@ -237,9 +271,39 @@ fn ms(d: Duration) -> f64 {
 /// [`Error::Io`] when the output cannot be written; DIR is left untouched in every case.
 pub fn run(args: BakeArgs) -> Result<()> {
     let total = Instant::now();
-    let params = args.params()?;
+    let mut params = args.params()?;
     let precision = TexturePrecision::parse(&args.texture_precision)?;
-    let mut formats = Formats::parse(&args.format, precision)?;
+    // `geotiff` names the terrain products' files (SPEC §6), the rest the horizon layers'.
+    let (geotiff, layer_formats): (Vec<&str>, Vec<&str>) = args
+        .format
+        .split(',')
+        .map(str::trim)
+        .filter(|p| !p.is_empty())
+        .partition(|p| p.eq_ignore_ascii_case("geotiff"));
+    let geotiff = !geotiff.is_empty();
+    if geotiff != params.outputs.terrain() {
+        return Err(Error::param(
+            "format",
+            if geotiff {
+                "geotiff holds the terrain products: add --outputs angles,svf (or one of them)"
+            } else {
+                "--outputs angles and svf are written as GeoTIFF: add --format geotiff"
+            },
+        ));
+    }
+    let layer_list = if geotiff && layer_formats.is_empty() && !params.outputs.horizon {
+        "png8".to_owned()
+    } else {
+        layer_formats.join(",")
+    };
+    if params.outputs.horizon && layer_formats.is_empty() && geotiff {
+        return Err(Error::param(
+            "format",
+            "--outputs includes horizon but --format names no horizon-layer format \
+             (png8, png16, exr, ktx2, dds); add one, or drop horizon from --outputs",
+        ));
+    }
+    let mut formats = Formats::parse(&layer_list, precision)?;
     formats.texture = args.texture.options(Some(&args.texture_precision))?;
     if formats.ktx2 || formats.dds {
         formats.texture.check_for(formats.ktx2, formats.dds, false)?;
@@ -268,8 +332,10 @@ pub fn run(args: BakeArgs) -> Result<()> {
     progress.start(Stage::Decode, 1);
     let bytes = std::fs::read(&args.input)
         .map_err(|e| Error::InvalidInput(format!("cannot read {}: {e}", args.input.display())))?;
-    let (map, info) = heightmap::decode(&bytes, params.channel, &args.limits())?;
+    let (map, info) = heightmap::decode_for(&bytes, &mut params, &args.limits())?;
     drop(bytes);
+    let georeferencing =
+        map.terrain.georef.as_ref().filter(|g| g.is_dem()).map(|g| g.report(params.cell_size));
     let decode_ms = ms(t.elapsed());
 
     // One pipeline with the service's worker (crate::pipeline): PNG-only horizon outputs
@@ -285,6 +351,7 @@ pub fn run(args: BakeArgs) -> Result<()> {
     let (bake_ms, encode_ms) = (produced.bake_ms, produced.encode_ms + produced.store_ms);
     let radius = Some(produced.radius);
     let names = produced.names;
+    let products = produced.products;
     let report = BakeReport {
         params: &params,
         resolved_radius: radius.as_ref(),
@@ -294,6 +361,8 @@ pub fn run(args: BakeArgs) -> Result<()> {
         files: names,
         timings: [decode_ms, bake_ms, encode_ms, ms(total.elapsed())],
         size,
+        georeferencing,
+        products,
     };
     staging.write(&[OutFile { name: "bake.json", bytes: report.to_json()? }])?;
     staging.commit()
@@ -311,6 +380,10 @@ struct BakeReport<'a> {
     timings: [f64; 4],
     /// Width and height of the horizon layers, when baked.
     size: Option<(usize, usize)>,
+    /// The DEM's georeferencing (SPEC §3.7), for a GeoTIFF input.
+    georeferencing: Option<crate::heightmap::georef::GeorefReport>,
+    /// What each terrain product holds (`null` without them).
+    products: serde_json::Value,
 }
 
 impl BakeReport<'_> {
@@ -337,6 +410,15 @@ impl BakeReport<'_> {
             },
             "timings_ms": { "decode": decode, "bake": bake, "encode": encode, "total": total },
         });
+        let mut v = v;
+        if let Some(obj) = v.as_object_mut() {
+            if let Some(g) = &self.georeferencing {
+                obj.insert("georeferencing".into(), serde_json::json!(g));
+            }
+            if !self.products.is_null() {
+                obj.insert("products".into(), self.products.clone());
+            }
+        }
         let mut out = serde_json::to_vec_pretty(&v)
             .map_err(|e| Error::Internal(format!("bake.json: {e}")))?;
         out.push(b'\n');

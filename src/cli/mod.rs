@@ -7,8 +7,10 @@ pub mod bake;
 pub mod cubemap;
 pub mod eval;
 pub mod preview;
+pub mod profile;
 pub mod serve;
 pub mod shaders;
+pub mod shadow;
 
 use clap::{Parser, Subcommand};
 
@@ -35,6 +37,10 @@ pub enum Command {
     Preview(preview::PreviewArgs),
     /// Measure accuracy against the exact ground truth, beside the time (SPEC §4).
     Eval(eval::EvalArgs),
+    /// Print the exact horizon profile at one point (CSV, or JSON with --json).
+    Profile(profile::ProfileArgs),
+    /// Write the sun shadow of a height map or DEM as a GeoTIFF.
+    Shadow(shadow::ShadowArgs),
 }
 
 /// Runs a parsed command line.
@@ -49,5 +55,7 @@ pub fn run(cli: Cli) -> crate::Result<()> {
         Command::Shaders(a) => shaders::run(a),
         Command::Preview(a) => preview::run(a),
         Command::Eval(a) => eval::run(a),
+        Command::Profile(a) => profile::run(a),
+        Command::Shadow(a) => shadow::run(a),
     }
 }

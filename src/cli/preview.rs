@@ -134,7 +134,7 @@ impl PreviewFlags {
 /// # Errors
 /// Decoding, parameter, limit and I/O errors, each with a one-line message.
 pub fn run(args: PreviewArgs) -> Result<()> {
-    let (bake, params) = args.flags.params()?;
+    let (mut bake, params) = args.flags.params()?;
     let to_stdout = args.output.as_os_str() == "-";
     // A missing directory is the caller's mistake (exit 2), found before any work is done.
     if !to_stdout {
@@ -150,7 +150,7 @@ pub fn run(args: PreviewArgs) -> Result<()> {
     let bytes = std::fs::read(&args.input).map_err(|e| {
         Error::Io(std::io::Error::new(e.kind(), format!("{}: {e}", args.input.display())))
     })?;
-    let (map, _info) = heightmap::decode(&bytes, bake.channel, &Limits::default())?;
+    let (map, _info) = heightmap::decode_for(&bytes, &mut bake, &Limits::default())?;
     let image = preview::render_baking(&map, &bake, &params, &Progress::new())?;
     let png = image.to_png()?;
     if to_stdout {

@@ -13,6 +13,7 @@
 pub mod bcn;
 pub mod dds;
 pub mod exr;
+pub mod geotiff;
 pub mod ktx2;
 pub mod mips;
 pub mod png;

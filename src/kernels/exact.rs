@@ -125,6 +125,9 @@ struct Ray {
     dy: f64,
     h0: f64,
     s_end: f64,
+    /// Earth-curvature drop per texel² (texels): a point at arc length s is lowered by
+    /// `curv`·s² (0: flat earth).
+    curv: f64,
 }
 
 impl Ray {
@@ -150,7 +153,7 @@ impl Ray {
                 radius.map_or(e, |r| r.min(e))
             }
         };
-        Ray { x0, y0, dx, dy, h0, s_end }
+        Ray { x0, y0, dx, dy, h0, s_end, curv: 0.0 }
     }
 
     /// The first cell: texel (x0, y0) is one of its corners, chosen so the ray enters it.
@@ -197,7 +200,8 @@ fn corners(grid: &Grid<'_>, cx: i64, cy: i64) -> [f64; 4] {
 /// The exact maximum of (h(s) − h0)/s over the part s ∈ [s_a, s_a + len] of a ray inside one
 /// cell, given the corner heights `k` and the ray's local position (fx, fy) ∈ [0,1]² at s_a.
 /// `first`: s_a = 0 and the ray starts at a corner of this cell, at height h0; the supremum then
-/// includes the limit s → 0⁺, the directional slope.
+/// includes the limit s → 0⁺, the directional slope. `entry`: the entry point s_a counts too
+/// (the ray comes out of a skipped nodata cell, whose exit was not analysed).
 #[inline]
 fn cell_max(
     k: [f64; 4],
@@ -206,7 +210,7 @@ fn cell_max(
     ray: &Ray,
     s_a: f64,
     len: f64,
-    first: bool,
+    (first, entry): (bool, bool),
 ) -> (f64, f64) {
     let (dx, dy) = (ray.dx, ray.dy);
     let bx = k[1] - k[0];
@@ -214,14 +218,24 @@ fn cell_max(
     let bxy = k[3] - k[1] - k[2] + k[0];
     // h(t) = d0 + d1 t + d2 t² along the segment.
     let d0 = k[0] + bx * fx + by * fy + bxy * fx * fy;
-    let d1 = bx * dx + by * dy + bxy * (fx * dy + fy * dx);
-    let d2 = bxy * dx * dy;
-    let a = if first { 0.0 } else { d0 - ray.h0 };
+    // The curvature drop c·(s_a + t)² keeps h a quadratic in t (SPEC §3.7): it moves the
+    // coefficients, so the closed form below stays exact.
+    let c = ray.curv;
+    let d1 = bx * dx + by * dy + bxy * (fx * dy + fy * dx) - 2.0 * c * s_a;
+    let d2 = bxy * dx * dy - c;
+    let a = if first { 0.0 } else { d0 - ray.h0 - c * s_a * s_a };
     let s_b = s_a + len;
     let mut best =
         if s_b > 0.0 { ((a + (d1 + d2 * len) * len) / s_b, s_b) } else { (f64::NEG_INFINITY, 0.0) };
     if first && d1 > best.0 {
         best = (d1, 0.0);
+    }
+    // The entry point is the previous cell's exit and was analysed there, unless that cell was
+    // skipped: a cell that cannot beat the best value (its exit cannot either), or a cell
+    // touching a nodata hole, which is no surface while this cell's edge is. `entry` says the
+    // ray comes from such a hole cell.
+    if entry && s_a > 0.0 && a / s_a > best.0 {
+        best = (a / s_a, s_a);
     }
     if d2 != 0.0 {
         // Interior critical point: (s_a + t)² = s_a² − (d1·s_a − a)/d2.
@@ -357,6 +371,7 @@ where
     };
     let mut s = start;
     let mut level = 0usize;
+    let mut after_hole = false;
     let max_level = accel.map_or(0, |(p, _)| p.levels.len());
     loop {
         if let Some((_, hmax)) = accel {
@@ -367,6 +382,11 @@ where
         let shift = 2 * level as u32;
         let (bx, by) = (cx >> shift, cy >> shift);
         let k = if level == 0 { Some(corners(cx, cy)) } else { None };
+        // A nodata cell (corners at −∞, see `ExactHorizon::with_holes`): the next analysed
+        // cell's entry point has to be looked at.
+        if k.is_some_and(|k| k[0] == f64::NEG_INFINITY) {
+            after_hole = true;
+        }
         let skip = match accel {
             None => false,
             Some((p, _)) => {
@@ -394,7 +414,8 @@ where
             let fx = (ray.x0 + s * ray.dx - cx as f64).clamp(0.0, 1.0);
             let fy = (ray.y0 + s * ray.dy - cy as f64).clamp(0.0, 1.0);
             let len = s_exit.min(ray.s_end) - s;
-            let (v, at) = cell_max(k, fx, fy, ray, s, len, s == 0.0);
+            let (v, at) = cell_max(k, fx, fy, ray, s, len, (s == 0.0, after_hole));
+            after_hole = false;
             if v > best {
                 (best, best_s) = (v, at);
             }
@@ -1086,6 +1107,10 @@ pub struct ExactHorizon<'a> {
     cols: Vec<u32>,
     rows: Vec<u32>,
     near: Near,
+    /// Earth-curvature drop per texel² (see [`ExactHorizon::with_curvature`]).
+    curv: f64,
+    /// Nodata holes (see [`ExactHorizon::with_holes`]).
+    holes: Option<&'a [bool]>,
 }
 
 impl<'a> ExactHorizon<'a> {
@@ -1139,7 +1164,34 @@ impl<'a> ExactHorizon<'a> {
             cols,
             rows,
             near,
+            curv: 0.0,
+            holes: None,
         }
+    }
+
+    /// Treats the cells that touch a hole texel (`holes[row · W + col]`) as no surface (SPEC §2
+    /// "Nodata"): a ray passes over them and they occlude nothing, the slope at s → 0 included.
+    /// Such a cell is skipped whole by the walk, exactly as a cell that cannot beat the best
+    /// value is; the pyramid's block maxima stay upper bounds of what is left. Rays then take
+    /// the scalar walk from the start, as with the curvature.
+    pub fn with_holes(mut self, holes: Option<&'a [bool]>) -> Self {
+        self.holes = holes.filter(|h| h.len() == self.grid.width * self.grid.height);
+        self
+    }
+
+    /// Lowers a point at arc length s by `curv`·s² texels (the earth's curvature, SPEC §3.7:
+    /// `curv` = cell_size² · height_scale / (2 R_e)). The drop only lowers the surface, so the
+    /// pyramid's skips stay conservative; rays then take the scalar cell walk from the start
+    /// (the vectorised near field has no curvature term), still exact.
+    pub fn with_curvature(mut self, curv: f64) -> Self {
+        self.curv = if curv.is_finite() && curv > 0.0 { curv } else { 0.0 };
+        self
+    }
+
+    fn ray(&self, x: usize, y: usize, dx: f64, dy: f64) -> Ray {
+        let mut ray = Ray::new(&self.grid, x, y, dx, dy, self.radius);
+        ray.curv = self.curv;
+        ray
     }
 
     /// The accelerated walk of one ray from arc length `start`, where `seed` is a value of the
@@ -1149,15 +1201,17 @@ impl<'a> ExactHorizon<'a> {
     fn walk(&self, ray: &Ray, start: f64, seed: f64) -> (f64, f64) {
         let hs = self.grid.heights;
         let (cols, rows, lo) = (&self.cols[..], &self.rows[..], self.lo);
+        let holes = self.holes;
         let corners = |cx: i64, cy: i64| {
             let (i, j) = ((cx - lo) as usize, (cy - lo) as usize);
             let (c0, c1, r0, r1) = (cols[i], cols[i + 1], rows[j], rows[j + 1]);
-            [
-                hs[(r0 + c0) as usize] as f64,
-                hs[(r0 + c1) as usize] as f64,
-                hs[(r1 + c0) as usize] as f64,
-                hs[(r1 + c1) as usize] as f64,
-            ]
+            let k =
+                [(r0 + c0) as usize, (r0 + c1) as usize, (r1 + c0) as usize, (r1 + c1) as usize];
+            if holes.is_some_and(|m| k.iter().any(|&t| m[t])) {
+                // No surface: below everything, so the walk skips the cell.
+                return [f64::NEG_INFINITY; 4];
+            }
+            k.map(|t| hs[t] as f64)
         };
         walk(&self.grid, ray, Some((&self.pyramid, self.hmax)), (seed, 0.0), start, corners)
     }
@@ -1178,7 +1232,7 @@ impl<'a> ExactHorizon<'a> {
         assert!(x < self.grid.width && y < self.grid.height, "texel outside the grid");
         assert!(phi.is_finite(), "azimuth must be finite");
         let (dx, dy) = direction(phi, self.grid.row_step());
-        let ray = Ray::new(&self.grid, x, y, dx, dy, self.radius);
+        let ray = self.ray(x, y, dx, dy);
         sin_of_tan(self.walk(&ray, 0.0, 0.0).0)
     }
 
@@ -1186,7 +1240,7 @@ impl<'a> ExactHorizon<'a> {
     /// vectorised path is [`HorizonRows::rows`]).
     pub fn texel_bins(&self, x: usize, y: usize, s: &mut [f32]) {
         for (o, &(dx, dy)) in s.iter_mut().zip(&self.dirs) {
-            let ray = Ray::new(&self.grid, x, y, dx, dy, self.radius);
+            let ray = self.ray(x, y, dx, dy);
             *o = sin_of_tan(self.walk(&ray, 0.0, 0.0).0) as f32;
         }
     }
@@ -1205,6 +1259,21 @@ impl HorizonRows for ExactHorizon<'_> {
     fn rows(&self, y0: usize, channels: &mut [f32], mut bins_out: Option<&mut [f32]>) {
         let (w, nb) = (self.grid.width, self.dirs.len());
         let n_rows = channels.len() / (w * 8);
+        if self.curv > 0.0 || self.holes.is_some() {
+            // With the curvature drop or holes: the scalar exact walk for every ray.
+            let mut s = vec![0.0f32; nb];
+            for (k, out) in channels.chunks_exact_mut(8).enumerate() {
+                if k % w == 0 && self.progress.as_ref().is_some_and(Progress::is_canceled) {
+                    return;
+                }
+                self.texel_bins(k % w, y0 + k / w, &mut s);
+                reduce_into(self.reduce, &s, out);
+                if let Some(bo) = bins_out.as_deref_mut() {
+                    bo[k * nb..(k + 1) * nb].copy_from_slice(&s);
+                }
+            }
+            return;
+        }
         // Per strip: LANES texels × bins values, texel-major.
         let mut strip = vec![0.0f32; LANES * nb];
         let near = &self.near;
@@ -1301,7 +1370,7 @@ mod tests {
         let r =
             Ray { dx: std::f64::consts::FRAC_1_SQRT_2, dy: std::f64::consts::FRAC_1_SQRT_2, ..ray };
         let len = std::f64::consts::SQRT_2;
-        let got = cell_max(k, fx, fy, &r, 1.0, len, false).0;
+        let got = cell_max(k, fx, fy, &r, 1.0, len, (false, false)).0;
         let mut want = f64::NEG_INFINITY;
         for i in 0..=100_000 {
             let t = len * i as f64 / 100_000.0;

@@ -59,6 +59,10 @@ pub const ROUTES: &[(&str, &[&str])] = &[
     ("/v1/bakes/{id}/horizon.ktx2", &["GET"]),
     ("/v1/bakes/{id}/horizon.dds", &["GET"]),
     ("/v1/bakes/{id}/fourier/{layer}", &["GET"]),
+    ("/v1/bakes/{id}/angles", &["GET"]),
+    ("/v1/bakes/{id}/svf", &["GET"]),
+    ("/v1/bakes/{id}/shadow", &["GET"]),
+    ("/v1/bakes/{id}/profile", &["GET"]),
     ("/v1/bakes/{id}/preview", &["GET"]),
     ("/v1/bakes/{id}/heights", &["GET"]),
     ("/v1/cubemap/{face}", &["GET"]),
@@ -230,6 +234,10 @@ pub fn app(st: AppState) -> Router {
         .route("/v1/bakes/{id}/horizon.ktx2", get(handlers::horizon_ktx2))
         .route("/v1/bakes/{id}/horizon.dds", get(handlers::horizon_dds))
         .route("/v1/bakes/{id}/fourier/{layer}", get(handlers::fourier_layer))
+        .route("/v1/bakes/{id}/angles", get(handlers::angles))
+        .route("/v1/bakes/{id}/svf", get(handlers::svf))
+        .route("/v1/bakes/{id}/shadow", get(handlers::shadow))
+        .route("/v1/bakes/{id}/profile", get(handlers::profile))
         .route("/v1/bakes/{id}/preview", get(handlers::preview))
         .route("/v1/bakes/{id}/heights", get(handlers::heights))
         .route("/v1/cubemap/{face}", get(handlers::cubemap_face))

@@ -304,7 +304,8 @@ pub fn decode_input(
     let bytes = blobs
         .get(&rec.input_blob)?
         .ok_or_else(|| Error::Internal(format!("input blob {} is missing", rec.input_blob)))?;
-    heightmap::decode(&bytes, params.channel, limits)
+    let mut params = params.clone();
+    heightmap::decode_for(&bytes, &mut params, limits)
 }
 
 /// One bake, on the bake pool: decode → bake → encode → store, then the record is committed as
@@ -316,14 +317,14 @@ fn execute(
     blobs: &Blobs,
 ) -> Result<BakeRecord> {
     let t_total = Instant::now();
-    let params = params_of(&rec)?;
+    let mut params = params_of(&rec)?;
 
     progress.start(Stage::Decode, 1);
     let t = Instant::now();
     let bytes = blobs
         .get(&rec.input_blob)?
         .ok_or_else(|| Error::Internal(format!("input blob {} is missing", rec.input_blob)))?;
-    let (map, info) = heightmap::decode(&bytes, params.channel, limits)?;
+    let (map, info) = heightmap::decode_for(&bytes, &mut params, limits)?;
     drop(bytes);
     progress.advance(1);
     let decode_ms = ms(t);

@@ -262,6 +262,8 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
     } else {
         read_raw(&st, req, &ct).await?
     };
+    // Rules joining several parameters (bins against method and outputs), once all are merged.
+    params.check().map_err(Problem::from)?;
     let formats = delivery.resolve()?;
     if !params.outputs.horizon && formats != Formats::default() {
         // As the CLI: a format of horizon layers that a Fourier-only bake would never write.
@@ -273,11 +275,13 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
     // Format and dimensions from the header against the limits, before any pixel allocation;
     // then, for float images only, the values (NaN, infinities, out of range), so such an input
     // is a 422 now rather than a failed bake later. Integer images cannot hold a bad value.
+    // A DEM's defaults (SPEC §2: cell size, height_scale, edge, curvature) are resolved here,
+    // so the stored parameters, the dedup key and the bake resource show what will be baked.
     let limits = st.0.config.limits;
-    let channel = params.channel;
-    let (bytes, (fmt, width, height)) = blocking(move || {
-        let probed = heightmap::check_submission(&bytes, channel, &limits)?;
-        Ok((bytes, probed))
+    let (bytes, params, (fmt, width, height)) = blocking(move || {
+        let mut params = params;
+        let probed = heightmap::check_submission_for(&bytes, &mut params, &limits)?;
+        Ok((bytes, params, probed))
     })
     .await?;
     let format = match fmt {

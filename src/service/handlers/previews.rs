@@ -143,3 +143,136 @@ pub async fn preview(
     cache_headers(&mut r, &etag, PREVIEW_CACHE);
     Ok(r)
 }
+
+/// `GET /v1/bakes/{id}/shadow?…`: the sun shadow (SPEC §3.7) of the bake's stored input with its
+/// resolved parameters, as a uint8 GeoTIFF, for `sun_azimuth` + `sun_elevation` or `sun_time` +
+/// `latitude` + `longitude` (NREL SPA). Computed on request on the preview pool, like a preview;
+/// its strong ETag is known before computing.
+pub async fn shadow(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    const KEYS: &[&str] = &["sun_azimuth", "sun_elevation", "sun_time", "latitude", "longitude"];
+    let q = known_query(q, KEYS)?;
+    let rec = finished(&st, &id).await?;
+    let params = params_of(&rec).map_err(store_err)?;
+    let get = |k: &str| q.get(k).map(String::as_str);
+    let (az, el, _) = crate::terrain::sun::resolve(
+        get("sun_azimuth"),
+        get("sun_elevation"),
+        get("sun_time"),
+        get("latitude"),
+        get("longitude"),
+        params.azimuth_from,
+        params.y_axis,
+    )
+    .map_err(Problem::from)?;
+    let bake_params: Vec<String> = rec.params.iter().map(|(k, v)| format!("{k}={v}")).collect();
+    let etag =
+        derived_etag(&["shadow", &rec.input_blob, &bake_params.join("&"), &format!("{az}|{el}")]);
+    const SHADOW_CACHE: &str = "private, max-age=86400";
+    if etag_matches(&headers, &etag) {
+        let mut res = StatusCode::NOT_MODIFIED.into_response();
+        cache_headers(&mut res, &etag, SHADOW_CACHE);
+        return Ok(res);
+    }
+    let progress = Progress::new();
+    let _cancel = CancelOnDrop(progress.clone());
+    let tif = on_pool(&st, &format!("the shadow of bake {id}"), move |st| {
+        let mut params = params;
+        let map = worker::decode_input(
+            st.0.jobs.blob_store().as_ref(),
+            &rec,
+            &params,
+            &st.0.config.limits,
+        )?
+        .0;
+        crate::heightmap::georef::apply_dem_defaults(&mut params, map.terrain.georef.as_ref())?;
+        crate::pipeline::shadow_tif(&map, &params, az, el, &progress)
+    })
+    .await?;
+    let mut r = Response::new(Body::from(tif));
+    r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static("image/tiff"));
+    if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"shadow_{id}.tif\"")) {
+        r.headers_mut().insert(header::CONTENT_DISPOSITION, v);
+    }
+    cache_headers(&mut r, &etag, SHADOW_CACHE);
+    Ok(r)
+}
+
+/// `GET /v1/bakes/{id}/profile?x=&y=` (texel column and row) or `?easting=&northing=` (map
+/// coordinates in the CRS): the exact horizon profile (SPEC §3.7) at `bins` azimuths (default
+/// 360), as JSON, or CSV with `Accept: text/csv`. Computed on the preview pool.
+pub async fn profile(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    let q = known_query(q, &["x", "y", "easting", "northing", "bins"])?;
+    let num = |k: &str| -> Result<Option<f64>, Problem> {
+        q.get(k).map(|v| crate::params::parse_f64(k, v).map_err(Problem::from)).transpose()
+    };
+    let bins = match q.get("bins") {
+        Some(b) => crate::params::parse_u32("bins", b).map_err(Problem::from)?,
+        None => 360,
+    };
+    if !(1..=3600).contains(&bins) {
+        return Err(Problem::param("bins", "must be between 1 and 3600"));
+    }
+    let at = match (num("x")?, num("y")?, num("easting")?, num("northing")?) {
+        (Some(x), Some(y), None, None) => (x, y, false),
+        (None, None, Some(e), Some(n)) => (e, n, true),
+        _ => return Err(Problem::param("x", "give x and y, or easting and northing")),
+    };
+    let csv = headers
+        .get(header::ACCEPT)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.contains("text/csv"));
+    let rec = finished(&st, &id).await?;
+    let params = params_of(&rec).map_err(store_err)?;
+    let (text, ct) = on_pool(&st, &format!("the profile of bake {id}"), move |st| {
+        let mut params = params;
+        let map = worker::decode_input(
+            st.0.jobs.blob_store().as_ref(),
+            &rec,
+            &params,
+            &st.0.config.limits,
+        )?
+        .0;
+        crate::heightmap::georef::apply_dem_defaults(&mut params, map.terrain.georef.as_ref())?;
+        let (x, y) = if at.2 {
+            let t = map.terrain.georef.as_ref().and_then(|g| g.transform()).ok_or_else(|| {
+                crate::Error::param("easting", "the input has no georeferencing; use x and y")
+            })?;
+            ((at.0 - t[0]) / t[1] - 0.5, (at.1 - t[3]) / t[5] - 0.5)
+        } else {
+            (at.0, at.1)
+        };
+        let (xr, yr) = (x.round(), y.round());
+        if xr < 0.0 || yr < 0.0 || xr >= map.width as f64 || yr >= map.height as f64 {
+            return Err(crate::Error::param(
+                if at.2 { "easting" } else { "x" },
+                format!("({x}, {y}) is outside the {}×{} map", map.width, map.height),
+            ));
+        }
+        let p =
+            crate::bake::horizon_profile(&map, &params, xr as usize, yr as usize, bins as usize)?;
+        Ok(if csv {
+            (crate::terrain::profile::to_csv(&p), "text/csv")
+        } else {
+            let v = serde_json::json!({
+                "x": xr, "y": yr, "azimuth_from": params.azimuth_from,
+                "profile": p.iter().map(|(a, e)| serde_json::json!({"azimuth": a, "elevation": e}))
+                    .collect::<Vec<_>>(),
+            });
+            (v.to_string(), "application/json")
+        })
+    })
+    .await?;
+    let mut r = Response::new(Body::from(text));
+    r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(ct));
+    Ok(r)
+}

@@ -182,6 +182,43 @@ pub(super) fn not_produced(id: &str, what: &str) -> Problem {
     )
 }
 
+/// A stored terrain product (SPEC §3.7): `file` of a bake submitted with `outputs` naming `what`.
+async fn terrain_product(
+    st: &AppState,
+    id: &str,
+    q: Vec<(String, String)>,
+    headers: &HeaderMap,
+    file: &'static str,
+    what: &str,
+) -> Answer {
+    known_query(q, &[])?;
+    let rec = finished(st, id).await?;
+    let Some(hash) = rec.results.get(file) else {
+        return Err(not_produced(id, what));
+    };
+    blob_response(st, headers, hash, "image/tiff", file).await
+}
+
+/// `GET /v1/bakes/{id}/angles`: `angles.tif`, one GeoTIFF band per bin (SPEC §3.7).
+pub async fn angles(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    terrain_product(&st, &id, q, &headers, "angles.tif", "angles").await
+}
+
+/// `GET /v1/bakes/{id}/svf`: `svf.tif`, the sky-view factor (SPEC §3.7).
+pub async fn svf(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    terrain_product(&st, &id, q, &headers, "svf.tif", "svf").await
+}
+
 /// `GET /v1/bakes/{id}/fourier/{layer}`: `fourier_{layer}.png` as the CLI writes it (layer 0:
 /// RGBA band coefficients, 1: the constant term, 2: the extra bands of 7 or 9 terms).
 pub async fn fourier_layer(

@@ -1,0 +1,344 @@
+//! GeoTIFF writer for the terrain products (SPEC §3.7): float32 samples, one band per plane
+//! (PlanarConfiguration 2), tiled 512×512, DEFLATE (Adobe, code 8) with the floating-point
+//! predictor (3), and the input's georeferencing tags copied verbatim from
+//! [`crate::heightmap::georef::Georef`] with a GDAL_NODATA tag, so GDAL and QGIS place the
+//! outputs exactly where the DEM was.
+//!
+//! Written by hand (classic little-endian TIFF, a header, the tiles, one IFD): the `tiff` crate
+//! writes neither tiles nor predictor 3. The layout follows libtiff: predictor 3 works per tile
+//! row, first spreading each sample's bytes into planes, most significant byte first, then
+//! differencing the bytes left to right (`fpDiff` in libtiff's tif_predict.c). Proven by GDAL
+//! itself (rasterio) in tests/terrain.
+
+use crate::error::{Error, Result};
+use crate::heightmap::georef::{self, Georef};
+use rayon::prelude::*;
+use std::io::Write;
+
+/// Tile edge in texels.
+pub const TILE: usize = 512;
+
+/// One band: its plane (`width × height`, row-major) and its description (GDAL band
+/// description, e.g. "azimuth 45").
+pub struct Band<'a> {
+    pub plane: &'a [f32],
+    pub description: String,
+}
+
+const SHORT: u16 = 3;
+const LONG: u16 = 4;
+const ASCII: u16 = 2;
+const DOUBLE: u16 = 12;
+
+struct Entry {
+    tag: u16,
+    kind: u16,
+    count: u32,
+    data: Vec<u8>,
+}
+
+fn shorts(tag: u16, v: &[u16]) -> Entry {
+    Entry {
+        tag,
+        kind: SHORT,
+        count: v.len() as u32,
+        data: v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+    }
+}
+
+fn longs(tag: u16, v: &[u32]) -> Entry {
+    Entry {
+        tag,
+        kind: LONG,
+        count: v.len() as u32,
+        data: v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+    }
+}
+
+fn doubles(tag: u16, v: &[f64]) -> Entry {
+    Entry {
+        tag,
+        kind: DOUBLE,
+        count: v.len() as u32,
+        data: v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+    }
+}
+
+fn ascii(tag: u16, s: &str) -> Entry {
+    let mut data: Vec<u8> = s.trim_end_matches('\0').bytes().collect();
+    data.push(0);
+    Entry { tag, kind: ASCII, count: data.len() as u32, data }
+}
+
+/// GDAL_NODATA text for `v` ("nan" for NaN, as GDAL writes it).
+pub fn nodata_text(v: f32) -> String {
+    if v.is_nan() {
+        "nan".into()
+    } else {
+        format!("{}", v as f64)
+    }
+}
+
+/// Predictor 3 on one tile row of f32 samples, into `out` (4 × row length bytes).
+fn fp_predict(row: &[f32], out: &mut [u8]) {
+    let n = row.len();
+    for (i, v) in row.iter().enumerate() {
+        let b = v.to_le_bytes();
+        for (byte, &x) in b.iter().enumerate() {
+            out[(3 - byte) * n + i] = x;
+        }
+    }
+    for j in (1..out.len()).rev() {
+        out[j] = out[j].wrapping_sub(out[j - 1]);
+    }
+}
+
+/// One compressed tile of `plane`: tile (tx, ty), padded with `fill` past the map's edge.
+fn tile_bytes(
+    plane: &[f32],
+    width: usize,
+    height: usize,
+    tx: usize,
+    ty: usize,
+    fill: f32,
+) -> Vec<u8> {
+    let mut row = vec![fill; TILE];
+    let mut bytes = vec![0u8; TILE * 4];
+    let mut z = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::new(4));
+    for r in 0..TILE {
+        let y = ty * TILE + r;
+        row.fill(fill);
+        if y < height {
+            let x0 = tx * TILE;
+            let n = TILE.min(width - x0);
+            row[..n].copy_from_slice(&plane[y * width + x0..y * width + x0 + n]);
+        }
+        fp_predict(&row, &mut bytes);
+        // Writing into a Vec cannot fail.
+        let _ = z.write_all(&bytes);
+    }
+    z.finish().unwrap_or_default()
+}
+
+/// XML of GDAL's GDAL_METADATA tag (42112) carrying the band descriptions.
+fn gdal_metadata(descriptions: &[&str]) -> String {
+    let esc = |s: &str| s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;");
+    let mut x = String::from("<GDALMetadata>\n");
+    for (i, d) in descriptions.iter().enumerate() {
+        x.push_str(&format!(
+            "  <Item name=\"DESCRIPTION\" sample=\"{i}\" role=\"description\">{}</Item>\n",
+            esc(d)
+        ));
+    }
+    x.push_str("</GDALMetadata>");
+    x
+}
+
+/// Encodes `bands` (each `width × height`) as a tiled float32 GeoTIFF with `georef`'s tags
+/// and GDAL_NODATA = `nodata`.
+///
+/// # Errors
+/// [`Error::Internal`] for a band of the wrong size or a file beyond 4 GiB (classic TIFF).
+pub fn encode(
+    width: usize,
+    height: usize,
+    bands: &[Band<'_>],
+    georef: Option<&Georef>,
+    nodata: f32,
+) -> Result<Vec<u8>> {
+    if bands.is_empty() || bands.iter().any(|b| b.plane.len() != width * height) {
+        return Err(Error::Internal("GeoTIFF bands do not match the map size".into()));
+    }
+    let (tx, ty) = (width.div_ceil(TILE), height.div_ceil(TILE));
+    let per_band = tx * ty;
+    let tiles: Vec<Vec<u8>> = (0..bands.len() * per_band)
+        .into_par_iter()
+        .map(|i| {
+            let (b, t) = (i / per_band, i % per_band);
+            tile_bytes(bands[b].plane, width, height, t % tx, t / tx, nodata)
+        })
+        .collect();
+    let descriptions: Vec<&str> = bands.iter().map(|b| b.description.as_str()).collect();
+    let layout = Layout { bits: 32, sample_format: 3, predictor: 3 };
+    assemble(width, height, tiles, &descriptions, layout, georef, &nodata_text(nodata))
+}
+
+/// Encodes one uint8 band (`shadow.tif`: 1 lit, 0 shadowed) as a tiled GeoTIFF, DEFLATE with
+/// horizontal differencing (predictor 2), with `georef`'s tags and GDAL_NODATA = `nodata`.
+///
+/// # Errors
+/// As [`encode`].
+pub fn encode_u8(
+    width: usize,
+    height: usize,
+    plane: &[u8],
+    description: &str,
+    georef: Option<&Georef>,
+    nodata: u8,
+) -> Result<Vec<u8>> {
+    if plane.len() != width * height || plane.is_empty() {
+        return Err(Error::Internal("GeoTIFF band does not match the map size".into()));
+    }
+    let (tx, ty) = (width.div_ceil(TILE), height.div_ceil(TILE));
+    let tiles: Vec<Vec<u8>> = (0..tx * ty)
+        .into_par_iter()
+        .map(|t| {
+            let (x0, y0) = ((t % tx) * TILE, (t / tx) * TILE);
+            let mut z = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::new(4));
+            let mut row = vec![nodata; TILE];
+            for r in 0..TILE {
+                row.fill(nodata);
+                if y0 + r < height {
+                    let n = TILE.min(width - x0);
+                    let at = (y0 + r) * width + x0;
+                    row[..n].copy_from_slice(&plane[at..at + n]);
+                }
+                for j in (1..TILE).rev() {
+                    row[j] = row[j].wrapping_sub(row[j - 1]);
+                }
+                let _ = z.write_all(&row);
+            }
+            z.finish().unwrap_or_default()
+        })
+        .collect();
+    let layout = Layout { bits: 8, sample_format: 1, predictor: 2 };
+    assemble(width, height, tiles, &[description], layout, georef, &nodata.to_string())
+}
+
+/// Sample layout of a file: bits per sample, SampleFormat (1 uint, 3 float), Predictor.
+#[derive(Clone, Copy)]
+struct Layout {
+    bits: u16,
+    sample_format: u16,
+    predictor: u16,
+}
+
+/// The file around compressed `tiles` (band-major, row-major within a band).
+fn assemble(
+    width: usize,
+    height: usize,
+    tiles: Vec<Vec<u8>>,
+    descriptions: &[&str],
+    layout: Layout,
+    georef: Option<&Georef>,
+    nodata: &str,
+) -> Result<Vec<u8>> {
+    let mut out: Vec<u8> = Vec::with_capacity(8 + tiles.iter().map(Vec::len).sum::<usize>());
+    out.extend_from_slice(b"II*\0");
+    out.extend_from_slice(&[0; 4]);
+    let mut offsets = Vec::with_capacity(tiles.len());
+    let mut counts = Vec::with_capacity(tiles.len());
+    for t in &tiles {
+        offsets.push(out.len() as u64);
+        counts.push(t.len() as u32);
+        out.extend_from_slice(t);
+    }
+    drop(tiles);
+    if out.len() as u64 > u32::MAX as u64 - (1 << 20) {
+        return Err(Error::Internal("a GeoTIFF beyond 4 GiB needs BigTIFF, not written".into()));
+    }
+    let spp = descriptions.len() as u16;
+    let mut e = vec![
+        longs(256, &[width as u32]),
+        longs(257, &[height as u32]),
+        shorts(258, &vec![layout.bits; spp as usize]),
+        shorts(259, &[8]),
+        shorts(262, &[1]),
+        shorts(277, &[spp]),
+        shorts(284, &[if spp > 1 { 2 } else { 1 }]),
+        shorts(317, &[layout.predictor]),
+        longs(322, &[TILE as u32]),
+        longs(323, &[TILE as u32]),
+        longs(324, &offsets.iter().map(|&o| o as u32).collect::<Vec<_>>()),
+        longs(325, &counts),
+        shorts(339, &vec![layout.sample_format; spp as usize]),
+        ascii(42112, &gdal_metadata(descriptions)),
+        ascii(georef::TAG_GDAL_NODATA, nodata),
+    ];
+    if spp > 1 {
+        e.push(shorts(338, &vec![0; spp as usize - 1]));
+    }
+    if let Some(g) = georef {
+        if let Some(v) = &g.pixel_scale {
+            e.push(doubles(georef::TAG_MODEL_PIXEL_SCALE, v));
+        }
+        if let Some(v) = &g.tiepoints {
+            e.push(doubles(georef::TAG_MODEL_TIEPOINT, v));
+        }
+        if let Some(v) = &g.transformation {
+            e.push(doubles(georef::TAG_MODEL_TRANSFORMATION, v));
+        }
+        if let Some(v) = &g.geo_keys {
+            e.push(shorts(georef::TAG_GEO_KEY_DIRECTORY, v));
+        }
+        if let Some(v) = &g.geo_doubles {
+            e.push(doubles(georef::TAG_GEO_DOUBLE_PARAMS, v));
+        }
+        if let Some(v) = &g.geo_ascii {
+            e.push(ascii(georef::TAG_GEO_ASCII_PARAMS, v));
+        }
+    }
+    e.sort_by_key(|x| x.tag);
+    // The IFD, word-aligned, then the values that do not fit in an entry.
+    if out.len() % 2 == 1 {
+        out.push(0);
+    }
+    let ifd = out.len();
+    out[4..8].copy_from_slice(&(ifd as u32).to_le_bytes());
+    let mut extra = ifd + 2 + 12 * e.len() + 4;
+    let mut tail: Vec<u8> = Vec::new();
+    out.extend_from_slice(&(e.len() as u16).to_le_bytes());
+    for x in &e {
+        out.extend_from_slice(&x.tag.to_le_bytes());
+        out.extend_from_slice(&x.kind.to_le_bytes());
+        out.extend_from_slice(&x.count.to_le_bytes());
+        if x.data.len() <= 4 {
+            let mut v = [0u8; 4];
+            v[..x.data.len()].copy_from_slice(&x.data);
+            out.extend_from_slice(&v);
+        } else {
+            out.extend_from_slice(&(extra as u32).to_le_bytes());
+            tail.extend_from_slice(&x.data);
+            extra += x.data.len();
+            if x.data.len() % 2 == 1 {
+                tail.push(0);
+                extra += 1;
+            }
+        }
+    }
+    out.extend_from_slice(&0u32.to_le_bytes());
+    out.extend_from_slice(&tail);
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn predictor_spreads_bytes_then_differences() {
+        let row = [1.0f32, 1.0];
+        let mut out = [0u8; 8];
+        fp_predict(&row, &mut out);
+        // 1.0 = 0x3F800000: planes [3F 3F][80 80][00 00][00 00], then byte differences.
+        assert_eq!(out, [0x3F, 0, 0x80u8.wrapping_sub(0x3F), 0, 0x80u8.wrapping_neg(), 0, 0, 0]);
+    }
+
+    #[test]
+    fn reads_back_with_the_tiff_crate() {
+        let (w, h) = (600, 70);
+        let a: Vec<f32> = (0..w * h).map(|i| i as f32 * 0.25).collect();
+        let b: Vec<f32> = (0..w * h).map(|i| -(i as f32)).collect();
+        let bands = [
+            Band { plane: &a, description: "a".into() },
+            Band { plane: &b, description: "b".into() },
+        ];
+        let bytes = encode(w, h, &bands, None, f32::NAN).unwrap();
+        let mut dec = tiff::decoder::Decoder::new(std::io::Cursor::new(&bytes)).unwrap();
+        assert_eq!(dec.dimensions().unwrap(), (w as u32, h as u32));
+        let nd = dec.get_tag_ascii_string(tiff::tags::Tag::Unknown(42113)).unwrap();
+        assert_eq!(nd.trim_end_matches('\0'), "nan");
+        let pred = dec.get_tag_u32(tiff::tags::Tag::Predictor).unwrap();
+        assert_eq!(pred, 3);
+    }
+}

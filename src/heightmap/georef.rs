@@ -1,0 +1,292 @@
+//! GeoTIFF georeferencing (SPEC §2 "Georeferenced input"): the tags a DEM carries, read once at
+//! decode and carried as one value to the GeoTIFF writer, which copies them unchanged; and the
+//! DEM defaults (`cell_size`, `height_scale`, `edge`, `earth_curvature`), decided here and
+//! nowhere else.
+//!
+//! Tags (GeoTIFF 1.1, GDAL): ModelPixelScale 33550, ModelTiepoint 33922, ModelTransformation
+//! 34264, GeoKeyDirectory 34735 (+ GeoDoubleParams 34736, GeoAsciiParams 34737) and GDAL's
+//! GDAL_NODATA 42113 (ASCII). Only what the defaults and bake.json need is interpreted: the
+//! model type, the EPSG code, the linear unit and the affine transform; everything else travels
+//! verbatim.
+
+use crate::error::{Error, Result};
+use crate::params::{BakeParams, EarthCurvature, Edge};
+use serde::Serialize;
+
+pub const TAG_MODEL_PIXEL_SCALE: u16 = 33550;
+pub const TAG_MODEL_TIEPOINT: u16 = 33922;
+pub const TAG_MODEL_TRANSFORMATION: u16 = 34264;
+pub const TAG_GEO_KEY_DIRECTORY: u16 = 34735;
+pub const TAG_GEO_DOUBLE_PARAMS: u16 = 34736;
+pub const TAG_GEO_ASCII_PARAMS: u16 = 34737;
+pub const TAG_GDAL_NODATA: u16 = 42113;
+
+/// GeoKeys this module reads.
+const KEY_MODEL_TYPE: u16 = 1024;
+const KEY_RASTER_TYPE: u16 = 1025;
+const KEY_GEOGRAPHIC_TYPE: u16 = 2048;
+const KEY_PROJECTED_CS_TYPE: u16 = 3072;
+const KEY_PROJ_LINEAR_UNITS: u16 = 3076;
+
+/// The georeferencing tags of a TIFF, as stored.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Georef {
+    pub pixel_scale: Option<Vec<f64>>,
+    pub tiepoints: Option<Vec<f64>>,
+    pub transformation: Option<Vec<f64>>,
+    pub geo_keys: Option<Vec<u16>>,
+    pub geo_doubles: Option<Vec<f64>>,
+    pub geo_ascii: Option<String>,
+    /// GDAL_NODATA as written (ASCII, e.g. "-32768" or "nan").
+    pub gdal_nodata: Option<String>,
+}
+
+/// What bake.json reports of the georeferencing.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct GeorefReport {
+    /// `projected`, `geographic` or `unknown` (GTModelTypeGeoKey).
+    pub model: &'static str,
+    /// EPSG code of the CRS, when the keys name one.
+    pub epsg: Option<u16>,
+    /// The CRS citation of GeoAsciiParams (for user-defined CRSs).
+    pub citation: Option<String>,
+    /// GDAL geotransform: [x0, pixel width, row rotation, y0, column rotation, pixel height],
+    /// of the top-left corner of the top-left texel.
+    pub transform: Option<[f64; 6]>,
+    /// Map units per texel the bake used (`cell_size`).
+    pub cell_size: Option<f64>,
+    /// `metre`, `foot`, `us_survey_foot`, `degree` or the EPSG unit code.
+    pub units: Option<String>,
+}
+
+impl Georef {
+    /// Reads the georeferencing tags of the current image of `dec` (all absent: `None`).
+    ///
+    /// # Errors
+    /// A tag present with the wrong type is a decode error.
+    pub fn read<R: std::io::Read + std::io::Seek>(
+        dec: &mut tiff::decoder::Decoder<R>,
+    ) -> Result<Option<Georef>> {
+        use tiff::tags::Tag;
+        let bad = |what: &str, e: tiff::TiffError| {
+            Error::Decode(format!("the TIFF's {what} tag cannot be read: {e}"))
+        };
+        let f64s = |dec: &mut tiff::decoder::Decoder<R>, tag: u16, what: &str| match dec
+            .find_tag(Tag::Unknown(tag))
+            .map_err(|e| bad(what, e))?
+        {
+            None => Ok(None),
+            Some(v) => v.into_f64_vec().map(Some).map_err(|e| bad(what, e)),
+        };
+        let g = Georef {
+            pixel_scale: f64s(dec, TAG_MODEL_PIXEL_SCALE, "ModelPixelScale")?,
+            tiepoints: f64s(dec, TAG_MODEL_TIEPOINT, "ModelTiepoint")?,
+            transformation: f64s(dec, TAG_MODEL_TRANSFORMATION, "ModelTransformation")?,
+            geo_keys: match dec
+                .find_tag(Tag::Unknown(TAG_GEO_KEY_DIRECTORY))
+                .map_err(|e| bad("GeoKeyDirectory", e))?
+            {
+                None => None,
+                Some(v) => Some(
+                    v.into_u64_vec()
+                        .map_err(|e| bad("GeoKeyDirectory", e))?
+                        .into_iter()
+                        .map(|k| k as u16)
+                        .collect(),
+                ),
+            },
+            geo_doubles: f64s(dec, TAG_GEO_DOUBLE_PARAMS, "GeoDoubleParams")?,
+            geo_ascii: match dec
+                .find_tag(Tag::Unknown(TAG_GEO_ASCII_PARAMS))
+                .map_err(|e| bad("GeoAsciiParams", e))?
+            {
+                None => None,
+                Some(v) => Some(v.into_string().map_err(|e| bad("GeoAsciiParams", e))?),
+            },
+            gdal_nodata: match dec
+                .find_tag(Tag::Unknown(TAG_GDAL_NODATA))
+                .map_err(|e| bad("GDAL_NODATA", e))?
+            {
+                None => None,
+                Some(v) => Some(v.into_string().map_err(|e| bad("GDAL_NODATA", e))?),
+            },
+        };
+        Ok((g != Georef::default()).then_some(g))
+    }
+
+    /// Whether this is a DEM by SPEC §2: a GeoKeyDirectory and a model transform.
+    pub fn is_dem(&self) -> bool {
+        self.geo_keys.is_some()
+            && (self.transformation.is_some()
+                || (self.pixel_scale.is_some() && self.tiepoints.is_some()))
+    }
+
+    /// The short value of GeoKey `id` (stored in the directory itself), if present.
+    pub fn key(&self, id: u16) -> Option<u16> {
+        let k = self.geo_keys.as_ref()?;
+        let n = *k.get(3)? as usize;
+        (0..n).find_map(|i| {
+            let e = k.get(4 + 4 * i..8 + 4 * i)?;
+            (e[0] == id && e[1] == 0).then_some(e[3])
+        })
+    }
+
+    /// The GDAL_NODATA value, parsed (`nan` as NaN).
+    pub fn nodata(&self) -> Option<f64> {
+        let t = self.gdal_nodata.as_deref()?.trim().trim_end_matches('\0').trim();
+        if t.eq_ignore_ascii_case("nan") {
+            return Some(f64::NAN);
+        }
+        t.parse().ok()
+    }
+
+    /// `projected`, `geographic` or `unknown`.
+    pub fn model(&self) -> &'static str {
+        match self.key(KEY_MODEL_TYPE) {
+            Some(1) => "projected",
+            Some(2) => "geographic",
+            Some(3) => "geocentric",
+            _ => "unknown",
+        }
+    }
+
+    /// The EPSG code of the CRS (projected or geographic), when one is named.
+    pub fn epsg(&self) -> Option<u16> {
+        let code = match self.model() {
+            "geographic" => self.key(KEY_GEOGRAPHIC_TYPE),
+            _ => self.key(KEY_PROJECTED_CS_TYPE).or_else(|| self.key(KEY_GEOGRAPHIC_TYPE)),
+        }?;
+        (code != 0 && code != 32767).then_some(code)
+    }
+
+    fn units(&self) -> Option<String> {
+        if self.model() == "geographic" {
+            return Some("degree".into());
+        }
+        Some(match self.key(KEY_PROJ_LINEAR_UNITS)? {
+            9001 => "metre".into(),
+            9002 => "foot".into(),
+            9003 => "us_survey_foot".into(),
+            other => format!("EPSG:{other}"),
+        })
+    }
+
+    /// The GDAL geotransform (PixelIsPoint shifted by half a texel, as GDAL does).
+    pub fn transform(&self) -> Option<[f64; 6]> {
+        let mut t = if let Some(m) = self.transformation.as_ref().filter(|m| m.len() >= 8) {
+            [m[3], m[0], m[1], m[7], m[4], m[5]]
+        } else {
+            let s = self.pixel_scale.as_ref().filter(|s| s.len() >= 2)?;
+            let p = self.tiepoints.as_ref().filter(|p| p.len() >= 6)?;
+            [p[3] - p[0] * s[0], s[0], 0.0, p[4] + p[1] * s[1], 0.0, -s[1]]
+        };
+        if self.key(KEY_RASTER_TYPE) == Some(2) {
+            t[0] -= 0.5 * t[1] + 0.5 * t[2];
+            t[3] -= 0.5 * t[4] + 0.5 * t[5];
+        }
+        Some(t)
+    }
+
+    /// The report for bake.json, with the cell size the bake used.
+    pub fn report(&self, cell_size: Option<f64>) -> GeorefReport {
+        GeorefReport {
+            model: self.model(),
+            epsg: self.epsg(),
+            citation: self.geo_ascii.as_ref().map(|s| s.trim_end_matches(['|', '\0']).to_owned()),
+            transform: self.transform(),
+            cell_size,
+            units: self.units(),
+        }
+    }
+
+    /// The cell size in map units of a DEM, or the 422 SPEC §2 asks for: a geographic CRS, a
+    /// rotated grid and non-square cells each name their fix.
+    ///
+    /// # Errors
+    /// [`Error::InvalidInput`] as above.
+    pub fn cell_size(&self) -> Result<f64> {
+        let t = self.transform().ok_or_else(|| {
+            Error::InvalidInput("the GeoTIFF has GeoKeys but no pixel scale or transform".into())
+        })?;
+        if self.model() == "geographic" {
+            let code = self.epsg().map_or("a geographic CRS".into(), |c| format!("EPSG:{c}"));
+            return Err(Error::InvalidInput(format!(
+                "the DEM is in {code} (degrees), so its cells have no size in metres; reproject it \
+                 to a projected CRS (e.g. `gdalwarp -t_srs EPSG:32632 -r bilinear in.tif out.tif`, \
+                 the UTM zone of the area) or give `cell_size` in metres"
+            )));
+        }
+        if t[2] != 0.0 || t[4] != 0.0 {
+            return Err(Error::InvalidInput(format!(
+                "the DEM's grid is rotated (transform {t:?}); resample it to a north-up grid \
+                 (`gdalwarp in.tif out.tif`) or give `cell_size`"
+            )));
+        }
+        let (sx, sy) = (t[1].abs(), t[5].abs());
+        if !(sx > 0.0 && sx.is_finite()) || (sx - sy).abs() > 1e-6 * sx.max(sy) {
+            return Err(Error::InvalidInput(format!(
+                "the DEM's cells are not square ({sx} × {sy} map units); resample it \
+                 (`gdalwarp -tr {s} {s} in.tif out.tif`) or give `cell_size`",
+                s = sx.min(sy)
+            )));
+        }
+        Ok(sx)
+    }
+}
+
+/// Applies the DEM defaults of SPEC §2 to the parameters not given explicitly: `cell_size` =
+/// the pixel scale, `height_scale` = 1 / `cell_size`, `edge=none`, `earth_curvature=on`. For a
+/// plain image only `cell_size` given by hand makes `max_distance` and the curvature usable.
+/// Idempotent: parameters already resolved (and so explicit) stay as they are.
+///
+/// # Errors
+/// The refusals of [`Georef::cell_size`] (unless `cell_size` is given, which overrides the
+/// georeferencing); `max_distance` or `earth_curvature=on` without a cell size.
+pub fn apply_dem_defaults(params: &mut BakeParams, georef: Option<&Georef>) -> Result<()> {
+    let ex = params.explicit;
+    let exact = params.method == crate::params::Method::Exact;
+    let dem = georef.filter(|g| g.is_dem());
+    if let Some(g) = dem {
+        let cell = match params.cell_size {
+            Some(c) => c,
+            None => g.cell_size()?,
+        };
+        let mut set = |k: &str, v: String| -> Result<()> {
+            if !ex.has(k) {
+                params.set(k, &v)?;
+            }
+            Ok(())
+        };
+        set("cell_size", cell.to_string())?;
+        set("height_scale", (1.0 / cell).to_string())?;
+        set("edge", "none".into())?;
+        // Only the exact kernel models the drop so far: the other methods keep it off by
+        // default (and refuse it when asked, below).
+        if exact {
+            set("earth_curvature", "on".into())?;
+        }
+    }
+    if params.earth_curvature == EarthCurvature::On && params.method != crate::params::Method::Exact
+    {
+        return Err(Error::param(
+            "earth_curvature",
+            "is modelled by method=exact only so far; use method=exact or earth_curvature=off",
+        ));
+    }
+    if params.cell_size.is_none() {
+        if params.max_distance.is_some() {
+            return Err(Error::param(
+                "max_distance",
+                "needs a cell size: a georeferenced (GeoTIFF) input or `cell_size`",
+            ));
+        }
+        if params.earth_curvature == EarthCurvature::On {
+            return Err(Error::param(
+                "earth_curvature",
+                "needs a cell size: a georeferenced (GeoTIFF) input or `cell_size`",
+            ));
+        }
+    }
+    debug_assert!(dem.is_none() || params.edge == Edge::None || ex.has("edge"));
+    Ok(())
+}

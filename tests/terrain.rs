@@ -1,0 +1,305 @@
+//! Issue 24, terrain users: DEM input, nodata holes, terrain products, GeoTIFF output.
+//!
+//! The GeoTIFF outputs and the real DEM (R terra's `elev.tif`, SRTM-derived) are checked by GDAL
+//! through rasterio in tests/terrain/check_dem.py, run from here; under CI=true a missing
+//! rasterio fails the test instead of skipping it.
+
+use horizon_bake::bake;
+use horizon_bake::heightmap::georef::{apply_dem_defaults, Georef};
+use horizon_bake::heightmap::{decode_with, Limits};
+use horizon_bake::kernels::exact::ExactHorizon;
+use horizon_bake::kernels::Grid;
+use horizon_bake::params::{BakeParams, Channel, Edge, NoData, Reduce, YAxis};
+use horizon_bake::progress::Progress;
+use horizon_bake::Error;
+
+/// A gray float32 TIFF of `values` (no georeferencing), written by the `tiff` crate.
+fn tiff_f32(w: u32, h: u32, values: &[f32]) -> Vec<u8> {
+    let mut buf = std::io::Cursor::new(Vec::new());
+    let mut enc = tiff::encoder::TiffEncoder::new(&mut buf).unwrap();
+    enc.write_image::<tiff::encoder::colortype::Gray32Float>(w, h, values).unwrap();
+    buf.into_inner()
+}
+
+/// A signed 16-bit TIFF, as SRTM tiles are.
+fn tiff_i16(w: u32, h: u32, values: &[i16]) -> Vec<u8> {
+    let mut buf = std::io::Cursor::new(Vec::new());
+    let mut enc = tiff::encoder::TiffEncoder::new(&mut buf).unwrap();
+    enc.write_image::<tiff::encoder::colortype::GrayI16>(w, h, values).unwrap();
+    buf.into_inner()
+}
+
+fn params(pairs: &[(&str, &str)]) -> BakeParams {
+    BakeParams::from_pairs(pairs.iter().copied()).unwrap()
+}
+
+#[test]
+fn signed_16_bit_samples_are_used_as_they_are() {
+    let v: Vec<i16> = vec![-32768, -5, 0, 1200];
+    let (map, info) =
+        decode_with(&tiff_i16(2, 2, &v), Channel::Luma, NoData::None, &Limits::default()).unwrap();
+    assert_eq!(map.values, vec![-32768.0, -5.0, 0.0, 1200.0]);
+    assert_eq!((info.bit_depth, info.float), (16, false));
+    // Declared nodata: the hole is filled far below the map, and marked.
+    let (map, _) = decode_with(
+        &tiff_i16(2, 2, &v),
+        Channel::Luma,
+        NoData::Value(-32768.0),
+        &Limits::default(),
+    )
+    .unwrap();
+    assert_eq!(map.terrain.holes.as_deref(), Some(&[true, false, false, false][..]));
+    assert!(map.values[0] < -5.0 - 1000.0 * 1205.0 + 1.0, "fill {}", map.values[0]);
+}
+
+#[test]
+fn refusals_name_the_fix() {
+    let l = Limits::default();
+    // NaN without a nodata declaration.
+    let nan = tiff_f32(2, 2, &[0.0, f32::NAN, 1.0, 2.0]);
+    let e = decode_with(&nan, Channel::Luma, NoData::Auto, &l).unwrap_err();
+    assert!(matches!(&e, Error::InvalidInput(m) if m.contains("nodata=nan")), "{e}");
+    // ... and accepted with one.
+    let (map, _) = decode_with(&nan, Channel::Luma, NoData::Nan, &l).unwrap();
+    assert_eq!(map.terrain.holes.as_deref(), Some(&[false, true, false, false][..]));
+    // All nodata.
+    let all = tiff_f32(2, 2, &[-9999.0; 4]);
+    let e = decode_with(&all, Channel::Luma, NoData::Value(-9999.0), &l).unwrap_err();
+    assert!(matches!(&e, Error::InvalidInput(m) if m.contains("every texel is nodata")), "{e}");
+    assert_eq!(e.exit_code(), 2);
+}
+
+/// A projected DEM's tags: 30 m pixels, UTM 32N (EPSG:32632), metres.
+fn utm_georef(sx: f64, sy: f64, model: u16) -> Georef {
+    Georef {
+        pixel_scale: Some(vec![sx, sy, 0.0]),
+        tiepoints: Some(vec![0.0, 0.0, 0.0, 500000.0, 5500000.0, 0.0]),
+        geo_keys: Some(vec![1, 1, 0, 3, 1024, 0, 1, model, 3072, 0, 1, 32632, 3076, 0, 1, 9001]),
+        ..Georef::default()
+    }
+}
+
+#[test]
+fn dem_defaults_apply_unless_given() {
+    let g = utm_georef(30.0, 30.0, 1);
+    assert_eq!(g.epsg(), Some(32632));
+    assert_eq!(g.transform(), Some([500000.0, 30.0, 0.0, 5500000.0, 0.0, -30.0]));
+    let mut p = params(&[("method", "exact")]);
+    apply_dem_defaults(&mut p, Some(&g)).unwrap();
+    assert_eq!(p.cell_size, Some(30.0));
+    assert_eq!(p.height_scale, 1.0 / 30.0);
+    assert_eq!(p.edge, Edge::None);
+    assert_eq!(p.earth_curvature, horizon_bake::params::EarthCurvature::On);
+    // Explicit parameters win.
+    let mut p = params(&[("method", "exact"), ("height_scale", "2"), ("edge", "wrap")]);
+    apply_dem_defaults(&mut p, Some(&g)).unwrap();
+    assert_eq!((p.height_scale, p.edge), (2.0, Edge::Wrap));
+    // Lengyel does not model the curvature: off by default, refused when asked.
+    let mut p = params(&[]);
+    apply_dem_defaults(&mut p, Some(&g)).unwrap();
+    assert_eq!(p.earth_curvature, horizon_bake::params::EarthCurvature::Off);
+    let mut p = params(&[("earth_curvature", "on")]);
+    let e = apply_dem_defaults(&mut p, Some(&g)).unwrap_err();
+    assert!(matches!(&e, Error::Param { field, .. } if field == "earth_curvature"), "{e}");
+    // Geographic, non-square: refused naming the fix, unless cell_size is given.
+    let geo = utm_georef(0.001, 0.001, 2);
+    let e = apply_dem_defaults(&mut params(&[]), Some(&geo)).unwrap_err();
+    assert!(e.to_string().contains("gdalwarp -t_srs"), "{e}");
+    let mut p = params(&[("cell_size", "90")]);
+    apply_dem_defaults(&mut p, Some(&geo)).unwrap();
+    assert_eq!(p.height_scale, 1.0 / 90.0);
+    let e = apply_dem_defaults(&mut params(&[]), Some(&utm_georef(30.0, 20.0, 1))).unwrap_err();
+    assert!(e.to_string().contains("not square"), "{e}");
+    // max_distance needs a cell size.
+    let e = apply_dem_defaults(&mut params(&[("max_distance", "100")]), None).unwrap_err();
+    assert!(matches!(&e, Error::Param { field, .. } if field == "max_distance"), "{e}");
+}
+
+#[test]
+fn bins_rules_depend_on_outputs_and_method() {
+    // Horizon layers: multiples of 16.
+    assert!(BakeParams::from_pairs([("bins", "24")]).is_err());
+    // Angles alone with a ray method: any count 1..720.
+    for b in ["1", "7", "720"] {
+        let p = BakeParams::from_pairs([("bins", b), ("outputs", "angles"), ("method", "exact")]);
+        assert!(p.is_ok(), "bins={b}: {p:?}");
+    }
+    assert!(BakeParams::from_pairs([("bins", "721"), ("outputs", "angles"), ("method", "exact")])
+        .is_err());
+    // ... not with lengyel, nor with the horizon layers too.
+    assert!(BakeParams::from_pairs([("bins", "7"), ("outputs", "angles")]).is_err());
+    assert!(BakeParams::from_pairs([
+        ("bins", "7"),
+        ("outputs", "angles,horizon"),
+        ("method", "exact")
+    ])
+    .is_err());
+    // Compass bands need north among the bins.
+    let e = BakeParams::from_pairs([
+        ("bins", "6"),
+        ("outputs", "angles"),
+        ("method", "exact"),
+        ("azimuth_from", "north_cw"),
+    ])
+    .unwrap_err();
+    assert!(matches!(&e, Error::Param { field, .. } if field == "azimuth_from"), "{e}");
+}
+
+/// A flat 41² map with a 20-texel tower at its centre, the tower marked nodata.
+fn towered(nodata: bool) -> horizon_bake::heightmap::HeightMap {
+    let n = 41;
+    let mut v = vec![0f32; n * n];
+    for y in 19..22 {
+        for x in 19..22 {
+            v[y * n + x] = 20.0;
+        }
+    }
+    let nd = if nodata { NoData::Value(20.0) } else { NoData::None };
+    decode_with(&tiff_f32(n as u32, n as u32, &v), Channel::Luma, nd, &Limits::default()).unwrap().0
+}
+
+#[test]
+fn a_hole_casts_no_shadow_and_has_no_value() {
+    let p = params(&[
+        ("method", "exact"),
+        ("radius", "unlimited"),
+        ("edge", "none"),
+        ("height_scale", "1"),
+        ("outputs", "angles,svf,horizon"),
+        ("bins", "32"),
+    ]);
+    // Without nodata, the tower shadows the plain around it.
+    let (t, _) = bake::bake_terrain(&towered(false), &p, &Progress::new()).unwrap();
+    let a = t.angles.unwrap();
+    assert!(a.iter().any(|&v| v > 10.0), "the tower casts shadows");
+    // As a hole: every valid texel sees an open sky, every hole is NaN (no nodata declared:
+    // here 20 was, so 20 is written).
+    let map = towered(true);
+    let holes = map.terrain.holes.clone().unwrap();
+    assert_eq!(holes.iter().filter(|&&h| h).count(), 9);
+    let (t, _) = bake::bake_terrain(&map, &p, &Progress::new()).unwrap();
+    let (a, s) = (t.angles.unwrap(), t.svf.unwrap());
+    let plane = 41 * 41;
+    for (k, &hole) in holes.iter().enumerate() {
+        for n in 0..32 {
+            let v = a[n * plane + k];
+            if hole {
+                assert_eq!(v, 20.0, "hole {k} band {n}");
+            } else {
+                assert_eq!(v, 0.0, "texel {k} band {n}: a hole occluded it");
+            }
+        }
+        assert_eq!(s[k], if hole { 20.0 } else { 1.0 }, "svf at {k}");
+    }
+    // The horizon layers: 0 at holes and, here, everywhere.
+    let (layers, _) =
+        bake::bake_horizon(&map, &p, horizon_bake::bake::Precisions::U8, &Progress::new()).unwrap();
+    let l = layers.u8.as_ref().unwrap();
+    assert!(l.iter().all(|layer| layer.iter().all(|&b| b == 0)));
+    assert_eq!(l[0].len(), plane * 4);
+}
+
+#[test]
+fn hole_ridden_maps_never_show_values_in_holes() {
+    // Rough random terrain with a fifth of it missing, every method.
+    let (w, h) = (37, 29);
+    let mut seed = 24u64;
+    let mut rnd = || {
+        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (seed >> 33) as f32 / (1u64 << 31) as f32
+    };
+    let v: Vec<f32> =
+        (0..w * h).map(|_| if rnd() < 0.2 { -9999.0 } else { rnd() * 30.0 }).collect();
+    let map = decode_with(
+        &tiff_f32(w as u32, h as u32, &v),
+        Channel::Luma,
+        NoData::Value(-9999.0),
+        &Limits::default(),
+    )
+    .unwrap()
+    .0;
+    let holes = map.terrain.holes.clone().unwrap();
+    for method in ["exact", "march", "lengyel"] {
+        let p = params(&[
+            ("method", method),
+            ("radius", "12"),
+            ("height_scale", "1"),
+            ("outputs", "angles,svf,horizon"),
+        ]);
+        let (t, _) = bake::bake_terrain(&map, &p, &Progress::new()).unwrap();
+        let (a, s) = (t.angles.unwrap(), t.svf.unwrap());
+        let plane = w * h;
+        for (k, &hole) in holes.iter().enumerate() {
+            assert_eq!(s[k] == -9999.0, hole, "{method} svf at {k}");
+            for n in 0..32 {
+                assert_eq!(a[n * plane + k] == -9999.0, hole, "{method} band {n} at {k}");
+            }
+        }
+        let (layers, _) =
+            bake::bake_horizon(&map, &p, bake::Precisions::U8, &Progress::new()).unwrap();
+        let l = layers.u8.as_ref().unwrap();
+        for (k, &hole) in holes.iter().enumerate() {
+            if hole {
+                assert!(
+                    l.iter().all(|layer| layer[k * 4..k * 4 + 4] == [0, 0, 0, 0]),
+                    "{method} {k}"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn curvature_lowers_a_far_wall_exactly() {
+    // A wall of height 50 texels, 100 texels east of the observer; the drop there is
+    // k·100² = 10 texels with k = 1e-3, so tan α = (50 − 10)/100 = 0.4 (0.5 without).
+    let (w, h) = (201, 3);
+    let mut v = vec![0f32; w * h];
+    for r in 0..h {
+        v[r * w + 100] = 50.0;
+    }
+    let g = Grid::new(w, h, &v, Edge::None, YAxis::Up);
+    let flat = ExactHorizon::new(g, None, 16, Reduce::Point).horizon_sin(0, 1, 0.0);
+    let curved =
+        ExactHorizon::new(g, None, 16, Reduce::Point).with_curvature(1e-3).horizon_sin(0, 1, 0.0);
+    let sin = |t: f64| t / (1.0 + t * t).sqrt();
+    assert!((flat - sin(0.5)).abs() < 1e-6, "flat {flat}");
+    assert!((curved - sin(0.4)).abs() < 1e-6, "curved {curved}");
+    // The bake's k from SPEC §3.7: cell² · height_scale / (2 R_e).
+    let p = params(&[
+        ("method", "exact"),
+        ("cell_size", "30"),
+        ("earth_curvature", "on"),
+        ("height_scale", "0.5"),
+        ("refraction", "0.13"),
+    ]);
+    let k = bake::curvature(&p);
+    let want = 30.0 * 30.0 * 0.5 / (2.0 * 6_371_000.0 / (1.0 - 0.13));
+    assert!((k - want).abs() < 1e-18, "{k} vs {want}");
+}
+
+#[test]
+fn dem_products_read_by_gdal() {
+    let ci = std::env::var("CI").is_ok_and(|v| v == "true");
+    let has = std::process::Command::new("python3")
+        .args(["-c", "import rasterio, numpy, pvlib"])
+        .status()
+        .is_ok_and(|s| s.success());
+    if !has {
+        assert!(!ci, "CI=true: python3 with rasterio, numpy and pvlib is required (pip install rasterio pvlib)");
+        eprintln!(
+            "skipped: python3 with rasterio or pvlib is missing (pip install rasterio pvlib)"
+        );
+        return;
+    }
+    let work = tempfile::tempdir().unwrap();
+    let out = std::process::Command::new("python3")
+        .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/terrain/check_dem.py"))
+        .arg(env!("CARGO_BIN_EXE_horizon-bake"))
+        .arg(work.path())
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    eprintln!("{text}{}", String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "tests/terrain/check_dem.py failed");
+}

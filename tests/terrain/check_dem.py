@@ -1,0 +1,370 @@
+#!/usr/bin/env python3
+"""Issue 24: a real DEM nobody in this project made, read and checked by GDAL (rasterio).
+
+The DEM is R `terra`'s `ex/elev.tif` (SRTM-derived, int16, EPSG:4326, nodata -32768; GPL-3+, so
+it is not copied into this repository): taken from $HB_ELEV_TIF, or extracted from the Debian
+package r-cran-terra (`apt-get download` + `dpkg-deb -x`, no install). A float32 UTM version with
+nodata -9999 is made here with rasterio.warp.reproject.
+
+Checks, each against something we did not write (GDAL, pvlib's SPA, numpy references):
+- refusals (exit 2, one line naming the fix): geographic CRS without cell_size, rotated grid,
+  non-square cells, all-nodata map, NaN without nodata, ZSTD compression;
+- GDAL reads angles.tif and svf.tif with the input's CRS, transform and nodata, one band per bin;
+- every hole of the input is nodata in every output, and no valid texel is;
+- `exact` angles match an independent bilinear line-of-sight written here (numpy, with the
+  earth-curvature drop) within 0.01 degrees, and the SVF matches mean cos^2 of those angles;
+- `azimuth_from=north_cw` renumbers the same rays; bake.json carries the georeferencing.
+
+Usage: check_dem.py HORIZON_BAKE_BINARY WORKDIR
+"""
+import glob
+import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
+
+import numpy as np
+import rasterio
+from rasterio.transform import Affine
+from rasterio.warp import Resampling, calculate_default_transform, reproject
+
+BIN, WORK = sys.argv[1], sys.argv[2]
+os.makedirs(WORK, exist_ok=True)
+R_E = 6371000.0
+failures = []
+
+
+def check(cond, what):
+    print(("ok   " if cond else "FAIL ") + what)
+    if not cond:
+        failures.append(what)
+
+
+def run(*args):
+    p = subprocess.run([BIN, *args], capture_output=True, text=True)
+    return p.returncode, p.stderr.strip()
+
+
+def elev_tif():
+    if os.environ.get("HB_ELEV_TIF"):
+        return os.environ["HB_ELEV_TIF"]
+    d = os.path.join(WORK, "terra")
+    found = glob.glob(os.path.join(d, "**", "ex", "elev.tif"), recursive=True)
+    if found:
+        return found[0]
+    os.makedirs(d, exist_ok=True)
+    subprocess.run(["apt-get", "download", "r-cran-terra"], cwd=d, check=True,
+                   capture_output=True)
+    deb = glob.glob(os.path.join(d, "r-cran-terra_*.deb"))[0]
+    subprocess.run(["dpkg-deb", "-x", deb, os.path.join(d, "x")], check=True)
+    return glob.glob(os.path.join(d, "**", "ex", "elev.tif"), recursive=True)[0]
+
+
+SRC = elev_tif()
+with rasterio.open(SRC) as s:
+    check(s.crs.to_epsg() == 4326 and s.dtypes[0] == "int16" and s.nodata == -32768,
+          "elev.tif is int16 EPSG:4326 with nodata -32768")
+    src_arr = s.read(1)
+    src_profile = s.profile
+
+# --- a float32 UTM version (EPSG:32632, 250 m, nodata -9999) ---
+UTM = os.path.join(WORK, "elev_utm.tif")
+with rasterio.open(SRC) as s:
+    dst_crs = "EPSG:32632"
+    tr, w, h = calculate_default_transform(s.crs, dst_crs, s.width, s.height, *s.bounds,
+                                          resolution=250.0)
+    dst = np.full((h, w), -9999.0, dtype=np.float32)
+    reproject(src_arr.astype(np.float32), dst, src_transform=s.transform, src_crs=s.crs,
+              src_nodata=-32768, dst_transform=tr, dst_crs=dst_crs, dst_nodata=-9999,
+              resampling=Resampling.bilinear)
+    prof = dict(driver="GTiff", dtype="float32", width=w, height=h, count=1, crs=dst_crs,
+                transform=tr, nodata=-9999, compress="deflate")
+    with rasterio.open(UTM, "w", **prof) as d:
+        d.write(dst, 1)
+print(f"UTM DEM {w}x{h}, {np.mean(dst == -9999):.0%} nodata")
+
+
+def write(path, arr, **kw):
+    prof = dict(driver="GTiff", dtype=str(arr.dtype), width=arr.shape[1], height=arr.shape[0],
+                count=1)
+    prof.update(kw)
+    with rasterio.open(path, "w", **prof) as d:
+        d.write(arr, 1)
+    return path
+
+
+def refused(path, words, *extra):
+    code, err = run("bake", path, "-o", os.path.join(WORK, "refused"), "--format", "geotiff",
+                    "--outputs", "angles,svf", "--method", "exact", *extra)
+    ok = code == 2 and all(w.lower() in err.lower() for w in words) and "\n" not in err
+    check(ok, f"refused {os.path.basename(path)} (exit {code}): {err[:160]}")
+
+
+# --- refusals ---
+refused(SRC, ["EPSG:4326", "gdalwarp", "cell_size"])
+small = np.arange(64, dtype=np.float32).reshape(8, 8)
+rot = Affine(100.0, 20.0, 500000.0, 20.0, -100.0, 5500000.0)
+refused(write(os.path.join(WORK, "rotated.tif"), small, crs="EPSG:32632", transform=rot),
+        ["rotated", "gdalwarp"])
+nsq = Affine(100.0, 0.0, 500000.0, 0.0, -50.0, 5500000.0)
+refused(write(os.path.join(WORK, "nonsquare.tif"), small, crs="EPSG:32632", transform=nsq),
+        ["not square", "gdalwarp -tr"])
+sq = Affine(100.0, 0.0, 500000.0, 0.0, -100.0, 5500000.0)
+refused(write(os.path.join(WORK, "allnodata.tif"), np.full((8, 8), -9999, np.float32),
+              crs="EPSG:32632", transform=sq, nodata=-9999), ["every texel is nodata"])
+withnan = small.copy()
+withnan[3, 4] = np.nan
+refused(write(os.path.join(WORK, "nan.tif"), withnan, crs="EPSG:32632", transform=sq),
+        ["nan", "nodata=nan"])
+refused(write(os.path.join(WORK, "zstd.tif"), small, crs="EPSG:32632", transform=sq,
+              compress="zstd"), ["ZSTD", "gdal_translate"])
+# With cell_size, the geographic DEM bakes (cell_size overrides the georeferencing).
+code, err = run("bake", SRC, "-o", os.path.join(WORK, "geo"), "--format", "geotiff",
+                "--outputs", "svf", "--method", "exact", "--radius", "unlimited",
+                "--cell-size", "750")
+check(code == 0, f"elev.tif bakes with --cell-size 750 (exit {code} {err[:200]})")
+if code == 0:
+    with rasterio.open(os.path.join(WORK, "geo", "svf.tif")) as o, rasterio.open(SRC) as s:
+        check(o.crs == s.crs and o.transform.almost_equals(s.transform, 1e-12),
+              "svf.tif of elev.tif keeps EPSG:4326 and its transform")
+        v = o.read(1)
+        check(o.nodata == -32768 and np.all((v == -32768) == (src_arr == -32768)),
+              "svf.tif of elev.tif: nodata -32768 exactly at the input's holes")
+
+# --- the UTM DEM, DEM defaults (cell size, height_scale, edge=none, curvature on) ---
+BINS = 32
+OUT = os.path.join(WORK, "utm")
+code, err = run("bake", UTM, "-o", OUT, "--format", "geotiff", "--outputs", "angles,svf",
+                "--method", "exact", "--radius", "unlimited", "--bins", str(BINS))
+check(code == 0, f"UTM DEM bakes with the DEM defaults (exit {code} {err[:200]})")
+if code != 0:
+    sys.exit(1)
+bake = json.load(open(os.path.join(OUT, "bake.json")))
+p = bake["params"]
+check(p["cell_size"] == 250.0 and abs(p["height_scale"] - 1 / 250) < 1e-15
+      and p["edge"] == "none" and p["earth_curvature"] == "on",
+      f"DEM defaults resolved: cell_size {p['cell_size']}, height_scale {p['height_scale']}, "
+      f"edge {p['edge']}, curvature {p['earth_curvature']}")
+g = bake.get("georeferencing") or {}
+check(g.get("epsg") == 32632 and g.get("units") == "metre"
+      and np.allclose(g.get("transform"), list(tr.to_gdal()), rtol=0, atol=1e-6),
+      f"bake.json georeferencing {g}")
+check(len(bake["products"]["angles.tif"]["bands"]) == BINS, "bake.json lists 32 angle bands")
+
+with rasterio.open(UTM) as s:
+    dem = s.read(1).astype(np.float64)
+    crs, transform = s.crs, s.transform
+holes = dem == -9999
+with rasterio.open(os.path.join(OUT, "angles.tif")) as a:
+    check(a.count == BINS and a.dtypes[0] == "float32", "angles.tif: 32 float32 bands")
+    check(a.crs == crs and a.transform.almost_equals(transform, 1e-9),
+          f"angles.tif CRS {a.crs} and transform as the input's")
+    check(a.nodata == -9999, f"angles.tif nodata {a.nodata}")
+    check(a.profile.get("tiled") and a.block_shapes[0] == (512, 512)
+          and a.profile.get("compress", "").lower() == "deflate"
+          and a.tags(ns="IMAGE_STRUCTURE").get("PREDICTOR") == "3",
+          f"angles.tif tiled 512, DEFLATE, predictor 3 ({a.profile.get('compress')}, "
+          f"{a.tags(ns='IMAGE_STRUCTURE')})")
+    ang = a.read().astype(np.float64)
+    descr = a.descriptions
+check(descr[1] is not None and "azimuth 11.25" in descr[1], f"band 2 described: {descr[1]}")
+with rasterio.open(os.path.join(OUT, "svf.tif")) as o:
+    check(o.crs == crs and o.transform.almost_equals(transform, 1e-9) and o.nodata == -9999,
+          "svf.tif CRS, transform and nodata as the input's")
+    svf = o.read(1).astype(np.float64)
+check(np.all(ang[:, holes] == -9999) and np.all(svf[holes] == -9999),
+      "every hole is nodata in every band")
+check(np.all(ang[:, ~holes] >= 0) and np.all(ang[:, ~holes] <= 90)
+      and np.all((svf[~holes] >= 0) & (svf[~holes] <= 1)), "no valid texel is nodata")
+
+# --- the independent reference: bilinear line of sight in metres, curvature drop, holes ---
+H, W = dem.shape
+cell = 250.0
+# Cells (i, j) = square between texel centres (i..i+1, j..j+1); not surface if a corner is a hole.
+bad = holes[:-1, :-1] | holes[1:, :-1] | holes[:-1, 1:] | holes[1:, 1:]
+
+
+def horizon_deg(col, row, phi, curvature=True):
+    dx, dy = math.cos(phi), -math.sin(phi)  # y up = north = toward row 0
+    if abs(dx) < 1e-12:
+        dx = 0.0
+    if abs(dy) < 1e-12:
+        dy = 0.0
+
+    def to_edge(p, d, last):
+        return (last - p) / d if d > 0 else (p / -d if d < 0 else math.inf)
+
+    s_end = min(to_edge(col, dx, W - 1), to_edge(row, dy, H - 1))
+    if s_end <= 0:
+        return 0.0
+    h0 = dem[row, col]
+
+    def ratio(s):
+        x, y = col + s * dx, row + s * dy
+        i = np.clip(np.floor(x).astype(int), 0, W - 2)
+        j = np.clip(np.floor(y).astype(int), 0, H - 2)
+        fx, fy = x - i, y - j
+        z = (dem[j, i] * (1 - fx) * (1 - fy) + dem[j, i + 1] * fx * (1 - fy)
+             + dem[j + 1, i] * (1 - fx) * fy + dem[j + 1, i + 1] * fx * fy)
+        d = s * cell
+        r = (z - h0 - (d * d / (2 * R_E) if curvature else 0.0)) / d
+        return np.where(bad[j, i], -np.inf, r)
+
+    s = np.arange(1, int(s_end / 0.02) + 1) * 0.02
+    s = np.append(s[s < s_end], s_end)
+    r = ratio(s)
+    k = int(np.argmax(r))
+    best = r[k]
+    # Refine around the best sample (the ratio is smooth there).
+    lo, hi = max(s[k] - 0.03, 1e-6), min(s[k] + 0.03, s_end)
+    fine = np.linspace(lo, hi, 601)
+    best = max(best, float(np.max(ratio(fine))))
+    return math.degrees(math.atan(max(best, 0.0)))
+
+
+rng = np.random.default_rng(24)
+valid = np.argwhere(~holes)
+pick = valid[rng.choice(len(valid), 120, replace=False)]
+errs = []
+svf_errs = []
+for row, col in pick:
+    ref = np.array([horizon_deg(col, row, 2 * math.pi * n / BINS) for n in range(BINS)])
+    errs.append(np.abs(ang[:, row, col] - ref))
+    ref_svf = np.mean(np.cos(np.radians(ref)) ** 2)
+    svf_errs.append(abs(svf[row, col] - ref_svf))
+errs = np.array(errs)
+print(f"exact vs reference on {len(pick)} texels x {BINS} azimuths: mean |d| "
+      f"{errs.mean():.5f} deg, max {errs.max():.5f} deg; svf max |d| {max(svf_errs):.2e}")
+check(errs.max() <= 0.01, f"exact angles within 0.01 deg of the reference (max {errs.max():.5f})")
+check(max(svf_errs) <= 5e-4, f"svf = mean cos^2 of the reference angles (max {max(svf_errs):.2e})")
+
+# --- without the curvature drop (the vectorised near field of `exact`) ---
+OUT1 = os.path.join(WORK, "utm_flat")
+code, err = run("bake", UTM, "-o", OUT1, "--format", "geotiff", "--outputs", "angles",
+                "--method", "exact", "--radius", "unlimited", "--bins", str(BINS),
+                "--earth-curvature", "off")
+check(code == 0, f"UTM DEM bakes with earth_curvature=off (exit {code} {err[:200]})")
+if code == 0:
+    with rasterio.open(os.path.join(OUT1, "angles.tif")) as a:
+        flat = a.read().astype(np.float64)
+    e1 = np.array([[abs(flat[n, row, col] - horizon_deg(col, row, 2 * math.pi * n / BINS, False))
+                    for n in range(BINS)] for row, col in pick[:60]])
+    print(f"exact (no curvature) vs reference: mean {e1.mean():.5f} deg, max {e1.max():.5f} deg")
+    check(e1.max() <= 0.01, f"exact without curvature within 0.01 deg (max {e1.max():.5f})")
+    check(np.all(flat[:, ~holes] >= ang[:, ~holes] - 1e-4),
+          "the curvature drop only lowers horizons")
+
+# --- the horizon profile at one point (CLI `profile`, 360 compass azimuths) ---
+row, col = pick[0]
+e_map = transform.c + (col + 0.5) * transform.a
+n_map = transform.f + (row + 0.5) * transform.e
+p = subprocess.run([BIN, "profile", UTM, "--at-map", f"{e_map},{n_map}", "--json",
+                    "--azimuth-from", "north_cw"], capture_output=True, text=True)
+check(p.returncode == 0, f"profile at ({e_map:.1f}, {n_map:.1f}) (exit {p.returncode} {p.stderr})")
+if p.returncode == 0:
+    prof = json.loads(p.stdout)
+    check((prof["x"], prof["y"]) == (col, row), f"--at-map lands on texel ({col}, {row})")
+    az = np.array([q["azimuth"] for q in prof["profile"]])
+    el = np.array([q["elevation"] for q in prof["profile"]])
+    ref = np.array([horizon_deg(col, row, math.radians(90 - a)) for a in az])
+    check(len(az) == 360 and np.abs(el - ref).max() <= 0.01,
+          f"profile: 360 azimuths within 0.01 deg of the reference (max {np.abs(el - ref).max():.5f})")
+    csv = subprocess.run([BIN, "profile", UTM, "--at", f"{col},{row}", "--bins", "8"],
+                         capture_output=True, text=True).stdout.splitlines()
+    check(csv[0] == "azimuth_deg,elevation_deg" and len(csv) == 9
+          and abs(float(csv[1].split(",")[1]) - horizon_deg(col, row, 0.0)) <= 0.01,
+          f"profile CSV, 8 azimuths east_ccw: {csv[:3]}")
+
+# --- sun shadow (CLI `shadow`): uint8 GeoTIFF, one exact ray per texel at the sun's azimuth ---
+SUN_AZ, SUN_EL = 203.7, 2.5  # compass degrees: a low sun from the south-south-west
+SHADOW = os.path.join(WORK, "shadow.tif")
+code, err = run("shadow", UTM, "-o", SHADOW, "--sun-azimuth", str(SUN_AZ), "--sun-elevation",
+                str(SUN_EL), "--azimuth-from", "north_cw")
+check(code == 0, f"shadow (exit {code} {err[:200]})")
+if code == 0:
+    with rasterio.open(SHADOW) as o:
+        check(o.dtypes[0] == "uint8" and o.crs == crs and o.transform.almost_equals(transform, 1e-9)
+              and o.nodata == 255, f"shadow.tif uint8, CRS, transform, nodata {o.nodata}")
+        sh = o.read(1)
+    check(np.all(sh[holes] == 255) and np.all(np.isin(sh[~holes], [0, 1])),
+          "shadow.tif: 255 exactly at holes, 0/1 elsewhere")
+    phi_sun = math.radians(90 - SUN_AZ)
+    agree = total = 0
+    for row, col in pick:
+        ref = horizon_deg(col, row, phi_sun)
+        if abs(ref - SUN_EL) < 0.01:
+            continue
+        total += 1
+        agree += int(sh[row, col] == (1 if SUN_EL > ref else 0))
+    print(f"shadow agrees with the reference on {agree}/{total} texels; "
+          f"{np.mean(sh[~holes] == 0):.1%} of the map in shadow")
+    check(agree == total, "shadow = (sun above the reference horizon at the sun's azimuth)")
+
+# --- the sun of a time and place (NREL SPA) against pvlib's SPA, and its shadow ---
+import pandas as pd  # noqa: E402  (pvlib brings it)
+import pvlib  # noqa: E402
+
+SUN_TIME, LAT, LON = "2026-12-21T09:10:00+01:00", 49.75, 6.1
+SHADOW2 = os.path.join(WORK, "shadow_time.tif")
+p = subprocess.run([BIN, "shadow", UTM, "-o", SHADOW2, "--sun-time", SUN_TIME, "--latitude",
+                    str(LAT), "--longitude", str(LON)], capture_output=True, text=True)
+check(p.returncode == 0, f"shadow --sun-time (exit {p.returncode} {p.stderr[:200]})")
+if p.returncode == 0:
+    words = p.stderr.replace("°", " ").split()
+    our_az = float(words[words.index("azimuth") + 1])
+    our_el = float(words[words.index("elevation") + 1])
+    sp = pvlib.solarposition.spa_python(pd.DatetimeIndex([pd.Timestamp(SUN_TIME)]), LAT, LON,
+                                        altitude=0, pressure=101325, temperature=12)
+    pv_az, pv_el = float(sp["azimuth"].iloc[0]), float(sp["apparent_elevation"].iloc[0])
+    print(f"sun: ours {our_az:.4f}/{our_el:.4f}, pvlib SPA {pv_az:.4f}/{pv_el:.4f}")
+    check(abs(our_az - pv_az) < 0.01 and abs(our_el - pv_el) < 0.01,
+          "SPA sun position within 0.01 deg of pvlib's")
+    with rasterio.open(SHADOW2) as o:
+        sh2 = o.read(1)
+    phi = math.radians(90 - pv_az)
+    agree = total = 0
+    for row, col in pick:
+        ref = horizon_deg(col, row, phi)
+        total += 1
+        agree += int(sh2[row, col] == (1 if pv_el > ref else 0))
+    print(f"shadow at pvlib's sun: {agree}/{total} texels agree; "
+          f"{np.mean(sh2[~holes] == 0):.1%} of the map in shadow")
+    check(agree >= 0.995 * total, "shadow at the SPA sun agrees with the reference on >= 99.5%")
+
+# --- compass bands are the same rays renumbered ---
+OUT2 = os.path.join(WORK, "utm_north")
+code, err = run("bake", UTM, "-o", OUT2, "--format", "geotiff", "--outputs", "angles",
+                "--method", "exact", "--radius", "unlimited", "--bins", str(BINS),
+                "--azimuth-from", "north_cw", "--angle-unit", "radians")
+check(code == 0, f"north_cw bake (exit {code} {err[:200]})")
+if code == 0:
+    with rasterio.open(os.path.join(OUT2, "angles.tif")) as a:
+        north = a.read().astype(np.float64)
+    same = all(np.allclose(north[n][~holes], np.radians(ang[(BINS // 4 - n) % BINS][~holes]),
+                           atol=2e-6) for n in range(BINS))
+    check(same, "north_cw band n = east_ccw band (bins/4 - n), in radians")
+
+# --- 7 azimuths (not a multiple of 16) with march, and SVF visual ---
+OUT3 = os.path.join(WORK, "utm_march")
+code, err = run("bake", UTM, "-o", OUT3, "--format", "geotiff", "--outputs", "angles,svf",
+                "--method", "march", "--max-distance", "5000", "--bins", "9",
+                "--svf-model", "visual")
+check(code == 0, f"march, 9 bins, max_distance 5000 m (exit {code} {err[:200]})")
+if code == 0:
+    b3 = json.load(open(os.path.join(OUT3, "bake.json")))
+    check(b3["params"]["resolved_radius"]["texels"] == 20,
+          f"max_distance 5000 m / 250 m = 20 texels ({b3['params']['resolved_radius']})")
+    with rasterio.open(os.path.join(OUT3, "angles.tif")) as a, \
+            rasterio.open(os.path.join(OUT3, "svf.tif")) as o:
+        a9 = a.read().astype(np.float64)
+        s9 = o.read(1).astype(np.float64)
+    check(a9.shape[0] == 9, "9 bands")
+    vis = 1 - np.mean(np.sin(np.radians(a9[:, ~holes])), axis=0)
+    check(np.allclose(s9[~holes], vis, atol=1e-5), "visual svf = 1 - mean sin of its angles")
+
+if failures:
+    print(f"{len(failures)} check(s) failed")
+    sys.exit(1)
+print("all terrain checks passed")
