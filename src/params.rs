@@ -448,6 +448,26 @@ impl BakeParams {
         Ok(())
     }
 
+    /// Checks what no single key can: combinations that make no sense. Call it once every key
+    /// of a request is set (a query and a JSON part may each give half of a combination).
+    ///
+    /// `reduce` picks how a ray method's `bins` azimuths become 8 channels; `lengyel` splats
+    /// and always averages 5 bins (SPEC §3.1), so `reduce=point` with it would be a separate
+    /// bake with the same bytes. It is refused, naming `reduce`.
+    ///
+    /// # Errors
+    /// [`Error::Param`] naming the key to change.
+    pub fn check(&self) -> Result<()> {
+        if self.method == Method::Lengyel && self.reduce == Reduce::Point {
+            return Err(Error::param(
+                "reduce",
+                "`point` applies to the ray methods (exact, march); method=lengyel always \
+                 averages its bins (SPEC §3.1): drop `reduce` or pick another method",
+            ));
+        }
+        Ok(())
+    }
+
     /// Builds parameters from key/value pairs (a query string, CLI flags), defaults elsewhere.
     ///
     /// # Errors
@@ -482,6 +502,7 @@ impl BakeParams {
                 p.set(k, &text)?;
             }
         }
+        p.check()?;
         Ok(p)
     }
 
@@ -547,6 +568,22 @@ mod tests {
                 other => panic!("{k}={v}: expected a parameter error, got {other:?}"),
             }
         }
+    }
+
+    #[test]
+    fn point_reduction_is_refused_with_lengyel_only() {
+        let bad = BakeParams::from_pairs([("reduce", "point")]).unwrap();
+        match bad.check() {
+            Err(Error::Param { field, .. }) => assert_eq!(field, "reduce"),
+            other => panic!("lengyel + point: {other:?}"),
+        }
+        for m in ["exact", "march"] {
+            let p = BakeParams::from_pairs([("method", m), ("reduce", "point")]).unwrap();
+            assert!(p.check().is_ok(), "{m}");
+        }
+        assert!(BakeParams::default().check().is_ok());
+        let json = serde_json::json!({"method": "lengyel", "reduce": "point"});
+        assert!(matches!(BakeParams::from_json(&json), Err(Error::Param { .. })));
     }
 
     #[test]

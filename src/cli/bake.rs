@@ -125,7 +125,11 @@ impl ParamFlags {
             ("fourier_terms", &self.fourier_terms),
             ("fourier_range", &self.fourier_range),
         ];
-        BakeParams::from_pairs(pairs.iter().filter_map(|(k, v)| v.as_deref().map(|v| (*k, v))))
+        let p = BakeParams::from_pairs(
+            pairs.iter().filter_map(|(k, v)| v.as_deref().map(|v| (*k, v))),
+        )?;
+        p.check()?;
+        Ok(p)
     }
 }
 

@@ -118,15 +118,16 @@ impl<W: std::io::Write> std::io::Write for Latch<W> {
 /// IDAT chunk size of streamed PNGs (the `png` default of 4 KiB adds a chunk header per 4 KiB).
 const STREAM_CHUNK: usize = 1 << 20;
 
-/// Images up to this many texels are streamed with zlib's `Balanced` compression, larger ones
-/// with fdeflate's `Fast` (see [`PngRowWriter::new`]).
+/// Images up to this many texels are streamed with zlib's default level, larger ones with its
+/// level 1 (see [`PngRowWriter::new`]).
 const SMALL_IMAGE_TEXELS: usize = 512 * 512;
 
 /// Writes a PNG row by row to any [`std::io::Write`] (a file, usually), so neither the samples
 /// nor the encoded image need to be in memory whole: 16-bit rows are converted to big-endian one
 /// call at a time. Same colour and depth as [`encode8`] / [`encode16`]; the bytes may differ
-/// (those fall back to stored blocks when compression does not pay; this one uses zlib for small
-/// images and fdeflate's fast mode for large ones), the samples never do.
+/// (whole images may differ in how zlib splits blocks), the samples never do. Every deflate
+/// block falls back to stored when compression does not pay, so a layer is never larger than
+/// its samples plus the framing (a filter byte per row, 5 bytes per block, 12 per chunk).
 pub struct PngRowWriter<W: std::io::Write + 'static, T: PngSample> {
     stream: png::StreamWriter<'static, Latch<W>>,
     shared: SharedOut<W>,
@@ -161,16 +162,18 @@ impl<W: std::io::Write + 'static, T: PngSample> PngRowWriter<W, T> {
         let mut enc = png::Encoder::new(Latch(shared.clone()), w32, h32);
         enc.set_color(color.png());
         enc.set_depth(if T::BITS == 16 { png::BitDepth::Sixteen } else { png::BitDepth::Eight });
-        // fdeflate's `Fast` streams without buffering, so on incompressible rows (the layers of
-        // a rough map are close to noise) it can write more than the raw samples: 555 KB for a
-        // 256² 16-bit layer of 524 KB. zlib's `Balanced` falls back to stored blocks and never
-        // does; it is slower, which only matters for large images, so small ones use it.
+        // fdeflate's `Fast` streams with one fixed Huffman table and no fallback, so on
+        // incompressible rows (the layers of a rough map are close to noise) it writes more
+        // than the raw samples: 555 KB for a 256² 16-bit layer of 524 KB, 18.4 MB for a 2048²
+        // 8-bit layer of 16.8 MB. zlib (miniz_oxide) decides per deflate block (at most 64 KiB
+        // of input) between its Huffman codes and a stored block, so no band of rows is ever
+        // written larger than its samples plus 5 bytes per block. Small images use its default
+        // level; large ones level 1, its fastest that still searches matches.
         let small = width.saturating_mul(height) <= SMALL_IMAGE_TEXELS;
-        enc.set_compression(if small {
-            png::Compression::Balanced
-        } else {
-            png::Compression::Fast
-        });
+        enc.set_compression(png::Compression::Balanced);
+        if !small {
+            enc.set_deflate_compression(png::DeflateCompression::Level(1));
+        }
         let stream = enc.write_header().and_then(|w| w.into_stream_writer_with_size(STREAM_CHUNK));
         match stream {
             Ok(stream) => Ok(PngRowWriter {
