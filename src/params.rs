@@ -708,6 +708,15 @@ impl BakeParams {
                 ),
             ));
         }
+        // `lengyel` splats and always averages 5 bins (SPEC §3.1), so `reduce=point` with it
+        // would be a separate bake with the same bytes: refused, naming `reduce`.
+        if self.method == Method::Lengyel && self.reduce == Reduce::Point {
+            return Err(Error::param(
+                "reduce",
+                "`point` applies to the ray methods (exact, march); method=lengyel always \
+                 averages its bins (SPEC §3.1): drop `reduce` or pick another method",
+            ));
+        }
         Ok(())
     }
 
@@ -820,6 +829,22 @@ mod tests {
                 other => panic!("{k}={v}: expected a parameter error, got {other:?}"),
             }
         }
+    }
+
+    #[test]
+    fn point_reduction_is_refused_with_lengyel_only() {
+        let bad = BakeParams::from_pairs([("reduce", "point")]).unwrap();
+        match bad.check() {
+            Err(Error::Param { field, .. }) => assert_eq!(field, "reduce"),
+            other => panic!("lengyel + point: {other:?}"),
+        }
+        for m in ["exact", "march"] {
+            let p = BakeParams::from_pairs([("method", m), ("reduce", "point")]).unwrap();
+            assert!(p.check().is_ok(), "{m}");
+        }
+        assert!(BakeParams::default().check().is_ok());
+        let json = serde_json::json!({"method": "lengyel", "reduce": "point"});
+        assert!(matches!(BakeParams::from_json(&json), Err(Error::Param { .. })));
     }
 
     #[test]

@@ -57,6 +57,9 @@ pub const MAX_SIZE: u32 = 4096;
 pub const MAX_PIXELS: u64 = 1 << 26;
 /// Most tiles on a contact sheet.
 pub const MAX_TILES: u32 = 64;
+/// Longest side of a contact-sheet tile when `size` is not given: a sheet is for comparing
+/// lights at a glance, and native tiles of a 2048² map made a 6160×6226, 131 MB image.
+pub const SHEET_TILE: u32 = 512;
 /// Most parallax layers / bisections.
 pub const MAX_PARALLAX_STEPS: u32 = 1024;
 /// Largest cube-map face.
@@ -720,6 +723,16 @@ pub fn render_cancelable(
     baked: Baked<'_>,
     progress: &Progress,
 ) -> Result<Image> {
+    let capped;
+    let params = if params.contact_sheet > 0
+        && params.size.is_none()
+        && map.width.max(map.height) > SHEET_TILE as usize
+    {
+        capped = PreviewParams { size: Some(SHEET_TILE), ..params.clone() };
+        &capped
+    } else {
+        params
+    };
     let (ow, oh) = output_size(map.width, map.height, params.size);
     let pixels = ow as u64 * oh as u64 * params.contact_sheet.max(1) as u64;
     if pixels > MAX_PIXELS {
@@ -803,7 +816,9 @@ fn sheet(scene: &Scene<'_>, params: &PreviewParams, progress: &Progress) -> Resu
     let (tw, th) = (tiles[0].width, tiles[0].height);
     let cols = (n as f64).sqrt().ceil() as usize;
     let rows = n.div_ceil(cols);
-    let scale = if tw >= 96 { 2 } else { 1 };
+    // Labels grow with the tile: 7 px glyphs on tiles under 128 px, 7·⌊w/64⌋ px above (56 px
+    // on a 512 px tile), so "AZ -180°" spans at most 3/4 of the tile's width.
+    let scale = label_scale(tw);
     let label_h = font::HEIGHT * scale + 2 * GAP;
     let cell_w = tw + GAP;
     let cell_h = th + label_h + GAP;
@@ -819,6 +834,11 @@ fn sheet(scene: &Scene<'_>, params: &PreviewParams, progress: &Progress) -> Resu
         font::draw(&mut img, x0, y0 + th + GAP, tw, &tile_label(az), scale, [240, 240, 240]);
     }
     Ok(img)
+}
+
+/// The pixel size of a font pixel in the label of a contact-sheet tile `tile_w` pixels wide.
+pub fn label_scale(tile_w: usize) -> usize {
+    (tile_w / 64).max(1)
 }
 
 /// A tiny embedded 5×7 bitmap font for contact-sheet labels (no font crates).

@@ -232,7 +232,7 @@ async fn wait_running(c: &reqwest::Client, url: &str) -> Value {
 async fn downloads(c: &reqwest::Client, base: &str, id: &str) -> BTreeMap<String, Vec<u8>> {
     let mut out = BTreeMap::new();
     for name in ["horizon_0.png8", "horizon_1.png8", "horizon_0.png16", "horizon.ktx2"] {
-        let r = c.get(format!("{base}/v1/bakes/{id}{}", result_path(name))).send().await.unwrap();
+        let r = get_result(c, &format!("{base}/v1/bakes/{id}{}", result_path(name))).await;
         assert_eq!(r.status(), 200, "{name}");
         out.insert(name.to_owned(), r.bytes().await.unwrap().to_vec());
     }
@@ -521,8 +521,7 @@ async fn after_retention_the_bucket_holds_exactly_the_referenced_blobs() {
         let v = wait_done(&c, &cl.url_of(api, id), Duration::from_secs(60)).await;
         assert_eq!(v["status"], "succeeded");
         // An on-request result too, so blobs written after the bake are covered.
-        let r =
-            c.get(format!("{}/horizon/0?format=png16", cl.url_of(api, id))).send().await.unwrap();
+        let r = get_result(&c, &format!("{}/horizon/0?format=png16", cl.url_of(api, id))).await;
         assert_eq!(r.status(), 200);
     }
     // Wait past the retention of the first three.

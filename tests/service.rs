@@ -57,7 +57,7 @@ async fn submit_poll_download_is_byte_identical_to_the_library() {
 
     for (name, bytes) in &want {
         let url = srv.url(&format!("{loc}{}", result_path(name)));
-        let res = c.get(&url).send().await.unwrap();
+        let res = get_result(&c, &url).await;
         assert_eq!(res.status(), 200, "{url}");
         let etag = res.headers()["etag"].to_str().unwrap().to_owned();
         let body = res.bytes().await.unwrap();

@@ -270,7 +270,7 @@ async fn unknown_query_keys_on_immutable_results_are_ignored() {
         "/v1/cubemap/0?v=2".to_owned(),
         "/v1/cubemap.ktx2?size=4&v=2".to_owned(),
     ] {
-        let res = c.get(srv.url(&path)).send().await.unwrap();
+        let res = get_result(&c, &srv.url(&path)).await;
         assert_eq!(res.status(), 200, "{path}");
     }
     let (s, p) =
@@ -450,7 +450,7 @@ async fn formats_other_than_png8_are_encoded_once_on_first_request() {
     let gets = (0..4).map(|_| {
         let (c, url) = (c.clone(), url.clone());
         tokio::spawn(async move {
-            let res = c.get(&url).send().await.unwrap();
+            let res = get_result(&c, &url).await;
             assert_eq!(res.status(), 200);
             res.bytes().await.unwrap()
         })
@@ -460,11 +460,14 @@ async fn formats_other_than_png8_are_encoded_once_on_first_request() {
     for b in bodies {
         assert!(b.unwrap()[..] == want["horizon_0.exr"][..], "EXR differs from the library's");
     }
-    assert_eq!(encoded().await, 2, "both EXR layers, encoded once");
+    // Both layers at both EXR precisions, from one re-bake (issue 25).
+    assert_eq!(encoded().await, 4, "both EXR layers, float and half, encoded once");
     let res = c.get(srv.url(&format!("{loc}/horizon/1?format=exr"))).send().await.unwrap();
     assert!(res.bytes().await.unwrap()[..] == want["horizon_1.exr"][..]);
-    assert_eq!(encoded().await, 2, "layer 1 was encoded with layer 0");
-    assert_eq!(blob_files(srv.dir.path()).len(), 5);
+    let half = format!("{loc}/horizon/1?format=exr&exr_precision=half");
+    assert_eq!(c.get(srv.url(&half)).send().await.unwrap().status(), 200);
+    assert_eq!(encoded().await, 4, "layer 1 and half precision were encoded with layer 0");
+    assert_eq!(blob_files(srv.dir.path()).len(), 7);
     srv.stop().await;
 }
 
@@ -560,11 +563,8 @@ async fn half_precision_exr_is_the_f32_layer_in_half() {
     let loc = submit_ok(&c, &srv, &png, "?radius=4").await;
     let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
     assert_eq!(v["status"], "succeeded", "{v}");
-    let res = c
-        .get(srv.url(&format!("{loc}/horizon/1?format=exr&exr_precision=half")))
-        .send()
-        .await
-        .unwrap();
+    let res =
+        get_result(&c, &srv.url(&format!("{loc}/horizon/1?format=exr&exr_precision=half"))).await;
     assert_eq!(res.status(), 200);
     let bytes = res.bytes().await.unwrap();
     let img = read()
@@ -752,7 +752,7 @@ async fn formats_named_at_submission_are_encoded_with_the_bake() {
     }
     assert_eq!(encoded().await, 0, "nothing was encoded on request");
     // A format not asked is still there, encoded on its first request.
-    let res = c.get(srv.url(&format!("{loc}/horizon/1"))).send().await.unwrap();
+    let res = get_result(&c, &srv.url(&format!("{loc}/horizon/1"))).await;
     assert_eq!(res.status(), 200);
     assert!(res.bytes().await.unwrap() == want["horizon_1.png8"]);
     assert_eq!(encoded().await, 2);

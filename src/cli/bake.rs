@@ -220,7 +220,11 @@ impl ParamFlags {
             ("azimuth_from", &self.azimuth_from),
             ("svf_model", &self.svf_model),
         ];
-        BakeParams::from_pairs(pairs.iter().filter_map(|(k, v)| v.as_deref().map(|v| (*k, v))))
+        let p = BakeParams::from_pairs(
+            pairs.iter().filter_map(|(k, v)| v.as_deref().map(|v| (*k, v))),
+        )?;
+        p.check()?;
+        Ok(p)
     }
 }
 

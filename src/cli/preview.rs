@@ -155,8 +155,12 @@ pub fn run(args: PreviewArgs) -> Result<()> {
     let png = image.to_png()?;
     if to_stdout {
         let mut out = std::io::stdout().lock();
-        out.write_all(&png)?;
-        return Ok(out.flush()?);
+        return match out.write_all(&png).and_then(|()| out.flush()) {
+            // The reader stopped reading (`| head -c 8`, `| file -`): it has what it wanted.
+            // Rust ignores SIGPIPE, so this is the error a C tool would have died of quietly.
+            Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => Ok(()),
+            r => Ok(r?),
+        };
     }
     write_atomically(&args.output, &png)
 }

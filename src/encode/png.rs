@@ -1,5 +1,6 @@
-//! PNG writers (8-bit and 16-bit, gray or RGBA), via the `png` crate directly so 16-bit samples
-//! are written big-endian as the format requires without an intermediate image type.
+//! PNG writers (8-bit and 16-bit, gray or RGBA), streamed row by row: our own chunk writer over
+//! zlib (see [`PngRowWriter`] for why), 16-bit samples big-endian as the format requires, with
+//! no intermediate image type. Read back in the tests by the `image` crate's PNG decoder.
 
 use crate::error::{Error, Result};
 
@@ -15,12 +16,6 @@ impl PngColor {
         match self {
             PngColor::Gray => 1,
             PngColor::Rgba => 4,
-        }
-    }
-    fn png(self) -> png::ColorType {
-        match self {
-            PngColor::Gray => png::ColorType::Grayscale,
-            PngColor::Rgba => png::ColorType::Rgba,
         }
     }
 }
@@ -81,58 +76,49 @@ impl PngSample for u16 {
     }
 }
 
-/// The output of a [`PngRowWriter`] and the first I/O error seen on it. The `png` crate drops the
-/// errors of its last writes (the final IDAT flush and IEND happen in destructors) and keeps the
-/// writer it was given, so both live here, shared, for [`PngRowWriter::finish`] to check and
-/// hand back.
-struct Shared<W> {
-    out: W,
-    error: Option<std::io::Error>,
-}
-
-type SharedOut<W> = std::sync::Arc<std::sync::Mutex<Shared<W>>>;
-
-/// The `io::Write` the `png` crate writes to.
-struct Latch<W>(SharedOut<W>);
-
-impl<W: std::io::Write> Latch<W> {
-    fn with<T>(&self, f: impl FnOnce(&mut W) -> std::io::Result<T>) -> std::io::Result<T> {
-        let mut s = self.0.lock().map_err(|_| std::io::Error::other("png output poisoned"))?;
-        let r = f(&mut s.out);
-        if let (Err(e), None) = (&r, &s.error) {
-            s.error = Some(std::io::Error::new(e.kind(), e.to_string()));
-        }
-        r
-    }
-}
-
-impl<W: std::io::Write> std::io::Write for Latch<W> {
-    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
-        self.with(|w| w.write(buf))
-    }
-    fn flush(&mut self) -> std::io::Result<()> {
-        self.with(|w| w.flush())
-    }
-}
-
-/// IDAT chunk size of streamed PNGs (the `png` default of 4 KiB adds a chunk header per 4 KiB).
+/// IDAT chunk size of streamed PNGs.
 const STREAM_CHUNK: usize = 1 << 20;
 
-/// Images up to this many texels are streamed with zlib's `Balanced` compression, larger ones
-/// with fdeflate's `Fast` (see [`PngRowWriter::new`]).
+/// Filtered bytes deflated as one piece: each piece is compressed and flushed on its own, and
+/// written as stored blocks instead when compression does not pay for it.
+const PIECE: usize = 256 * 1024;
+
+/// Images up to this many texels are deflated at zlib's default level, larger ones at level 1.
 const SMALL_IMAGE_TEXELS: usize = 512 * 512;
 
 /// Writes a PNG row by row to any [`std::io::Write`] (a file, usually), so neither the samples
-/// nor the encoded image need to be in memory whole: 16-bit rows are converted to big-endian one
-/// call at a time. Same colour and depth as [`encode8`] / [`encode16`]; the bytes may differ
-/// (those fall back to stored blocks when compression does not pay; this one uses zlib for small
-/// images and fdeflate's fast mode for large ones), the samples never do.
-pub struct PngRowWriter<W: std::io::Write + 'static, T: PngSample> {
-    stream: png::StreamWriter<'static, Latch<W>>,
-    shared: SharedOut<W>,
+/// nor the encoded image need to be in memory whole: rows are filtered (the filter each row
+/// compresses best by the usual sum-of-magnitudes rule), then deflated in pieces of 256 KiB
+/// of filtered bytes, each flushed to a byte boundary; a piece that deflate would make larger
+/// is written as stored blocks instead (the compressor's window holds the same bytes either
+/// way, so later pieces may still refer to it). So a PNG is never larger than its samples plus
+/// the framing: a filter byte per row, 5 bytes per stored block of 64 KiB, 5 per piece, 12 per
+/// 1 MiB IDAT chunk, and the 57 bytes of signature, IHDR, IEND and zlib header and checksum.
+///
+/// The `png` crate's streaming writer had no such fallback: fdeflate's fixed Huffman table
+/// wrote a 2048² 8-bit layer close to noise as 18.4 MB for 16.8 MB of samples, and zlib behind
+/// it cannot store a block once it spans more than its 32 KiB window. The output is one
+/// function of the rows, however they are split into calls, so a layer streamed in bands and
+/// one written whole are the same bytes.
+pub struct PngRowWriter<W: std::io::Write, T: PngSample> {
+    out: W,
+    deflate: flate2::Compress,
+    adler: Adler32,
     row_samples: usize,
+    /// Bytes per pixel (filters look this far left).
+    bpp: usize,
     rows_left: usize,
-    be: Vec<u8>,
+    /// The previous row, unfiltered, and this one (big-endian bytes).
+    prev: Vec<u8>,
+    cur: Vec<u8>,
+    /// Scratch for the five filter candidates.
+    cand: Vec<u8>,
+    best: Vec<u8>,
+    /// Filtered bytes not deflated yet, and deflate's output of a piece.
+    pending: Vec<u8>,
+    piece: Vec<u8>,
+    /// The IDAT data not written yet.
+    idat: Vec<u8>,
     _sample: std::marker::PhantomData<T>,
 }
 
@@ -140,49 +126,158 @@ fn png_error(what: &str, e: impl std::fmt::Display) -> Error {
     Error::Internal(format!("png {what}: {e}"))
 }
 
-/// The I/O error the output saw, if any (it explains a png error better than png does).
-fn take_io<W>(shared: &SharedOut<W>) -> Option<Error> {
-    shared.lock().ok().and_then(|mut s| s.error.take()).map(Error::Io)
+/// Writes one chunk: length, type, data, CRC of type and data.
+fn write_chunk<W: std::io::Write>(out: &mut W, kind: &[u8; 4], data: &[u8]) -> Result<()> {
+    let mut crc = crc32fast::Hasher::new();
+    crc.update(kind);
+    crc.update(data);
+    out.write_all(&(data.len() as u32).to_be_bytes())?;
+    out.write_all(kind)?;
+    out.write_all(data)?;
+    out.write_all(&crc.finalize().to_be_bytes())?;
+    Ok(())
 }
 
-impl<W: std::io::Write + 'static, T: PngSample> PngRowWriter<W, T> {
-    /// Writes the PNG header of a `width × height` image to `out`.
+/// The zlib checksum (RFC 1950), in blocks of 5552 bytes so the sums never overflow.
+#[derive(Debug, Clone, Copy)]
+struct Adler32 {
+    a: u32,
+    b: u32,
+}
+
+impl Adler32 {
+    fn new() -> Self {
+        Adler32 { a: 1, b: 0 }
+    }
+    fn update(&mut self, data: &[u8]) {
+        const MOD: u32 = 65521;
+        for block in data.chunks(5552) {
+            let (mut a, mut b) = (self.a, self.b);
+            for &x in block {
+                a += u32::from(x);
+                b += a;
+            }
+            self.a = a % MOD;
+            self.b = b % MOD;
+        }
+    }
+    fn finish(self) -> u32 {
+        (self.b << 16) | self.a
+    }
+}
+
+/// Paeth predictor of the PNG specification (pa = |b − c|, pb = |a − c|, pc = |a + b − 2c|),
+/// written to compile to selects rather than branches.
+#[inline(always)]
+fn paeth(a: u8, b: u8, c: u8) -> u8 {
+    let (a16, b16, c16) = (i16::from(a), i16::from(b), i16::from(c));
+    let pa = (b16 - c16).abs();
+    let pb = (a16 - c16).abs();
+    let pc = (a16 + b16 - 2 * c16).abs();
+    let bc = if pb <= pc { b } else { c };
+    if pa <= pb && pa <= pc {
+        a
+    } else {
+        bc
+    }
+}
+
+/// Filters `cur` (above it: `prev`) with filter `kind` into `out`; returns the sum of the
+/// output bytes read as signed magnitudes (the heuristic that picks the filter). Loops zip
+/// slices, so no index is bounds-checked in them.
+fn filter_row(kind: u8, bpp: usize, prev: &[u8], cur: &[u8], out: &mut [u8]) -> u64 {
+    let n = cur.len();
+    let b = bpp.min(n);
+    let (head, tail) = out.split_at_mut(b);
+    match kind {
+        0 => out.copy_from_slice(cur),
+        1 => {
+            head.copy_from_slice(&cur[..b]);
+            for ((o, &c), &l) in tail.iter_mut().zip(&cur[b..]).zip(&cur[..n - b]) {
+                *o = c.wrapping_sub(l);
+            }
+        }
+        2 => {
+            for ((o, &c), &p) in out.iter_mut().zip(cur).zip(prev) {
+                *o = c.wrapping_sub(p);
+            }
+        }
+        3 => {
+            for ((o, &c), &p) in head.iter_mut().zip(&cur[..b]).zip(&prev[..b]) {
+                *o = c.wrapping_sub(p >> 1);
+            }
+            for (((o, &c), &l), &p) in
+                tail.iter_mut().zip(&cur[b..]).zip(&cur[..n - b]).zip(&prev[b..])
+            {
+                *o = c.wrapping_sub(((u16::from(l) + u16::from(p)) >> 1) as u8);
+            }
+        }
+        _ => {
+            for ((o, &c), &p) in head.iter_mut().zip(&cur[..b]).zip(&prev[..b]) {
+                *o = c.wrapping_sub(p);
+            }
+            for ((((o, &c), &l), &p), &ul) in tail
+                .iter_mut()
+                .zip(&cur[b..])
+                .zip(&cur[..n - b])
+                .zip(&prev[b..])
+                .zip(&prev[..n - b])
+            {
+                *o = c.wrapping_sub(paeth(l, p, ul));
+            }
+        }
+    }
+    out.iter().map(|&b| u64::from((b as i8).unsigned_abs())).sum()
+}
+
+impl<W: std::io::Write, T: PngSample> PngRowWriter<W, T> {
+    /// Writes the PNG signature and header of a `width × height` image to `out`.
     ///
     /// # Errors
     /// [`Error::Io`] when `out` fails; [`Error::Internal`] for a 0-sized or oversized image.
-    pub fn new(out: W, width: usize, height: usize, color: PngColor) -> Result<Self> {
+    pub fn new(mut out: W, width: usize, height: usize, color: PngColor) -> Result<Self> {
         let (Ok(w32), Ok(h32)) = (u32::try_from(width), u32::try_from(height)) else {
             return Err(Error::Internal(format!("png: {width}×{height} is too large")));
         };
-        if width == 0 || height == 0 {
-            return Err(Error::Internal(format!("png: {width}×{height} has no pixels")));
+        if width == 0 || height == 0 || w32 > i32::MAX as u32 || h32 > i32::MAX as u32 {
+            return Err(Error::Internal(format!(
+                "png: {width}×{height} has no pixels or too many"
+            )));
         }
-        let shared = std::sync::Arc::new(std::sync::Mutex::new(Shared { out, error: None }));
-        let mut enc = png::Encoder::new(Latch(shared.clone()), w32, h32);
-        enc.set_color(color.png());
-        enc.set_depth(if T::BITS == 16 { png::BitDepth::Sixteen } else { png::BitDepth::Eight });
-        // fdeflate's `Fast` streams without buffering, so on incompressible rows (the layers of
-        // a rough map are close to noise) it can write more than the raw samples: 555 KB for a
-        // 256² 16-bit layer of 524 KB. zlib's `Balanced` falls back to stored blocks and never
-        // does; it is slower, which only matters for large images, so small ones use it.
+        out.write_all(b"\x89PNG\r\n\x1a\n")?;
+        let mut ihdr = Vec::with_capacity(13);
+        ihdr.extend_from_slice(&w32.to_be_bytes());
+        ihdr.extend_from_slice(&h32.to_be_bytes());
+        let color_type = match color {
+            PngColor::Gray => 0,
+            PngColor::Rgba => 6,
+        };
+        ihdr.extend_from_slice(&[T::BITS, color_type, 0, 0, 0]);
+        write_chunk(&mut out, b"IHDR", &ihdr)?;
         let small = width.saturating_mul(height) <= SMALL_IMAGE_TEXELS;
-        enc.set_compression(if small {
-            png::Compression::Balanced
-        } else {
-            png::Compression::Fast
-        });
-        let stream = enc.write_header().and_then(|w| w.into_stream_writer_with_size(STREAM_CHUNK));
-        match stream {
-            Ok(stream) => Ok(PngRowWriter {
-                stream,
-                shared,
-                row_samples: width * color.channels(),
-                rows_left: height,
-                be: Vec::new(),
-                _sample: std::marker::PhantomData,
-            }),
-            Err(e) => Err(take_io(&shared).unwrap_or_else(|| png_error("header", e))),
-        }
+        let level =
+            if small { flate2::Compression::default() } else { flate2::Compression::new(1) };
+        let row_samples = width * color.channels();
+        let row_bytes = row_samples * usize::from(T::BITS / 8);
+        // The zlib header: deflate, 32 KiB window, no dictionary (0x78 0x01 is a valid check).
+        let mut idat = Vec::with_capacity(STREAM_CHUNK.min(row_bytes * height + 64) + PIECE);
+        idat.extend_from_slice(&[0x78, 0x01]);
+        Ok(PngRowWriter {
+            out,
+            deflate: flate2::Compress::new(level, false),
+            adler: Adler32::new(),
+            row_samples,
+            bpp: color.channels() * usize::from(T::BITS / 8),
+            rows_left: height,
+            prev: vec![0; row_bytes],
+            cur: Vec::with_capacity(row_bytes),
+            cand: vec![0; row_bytes],
+            best: vec![0; row_bytes],
+            pending: Vec::with_capacity(PIECE + row_bytes + 1),
+            piece: Vec::new(),
+            idat,
+            _sample: std::marker::PhantomData,
+        })
     }
 
     /// Appends whole rows (`rows.len()` a multiple of `width · channels`).
@@ -199,11 +294,69 @@ impl<W: std::io::Write + 'static, T: PngSample> PngRowWriter<W, T> {
                 self.rows_left
             )));
         }
-        self.be.clear();
-        T::extend_be(rows, &mut self.be);
-        let r = std::io::Write::write_all(&mut self.stream, &self.be);
-        r.map_err(|e| take_io(&self.shared).unwrap_or_else(|| png_error("data", e)))?;
-        self.rows_left -= n;
+        for row in rows.chunks_exact(self.row_samples) {
+            self.cur.clear();
+            T::extend_be(row, &mut self.cur);
+            let mut best_sum = u64::MAX;
+            let mut best_kind = 0;
+            for kind in 0..5u8 {
+                let sum = filter_row(kind, self.bpp, &self.prev, &self.cur, &mut self.cand);
+                if sum < best_sum {
+                    best_sum = sum;
+                    best_kind = kind;
+                    std::mem::swap(&mut self.best, &mut self.cand);
+                }
+            }
+            self.pending.push(best_kind);
+            self.pending.extend_from_slice(&self.best);
+            std::mem::swap(&mut self.prev, &mut self.cur);
+            self.rows_left -= 1;
+            if self.pending.len() >= PIECE {
+                self.deflate_pending()?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Deflates the pending bytes as one piece (flushed to a byte boundary), or stores them
+    /// when that would not be smaller, and writes out whole IDAT chunks.
+    fn deflate_pending(&mut self) -> Result<()> {
+        if self.pending.is_empty() {
+            return Ok(());
+        }
+        self.adler.update(&self.pending);
+        self.piece.clear();
+        let mut pos = 0;
+        loop {
+            self.piece.reserve((self.pending.len() - pos) + (self.pending.len() >> 6) + 4096);
+            let before = self.deflate.total_in();
+            self.deflate
+                .compress_vec(&self.pending[pos..], &mut self.piece, flate2::FlushCompress::Sync)
+                .map_err(|e| png_error("deflate", e))?;
+            pos += (self.deflate.total_in() - before) as usize;
+            if pos == self.pending.len() && self.piece.len() < self.piece.capacity() {
+                break;
+            }
+        }
+        let stored = self.pending.len() + 5 * self.pending.len().div_ceil(65535);
+        if self.piece.len() <= stored {
+            self.idat.extend_from_slice(&self.piece);
+        } else {
+            // Stored blocks (BFINAL 0, BTYPE 00; the stream is at a byte boundary after every
+            // piece): the decoder's window receives the same bytes the compressor's holds.
+            for block in self.pending.chunks(65535) {
+                let len = block.len() as u16;
+                self.idat.push(0);
+                self.idat.extend_from_slice(&len.to_le_bytes());
+                self.idat.extend_from_slice(&(!len).to_le_bytes());
+                self.idat.extend_from_slice(block);
+            }
+        }
+        self.pending.clear();
+        while self.idat.len() >= STREAM_CHUNK {
+            write_chunk(&mut self.out, b"IDAT", &self.idat[..STREAM_CHUNK])?;
+            self.idat.drain(..STREAM_CHUNK);
+        }
         Ok(())
     }
 
@@ -211,23 +364,20 @@ impl<W: std::io::Write + 'static, T: PngSample> PngRowWriter<W, T> {
     ///
     /// # Errors
     /// [`Error::Internal`] when rows are missing; [`Error::Io`] when any write failed.
-    pub fn finish(self) -> Result<W> {
+    pub fn finish(mut self) -> Result<W> {
         if self.rows_left != 0 {
             return Err(Error::Internal(format!("png: {} rows never written", self.rows_left)));
         }
-        let PngRowWriter { stream, shared, .. } = self;
-        // The stream writer writes the last IDAT and IEND as it drops, ignoring errors; the
-        // latch has seen them.
-        let r = stream.finish();
-        let inner = std::sync::Arc::try_unwrap(shared)
-            .map_err(|_| Error::Internal("png: output still shared after finish".into()))?
-            .into_inner()
-            .map_err(|_| Error::Internal("png: output poisoned".into()))?;
-        match (inner.error, r) {
-            (Some(e), _) => Err(Error::Io(e)),
-            (None, Err(e)) => Err(png_error("finish", e)),
-            (None, Ok(())) => Ok(inner.out),
+        self.deflate_pending()?;
+        // A final empty stored block, then the checksum of everything deflated.
+        self.idat.extend_from_slice(&[1, 0, 0, 0xff, 0xff]);
+        self.idat.extend_from_slice(&self.adler.finish().to_be_bytes());
+        for chunk in self.idat.chunks(STREAM_CHUNK) {
+            write_chunk(&mut self.out, b"IDAT", chunk)?;
         }
+        write_chunk(&mut self.out, b"IEND", &[])?;
+        self.out.flush()?;
+        Ok(self.out)
     }
 }
 

@@ -557,7 +557,9 @@ impl Jobs {
         let outcome = match out {
             Ok(Ok(Ok(rec))) => Outcome::Succeeded(Box::new(rec)),
             Ok(Ok(Err(Error::Canceled))) if run.requeue.load(Ordering::SeqCst) => Outcome::Released,
-            Ok(Ok(Err(Error::Canceled))) => Outcome::Canceled,
+            Ok(Ok(Err(Error::Canceled))) => {
+                Outcome::Canceled(Some(crate::jobs::store::LiveProgress::of(&run.progress)))
+            }
             // The store went away mid-bake (a result blob could not be pinned or written): not
             // the bake's fault. It goes back to the queue, to be baked again once the store is
             // back (recording that waits for it too), a bounded number of times.
@@ -591,7 +593,7 @@ impl Jobs {
         let status = match &outcome {
             Outcome::Succeeded(_) => Status::Succeeded,
             Outcome::Failed(_) => Status::Failed,
-            Outcome::Canceled => Status::Canceled,
+            Outcome::Canceled(_) => Status::Canceled,
             Outcome::Released => Status::Queued,
         };
         if lost.load(Ordering::SeqCst) {

@@ -70,7 +70,8 @@ pub enum Outcome {
     /// The record with its results, input description, radius and timings filled in.
     Succeeded(Box<BakeRecord>),
     Failed(BakeFailure),
-    Canceled,
+    /// Stopped on request, with the progress it had reached.
+    Canceled(Option<crate::jobs::store::LiveProgress>),
     /// Handed back unfinished (shutdown): `queued` again, for any worker.
     Released,
 }
@@ -99,7 +100,8 @@ impl Outcome {
                 rec.error = Some(f);
                 rec.finished_ms = Some(now);
             }
-            Outcome::Canceled => {
+            Outcome::Canceled(last) => {
+                rec.stopped_at = last;
                 rec.status = Status::Canceled;
                 rec.finished_ms = Some(now);
             }

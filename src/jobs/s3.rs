@@ -389,4 +389,23 @@ impl BlobStore for S3BlobStore {
             S3Reader { rt: self.rt.clone(), stream: got.into_stream(), buf: bytes::Bytes::new() };
         Ok(Some((len, Box::new(reader))))
     }
+
+    fn open_range(&self, hash: &str, start: u64, end: u64) -> Result<Option<Box<dyn Read + Send>>> {
+        if start >= end {
+            return Ok(Some(Box::new(std::io::empty())));
+        }
+        let path = self.path(hash)?;
+        let opts = object_store::GetOptions {
+            range: Some(object_store::GetRange::Bounded(start..end)),
+            ..Default::default()
+        };
+        let got = match self.rt.block_on(self.s3.get_opts(&path, opts)) {
+            Ok(g) => g,
+            Err(object_store::Error::NotFound { .. }) => return Ok(None),
+            Err(e) => return Err(s3_err(e)),
+        };
+        let reader =
+            S3Reader { rt: self.rt.clone(), stream: got.into_stream(), buf: bytes::Bytes::new() };
+        Ok(Some(Box::new(reader)))
+    }
 }

@@ -140,6 +140,10 @@ pub struct BakeRecord {
     /// (records from before the field) is `png8`. Not part of the dedup key.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub formats: Option<String>,
+    /// Where a running bake stood when it was canceled: its resource keeps showing that
+    /// fraction rather than 0.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stopped_at: Option<LiveProgress>,
 }
 
 /// Progress as a worker reports it: the stage and the fraction of that stage done.
@@ -339,6 +343,23 @@ pub trait BlobStore: Send + Sync + 'static {
     /// # Errors
     /// The backend's failure.
     fn open(&self, hash: &str) -> Result<Option<(u64, Box<dyn std::io::Read + Send>)>>;
+    /// A reader over bytes `start..end` of the blob under `hash` (a `Range` download), with
+    /// `start <= end <= len`. The default reads and discards the first `start` bytes; stores
+    /// that can seek or ask for a range override it.
+    ///
+    /// # Errors
+    /// The backend's failure.
+    fn open_range(
+        &self,
+        hash: &str,
+        start: u64,
+        end: u64,
+    ) -> Result<Option<Box<dyn std::io::Read + Send>>> {
+        use std::io::Read;
+        let Some((_, mut r)) = self.open(hash)? else { return Ok(None) };
+        std::io::copy(&mut (&mut r).take(start), &mut std::io::sink())?;
+        Ok(Some(Box::new(r.take(end.saturating_sub(start)))))
+    }
 }
 
 /// Called with a blob's hash after its bytes are hashed and before they become visible under
@@ -591,6 +612,23 @@ impl BlobStore for FsBlobStore {
         }
     }
 
+    fn open_range(
+        &self,
+        hash: &str,
+        start: u64,
+        end: u64,
+    ) -> Result<Option<Box<dyn std::io::Read + Send>>> {
+        use std::io::{Read, Seek};
+        match std::fs::File::open(self.path(hash)?) {
+            Ok(mut f) => {
+                f.seek(std::io::SeekFrom::Start(start))?;
+                Ok(Some(Box::new(f.take(end.saturating_sub(start)))))
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+            Err(e) => Err(e.into()),
+        }
+    }
+
     fn delete(&self, hash: &str) -> Result<()> {
         match std::fs::remove_file(self.path(hash)?) {
             Ok(()) => Ok(()),
@@ -656,6 +694,7 @@ mod tests {
             progress: None,
             worker: None,
             formats: None,
+            stopped_at: None,
         }
     }
 

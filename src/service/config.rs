@@ -117,6 +117,10 @@ pub struct ServeArgs {
     /// Claims of one bake before a lost worker fails it (`worker_lost`).
     #[arg(long, env = "HORIZON_MAX_ATTEMPTS", default_value_t = 3)]
     pub max_attempts: u32,
+    /// Let pages served from this origin (`https://tools.example.com`, or `*`) call the API
+    /// from a browser (CORS). Off by default: only the server's own page can.
+    #[arg(long, env = "HORIZON_CORS_ORIGIN")]
+    pub cors_origin: Option<String>,
 }
 
 impl Default for ServeArgs {
@@ -156,6 +160,7 @@ impl Default for ServeArgs {
             lease_secs: 15,
             heartbeat_ms: 1000,
             max_attempts: 3,
+            cors_origin: None,
         }
     }
 }
@@ -227,6 +232,8 @@ pub struct Config {
     pub lease: Duration,
     pub heartbeat: Duration,
     pub max_attempts: u32,
+    /// The origin allowed to call the API from a browser (`--cors-origin`), if any.
+    pub cors_origin: Option<String>,
 }
 
 fn at_least_one(field: &str, v: u64) -> Result<()> {
@@ -347,6 +354,30 @@ impl Config {
                 format!("{host}-{}", std::process::id())
             }
         };
+        let cors_origin = match a.cors_origin.as_deref().map(str::trim) {
+            None | Some("") => None,
+            Some("*") => Some("*".to_owned()),
+            Some(o) => {
+                let rest = o.strip_prefix("https://").or_else(|| o.strip_prefix("http://"));
+                match rest {
+                    Some(host)
+                        if !host.is_empty()
+                            && !host.contains('/')
+                            && host.bytes().all(|b| b.is_ascii_graphic()) =>
+                    {
+                        Some(o.to_owned())
+                    }
+                    _ => {
+                        return Err(Error::param(
+                            "cors_origin",
+                            format!(
+                                "`{o}` is not an origin (scheme://host[:port], no path) or `*`"
+                            ),
+                        ))
+                    }
+                }
+            }
+        };
         Ok(Config {
             addr,
             data_dir: a.data_dir,
@@ -380,6 +411,7 @@ impl Config {
             lease: Duration::from_secs(a.lease_secs),
             heartbeat: Duration::from_millis(a.heartbeat_ms),
             max_attempts: a.max_attempts,
+            cors_origin,
         })
     }
 

@@ -9,6 +9,7 @@
 //! - [`handlers`]: thin axum handlers: validate, call the jobs core, answer.
 //! - [`upload`]: an upload's body under the size limit and the idle timeout.
 //! - [`problem`]: every failure as problem+json with a stable code.
+//! - [`headers`]: security headers on every answer, CORS when `--cors-origin` allows it.
 //! - [`metrics`]: Prometheus text.
 //!
 //! # Durability
@@ -23,6 +24,7 @@
 pub mod config;
 pub mod conn;
 pub mod handlers;
+pub mod headers;
 pub mod metrics;
 pub mod problem;
 pub mod ui;
@@ -96,9 +98,10 @@ pub struct Shared {
     pub metrics: Arc<metrics::Metrics>,
     /// Set on shutdown: readyz and submissions answer 503.
     pub draining: AtomicBool,
-    /// One lock per result group being encoded on request (`id/first result name`), so
-    /// concurrent first requests for a result encode it once and the others wait for it.
-    pub encoding: std::sync::Mutex<std::collections::HashMap<String, Arc<tokio::sync::Mutex<()>>>>,
+    /// Result groups being encoded in the background after their first request, by
+    /// `id/first result name`: concurrent first requests start one encode, and every request
+    /// meanwhile is answered 202 with its progress (see `handlers::results`).
+    pub encodes: std::sync::Mutex<std::collections::HashMap<String, handlers::EncodeJob>>,
 }
 
 impl AppState {
@@ -184,7 +187,7 @@ impl AppState {
             preview_pool,
             metrics,
             draining: AtomicBool::new(false),
-            encoding: Default::default(),
+            encodes: Default::default(),
         })))
     }
 
@@ -220,6 +223,7 @@ pub fn app(st: AppState) -> Router {
             .route_layer(axum::middleware::from_fn_with_state(st.clone(), handlers::track))
             .fallback(handlers::fallback)
             .layer(axum::middleware::map_response(problem::normalize))
+            .layer(axum::middleware::from_fn_with_state(st.clone(), headers::security))
             .with_state(st);
     }
     // The submit handler bounds the body itself (see `handlers::submit`): it must read and
@@ -260,6 +264,7 @@ pub fn app(st: AppState) -> Router {
         .fallback(handlers::fallback)
         .layer(axum::middleware::from_fn_with_state(st.clone(), handlers::head_limits))
         .layer(axum::middleware::map_response(problem::normalize))
+        .layer(axum::middleware::from_fn_with_state(st.clone(), headers::security))
         .with_state(st)
 }
 

@@ -49,8 +49,10 @@ pub fn result_group(name: &str) -> Option<Vec<String>> {
     let fixed: &[&str] = match name {
         "horizon_0.png8" | "horizon_1.png8" => &HORIZON_RESULTS[0..2],
         "horizon_0.png16" | "horizon_1.png16" => &HORIZON_RESULTS[2..4],
-        "horizon_0.exr" | "horizon_1.exr" => &HORIZON_RESULTS[4..6],
-        "horizon_0.half.exr" | "horizon_1.half.exr" => &HORIZON_RESULTS[6..8],
+        // Every precision of a format from one re-bake: the f32 layers give both EXRs.
+        "horizon_0.exr" | "horizon_1.exr" | "horizon_0.half.exr" | "horizon_1.half.exr" => {
+            &HORIZON_RESULTS[4..8]
+        }
         "horizon.ktx2" => &HORIZON_RESULTS[8..9],
         "horizon.dds" => &HORIZON_RESULTS[9..10],
         _ => {
@@ -107,7 +109,8 @@ fn texture_variant(name: &str) -> Option<(&'static str, TextureOptions)> {
 }
 
 /// Encodes the result group of `name` for the succeeded bake `rec` (on the calling thread: the
-/// preview pool), stores it and records it in the bake's record. Returns the blob hash of
+/// preview pool, started in the background by the first download that asks for it), stores it
+/// and records it in the bake's record. EXR float and half come from one re-bake. Returns the blob hash of
 /// `name`, or None when the bake was removed meanwhile.
 ///
 /// The input is decoded and baked again (bakes are deterministic, and re-baking costs about what
@@ -146,17 +149,40 @@ pub fn encode_on_request(
             )?;
             pngs.into()
         }
+        "horizon_0.exr" => {
+            // One f32 bake, both precisions: float then half, layer 0 then 1 (the group's order).
+            let exr = |exr_precision| Formats {
+                png8: false,
+                png16: false,
+                exr: true,
+                ktx2: false,
+                dds: false,
+                texture: Default::default(),
+                exr_precision,
+            };
+            let float = exr(ExrPrecision::Float);
+            let (layers, _) = bake::bake_horizon(&map, &params, float.precisions(), progress)?;
+            drop(map);
+            let mut files = Vec::with_capacity(4);
+            for f in [float, exr(ExrPrecision::Half)] {
+                files.extend(
+                    crate::pipeline::encode_each(&layers, &f, progress)?
+                        .into_iter()
+                        .map(|f| f.bytes),
+                );
+            }
+            files
+        }
         first => {
-            let half = first == "horizon_0.half.exr";
             let texture = texture_variant(first);
             let formats = Formats {
                 png8: false,
                 png16: false,
-                exr: half || first == "horizon_0.exr",
+                exr: false,
                 ktx2: texture.is_some_and(|(e, _)| e == "ktx2"),
                 dds: texture.is_some_and(|(e, _)| e == "dds"),
                 texture: texture.map(|(_, o)| o).unwrap_or_default(),
-                exr_precision: if half { ExrPrecision::Half } else { ExrPrecision::Float },
+                exr_precision: ExrPrecision::Float,
             };
             let (layers, _) = bake::bake_horizon(&map, &params, formats.precisions(), progress)?;
             drop(map);

@@ -20,10 +20,12 @@ Run: HORIZON_BIN=target/debug/horizon-bake python -m pytest -q tests/browser
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import re
 import subprocess
+import time
 
 import numpy as np
 import pytest
@@ -276,6 +278,12 @@ def test_every_download_answers_with_its_content_type(baked, srv):
         assert want in hrefs, (want, hrefs)
     for href, ctype, label in links:
         status, headers, body = srv.request(href)
+        # A format the bake did not encode answers 202 + Retry-After at once, then the file.
+        deadline = time.time() + 300
+        while status == 202 and time.time() < deadline:
+            assert headers["retry-after"], (label, href)
+            time.sleep(0.1)
+            status, headers, body = srv.request(href)
         assert status == 200, (label, href, status, body[:200])
         assert headers["content-type"].split(";")[0] == ctype, (label, headers["content-type"])
         assert body, label
@@ -416,13 +424,25 @@ def test_cancel_stops_a_running_bake(browser, srv):
         res = upload(p.page, {"name": "noise.png", "mimeType": "image/png", "buffer": buf.getvalue()},
                      {"method": "exact", "radius": "unlimited", "bins": "64"})
         assert res.status == 202
+        bake_id = bake_id_of(res)
         p.page.wait_for_function("() => !document.getElementById('cancel').disabled")
+        # Running, well into the kernel: the recent list says so (issue 25: it said "queued").
+        p.page.wait_for_function(
+            "() => Number(document.getElementById('progress').value) > 0.06", timeout=120_000)
+        p.page.wait_for_function(
+            "id => { const s = document.querySelector(`#recent li[data-id='${id}'] .st`);"
+            " return s && s.textContent === 'running'; }", arg=bake_id, timeout=30_000)
         with p.page.expect_response(lambda r: r.request.method == "DELETE") as info:
             p.page.click("#cancel")
         assert info.value.status in (200, 202)
         p.page.wait_for_function(
             "() => window.__horizon.bake && window.__horizon.bake.status === 'canceled'", timeout=120_000)
         assert p.page.locator("#cancel").is_disabled()
+        # The progress keeps the fraction it reached, on the page and in the resource.
+        shown = float(p.page.locator("#progress").get_attribute("value"))
+        assert shown > 0.05, shown
+        status, res = srv.json(f"/v1/bakes/{bake_id}")
+        assert res["status"] == "canceled" and res["progress"]["fraction"] > 0.05, res
         p.assert_no_errors()
     finally:
         p.close()
@@ -660,5 +680,117 @@ def test_a_failed_bake_shows_its_error(browser, srv):
         assert rec["error"]["code"] in alert.text_content(), (rec["error"], alert.text_content())
         assert "failed" in p.page.text_content("#meta")
         p.assert_no_errors()
+    finally:
+        p.close()
+
+
+def test_opening_a_bake_loads_its_parameters(browser, srv):
+    """Opening a bake by #id, or from the recent list, puts its parameters into the form (issue
+    25: the form stayed at the defaults and Bake re-baked with them); the method list is the
+    server's."""
+    from PIL import Image
+
+    rng = np.random.default_rng(25)
+    img = (rng.random((40, 40)) * 60000).astype(np.uint16)
+    buf = io.BytesIO()
+    Image.fromarray(img).save(buf, format="PNG")
+    q = ("method=exact&radius=5&bins=48&reduce=point&height_scale=12.5&edge=none&y_axis=down"
+         "&encoding=sqrt&outputs=horizon,fourier&fourier_terms=7&fourier_range=expanded")
+    status, bake = srv.json(f"/v1/bakes?{q}", method="POST", body=buf.getvalue(),
+                            headers={"Content-Type": "image/png"})
+    assert status == 202, bake
+    status, other = srv.json("/v1/bakes?radius=3", method="POST", body=buf.getvalue(),
+                             headers={"Content-Type": "image/png"})
+    assert status == 202, other
+    for b in (bake, other):
+        deadline = time.time() + 120
+        while srv.json(f"/v1/bakes/{b['id']}")[1]["status"] != "succeeded":
+            assert time.time() < deadline
+            time.sleep(0.1)
+    p = Page(browser, f"{srv.url}/#{bake['id']}")
+    try:
+        wait_loaded(p.page, bake["id"], 120_000)
+        methods = p.page.eval_on_selector_all("#p-method option", "os => os.map(o => o.value)")
+        assert methods == p.page.evaluate("() => window.__horizon.config.methods"), methods
+        assert "march" in methods, methods
+        want = {"#p-method": "exact", "#p-radius-mode": "texels", "#p-radius": "5", "#p-bins": "48",
+                "#p-reduce": "point", "#p-height_scale": "12.5", "#p-edge": "none",
+                "#p-y_axis": "down", "#p-encoding": "sqrt", "#p-fourier_terms": "7",
+                "#p-fourier_range": "expanded"}
+        for sel, v in want.items():
+            assert p.page.input_value(sel) == v, (sel, p.page.input_value(sel), v)
+        assert p.page.is_checked("#p-out-horizon") and p.page.is_checked("#p-out-fourier")
+        # The form builds the same query: Bake would make the same bake (200, same id).
+        with p.page.expect_response(lambda r: r.request.method == "POST" and "/v1/bakes" in r.url) as info:
+            p.page.set_input_files("#file", {"name": "n.png", "mimeType": "image/png",
+                                             "buffer": buf.getvalue()})
+            p.page.wait_for_function("() => document.getElementById('file-info').textContent.includes('n.png')"
+                                     " && !document.getElementById('file-info').textContent.endsWith('…')")
+            p.page.click("#bake")
+        assert info.value.status == 200
+        assert info.value.header_value("location").endswith(bake["id"])
+        # Another bake from the recent list: its parameters replace these.
+        p.page.click("#refresh")
+        link = p.page.locator(f'#recent a[href="#{other["id"]}"]')
+        link.wait_for()
+        link.click()
+        p.page.wait_for_function("id => window.__horizon.bake && window.__horizon.bake.id === id",
+                                 arg=other["id"])
+        assert p.page.input_value("#p-method") == "lengyel"
+        assert p.page.input_value("#p-radius") == "3"
+        assert p.page.input_value("#p-edge") == "wrap"
+        assert not p.page.is_checked("#p-out-fourier")
+        p.assert_no_errors()
+    finally:
+        p.close()
+
+
+def test_relief_is_shown_before_the_bake(browser, srv):
+    """After a file is chosen and before the bake: the relief in texels, with a warning below
+    about 1 texel (the tester's 16-bit DEM spanning 236..1076 of 65535: 0.1 texel) and above
+    the map's size."""
+    from PIL import Image
+
+    ramp = np.linspace(236, 1076, 64 * 64).reshape(64, 64).astype(np.uint16)
+    buf = io.BytesIO()
+    Image.fromarray(ramp).save(buf, format="PNG")
+    p = Page(browser, srv.url + "/")
+    try:
+        p.page.set_input_files("#file", {"name": "dem.png", "mimeType": "image/png",
+                                         "buffer": buf.getvalue()})
+        p.page.wait_for_function("() => document.getElementById('relief').dataset.texels")
+        texels = float(p.page.get_attribute("#relief", "data-texels"))
+        assert abs(texels - (1076 - 236) / 65535 * 8) < 1e-4, texels
+        assert p.page.get_attribute("#relief", "class") == "warn"
+        assert "Below 1 texel" in p.page.text_content("#relief")
+        p.page.fill("#p-height_scale", "400")
+        texels = float(p.page.get_attribute("#relief", "data-texels"))
+        assert 5 < texels < 6 and p.page.get_attribute("#relief", "class") == "muted", texels
+        p.page.fill("#p-height_scale", "40000")
+        assert p.page.get_attribute("#relief", "class") == "warn"
+        assert "map's size" in p.page.text_content("#relief")
+        p.assert_no_errors()
+    finally:
+        p.close()
+
+
+def test_progress_and_errors_are_in_view_at_1280x900(browser, srv):
+    """At 1280×900 (the Page's viewport) the progress bar and an error are on screen with the
+    Bake button that caused them (they were below the fold)."""
+    p = Page(browser, srv.url + "/")
+    try:
+        p.page.set_input_files("#file", {"name": "x.png", "mimeType": "image/png",
+                                         "buffer": b"not an image at all" * 8})
+        p.page.click("#bake")
+        p.page.wait_for_function("() => !document.getElementById('error').hidden")
+        # Where the click on Bake left the page: the button, the progress bar and the error
+        # all on screen at once.
+        for sel in ("#bake", "#progress", "#error"):
+            box = p.page.evaluate(
+                "s => { const r = document.querySelector(s).getBoundingClientRect();"
+                " return [r.top, r.bottom, window.innerHeight]; }", sel)
+            top, bottom, height = box
+            assert 0 <= top and bottom <= height, (sel, box)
+        p.assert_no_errors(allow_http_errors=True)
     finally:
         p.close()

@@ -180,6 +180,22 @@ pub fn client() -> reqwest::Client {
     reqwest::Client::builder().timeout(Duration::from_secs(120)).build().unwrap()
 }
 
+/// `GET url` of a result, asking again while the server answers 202 (a format the bake did not
+/// encode is encoded in the background after its first request); the first answer that is not
+/// 202.
+pub async fn get_result(c: &reqwest::Client, url: &str) -> reqwest::Response {
+    let t = Instant::now();
+    loop {
+        let res = c.get(url).send().await.unwrap();
+        if res.status() != 202 {
+            return res;
+        }
+        assert!(res.headers().contains_key("retry-after"), "202 without Retry-After: {url}");
+        assert!(t.elapsed() < Duration::from_secs(120), "{url} still encoding after 2 minutes");
+        tokio::time::sleep(Duration::from_millis(25)).await;
+    }
+}
+
 /// Polls `GET url` until `status` is terminal; returns the resource.
 pub async fn wait_done(c: &reqwest::Client, url: &str, limit: Duration) -> Value {
     let t = Instant::now();

@@ -9,12 +9,22 @@ use super::*;
 pub(super) const RAW_TYPES: &[&str] =
     &["image/png", "image/tiff", "image/x-exr", "image/exr", "application/octet-stream"];
 
-pub(super) fn body_error(e: &(dyn std::error::Error + 'static), timeout: Duration) -> Problem {
+/// The answer to a body that could not be read: too large (the detail states the limit, so a
+/// client knows what to send), stalled, or broken.
+pub(super) fn body_error(
+    e: &(dyn std::error::Error + 'static),
+    timeout: Duration,
+    max_bytes: u64,
+) -> Problem {
     match upload::fault(e) {
         upload::BodyFault::TooLarge => Problem::new(
             StatusCode::PAYLOAD_TOO_LARGE,
             "payload_too_large",
-            "the request body is larger than the server accepts (max_body_bytes)",
+            format!(
+                "the request body is larger than the server accepts: at most {max_bytes} bytes \
+                 ({:.1} MiB, the server's --max-body-bytes)",
+                max_bytes as f64 / (1024.0 * 1024.0)
+            ),
         ),
         upload::BodyFault::TimedOut => Problem::new(
             StatusCode::REQUEST_TIMEOUT,
@@ -45,6 +55,24 @@ pub(super) struct Delivery {
 
 /// The submission keys that are not bake parameters.
 const DELIVERY_KEYS: [&str; 2] = ["formats", "exr_precision"];
+
+/// Every key a submission accepts: the bake parameters ([`crate::params::PARAM_NAMES`], the
+/// list [`BakeParams::set`] is tested against) and the delivery keys. The unknown-key message is
+/// built from it, so it lists what the server really takes.
+pub fn submission_keys() -> Vec<&'static str> {
+    crate::params::PARAM_NAMES.iter().chain(DELIVERY_KEYS.iter()).copied().collect()
+}
+
+/// A 422 naming `key` unless a submission accepts it.
+fn known_submission_key(key: &str) -> Result<(), Problem> {
+    if crate::params::PARAM_NAMES.contains(&key) || DELIVERY_KEYS.contains(&key) {
+        return Ok(());
+    }
+    Err(Problem::param(
+        key,
+        format!("unknown parameter; known ones are {}", submission_keys().join(", ")),
+    ))
+}
 
 impl Delivery {
     fn set(&mut self, key: &str, value: &str) -> Result<(), Problem> {
@@ -82,6 +110,9 @@ pub(super) fn query_params(
         Ok(Query(p)) => p,
         Err(_) => return Err(Problem::param("query", "the query string is malformed")),
     };
+    for (k, _) in &pairs {
+        known_submission_key(k)?;
+    }
     let mut delivery = Delivery::default();
     for (k, v) in pairs.iter().filter(|(k, _)| DELIVERY_KEYS.contains(&k.as_str())) {
         delivery.set(k, v)?;
@@ -110,6 +141,7 @@ pub(super) fn merge_json(
     let given = crate::params::json_object_pairs(text).map_err(Problem::from)?;
     let (mut merged, mut delivery) = base;
     for (k, v) in &given {
+        known_submission_key(k)?;
         if query_keys.iter().any(|q| q == k) {
             return Err(Problem::param(
                 k.clone(),
@@ -134,6 +166,7 @@ pub(super) async fn read_multipart(
     let (query, query_delivery, query_keys) = query_params(req.uri())?;
     let query = (query, query_delivery);
     let timeout = st.0.config.body_timeout;
+    let max_bytes = st.0.config.max_body_bytes;
     let mut mp = axum::extract::Multipart::from_request(req, st).await.map_err(|e| {
         Problem::new(
             StatusCode::BAD_REQUEST,
@@ -147,7 +180,7 @@ pub(super) async fn read_multipart(
         let field = match mp.next_field().await {
             Ok(Some(f)) => f,
             Ok(None) => break,
-            Err(e) => return Err(multipart_error(&e, timeout)),
+            Err(e) => return Err(multipart_error(&e, timeout, max_bytes)),
         };
         let name = field.name().unwrap_or("").to_owned();
         match name.as_str() {
@@ -155,14 +188,16 @@ pub(super) async fn read_multipart(
                 if image.is_some() {
                     return Err(Problem::param("heightmap", "given more than once"));
                 }
-                let bytes = field.bytes().await.map_err(|e| multipart_error(&e, timeout))?;
+                let bytes =
+                    field.bytes().await.map_err(|e| multipart_error(&e, timeout, max_bytes))?;
                 image = Some(bytes.to_vec());
             }
             "params" => {
                 if params.is_some() {
                     return Err(Problem::param("params", "given more than once"));
                 }
-                let text = field.bytes().await.map_err(|e| multipart_error(&e, timeout))?;
+                let text =
+                    field.bytes().await.map_err(|e| multipart_error(&e, timeout, max_bytes))?;
                 params = Some(merge_json(query.clone(), &query_keys, &text)?);
             }
             other => {
@@ -181,6 +216,7 @@ pub(super) async fn read_multipart(
 pub(super) fn multipart_error(
     e: &axum::extract::multipart::MultipartError,
     timeout: Duration,
+    max_bytes: u64,
 ) -> Problem {
     match upload::fault(e) {
         upload::BodyFault::Other if e.status() != StatusCode::PAYLOAD_TOO_LARGE => Problem::new(
@@ -188,8 +224,8 @@ pub(super) fn multipart_error(
             "bad_request",
             format!("malformed multipart body: {}", e.body_text()),
         ),
-        upload::BodyFault::Other => body_error(&upload::BodyTooLarge(0), timeout),
-        _ => body_error(e, timeout),
+        upload::BodyFault::Other => body_error(&upload::BodyTooLarge(0), timeout, max_bytes),
+        _ => body_error(e, timeout, max_bytes),
     }
 }
 
@@ -207,13 +243,15 @@ pub(super) async fn read_raw(
         .and_then(|v| v.to_str().ok()?.parse::<u64>().ok())
         .unwrap_or(0)
         .min(st.0.config.max_body_bytes) as usize;
-    let bytes =
-        upload::read_all(req.into_body(), announced).await.map_err(|e| body_error(&e, timeout))?;
+    let bytes = upload::read_all(req.into_body(), announced)
+        .await
+        .map_err(|e| body_error(&e, timeout, st.0.config.max_body_bytes))?;
     // Checked after the body is read, so the client gets this answer rather than a reset.
     if !mime.is_empty() && !RAW_TYPES.contains(&mime.as_str()) {
         return Err(Error::Unsupported(format!(
-            "Content-Type `{}` is not accepted; send image/png, image/tiff, image/x-exr or multipart/form-data",
-            crate::service::problem::cap(&mime, 100)
+            "Content-Type `{}` is not accepted; send {} or multipart/form-data",
+            crate::service::problem::cap(&mime, 100),
+            RAW_TYPES.join(", ")
         ))
         .into());
     }
@@ -329,6 +367,7 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
         progress: None,
         worker: None,
         formats: Some(worker::formats_field(&formats)),
+        stopped_at: None,
     };
     let (status, rec) = match st.0.jobs.submit(bytes, rec).await.map_err(store_err)? {
         Submitted::Created(rec) => {

@@ -37,8 +37,9 @@ impl Watch {
     }
 }
 
-/// `GET /v1/bakes/{id}/events`: `progress` events while the bake is in flight, then one `done`
-/// event carrying the final resource (or `deleted`), then the stream ends. Every stream ends
+/// `GET /v1/bakes/{id}/events`: `progress` events while the bake is in flight, `encoding`
+/// events while a result of the finished bake is encoded after its first download, then one
+/// `done` event carrying the final resource (or `deleted`), then the stream ends. Every stream ends
 /// with `done`: on shutdown too, carrying the resource as it stands (still queued or running,
 /// it finishes after the restart), so a client never waits on a stream that silently stopped.
 pub async fn events(
@@ -71,6 +72,28 @@ pub async fn events(
                     return Some((Ok(ev), w));
                 }
                 Some((status, res)) if status.is_terminal() || closing => {
+                    // A download started an encode of this bake's results: show its progress
+                    // before `done`, so a client sees the result it waits for come.
+                    let running = results::encoding_of(&w.st, &w.id);
+                    if !running.is_empty() && !closing {
+                        let encoding: Vec<EncodingItem> = running
+                            .iter()
+                            .map(|j| EncodingItem {
+                                result: &j.result,
+                                fraction: j.fraction(),
+                                stage: j.progress.stage(),
+                            })
+                            .collect();
+                        let text =
+                            serde_json::to_string(&EncodingEvent { id: &w.id, status, encoding })
+                                .unwrap_or_default();
+                        if w.last.as_ref() != Some(&text) {
+                            w.last = Some(text.clone());
+                            let ev = w.event("encoding", text);
+                            return Some((Ok(ev), w));
+                        }
+                        continue;
+                    }
                     w.done = true;
                     let ev = w.event("done", res.to_string());
                     return Some((Ok(ev), w));
@@ -100,6 +123,22 @@ struct ProgressEvent<'a> {
     id: &'a str,
     status: Status,
     progress: &'a Value,
+}
+
+/// The data of an `encoding` event: results of a finished bake being encoded after a download
+/// asked for them.
+#[derive(serde::Serialize)]
+struct EncodingEvent<'a> {
+    id: &'a str,
+    status: Status,
+    encoding: Vec<EncodingItem<'a>>,
+}
+
+#[derive(serde::Serialize)]
+struct EncodingItem<'a> {
+    result: &'a str,
+    fraction: f64,
+    stage: Stage,
 }
 
 /// The data of a `deleted` event.

@@ -35,7 +35,6 @@ use serde_json::Value;
 use std::collections::HashMap;
 use std::convert::Infallible;
 use std::panic::{catch_unwind, AssertUnwindSafe};
-use std::sync::Arc;
 use std::time::Duration;
 
 pub mod bakes;
@@ -213,6 +212,13 @@ impl BakeResource {
             }
             (None, Status::Running) => ProgressView { fraction: 0.0, stage: Stage::Decode },
             (_, Status::Succeeded) => ProgressView { fraction: 1.0, stage: Stage::Done },
+            // A canceled bake keeps the fraction it had reached (and the stage it stopped in).
+            (_, Status::Canceled) if rec.stopped_at.is_some() => {
+                let p = rec
+                    .stopped_at
+                    .unwrap_or(store::LiveProgress { stage: Stage::Queued, fraction: 0.0 });
+                ProgressView { fraction: overall(p.stage, p.fraction), stage: p.stage }
+            }
             (_, s) if s.is_terminal() => ProgressView { fraction: 0.0, stage: Stage::Done },
             _ => ProgressView { fraction: 0.0, stage: Stage::Queued },
         };
@@ -285,7 +291,16 @@ impl BakeResource {
 /// The bake resource (SPEC §5) of a record, as JSON.
 pub fn resource(st: &AppState, rec: &BakeRecord) -> Value {
     let r = BakeResource::of(rec, st.0.config.retention.as_millis() as u64);
-    serde_json::to_value(r).unwrap_or(Value::Null)
+    let mut v = serde_json::to_value(r).unwrap_or(Value::Null);
+    // Results a download started encoding in the background, with their progress.
+    let encoding: Vec<Value> = results::encoding_of(st, &rec.id)
+        .iter()
+        .map(|j| serde_json::json!({"result": j.result, "fraction": j.fraction()}))
+        .collect();
+    if let Some(f) = v.get_mut("formats").and_then(Value::as_object_mut) {
+        f.insert("encoding".to_owned(), Value::Array(encoding));
+    }
+    v
 }
 
 async fn load(st: &AppState, id: &str) -> Result<BakeRecord, Problem> {

@@ -1,5 +1,6 @@
-//! Downloads of a succeeded bake's results: horizon layers (stored, or encoded on their first
-//! request), Fourier layers and the layered textures, streamed from the blob store.
+//! Downloads of a succeeded bake's results: horizon layers (stored, or encoded in the background
+//! after their first request, which is answered 202 at once), Fourier layers and the layered
+//! textures, streamed from the blob store (one `Range` at a time when asked).
 
 #![allow(clippy::result_large_err)]
 
@@ -15,7 +16,63 @@ pub(super) fn etag_matches(headers: &HeaderMap, etag: &str) -> bool {
         .any(|t| t == "*" || t == etag)
 }
 
-/// Answers with immutable bytes: strong ETag = the content hash, 304 on If-None-Match.
+/// What a download answers for the request's `Range` header (RFC 9110 §14), over a result of
+/// `len` bytes whose strong ETag is `etag`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RangeAnswer {
+    /// 200 with the whole body: no `Range`, one we do not serve (several ranges, another unit,
+    /// a malformed one: RFC 9110 lets a server ignore it), or an `If-Range` that no longer
+    /// matches.
+    Full,
+    /// 206 with bytes `start..end` (end exclusive).
+    Part(u64, u64),
+    /// 416 with `Content-Range: bytes */len`.
+    Unsatisfiable,
+}
+
+/// Reads `Range` (and `If-Range`) for a result of `len` bytes: one range of bytes, `a-b`, `a-`
+/// or the suffix `-n`.
+pub fn range_answer(headers: &HeaderMap, len: u64, etag: &str) -> RangeAnswer {
+    let Some(spec) = headers.get(header::RANGE).and_then(|v| v.to_str().ok()) else {
+        return RangeAnswer::Full;
+    };
+    if let Some(v) = headers.get(header::IF_RANGE) {
+        if v.to_str().ok().map(str::trim) != Some(etag) {
+            return RangeAnswer::Full;
+        }
+    }
+    let Some(set) = spec.trim().strip_prefix("bytes=") else { return RangeAnswer::Full };
+    if set.contains(',') {
+        return RangeAnswer::Full;
+    }
+    let Some((a, b)) = set.trim().split_once('-') else { return RangeAnswer::Full };
+    let num = |t: &str| -> Option<u64> {
+        (!t.is_empty() && t.bytes().all(|c| c.is_ascii_digit())).then(|| t.parse().ok())?
+    };
+    match (a.trim(), b.trim()) {
+        ("", n) => match num(n) {
+            Some(0) => RangeAnswer::Unsatisfiable,
+            Some(_) if len == 0 => RangeAnswer::Unsatisfiable,
+            Some(n) => RangeAnswer::Part(len - n.min(len), len),
+            None => RangeAnswer::Full,
+        },
+        (a, "") => match num(a) {
+            Some(a) if a >= len => RangeAnswer::Unsatisfiable,
+            Some(a) => RangeAnswer::Part(a, len),
+            None => RangeAnswer::Full,
+        },
+        (a, b) => match (num(a), num(b)) {
+            (Some(a), Some(b)) if a > b => RangeAnswer::Full,
+            (Some(a), Some(_)) if a >= len => RangeAnswer::Unsatisfiable,
+            (Some(a), Some(b)) => RangeAnswer::Part(a, b.min(len - 1) + 1),
+            _ => RangeAnswer::Full,
+        },
+    }
+}
+
+/// Answers with immutable bytes: strong ETag = the content hash, 304 on If-None-Match, and a
+/// single `Range` answered 206 with only those bytes read from the blob store (416 when it
+/// lies past the end), so a client can resume a large EXR.
 pub(super) async fn blob_response(
     st: &AppState,
     headers: &HeaderMap,
@@ -29,18 +86,57 @@ pub(super) async fn blob_response(
     } else {
         let blobs = st.0.jobs.blob_store().clone();
         let key = hash.to_owned();
+        let missing =
+            || Problem::internal(&format!("result blob {hash} is missing from the blob store"));
         let (len, reader) =
-            blocking(move || blobs.open(&key)).await.map_err(store_err)?.ok_or_else(|| {
-                Problem::internal(&format!("result blob {hash} is missing from the blob store"))
-            })?;
-        let mut r = Response::new(stream_body(reader));
-        r.headers_mut().insert(header::CONTENT_LENGTH, HeaderValue::from(len));
+            blocking(move || blobs.open(&key)).await.map_err(store_err)?.ok_or_else(missing)?;
+        let mut r = match range_answer(headers, len, &etag) {
+            RangeAnswer::Full => {
+                let mut r = Response::new(stream_body(reader));
+                r.headers_mut().insert(header::CONTENT_LENGTH, HeaderValue::from(len));
+                r
+            }
+            RangeAnswer::Part(start, end) => {
+                drop(reader);
+                let blobs = st.0.jobs.blob_store().clone();
+                let key = hash.to_owned();
+                let reader = blocking(move || blobs.open_range(&key, start, end))
+                    .await
+                    .map_err(store_err)?
+                    .ok_or_else(missing)?;
+                let mut r = Response::new(stream_body(reader));
+                *r.status_mut() = StatusCode::PARTIAL_CONTENT;
+                r.headers_mut().insert(header::CONTENT_LENGTH, HeaderValue::from(end - start));
+                if let Ok(v) = HeaderValue::from_str(&format!("bytes {start}-{}/{len}", end - 1)) {
+                    r.headers_mut().insert(header::CONTENT_RANGE, v);
+                }
+                r
+            }
+            RangeAnswer::Unsatisfiable => {
+                drop(reader);
+                let mut r = Problem::new(
+                    StatusCode::RANGE_NOT_SATISFIABLE,
+                    "range_not_satisfiable",
+                    format!(
+                        "the range `{}` lies outside the {len} bytes of this result",
+                        headers.get(header::RANGE).and_then(|v| v.to_str().ok()).unwrap_or("")
+                    ),
+                )
+                .into_response();
+                if let Ok(v) = HeaderValue::from_str(&format!("bytes */{len}")) {
+                    r.headers_mut().insert(header::CONTENT_RANGE, v);
+                }
+                r.headers_mut().insert(header::ACCEPT_RANGES, HeaderValue::from_static("bytes"));
+                return Ok(r);
+            }
+        };
         r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
         if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"{filename}\"")) {
             r.headers_mut().insert(header::CONTENT_DISPOSITION, v);
         }
         r
     };
+    res.headers_mut().insert(header::ACCEPT_RANGES, HeaderValue::from_static("bytes"));
     cache_headers(&mut res, &etag, IMMUTABLE_CACHE);
     Ok(res)
 }
@@ -127,51 +223,184 @@ pub async fn horizon_layer(
     } else {
         format!("horizon_{layer}.{format}")
     };
-    let hash = result_hash(&st, rec, &name).await?;
-    blob_response(&st, &headers, &hash, content_type, &format!("horizon_{layer}.{ext}")).await
+    match result_or_encode(&st, rec, &name).await? {
+        Found::Stored(hash) => {
+            blob_response(&st, &headers, &hash, content_type, &download_name(&name)).await
+        }
+        Found::Encoding(answer) => Ok(answer),
+    }
 }
 
-/// The blob of result `name` of a succeeded bake: stored already, or encoded now (on the preview
-/// pool, once however many requests ask at the same time) and kept for the next request.
-pub(super) async fn result_hash(
+/// The file name a download of result `name` is offered under (`Content-Disposition`): the
+/// CLI's name, with the precision added where the CLI's names would collide in one folder:
+/// `horizon_0.png` (8-bit, as `bake --format png8` writes it), `horizon_0_16.png` (16-bit),
+/// `horizon_0.exr` (float), `horizon_0_half.exr` (half), `horizon.ktx2`, `fourier_0.png`.
+pub fn download_name(name: &str) -> String {
+    if let Some(stem) = name.strip_suffix(".png8") {
+        format!("{stem}.png")
+    } else if let Some(stem) = name.strip_suffix(".png16") {
+        format!("{stem}_16.png")
+    } else if let Some(stem) = name.strip_suffix(".half.exr") {
+        format!("{stem}_half.exr")
+    } else {
+        name.to_owned()
+    }
+}
+
+/// An encode of a result group started by a download ([`result_or_encode`]), running in the
+/// background on the preview pool. Keyed in [`crate::service::Shared::encodes`] by
+/// `{bake id}/{first result name of the group}`: any variant [`worker::result_group`] knows goes
+/// through it unchanged.
+#[derive(Debug, Clone)]
+pub struct EncodeJob {
+    /// The bake.
+    pub id: String,
+    /// The first result of the group being encoded (`horizon_0.png16`, `horizon_0.exr`, …).
+    pub result: String,
+    /// The re-bake's and the encode's progress.
+    pub progress: Progress,
+    pub started: std::time::Instant,
+    /// How long it should take: the bake's own decode + bake + encode time.
+    pub estimate: Duration,
+    /// Set when it failed: the next request for it answers this problem (once), and the one
+    /// after starts again.
+    pub failed: Option<Problem>,
+}
+
+impl EncodeJob {
+    /// Overall fraction done, as a bake's progress is reported.
+    pub fn fraction(&self) -> f64 {
+        overall(self.progress.stage(), self.progress.fraction())
+    }
+
+    /// Seconds a client should wait before asking again.
+    fn retry_after(&self) -> u64 {
+        let left = self.estimate.saturating_sub(self.started.elapsed()).as_secs_f64();
+        left.ceil().clamp(1.0, 30.0) as u64
+    }
+}
+
+/// What a download finds: the stored blob, or a 202 for a result being encoded.
+pub(super) enum Found {
+    Stored(String),
+    Encoding(Response),
+}
+
+/// The results of bake `id` being encoded in the background now (first result name of each
+/// group), for its resource and its events.
+pub fn encoding_of(st: &AppState, id: &str) -> Vec<EncodeJob> {
+    let m = st.0.encodes.lock().unwrap_or_else(|e| e.into_inner());
+    let mut v: Vec<EncodeJob> =
+        m.values().filter(|j| j.id == id && j.failed.is_none()).cloned().collect();
+    v.sort_by(|a, b| a.result.cmp(&b.result));
+    v
+}
+
+/// The blob of result `name` of a succeeded bake when it is stored; otherwise its encode is
+/// started in the background (once, however many requests ask; on the preview pool) and the
+/// request is answered 202 Accepted with `Retry-After` at once: a download never waits for a
+/// re-bake. The same request, repeated, answers the file once it is stored. A failed encode is
+/// answered once with its problem, and started again by the next request.
+pub(super) async fn result_or_encode(
     st: &AppState,
     rec: BakeRecord,
     name: &str,
-) -> Result<String, Problem> {
+) -> Result<Found, Problem> {
     if let Some(h) = rec.results.get(name) {
-        return Ok(h.clone());
+        return Ok(Found::Stored(h.clone()));
     }
     let id = rec.id.clone();
     let group = worker::result_group(name)
         .ok_or_else(|| Problem::internal(&format!("bake {id} has no result {name}")))?;
     let key = format!("{id}/{}", group[0]);
-    let lock = {
-        let mut m = st.0.encoding.lock().unwrap_or_else(|e| e.into_inner());
-        m.entry(key.clone()).or_default().clone()
+    // Running (or just failed) already?
+    if let Some(found) = encode_state(st, &key)? {
+        return Ok(found);
+    }
+    // Not running: it may have been stored since `rec` was read.
+    let rec = load(st, &id).await?;
+    if let Some(h) = rec.results.get(name) {
+        return Ok(Found::Stored(h.clone()));
+    }
+    let job = {
+        let mut m = st.0.encodes.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(running) = m.get(&key) {
+            // Another request started it in between.
+            return Ok(Found::Encoding(encoding_response(running)));
+        }
+        let t = rec.timings_ms.as_ref();
+        let ms = t.map_or(1000.0, |t| t.decode + t.bake + t.encode);
+        let job = EncodeJob {
+            id: id.clone(),
+            result: group[0].to_owned(),
+            progress: Progress::new(),
+            started: std::time::Instant::now(),
+            estimate: Duration::from_secs_f64(ms.max(0.0) / 1000.0),
+            failed: None,
+        };
+        m.insert(key.clone(), job.clone());
+        job
     };
-    let answer = async {
-        let _one_at_a_time = lock.lock().await;
-        // Whoever held the lock before may have stored it.
-        let rec = load(st, &id).await?;
-        if let Some(h) = rec.results.get(name) {
-            return Ok(h.clone());
-        }
-        let wanted = name.to_owned();
-        let encoded = on_pool(st, &format!("encoding {name} of {id}"), move |job| {
-            worker::encode_on_request(job, &rec, &wanted, &Progress::new())
+    let answer = encoding_response(&job);
+    let bg = st.clone();
+    let wanted = name.to_owned();
+    tokio::spawn(async move {
+        let progress = job.progress.clone();
+        let what = format!("encoding {wanted} of {}", job.id);
+        let r = on_pool(&bg, &what, move |pool| {
+            worker::encode_on_request(pool, &rec, &wanted, &progress)
         })
-        .await?;
-        encoded.ok_or_else(|| Problem::bake_not_found(&id))
-    }
-    .await;
-    {
-        // The last one out removes the entry (the map holds one reference, this call another).
-        let mut m = st.0.encoding.lock().unwrap_or_else(|e| e.into_inner());
-        if m.get(&key).is_some_and(|l| Arc::strong_count(l) <= 2) {
-            m.remove(&key);
+        .await;
+        let mut m = bg.0.encodes.lock().unwrap_or_else(|e| e.into_inner());
+        match r {
+            // Stored and recorded (or the bake was removed meanwhile): requests find it in the
+            // record from now on.
+            Ok(_) => {
+                m.remove(&key);
+            }
+            Err(p) => {
+                tracing::warn!(bake = %job.id, result = %job.result, code = p.code, "on-request encode failed");
+                if let Some(j) = m.get_mut(&key) {
+                    j.failed = Some(p);
+                }
+            }
+        }
+    });
+    Ok(Found::Encoding(answer))
+}
+
+/// The state of the encode `key`: running (a 202), failed (its problem, once; a failure older
+/// than a minute is forgotten instead), or none.
+fn encode_state(st: &AppState, key: &str) -> Result<Option<Found>, Problem> {
+    let mut m = st.0.encodes.lock().unwrap_or_else(|e| e.into_inner());
+    match m.get(key) {
+        None => Ok(None),
+        Some(j) if j.failed.is_none() => Ok(Some(Found::Encoding(encoding_response(j)))),
+        Some(j) => {
+            let stale = j.started.elapsed() > Duration::from_secs(60);
+            let failed = m.remove(key).and_then(|j| j.failed);
+            match failed {
+                Some(p) if !stale => Err(p),
+                _ => Ok(None),
+            }
         }
     }
-    answer
+}
+
+/// 202 Accepted for a result being encoded: `Retry-After`, and what is being done.
+fn encoding_response(job: &EncodeJob) -> Response {
+    let body = serde_json::json!({
+        "id": job.id,
+        "status": "encoding",
+        "result": job.result,
+        "progress": {"fraction": job.fraction(), "stage": job.progress.stage()},
+        "retry_after": job.retry_after(),
+        "events": format!("/v1/bakes/{}/events", job.id),
+    });
+    let mut r = json_response(StatusCode::ACCEPTED, &body);
+    r.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from(job.retry_after()));
+    r.headers_mut().insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
+    r
 }
 
 pub(super) fn not_produced(id: &str, what: &str) -> Problem {
@@ -290,12 +519,14 @@ pub(super) async fn horizon_texture(
         return Err(not_produced(&id, "horizon"));
     }
     let result = worker::texture_result_name(ext, &opts, layer);
-    let hash = result_hash(&st, rec, &result).await?;
     let file = match layer {
         Some(i) => format!("horizon_{i}.{ext}"),
         None => name.to_owned(),
     };
-    blob_response(&st, &headers, &hash, content_type, &file).await
+    match result_or_encode(&st, rec, &result).await? {
+        Found::Stored(hash) => blob_response(&st, &headers, &hash, content_type, &file).await,
+        Found::Encoding(answer) => Ok(answer),
+    }
 }
 
 /// `GET /v1/bakes/{id}/horizon.ktx2`: both layers as one 2-layer RGBA8 UNORM array texture, or

@@ -271,6 +271,85 @@ async function probe(file) {
 }
 
 // ---------------------------------------------------------------------------------------------
+// The range of a PNG's heights, before the upload: with the height scale it gives the relief in
+// texels (a 16-bit map spanning 236–1076 of 65535 is 0.1 texel at the default scale: a flat
+// grey bake). The IDAT stream is inflated with the browser's DecompressionStream and unfiltered
+// here, so 16-bit samples keep their precision (an <img> would give 8 bits).
+
+const PNG_CHANNELS = { 0: 1, 2: 3, 4: 2, 6: 4 };
+/** Largest map measured in the page (texels); larger ones are measured by the bake. */
+const RELIEF_MAX_TEXELS = 4096 * 4096;
+
+/**
+ * {min, max} of the normalised samples of the PNG `file` as the bake reads them with `channel`
+ * (luma = 0.2126 R + 0.7152 G + 0.0722 B), or null when it cannot tell (palette, interlaced,
+ * under 8 bits, too large, no DecompressionStream).
+ */
+async function pngRange(file, channel) {
+  const bytes = new Uint8Array(await file.arrayBuffer());
+  const dv = new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength);
+  const w = dv.getUint32(16);
+  const h = dv.getUint32(20);
+  const depth = bytes[24];
+  const ctype = bytes[25];
+  const nch = PNG_CHANNELS[ctype];
+  if (!nch || bytes[28] !== 0 || (depth !== 8 && depth !== 16) || w * h > RELIEF_MAX_TEXELS) return null;
+  if (typeof DecompressionStream === 'undefined') return null;
+  const idat = [];
+  for (let o = 8; o + 8 <= bytes.length;) {
+    const len = dv.getUint32(o);
+    const tag = String.fromCharCode(bytes[o + 4], bytes[o + 5], bytes[o + 6], bytes[o + 7]);
+    if (tag === 'IDAT') idat.push(bytes.subarray(o + 8, o + 8 + len));
+    if (tag === 'IEND') break;
+    o += 12 + len;
+  }
+  const inflated = new Uint8Array(await new Response(
+    new Blob(idat).stream().pipeThrough(new DecompressionStream('deflate'))).arrayBuffer());
+  const bpp = nch * (depth / 8);
+  const stride = w * bpp;
+  if (inflated.length < h * (stride + 1)) return null;
+  let prev = new Uint8Array(stride);
+  let row = new Uint8Array(stride);
+  const max = depth === 16 ? 65535 : 255;
+  const pick = { r: 0, g: 1, b: 2, a: nch - 1 }[channel];
+  let lo = Infinity;
+  let hi = -Infinity;
+  for (let y = 0; y < h; y++) {
+    const at = y * (stride + 1);
+    const f = inflated[at];
+    const src = inflated.subarray(at + 1, at + 1 + stride);
+    for (let i = 0; i < stride; i++) {
+      const a = i >= bpp ? row[i - bpp] : 0;
+      const b = prev[i];
+      const c = i >= bpp ? prev[i - bpp] : 0;
+      let v = src[i];
+      if (f === 1) v += a;
+      else if (f === 2) v += b;
+      else if (f === 3) v += (a + b) >> 1;
+      else if (f === 4) {
+        const p = a + b - c;
+        const pa = Math.abs(p - a);
+        const pb = Math.abs(p - b);
+        const pc = Math.abs(p - c);
+        v += pa <= pb && pa <= pc ? a : pb <= pc ? b : c;
+      }
+      row[i] = v & 255;
+    }
+    for (let x = 0; x < w; x++) {
+      const s = (k) => (depth === 16 ? (row[x * bpp + 2 * k] << 8) | row[x * bpp + 2 * k + 1] : row[x * bpp + k]);
+      let v;
+      if (nch <= 2) v = channel === 'a' && nch === 2 ? s(1) : s(0);
+      else if (pick === undefined) v = 0.2126 * s(0) + 0.7152 * s(1) + 0.0722 * s(2);
+      else v = s(Math.min(pick, nch - 1));
+      if (v < lo) lo = v;
+      if (v > hi) hi = v;
+    }
+    [prev, row] = [row, prev];
+  }
+  return { min: lo / max, max: hi / max };
+}
+
+// ---------------------------------------------------------------------------------------------
 // The page
 
 const $ = (id) => document.getElementById(id);
@@ -322,6 +401,7 @@ const state = {
   previewUrl: '',
   previewFor: '',
   retryTimer: 0,
+  range: null,         // {min, max} of the chosen PNG's normalised heights
   size: undefined,     // render size (longer side) in `display` resolution, else native
 };
 
@@ -467,6 +547,34 @@ function resetForm() {
   clearErrors();
 }
 
+/** Puts a bake's resolved parameters into the form, so Bake re-runs what is shown. */
+function loadForm(p) {
+  if (!p || !p.method) return;
+  const sel = $('p-method');
+  if (![...sel.options].some((o) => o.value === p.method)) {
+    sel.append(el('option', { value: p.method, text: METHOD_LABELS[p.method] || p.method }));
+  }
+  sel.value = p.method;
+  const r = String(p.radius ?? DEFAULT_PARAMS.radius);
+  if (r === 'auto' || r === 'unlimited') {
+    $('p-radius-mode').value = r;
+  } else {
+    $('p-radius-mode').value = 'texels';
+    $('p-radius').value = r;
+  }
+  for (const f of ['min_elevation_deg', 'bins', 'reduce', 'height_scale', 'channel', 'edge', 'y_axis',
+    'encoding', 'fourier_terms', 'fourier_range']) {
+    const input = $(`p-${f}`);
+    if (input && p[f] !== undefined && p[f] !== null) input.value = String(p[f]);
+  }
+  const outs = outputsOf(p);
+  $('p-out-horizon').checked = outs.includes('horizon');
+  $('p-out-fourier').checked = outs.includes('fourier');
+  syncForm();
+  clearErrors();
+  showRelief();
+}
+
 for (const id of ['p-radius-mode', 'p-method', 'p-out-fourier', 'p-out-horizon']) {
   $(id).addEventListener('change', syncForm);
 }
@@ -497,8 +605,56 @@ function showLimits() {
   $('limits').textContent = parts.length ? `Server limits: ${parts.join(', ')}.` : '';
 }
 
+/** The map's relief in texels at the form's height scale, with a warning when it is useless. */
+function showRelief() {
+  const out = $('relief');
+  const r = state.range;
+  const info = state.fileInfo;
+  if (!r || !info) {
+    out.textContent = state.file && info && info.format !== 'png'
+      ? 'Relief: shown for PNG maps before the bake (this one is measured by the bake).' : '';
+    out.className = 'muted';
+    delete out.dataset.texels;
+    return;
+  }
+  const scale = Number($('p-height_scale').value);
+  const span = r.max - r.min;
+  const texels = span * (Number.isFinite(scale) ? scale : 0);
+  const size = Math.max(info.width, info.height);
+  out.dataset.texels = String(texels);
+  let text = `Relief: ${texels.toPrecision(3)} texels (heights ${r.min.toFixed(4)}–${r.max.toFixed(4)} × height scale ${scale}).`;
+  out.className = 'muted';
+  if (texels < 1) {
+    const want = span > 0 ? Math.ceil(16 / span) : null;
+    text += ` Below 1 texel the bake is flat: nothing casts a shadow.${want ? ` A height scale of about ${want} gives 16 texels.` : ''}`;
+    out.className = 'warn';
+  } else if (texels > size) {
+    text += ` That is more than the map's size (${size} texels): the relief is a field of cliffs; lower the height scale.`;
+    out.className = 'warn';
+  }
+  out.textContent = text;
+}
+
+async function measureRelief() {
+  state.range = null;
+  const file = state.file;
+  if (file && state.fileInfo && state.fileInfo.format === 'png') {
+    try {
+      const range = await pngRange(file, $('p-channel').value);
+      if (file === state.file) state.range = range;
+    } catch {
+      state.range = null;
+    }
+  }
+  showRelief();
+}
+
+$('p-height_scale').addEventListener('input', showRelief);
+$('p-channel').addEventListener('change', measureRelief);
+
 async function chooseFile(file) {
   state.file = file;
+  state.range = null;
   const info = $('file-info');
   info.className = 'muted';
   info.textContent = `${file.name} — ${fmtBytes(file.size)}…`;
@@ -528,6 +684,7 @@ async function chooseFile(file) {
     info.className = 'err';
     info.textContent = `${file.name} (${fmtBytes(file.size)}): ${e.message}; the server will refuse it.`;
   }
+  await measureRelief();
 }
 
 const drop = $('drop');
@@ -605,6 +762,18 @@ function retryCountdown(secs) {
 
 $('params').addEventListener('submit', submit);
 
+/** Shows `status` for bake `id` in the recent list (running, canceled, …) as it changes. */
+function markRecent(id, status) {
+  for (const li of document.querySelectorAll('#recent li')) {
+    if (li.dataset.id !== id) continue;
+    const st = li.querySelector('.st');
+    if (st && st.textContent !== status) {
+      st.textContent = status;
+      st.className = `st ${status}`;
+    }
+  }
+}
+
 function showProgress(fraction, stage, status) {
   const f = Math.max(0, Math.min(1, Number(fraction) || 0));
   $('progress').value = f;
@@ -627,6 +796,10 @@ async function watch(id) {
         if (ctrl.signal.aborted) return;
         if (name === 'progress') {
           showProgress(data.progress.fraction, data.progress.stage, data.status);
+          markRecent(id, data.status);
+        } else if (name === 'encoding') {
+          const items = (data.encoding || []).map((e) => `${e.result} ${(e.fraction * 100).toFixed(0)}%`);
+          $('status').textContent = `encoding ${items.join(', ')}`;
         } else if (name === 'done') {
           finished = true;
           showBake(data);
@@ -707,7 +880,9 @@ function showMeta(res) {
   row('id', res.id);
   row('status', res.status + (res.error ? ` — ${res.error.code || ''} ${res.error.detail || res.error.message || JSON.stringify(res.error)}` : ''));
   if (i.width) {
-    row('input', `${i.width} × ${i.height} ${i.format || ''} ${i.color || ''} ${i.bit_depth ? `${i.bit_depth}-bit` : ''}${i.float ? ' float' : ''}, ${fmtBytes(i.bytes)}`);
+    const kind = [i.format, i.color, i.bit_depth ? `${i.bit_depth}-bit${i.float ? ' float' : ''}` : '']
+      .filter(Boolean).join(' ');
+    row('input', `${i.width} × ${i.height}${kind ? ` ${kind}` : ''}, ${fmtBytes(i.bytes)}`);
   }
   row('method', `${p.method || '?'}, bins ${p.bins ?? '?'}, reduce ${p.reduce ?? '?'}`);
   const rr = p.resolved_radius;
@@ -770,13 +945,31 @@ function showDownloads(res) {
   ul.append(el('li', {}, prev));
 }
 
-// Downloads cannot send headers: with a key, fetch the file and hand the browser a blob.
+/**
+ * GET of a result that may still be encoding: the server answers 202 + Retry-After at once for
+ * a format the bake did not encode, then the file once it is stored.
+ */
+async function fetchResult(path) {
+  for (;;) {
+    const res = await api(path);
+    if (res.status !== 202) return res;
+    const body = await res.json().catch(() => ({}));
+    const pct = body.progress ? ` ${(body.progress.fraction * 100).toFixed(0)}%` : '';
+    $('status').textContent = `encoding ${body.result || path}${pct}…`;
+    const wait = Number(res.headers.get('retry-after')) || 1;
+    await new Promise((r) => setTimeout(r, Math.min(wait, 2) * 1000));
+  }
+}
+
+// Downloads cannot send headers, and a format the bake did not encode answers 202 while it is
+// encoded: fetch the file (following the 202s) and hand the browser a blob.
 $('downloads').addEventListener('click', async (ev) => {
   const a = ev.target.closest('a.dl');
-  if (!a || !getApiKey()) return;
+  if (!a) return;
   ev.preventDefault();
   try {
-    const url = await blobUrl(a.getAttribute('href'));
+    const res = await fetchResult(a.getAttribute('href'));
+    const url = URL.createObjectURL(await res.blob());
     const tmp = el('a', { href: url, download: a.getAttribute('download') });
     document.body.append(tmp);
     tmp.click();
@@ -794,6 +987,7 @@ function showBake(res) {
   showMeta(res);
   showDownloads(res);
   if (TERMINAL.has(res.status)) {
+    // A canceled or failed bake keeps the fraction it reached (the resource keeps it too).
     showProgress(res.status === 'succeeded' ? 1 : res.progress.fraction, res.status === 'succeeded' ? 'done' : res.status, res.status);
   } else {
     showProgress(res.progress.fraction, res.progress.stage, res.status);
@@ -801,6 +995,9 @@ function showBake(res) {
   for (const li of document.querySelectorAll('#recent li')) {
     li.classList.toggle('current', li.dataset.id === res.id);
   }
+  markRecent(res.id, res.status);
+  // Opened by #id, from the list, or just submitted: the form shows what this bake used.
+  if (changed) loadForm(res.params);
   if (res.status === 'succeeded' && (changed || state.loadedId !== res.id)) loadViewer(res);
   if (res.status === 'failed' && res.error) {
     showError({ code: res.error.code || 'failed', detail: res.error.detail || res.error.message || JSON.stringify(res.error) }, `bake ${res.id} failed`);
