@@ -115,27 +115,31 @@ fn dem_defaults_apply_unless_given() {
     assert!(matches!(&e, Error::Param { field, .. } if field == "max_distance"), "{e}");
 }
 
+/// Parameters from pairs with the rules joining several keys checked, as a submission or the
+/// CLI checks them once every key is set.
+fn checked<'a>(
+    pairs: impl IntoIterator<Item = (&'a str, &'a str)>,
+) -> horizon_bake::Result<BakeParams> {
+    let p = BakeParams::from_pairs(pairs)?;
+    p.check()?;
+    Ok(p)
+}
+
 #[test]
 fn bins_rules_depend_on_outputs_and_method() {
     // Horizon layers: multiples of 16.
-    assert!(BakeParams::from_pairs([("bins", "24")]).is_err());
+    assert!(checked([("bins", "24")]).is_err());
     // Angles alone with a ray method: any count 1..720.
     for b in ["1", "7", "720"] {
-        let p = BakeParams::from_pairs([("bins", b), ("outputs", "angles"), ("method", "exact")]);
+        let p = checked([("bins", b), ("outputs", "angles"), ("method", "exact")]);
         assert!(p.is_ok(), "bins={b}: {p:?}");
     }
-    assert!(BakeParams::from_pairs([("bins", "721"), ("outputs", "angles"), ("method", "exact")])
-        .is_err());
+    assert!(checked([("bins", "721"), ("outputs", "angles"), ("method", "exact")]).is_err());
     // ... not with lengyel, nor with the horizon layers too.
-    assert!(BakeParams::from_pairs([("bins", "7"), ("outputs", "angles")]).is_err());
-    assert!(BakeParams::from_pairs([
-        ("bins", "7"),
-        ("outputs", "angles,horizon"),
-        ("method", "exact")
-    ])
-    .is_err());
+    assert!(checked([("bins", "7"), ("outputs", "angles")]).is_err());
+    assert!(checked([("bins", "7"), ("outputs", "angles,horizon"), ("method", "exact")]).is_err());
     // Compass bands need north among the bins.
-    let e = BakeParams::from_pairs([
+    let e = checked([
         ("bins", "6"),
         ("outputs", "angles"),
         ("method", "exact"),
