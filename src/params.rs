@@ -720,11 +720,27 @@ impl BakeParams {
         Ok(())
     }
 
-    /// Builds parameters from key/value pairs (a query string, CLI flags), defaults elsewhere.
+    /// Builds parameters from key/value pairs (a query string, CLI flags), defaults elsewhere,
+    /// and checks the rules joining several keys ([`BakeParams::check`]).
     ///
     /// # Errors
     /// The first invalid or unknown pair, or a key given twice, as [`Error::Param`] naming it.
     pub fn from_pairs<'a, I>(pairs: I) -> Result<Self>
+    where
+        I: IntoIterator<Item = (&'a str, &'a str)>,
+    {
+        let p = Self::from_pairs_unchecked(pairs)?;
+        p.check()?;
+        Ok(p)
+    }
+
+    /// [`BakeParams::from_pairs`] without [`BakeParams::check`]: for a query that may hold half
+    /// of a combination whose other half comes in a multipart `params` JSON part. The caller
+    /// checks once every key is set.
+    ///
+    /// # Errors
+    /// The first invalid or unknown pair, or a key given twice, as [`Error::Param`] naming it.
+    pub fn from_pairs_unchecked<'a, I>(pairs: I) -> Result<Self>
     where
         I: IntoIterator<Item = (&'a str, &'a str)>,
     {
@@ -737,8 +753,6 @@ impl BakeParams {
             p.set(k, v)?;
             seen.push(k);
         }
-        // No `check()` here: a query may hold half of a combination whose other half comes in
-        // the multipart JSON; the caller checks once every key is set.
         Ok(p)
     }
 
@@ -825,7 +839,7 @@ mod tests {
             ("bogus", "1"),
         ];
         for (k, v) in cases {
-            match BakeParams::from_pairs([(k, v)]).and_then(|p| p.check()) {
+            match BakeParams::from_pairs([(k, v)]) {
                 Err(Error::Param { field, .. }) => assert_eq!(field, k, "{k}={v}"),
                 other => panic!("{k}={v}: expected a parameter error, got {other:?}"),
             }
@@ -834,7 +848,7 @@ mod tests {
 
     #[test]
     fn point_reduction_is_refused_with_lengyel_only() {
-        let bad = BakeParams::from_pairs([("reduce", "point")]).unwrap();
+        let bad = BakeParams::from_pairs_unchecked([("reduce", "point")]).unwrap();
         match bad.check() {
             Err(Error::Param { field, .. }) => assert_eq!(field, "reduce"),
             other => panic!("lengyel + point: {other:?}"),

@@ -117,7 +117,9 @@ pub(super) fn query_params(
     for (k, v) in pairs.iter().filter(|(k, _)| DELIVERY_KEYS.contains(&k.as_str())) {
         delivery.set(k, v)?;
     }
-    let params = BakeParams::from_pairs(
+    // Unchecked: the multipart JSON part may hold the other half of a combination; `submit`
+    // checks once both are merged.
+    let params = BakeParams::from_pairs_unchecked(
         pairs
             .iter()
             .filter(|(k, _)| !DELIVERY_KEYS.contains(&k.as_str()))
