@@ -260,6 +260,10 @@ pub fn horizon_files_with(
             name: "horizon_0.png",
             bytes: png::encode8(w, h, png::PngColor::Rgba, &l[0])?,
         });
+        // A whole PNG layer is the longest step of an encode: DELETE waits for one, not two.
+        if progress.is_canceled() {
+            return Err(Error::Canceled);
+        }
         out.push(OutFile {
             name: "horizon_1.png",
             bytes: png::encode8(w, h, png::PngColor::Rgba, &l[1])?,
@@ -271,6 +275,10 @@ pub fn horizon_files_with(
             name: "horizon_0.png",
             bytes: png::encode16(w, h, png::PngColor::Rgba, &l[0])?,
         });
+        // A whole PNG layer is the longest step of an encode: DELETE waits for one, not two.
+        if progress.is_canceled() {
+            return Err(Error::Canceled);
+        }
         out.push(OutFile {
             name: "horizon_1.png",
             bytes: png::encode16(w, h, png::PngColor::Rgba, &l[1])?,
