@@ -166,7 +166,7 @@ pub fn encode_on_request(
             let mut files = Vec::with_capacity(4);
             for f in [float, exr(ExrPrecision::Half)] {
                 files.extend(
-                    crate::pipeline::encode_each(&layers, &f, progress)?
+                    crate::pipeline::encode_each(&layers, None, &f, progress)?
                         .into_iter()
                         .map(|f| f.bytes),
                 );
@@ -185,8 +185,8 @@ pub fn encode_on_request(
                 exr_precision: ExrPrecision::Float,
             };
             let (layers, _) = bake::bake_horizon(&map, &params, formats.precisions(), progress)?;
-            drop(map);
-            crate::pipeline::encode_each(&layers, &formats, progress)?
+            // `mip_filter=rebake` bakes the levels again from the map.
+            crate::pipeline::encode_each(&layers, Some((&map, &params)), &formats, progress)?
                 .into_iter()
                 .map(|f| f.bytes)
                 .collect()
