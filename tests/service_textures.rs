@@ -142,3 +142,61 @@ async fn texture_variants_are_query_parameters_encoded_once() {
     );
     srv.stop().await;
 }
+
+/// The library's file `name` for `png`, `pairs` and the texture options of `query`, through the
+/// pipeline (which bakes the levels of `mip_filter=rebake` again from the map).
+fn pipeline_file(
+    png: &[u8],
+    pairs: &[(&str, &str)],
+    list: &str,
+    query: &[(&str, &str)],
+    name: &str,
+) -> Vec<u8> {
+    let params = BakeParams::from_pairs(pairs.iter().copied()).unwrap();
+    let (map, _) = heightmap::decode(png, params.channel, &Limits::default()).unwrap();
+    let (layers, _) = bake::bake_horizon(&map, &params, Precisions::ALL, &Progress::new()).unwrap();
+    let mut f = Formats::parse(list, TexturePrecision::Unorm8).unwrap();
+    f.texture = TextureOptions::from_pairs(query.iter().copied()).unwrap();
+    let files =
+        horizon_bake::pipeline::encode_each(&layers, Some((&map, &params)), &f, &Progress::new())
+            .unwrap();
+    files.into_iter().find(|f| f.name == name).unwrap_or_else(|| panic!("{name}")).bytes
+}
+
+/// `?mips=full&mip_filter=rebake` on the texture routes: the bytes the library's pipeline
+/// writes (each level a bake of the box-filtered heights at the halved radius, proven level by
+/// level in tests/textures.rs), distinct from the box chain, encoded once.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rebake_variants_over_http() {
+    let srv = Server::start(|_| {}).await;
+    let c = client();
+    let png = terrain_png16(36, 20, 5);
+    let pairs = [("radius", "6"), ("height_scale", "10")];
+    let res = c
+        .post(srv.url(&format!("/v1/bakes?{}", query(&pairs))))
+        .header("content-type", "image/png")
+        .body(png.clone())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(res.status(), 202);
+    let loc = res.headers()["location"].to_str().unwrap().to_owned();
+    let done = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    let rebake = [("mips", "full"), ("mip_filter", "rebake")];
+    for (route, list) in [("horizon.ktx2", "ktx2"), ("horizon.dds", "dds")] {
+        let before = encoded(&c, &srv).await;
+        let url = srv.url(&format!("{loc}/{route}?{}", query(&rebake)));
+        let first = get_result(&c, &url).await;
+        assert_eq!(first.status(), 200, "{url}");
+        let bytes = first.bytes().await.unwrap();
+        assert_eq!(&bytes[..], &pipeline_file(&png, &pairs, list, &rebake, route)[..], "{url}");
+        let boxed = cli_file(&png, &pairs, list, &[("mips", "full")], route);
+        assert_eq!(bytes.len(), boxed.len(), "{url}: the same chain of sizes as box");
+        assert_ne!(&bytes[..], &boxed[..], "{url}: not the box chain");
+        let again = c.get(&url).send().await.unwrap();
+        assert_eq!(again.status(), 200);
+        assert_eq!(encoded(&c, &srv).await - before, 1, "{url}: encoded once");
+    }
+    srv.stop().await;
+}

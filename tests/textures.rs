@@ -306,6 +306,11 @@ fn python_readers_decode_the_cli_textures() {
     let d = bake("rgba8", &["--format", "png8,ktx2,dds", "--mips", "full", "--mip-filter", "max"]);
     cases.push(case(&d, "horizon.ktx2", "unorm8", true, "max", &two));
     cases.push(case(&d, "horizon.dds", "unorm8", true, "max", &two));
+    // Rebaked levels (SPEC §8 `rebake`): sizes, level 0 exact, the levels not a box chain.
+    let d =
+        bake("rebake", &["--format", "png8,ktx2,dds", "--mips", "full", "--mip-filter", "rebake"]);
+    cases.push(case(&d, "horizon.ktx2", "unorm8", true, "rebake", &two));
+    cases.push(case(&d, "horizon.dds", "unorm8", true, "rebake", &two));
     // The default DDS (the header fix): Pillow must read the layer exactly.
     let d = bake("plain", &["--format", "png8,dds"]);
     cases.push(case(&d, "horizon.dds", "unorm8", false, "box", &two));
