@@ -385,6 +385,17 @@ impl TextureOptions {
         out
     }
 
+    /// The options one container takes of these (KTX2 drops `dds_header`, DDS drops
+    /// `supercompression`): what a file of that container was written with, so a submission
+    /// asking both containers at once names each variant as its own download does.
+    pub fn for_container(&self, ktx2: bool) -> Self {
+        if ktx2 {
+            TextureOptions { dds_header: DdsHeader::default(), ..*self }
+        } else {
+            TextureOptions { zstd_level: None, ..*self }
+        }
+    }
+
     /// Checks the options against the containers they will be written in: `zstd` is for KTX2,
     /// a legacy DDS header holds one 2D texture (or a cube) of BC5, RGBA8, RGBA16 or f32.
     ///
