@@ -728,6 +728,28 @@ mod tests {
     }
 
     #[test]
+    fn rebake_boxes_the_cube_and_needs_every_level_of_an_array() {
+        let n = 4;
+        let faces: Vec<Vec<i8>> = (0..6)
+            .map(|f| {
+                (0..n * n * 4).map(|k| (((k * 7 + f * 13) % 200) as i32 - 100) as i8).collect()
+            })
+            .collect();
+        let imgs: Vec<Texels<'_>> = faces.iter().map(|f| Texels::Snorm8(f)).collect();
+        let p = Progress::new();
+        let rebake =
+            TextureOptions { mips: true, mip_filter: MipFilter::Rebake, ..Default::default() };
+        let boxed = TextureOptions { mips: true, ..Default::default() };
+        assert_eq!(
+            build(n, n, Shape::Cube, &imgs, &rebake, &p).unwrap(),
+            build(n, n, Shape::Cube, &imgs, &boxed, &p).unwrap()
+        );
+        let l: Vec<u8> = (0..n * n * 4).map(|k| k as u8).collect();
+        let two = [Texels::Unorm8(&l), Texels::Unorm8(&l)];
+        assert!(matches!(build(n, n, Shape::Array(2), &two, &rebake, &p), Err(Error::Internal(_))));
+    }
+
+    #[test]
     fn bc5_makes_four_rg_layers_and_separate_one_texture_each() {
         let (w, h) = (8, 4);
         let l0: Vec<u8> = (0..w * h * 4).map(|k| (k % 4 * 60) as u8).collect();
