@@ -140,7 +140,7 @@ pub fn produce<S: Sink>(
         let mut files = match &layers {
             Some((l, r)) => {
                 radius = Some(r.clone());
-                encode_each(l, formats, progress)?
+                encode_each(l, Some((&map, params)), formats, progress)?
             }
             None => Vec::new(),
         };
@@ -174,11 +174,26 @@ pub fn produce<S: Sink>(
 ///
 /// # Errors
 /// [`Error::Canceled`], and the encoders' errors.
+///
+/// KTX2/DDS with `mips=full` and `mip_filter=rebake` bake their levels again
+/// ([`rebake_levels`]) from `heights`, the map and parameters `layers` were baked from (once for
+/// both containers); without it they are an [`Error::Param`] naming `mip_filter`.
 pub fn encode_each(
     layers: &bake::HorizonLayers,
+    heights: Option<(&HeightMap, &BakeParams)>,
     formats: &Formats,
     progress: &Progress,
 ) -> Result<Vec<OutFile>> {
+    let below = match heights {
+        Some((map, params))
+            if (formats.ktx2 || formats.dds) && encode::texture::rebakes(&formats.texture) =>
+        {
+            let below = rebake_levels(map, params, formats.precisions(), progress)?;
+            progress.start(Stage::Encode, 1);
+            below
+        }
+        _ => Vec::new(),
+    };
     let none =
         Formats { png8: false, png16: false, exr: false, ktx2: false, dds: false, ..*formats };
     let each = [
@@ -193,9 +208,65 @@ pub fn encode_each(
         if progress.is_canceled() {
             return Err(Error::Canceled);
         }
-        files.extend(encode::horizon_files_with(layers, one, progress)?);
+        files.extend(encode::horizon_files_levels(layers, &below, one, progress)?);
     }
     Ok(files)
+}
+
+/// The map of the mip level below: heights box-filtered by [`encode::mips::box_heights`], a
+/// hole wherever a parent texel is one ([`encode::mips::any_holes`]), the nodata value kept
+/// and the georeferencing dropped (its pixel size is the full map's).
+pub fn level_map(map: &HeightMap) -> HeightMap {
+    let (w, h) = (map.width, map.height);
+    HeightMap {
+        width: encode::mips::next_size(w),
+        height: encode::mips::next_size(h),
+        values: encode::mips::box_heights(&map.values, w, h),
+        terrain: crate::heightmap::Terrain {
+            georef: None,
+            nodata: map.terrain.nodata,
+            holes: map.terrain.holes.as_ref().map(|m| encode::mips::any_holes(m, w, h)),
+        },
+    }
+}
+
+/// The radius, in texels, that `mip_filter=rebake` bakes level `level` with: the radius of
+/// level 0 resolved on the full map (`unlimited` to max(W, H), `auto` from its height range,
+/// `max_distance` from the cell size), halved per level, at least 1.
+pub fn rebake_radius(level0: &ResolvedRadius, level: usize) -> u32 {
+    (level0.texels.checked_shr(level as u32).unwrap_or(0)).max(1)
+}
+
+/// The levels 1.. of a full mip chain for `mip_filter=rebake` (SPEC §8): level `l` is the bake
+/// of `map` box-filtered `l` times ([`level_map`], so `max(1, W >> l) × max(1, H >> l)`), with
+/// `params` except the radius, [`rebake_radius`]; quantised at `precisions` as level 0 is.
+/// Each level costs a quarter of the one above: the chain about a third of the bake.
+///
+/// # Errors
+/// [`Error::Canceled`], and the kernels' errors.
+pub fn rebake_levels(
+    map: &HeightMap,
+    params: &BakeParams,
+    precisions: crate::layers::Precisions,
+    progress: &Progress,
+) -> Result<Vec<bake::HorizonLayers>> {
+    let r0 = bake::resolve_radius(params, map.width, map.height, &map.scaled(params.height_scale));
+    let n = encode::mips::full_levels(map.width, map.height);
+    let mut out = Vec::with_capacity(n.saturating_sub(1));
+    let mut level = std::borrow::Cow::Borrowed(map);
+    for l in 1..n {
+        if progress.is_canceled() {
+            return Err(Error::Canceled);
+        }
+        level = std::borrow::Cow::Owned(level_map(&level));
+        let p = BakeParams {
+            radius: crate::params::Radius::Texels(rebake_radius(&r0, l)),
+            max_distance: None,
+            ..params.clone()
+        };
+        out.push(bake::bake_horizon(&level, &p, precisions, progress)?.0);
+    }
+    Ok(out)
 }
 
 /// The two streamed horizon files, named, before the sink keeps them.

@@ -193,7 +193,9 @@ async fn errors_state_the_limit_and_the_known_keys() {
         let (s, _, v) = oneshot(&app, req).await;
         assert_eq!((s, v["field"].as_str()), (422, Some("radiuss")), "{v}");
         let detail = v["detail"].as_str().unwrap();
-        for k in horizon_bake::params::PARAM_NAMES.iter().chain(&["formats", "exr_precision"]) {
+        let delivery = ["formats", "exr_precision"];
+        let texture = horizon_bake::encode::texture::OPTION_KEYS;
+        for k in horizon_bake::params::PARAM_NAMES.iter().chain(&delivery).chain(&texture) {
             assert!(detail.contains(&format!(" {k}")), "`{k}` missing from: {detail}");
         }
     }
@@ -424,7 +426,8 @@ fn readme_links_the_reference_which_covers_every_parameter_and_route() {
     let names = horizon_bake::params::PARAM_NAMES
         .iter()
         .chain(horizon_bake::preview::PREVIEW_PARAM_NAMES)
-        .chain(&["formats", "exr_precision"]);
+        .chain(&["formats", "exr_precision"])
+        .chain(&horizon_bake::encode::texture::OPTION_KEYS);
     for k in names {
         assert!(reference.contains(&format!("`{k}`")), "docs/reference.md lacks `{k}`");
     }

@@ -306,6 +306,11 @@ fn python_readers_decode_the_cli_textures() {
     let d = bake("rgba8", &["--format", "png8,ktx2,dds", "--mips", "full", "--mip-filter", "max"]);
     cases.push(case(&d, "horizon.ktx2", "unorm8", true, "max", &two));
     cases.push(case(&d, "horizon.dds", "unorm8", true, "max", &two));
+    // Rebaked levels (SPEC §8 `rebake`): sizes, level 0 exact, the levels not a box chain.
+    let d =
+        bake("rebake", &["--format", "png8,ktx2,dds", "--mips", "full", "--mip-filter", "rebake"]);
+    cases.push(case(&d, "horizon.ktx2", "unorm8", true, "rebake", &two));
+    cases.push(case(&d, "horizon.dds", "unorm8", true, "rebake", &two));
     // The default DDS (the header fix): Pillow must read the layer exactly.
     let d = bake("plain", &["--format", "png8,dds"]);
     cases.push(case(&d, "horizon.dds", "unorm8", false, "box", &two));
@@ -582,5 +587,143 @@ fn mip_filter_truth() {
                 );
             }
         }
+    }
+}
+
+/// Level `l` of a `mip_filter=rebake` chain as the library computes it on its own: the heights
+/// box-filtered `l` times (`mips::box_heights`), baked with `params` at radius
+/// max(1, `r0` >> l); both 8-bit layers, layer 0 first.
+fn rebaked_level(
+    map: &horizon_bake::heightmap::HeightMap,
+    params: &horizon_bake::params::BakeParams,
+    r0: u32,
+    l: usize,
+) -> (usize, usize, [Vec<u8>; 2]) {
+    use horizon_bake::encode::mips;
+    use horizon_bake::heightmap::HeightMap;
+    let mut m = map.clone();
+    for _ in 0..l {
+        let values = mips::box_heights(&m.values, m.width, m.height);
+        m = HeightMap::from_values(mips::next_size(m.width), mips::next_size(m.height), values)
+            .unwrap();
+    }
+    let p = horizon_bake::params::BakeParams {
+        radius: horizon_bake::params::Radius::Texels((r0 >> l).max(1)),
+        ..params.clone()
+    };
+    let (layers, _) = horizon_bake::bake::bake_horizon(
+        &m,
+        &p,
+        horizon_bake::bake::Precisions::U8,
+        &Progress::new(),
+    )
+    .unwrap();
+    (m.width, m.height, layers.u8.unwrap())
+}
+
+/// `--mip-filter rebake` from the real binary: every level of the KTX2 and the DDS is, bit for
+/// bit, the library's bake of the heights box-filtered to that level at the radius halved per
+/// level (8, 4, 2, 1, 1, 1), and differs from the box filter of the level above.
+#[test]
+fn rebake_levels_are_bakes_of_the_box_filtered_heights() {
+    use horizon_bake::heightmap::{self, Limits};
+    use horizon_bake::params::BakeParams;
+    let tmp = tempfile::tempdir().unwrap();
+    let (w, h) = (40, 24);
+    let input = tmp.path().join("in.png");
+    write_png16(&input, w, h, &smooth_heights(w, h, 33));
+    let out = tmp.path().join("out");
+    run(&[
+        "bake",
+        input.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+        "--height-scale",
+        "12",
+        "--radius",
+        "8",
+        "--format",
+        "ktx2,dds",
+        "--mips",
+        "full",
+        "--mip-filter",
+        "rebake",
+    ]);
+    let params = BakeParams::from_pairs([("height_scale", "12"), ("radius", "8")]).unwrap();
+    let (map, _) =
+        heightmap::decode(&std::fs::read(&input).unwrap(), params.channel, &Limits::default())
+            .unwrap();
+    let want: Vec<_> = (0..6).map(|l| rebaked_level(&map, &params, 8, l)).collect();
+    let sizes: Vec<_> = want.iter().map(|(w, h, _)| (*w, *h)).collect();
+    assert_eq!(sizes, [(40, 24), (20, 12), (10, 6), (5, 3), (2, 1), (1, 1)]);
+
+    let ktx = std::fs::read(out.join("horizon.ktx2")).unwrap();
+    let r = Reader::new(&ktx[..]).unwrap();
+    assert_eq!(r.header().level_count, 6);
+    for (l, level) in r.levels().enumerate() {
+        assert_eq!(level.data, want[l].2.concat(), "KTX2 level {l}");
+    }
+    let dds = ddsfile::Dds::read(&std::fs::read(out.join("horizon.dds")).unwrap()[..]).unwrap();
+    assert_eq!(dds.get_num_mipmap_levels(), 6);
+    for layer in 0..2 {
+        let data = dds.get_data(layer as u32).unwrap();
+        let mut at = 0;
+        for (l, (lw, lh, px)) in want.iter().enumerate() {
+            let n = lw * lh * 4;
+            assert_eq!(&data[at..at + n], &px[layer][..], "DDS layer {layer} level {l}");
+            at += n;
+        }
+        assert_eq!(at, data.len());
+    }
+    // Not the box filter: level 1 of layer 0 differs from the 2×2 mean of level 0.
+    let mut boxed = vec![0u8; 20 * 12 * 4];
+    encode::mips::downsample(&want[0].2[0], 40, 24, MipFilter::Box, &mut boxed);
+    assert_ne!(boxed, want[1].2[0], "a rebake that equals the box filter proves nothing");
+}
+
+/// The library path: `unlimited` resolves on the full map (max(W, H) = 24 texels) and halves
+/// from there; 16-bit layers are rebaked in 16 bits; without the heights a rebake is refused.
+#[test]
+fn rebake_resolves_the_radius_first_and_keeps_the_precision() {
+    use horizon_bake::bake::{self, Precisions};
+    use horizon_bake::heightmap::HeightMap;
+    use horizon_bake::params::{BakeParams, Radius};
+    use horizon_bake::pipeline;
+    let (w, h) = (24, 10);
+    let map = HeightMap::from_values(w, h, smooth_heights(w, h, 8)).unwrap();
+    let params = BakeParams { radius: Radius::Unlimited, height_scale: 6.0, ..Default::default() };
+    let mut f = encode::Formats::parse("ktx2", TexturePrecision::Unorm16).unwrap();
+    f.texture = TextureOptions::from_pairs([
+        ("texture_precision", "unorm16"),
+        ("mips", "full"),
+        ("mip_filter", "rebake"),
+    ])
+    .unwrap();
+    let p = Progress::new();
+    let (layers, r0) = bake::bake_horizon(&map, &params, f.precisions(), &p).unwrap();
+    assert_eq!(r0.texels, 24);
+    assert_eq!(pipeline::rebake_radius(&r0, 3), 3);
+    assert_eq!(pipeline::rebake_radius(&r0, 5), 1);
+    let files = pipeline::encode_each(&layers, Some((&map, &params)), &f, &p).unwrap();
+    let r = Reader::new(&files[0].bytes[..]).unwrap();
+    assert_eq!(r.header().format, Some(Format::R16G16B16A16_UNORM));
+    let levels: Vec<_> = r.levels().collect();
+    assert_eq!(levels.len(), 5, "24×10 down to 1×1");
+    let mut m = map.clone();
+    for (l, level) in levels.iter().enumerate() {
+        if l > 0 {
+            m = pipeline::level_map(&m);
+        }
+        let pl = BakeParams { radius: Radius::Texels((24u32 >> l).max(1)), ..params.clone() };
+        let (want, _) =
+            bake::bake_horizon(&m, &pl, Precisions { u16: true, ..Default::default() }, &p)
+                .unwrap();
+        let want: Vec<u8> =
+            want.u16.unwrap().concat().iter().flat_map(|v| v.to_le_bytes()).collect();
+        assert_eq!(level.data, &want[..], "level {l}");
+    }
+    match encode::horizon_files(&layers, &f) {
+        Err(horizon_bake::Error::Param { field, .. }) => assert_eq!(field, "mip_filter"),
+        other => panic!("a rebake without heights: {other:?}"),
     }
 }

@@ -71,7 +71,8 @@ pub struct TextureFlags {
     /// none (default) or full: every mip level down to 1×1.
     #[arg(long)]
     pub mips: Option<String>,
-    /// How a level is made from the one above (with --mips full): box (default), min or max.
+    /// How a level is made (with --mips full): box (default), min or max of the level above, or
+    /// rebake (baked again from the box-filtered heights at the halved radius).
     #[arg(long)]
     pub mip_filter: Option<String>,
     /// KTX2 supercompression: none (default) or zstd (each level on its own).

@@ -8,6 +8,10 @@
 //! - `box`: the mean of the four, per channel. Integer samples round half up:
 //!   floor((a + b + c + d + 2) / 4); floats are (a + b + c + d) / 4.
 //! - `min` / `max`: the smallest / largest of the four, per channel.
+//! - `rebake`: not a filter of the stored samples: each level is baked again from the heights,
+//!   box-filtered to its size by [`box_heights`] (the mean of the 2×2 parent heights, level by
+//!   level, in f32), with the radius halved per level (see `pipeline::rebake_levels`). Images
+//!   that come from no heights (the cube map's faces) are box-filtered under `rebake`.
 //!
 //! The filters work on the stored samples (what a GPU's own mip generation would average), so a
 //! chain of 8-bit layers is filtered in 8 bits and block-compressed formats are filtered before
@@ -26,6 +30,9 @@ pub enum MipFilter {
     Min,
     /// Largest of the 2×2 parent texels (never lowers a horizon).
     Max,
+    /// Each level baked again from the heights box-filtered to its size, the radius halved per
+    /// level (SPEC §8); see the module doc.
+    Rebake,
 }
 
 impl MipFilter {
@@ -35,26 +42,23 @@ impl MipFilter {
             MipFilter::Box => "box",
             MipFilter::Min => "min",
             MipFilter::Max => "max",
+            MipFilter::Rebake => "rebake",
         }
     }
 
-    /// Parses `box`, `min` or `max`.
+    /// Parses `box`, `min`, `max` or `rebake`.
     ///
     /// # Errors
-    /// [`crate::Error::Param`] naming `mip_filter` (also for `rebake`, which SPEC §8 names but
-    /// this version does not compute).
+    /// [`crate::Error::Param`] naming `mip_filter`.
     pub fn parse(value: &str) -> crate::Result<Self> {
         match value.trim().to_ascii_lowercase().as_str() {
             "box" => Ok(MipFilter::Box),
             "min" => Ok(MipFilter::Min),
             "max" => Ok(MipFilter::Max),
-            "rebake" => Err(crate::Error::param(
-                "mip_filter",
-                "`rebake` is not available in this version; use box, min or max",
-            )),
+            "rebake" => Ok(MipFilter::Rebake),
             _ => Err(crate::Error::param(
                 "mip_filter",
-                format!("`{value}` is not one of box, min, max"),
+                format!("`{value}` is not one of box, min, max, rebake"),
             )),
         }
     }
@@ -118,13 +122,13 @@ fn max2<T: PartialOrd>(a: T, b: T) -> T {
 }
 
 /// Fills `dst` (`next_size(sw) × next_size(sh)` RGBA texels) from `src` (`sw × sh` RGBA) with
-/// `filter`.
+/// `filter` (`rebake` is `box` here: stored samples carry no heights to bake again).
 ///
 /// # Panics
 /// When the slice lengths do not match the sizes (a caller's bug).
 pub fn downsample<T: Sample>(src: &[T], sw: usize, sh: usize, filter: MipFilter, dst: &mut [T]) {
     match filter {
-        MipFilter::Box => reduce(src, sw, sh, dst, T::mean4),
+        MipFilter::Box | MipFilter::Rebake => reduce(src, sw, sh, dst, T::mean4),
         MipFilter::Min => reduce(src, sw, sh, dst, |a, b, c, d| min2(min2(a, b), min2(c, d))),
         MipFilter::Max => reduce(src, sw, sh, dst, |a, b, c, d| max2(max2(a, b), max2(c, d))),
     }
@@ -152,6 +156,47 @@ fn reduce<T: Sample>(
             }
         }
     });
+}
+
+/// The heights of the level below a `sw × sh` map: `next_size(sw) × next_size(sh)` values,
+/// each the mean of the 2×2 parent heights read as [`downsample`] reads texels (coordinates
+/// clamped, the floor rule for odd sizes), summed in f64 and rounded once to f32.
+///
+/// # Panics
+/// When `src` is not `sw × sh` values (a caller's bug).
+pub fn box_heights(src: &[f32], sw: usize, sh: usize) -> Vec<f32> {
+    let (dw, dh) = (next_size(sw), next_size(sh));
+    assert_eq!(src.len(), sw * sh, "parent heights");
+    let mut dst = vec![0f32; dw * dh];
+    dst.par_chunks_mut(dw).enumerate().for_each(|(y, out)| {
+        let r0 = &src[(2 * y).min(sh - 1) * sw..][..sw];
+        let r1 = &src[(2 * y + 1).min(sh - 1) * sw..][..sw];
+        for (x, v) in out.iter_mut().enumerate() {
+            let (x0, x1) = ((2 * x).min(sw - 1), (2 * x + 1).min(sw - 1));
+            let sum = r0[x0] as f64 + r0[x1] as f64 + r1[x0] as f64 + r1[x1] as f64;
+            *v = (sum * 0.25) as f32;
+        }
+    });
+    dst
+}
+
+/// The hole mask of the level below a `sw × sh` mask: a texel is a hole when any of its 2×2
+/// parents is (its box-filtered height mixes in the fill far below the map).
+///
+/// # Panics
+/// When `src` is not `sw × sh` values (a caller's bug).
+pub fn any_holes(src: &[bool], sw: usize, sh: usize) -> Vec<bool> {
+    let (dw, dh) = (next_size(sw), next_size(sh));
+    assert_eq!(src.len(), sw * sh, "parent mask");
+    let mut dst = vec![false; dw * dh];
+    for (y, out) in dst.chunks_mut(dw).enumerate() {
+        let (y0, y1) = ((2 * y).min(sh - 1), (2 * y + 1).min(sh - 1));
+        for (x, v) in out.iter_mut().enumerate() {
+            let (x0, x1) = ((2 * x).min(sw - 1), (2 * x + 1).min(sw - 1));
+            *v = src[y0 * sw + x0] || src[y0 * sw + x1] || src[y1 * sw + x0] || src[y1 * sw + x1];
+        }
+    }
+    dst
 }
 
 /// The levels below `level0` (`width × height` RGBA), each from the one above: `levels − 1`
@@ -201,8 +246,10 @@ mod tests {
                         }
                     }
                     out.push(match filter {
-                        MipFilter::Box if int => ((v.iter().sum::<f64>() + 2.0) / 4.0).floor(),
-                        MipFilter::Box => v.iter().sum::<f64>() / 4.0,
+                        MipFilter::Box | MipFilter::Rebake if int => {
+                            ((v.iter().sum::<f64>() + 2.0) / 4.0).floor()
+                        }
+                        MipFilter::Box | MipFilter::Rebake => v.iter().sum::<f64>() / 4.0,
                         MipFilter::Min => v.iter().copied().fold(f64::INFINITY, f64::min),
                         MipFilter::Max => v.iter().copied().fold(f64::NEG_INFINITY, f64::max),
                     });
@@ -295,6 +342,22 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn box_heights_and_holes_by_hand() {
+        // 3×3 → 1×1 reads the top-left 2×2 (floor rule): (1 + 2 + 4 + 5) / 4 = 3.
+        let h = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0];
+        assert_eq!(box_heights(&h, 3, 3), vec![3.0]);
+        // 1×3 → 1×1: the column read twice: (1 + 1 + 2 + 2) / 4 = 1.5.
+        assert_eq!(box_heights(&[1.0, 2.0, 3.0], 1, 3), vec![1.5]);
+        // 4×2 → 2×1.
+        let h = [0.0, 4.0, 1.0, 1.0, 8.0, 0.0, 1.0, 5.0];
+        assert_eq!(box_heights(&h, 4, 2), vec![3.0, 2.0]);
+        let m = [false, false, false, true, false, false, false, false];
+        assert_eq!(any_holes(&m, 4, 2), vec![false, true]);
+        assert_eq!(MipFilter::parse("ReBake").unwrap(), MipFilter::Rebake);
+        assert_eq!(MipFilter::Rebake.name(), "rebake");
     }
 
     #[test]

@@ -224,6 +224,24 @@ fn missing(what: &str) -> Error {
     Error::Internal(format!("the bake did not produce the {what} layers an output needs"))
 }
 
+/// The two layers of `layers` in the samples a texture of `precision` is made from.
+fn layer_images(layers: &HorizonLayers, precision: TexturePrecision) -> Result<Vec<Texels<'_>>> {
+    Ok(match precision {
+        TexturePrecision::Unorm8 | TexturePrecision::Bc7 | TexturePrecision::Bc5 => {
+            let l = layers.u8.as_ref().ok_or_else(|| missing("8-bit"))?;
+            vec![Texels::Unorm8(&l[0]), Texels::Unorm8(&l[1])]
+        }
+        TexturePrecision::Unorm16 => {
+            let l = layers.u16.as_ref().ok_or_else(|| missing("16-bit"))?;
+            vec![Texels::Unorm16(&l[0]), Texels::Unorm16(&l[1])]
+        }
+        TexturePrecision::Float32 => {
+            let l = layers.f32.as_ref().ok_or_else(|| missing("f32"))?;
+            vec![Texels::Float32(&l[0]), Texels::Float32(&l[1])]
+        }
+    })
+}
+
 /// File names of the `separate` layout (SPEC §8): one 2D texture per layer, 2 or 4 (`bc5`).
 const SEPARATE_KTX2: [&str; 4] =
     ["horizon_0.ktx2", "horizon_1.ktx2", "horizon_2.ktx2", "horizon_3.ktx2"];
@@ -249,6 +267,22 @@ pub fn horizon_files(layers: &HorizonLayers, formats: &Formats) -> Result<Vec<Ou
 /// As [`horizon_files`], and [`Error::Canceled`].
 pub fn horizon_files_with(
     layers: &HorizonLayers,
+    formats: &Formats,
+    progress: &crate::progress::Progress,
+) -> Result<Vec<OutFile>> {
+    horizon_files_levels(layers, &[], formats, progress)
+}
+
+/// [`horizon_files_with`] with the levels below `layers` baked again (`below[l − 1]` is level
+/// `l`, every level of a full chain), which KTX2/DDS files with `mips=full` and
+/// `mip_filter=rebake` need (`pipeline::rebake_levels` bakes them); empty otherwise.
+///
+/// # Errors
+/// As [`horizon_files_with`]; [`Error::Param`] naming `mip_filter` for `rebake` without the
+/// levels (only a caller holding the heights can bake them).
+pub fn horizon_files_levels(
+    layers: &HorizonLayers,
+    below: &[HorizonLayers],
     formats: &Formats,
     progress: &crate::progress::Progress,
 ) -> Result<Vec<OutFile>> {
@@ -300,21 +334,21 @@ pub fn horizon_files_with(
         // The caller checked the options against every container it asked for (zstd is for
         // KTX2 alone); a call per container (pipeline::encode_each) ignores the other's options.
         opts.check_for(true, true, false)?;
-        let images: [Texels<'_>; 2] = match opts.precision {
-            TexturePrecision::Unorm8 | TexturePrecision::Bc7 | TexturePrecision::Bc5 => {
-                let l = layers.u8.as_ref().ok_or_else(|| missing("8-bit"))?;
-                [Texels::Unorm8(&l[0]), Texels::Unorm8(&l[1])]
+        let images = |layers| layer_images(layers, opts.precision);
+        let mut levels = vec![images(layers)?];
+        if texture::rebakes(opts) {
+            if below.is_empty() && mips::full_levels(w, h) > 1 {
+                return Err(Error::param(
+                    "mip_filter",
+                    "`rebake` bakes each level again from the heights: encode through \
+                     pipeline::encode_each with the height map",
+                ));
             }
-            TexturePrecision::Unorm16 => {
-                let l = layers.u16.as_ref().ok_or_else(|| missing("16-bit"))?;
-                [Texels::Unorm16(&l[0]), Texels::Unorm16(&l[1])]
+            for l in below {
+                levels.push(images(l)?);
             }
-            TexturePrecision::Float32 => {
-                let l = layers.f32.as_ref().ok_or_else(|| missing("f32"))?;
-                [Texels::Float32(&l[0]), Texels::Float32(&l[1])]
-            }
-        };
-        let textures = texture::build(w, h, Shape::Array(2), &images, opts, progress)?;
+        }
+        let textures = texture::build_levels(w, h, Shape::Array(2), &levels, opts, progress)?;
         let separate = opts.layout == TextureLayout::Separate;
         if formats.ktx2 {
             for (i, t) in textures.iter().enumerate() {

@@ -3,7 +3,8 @@
 //! shape (array or cube) and every level of every image, already in the bytes the GPU reads.
 //!
 //! [`build`] is the one place that turns layer images into textures: mip chain
-//! ([`super::mips`]), block compression ([`super::bcn`], after filtering, from the 8-bit
+//! ([`super::mips`], or with `mip_filter=rebake` the levels baked again, given to
+//! [`build_levels`]), block compression ([`super::bcn`], after filtering, from the 8-bit
 //! values), the `bc5` split into four RG layers, and the `separate` layout (one texture per
 //! layer). The containers ([`super::ktx2`], [`super::dds`]) only lay out what it gives them.
 
@@ -384,6 +385,17 @@ impl TextureOptions {
         out
     }
 
+    /// The options one container takes of these (KTX2 drops `dds_header`, DDS drops
+    /// `supercompression`): what a file of that container was written with, so a submission
+    /// asking both containers at once names each variant as its own download does.
+    pub fn for_container(&self, ktx2: bool) -> Self {
+        if ktx2 {
+            TextureOptions { dds_header: DdsHeader::default(), ..*self }
+        } else {
+            TextureOptions { zstd_level: None, ..*self }
+        }
+    }
+
     /// Checks the options against the containers they will be written in: `zstd` is for KTX2,
     /// a legacy DDS header holds one 2D texture (or a cube) of BC5, RGBA8, RGBA16 or f32.
     ///
@@ -427,40 +439,84 @@ impl TextureOptions {
 /// Samples the mip chain can filter and the containers can store.
 trait Stored: Sample + Default {
     fn texels(v: &[Self]) -> Texels<'_>;
+    /// The samples of `t` when they are of this type.
+    fn of<'a>(t: &Texels<'a>) -> Option<&'a [Self]>;
 }
 impl Stored for u8 {
     fn texels(v: &[u8]) -> Texels<'_> {
         Texels::Unorm8(v)
+    }
+    fn of<'a>(t: &Texels<'a>) -> Option<&'a [u8]> {
+        match *t {
+            Texels::Unorm8(v) => Some(v),
+            _ => None,
+        }
     }
 }
 impl Stored for i8 {
     fn texels(v: &[i8]) -> Texels<'_> {
         Texels::Snorm8(v)
     }
+    fn of<'a>(t: &Texels<'a>) -> Option<&'a [i8]> {
+        match *t {
+            Texels::Snorm8(v) => Some(v),
+            _ => None,
+        }
+    }
 }
 impl Stored for u16 {
     fn texels(v: &[u16]) -> Texels<'_> {
         Texels::Unorm16(v)
+    }
+    fn of<'a>(t: &Texels<'a>) -> Option<&'a [u16]> {
+        match *t {
+            Texels::Unorm16(v) => Some(v),
+            _ => None,
+        }
     }
 }
 impl Stored for f32 {
     fn texels(v: &[f32]) -> Texels<'_> {
         Texels::Float32(v)
     }
+    fn of<'a>(t: &Texels<'a>) -> Option<&'a [f32]> {
+        match *t {
+            Texels::Float32(v) => Some(v),
+            _ => None,
+        }
+    }
 }
 
-/// Every level of one image as container bytes: filtered in its own sample type, then
-/// block-compressed when `block` says so.
+/// Every level of one image as container bytes: filtered in its own sample type (or the
+/// levels `given`, with `rebake`), then block-compressed when `block` says so.
 fn image_levels<T: Stored>(
     width: usize,
     height: usize,
     img: &[T],
+    given: &[Texels<'_>],
     opts: &TextureOptions,
     block: Option<BlockFormat>,
     progress: &Progress,
 ) -> Result<Vec<Vec<u8>>> {
     let n = if opts.mips { mips::full_levels(width, height) } else { 1 };
-    let below = mips::chain(width, height, img, opts.mip_filter, n, &|| !progress.is_canceled())?;
+    let below: Vec<Vec<T>> = if given.is_empty() {
+        mips::chain(width, height, img, opts.mip_filter, n, &|| !progress.is_canceled())?
+    } else {
+        if given.len() != n - 1 {
+            return Err(Error::Internal(format!(
+                "{} rebaked levels for a chain of {n}",
+                given.len()
+            )));
+        }
+        given
+            .iter()
+            .map(|t| {
+                T::of(t).map(<[T]>::to_vec).ok_or_else(|| {
+                    Error::Internal("rebaked levels must share level 0's sample type".into())
+                })
+            })
+            .collect::<Result<_>>()?
+    };
     let mut out = Vec::with_capacity(n);
     let (mut w, mut h) = (width, height);
     for level in std::iter::once(img).chain(below.iter().map(Vec::as_slice)) {
@@ -496,7 +552,9 @@ fn rg_pair(rgba: &[u8], k: usize) -> Vec<u8> {
 
 /// Turns images (the horizon layers, or the six cube faces) into the textures `opts` asks for:
 /// one array or cube texture, or one 2D texture per layer with `texture_layout=separate`.
-/// `bc7`/`bc5` need `Unorm8` images; `bc5` turns 2 RGBA layers into 4 RG layers.
+/// `bc7`/`bc5` need `Unorm8` images; `bc5` turns 2 RGBA layers into 4 RG layers. Horizon
+/// layers with `mips=full` and `mip_filter=rebake` need their levels baked again: use
+/// [`build_levels`].
 ///
 /// # Errors
 /// [`Error::Canceled`] when `progress` is canceled (checked between levels and layers, and
@@ -509,25 +567,73 @@ pub fn build(
     opts: &TextureOptions,
     progress: &Progress,
 ) -> Result<Vec<Texture>> {
+    build_levels(width, height, shape, &[images.to_vec()], opts, progress)
+}
+
+/// Whether `opts` make the levels of an array texture from a bake of each level's heights
+/// rather than from the level above (`mips=full`, `mip_filter=rebake`).
+pub fn rebakes(opts: &TextureOptions) -> bool {
+    opts.mips && opts.mip_filter == MipFilter::Rebake
+}
+
+/// [`build`] with every level given: `levels[l][image]`, level `l` of
+/// `max(1, width >> l) × max(1, height >> l)` texels. An array texture under [`rebakes`] needs
+/// the whole chain (`mips::full_levels` levels, quantised as level 0); otherwise only
+/// `levels[0]` is given and the filter makes the rest (the cube map, which holds no heights,
+/// is box-filtered under `rebake`).
+///
+/// # Errors
+/// As [`build`]; [`Error::Internal`] when the levels given do not make the chain.
+pub fn build_levels(
+    width: usize,
+    height: usize,
+    shape: Shape,
+    levels: &[Vec<Texels<'_>>],
+    opts: &TextureOptions,
+    progress: &Progress,
+) -> Result<Vec<Texture>> {
+    let images = levels.first().ok_or_else(|| Error::Internal("no level 0".into()))?;
     check_images(width, height, shape, images)?;
-    let block = opts.precision.block();
-    let split: Vec<Vec<u8>>;
-    let images: Vec<Texels<'_>> = match (opts.precision, shape) {
-        (TexturePrecision::Bc5, Shape::Array(_)) => {
-            split = images
-                .iter()
-                .map(|t| match t {
-                    Texels::Unorm8(px) => Ok([rg_pair(px, 0), rg_pair(px, 1)]),
-                    _ => Err(Error::Internal("bc5 is encoded from 8-bit layers".into())),
-                })
-                .collect::<Result<Vec<_>>>()?
-                .into_iter()
-                .flatten()
-                .collect();
-            split.iter().map(|v| Texels::Unorm8(v)).collect()
-        }
-        _ => images.to_vec(),
+    let want = if rebakes(opts) && matches!(shape, Shape::Array(_)) {
+        mips::full_levels(width, height)
+    } else {
+        1
     };
+    if levels.len() != want {
+        return Err(Error::Internal(format!(
+            "{} levels given; this texture takes {want} (mip_filter=rebake gives them all)",
+            levels.len()
+        )));
+    }
+    for (l, level) in levels.iter().enumerate().skip(1) {
+        let (w, h) = ((width >> l).max(1), (height >> l).max(1));
+        check_images(w, h, shape, level)?;
+    }
+    let block = opts.precision.block();
+    // split[l][image] for bc5: each RGBA layer as two RG layers.
+    let split: Vec<Vec<Vec<u8>>>;
+    let levels: Vec<Vec<Texels<'_>>> = match (opts.precision, shape) {
+        (TexturePrecision::Bc5, Shape::Array(_)) => {
+            split = levels
+                .iter()
+                .map(|level| {
+                    Ok(level
+                        .iter()
+                        .map(|t| match t {
+                            Texels::Unorm8(px) => Ok([rg_pair(px, 0), rg_pair(px, 1)]),
+                            _ => Err(Error::Internal("bc5 is encoded from 8-bit layers".into())),
+                        })
+                        .collect::<Result<Vec<_>>>()?
+                        .into_iter()
+                        .flatten()
+                        .collect())
+                })
+                .collect::<Result<_>>()?;
+            split.iter().map(|l| l.iter().map(|v| Texels::Unorm8(v)).collect()).collect()
+        }
+        _ => levels.to_vec(),
+    };
+    let images = &levels[0];
     let format = match opts.precision {
         TexturePrecision::Bc7 => PixelFormat::Bc7Unorm,
         TexturePrecision::Bc5 => PixelFormat::Bc5Unorm,
@@ -535,15 +641,17 @@ pub fn build(
     };
     // per_image[i][level]
     let mut per_image = Vec::with_capacity(images.len());
-    for img in &images {
+    for (i, img) in images.iter().enumerate() {
         if progress.is_canceled() {
             return Err(Error::Canceled);
         }
+        let given: Vec<Texels<'_>> = levels[1..].iter().map(|l| l[i]).collect();
+        let g = given.as_slice();
         per_image.push(match *img {
-            Texels::Unorm8(p) => image_levels(width, height, p, opts, block, progress)?,
-            Texels::Snorm8(p) => image_levels(width, height, p, opts, block, progress)?,
-            Texels::Unorm16(p) => image_levels(width, height, p, opts, block, progress)?,
-            Texels::Float32(p) => image_levels(width, height, p, opts, block, progress)?,
+            Texels::Unorm8(p) => image_levels(width, height, p, g, opts, block, progress)?,
+            Texels::Snorm8(p) => image_levels(width, height, p, g, opts, block, progress)?,
+            Texels::Unorm16(p) => image_levels(width, height, p, g, opts, block, progress)?,
+            Texels::Float32(p) => image_levels(width, height, p, g, opts, block, progress)?,
         });
     }
     let texture = |shape: Shape, imgs: Vec<Vec<Vec<u8>>>| -> Result<Texture> {
@@ -596,7 +704,7 @@ mod tests {
             (vec![("zstd_level", "3")], "zstd_level"),
             (vec![("supercompression", "zstd"), ("zstd_level", "23")], "zstd_level"),
             (vec![("mip_filter", "max")], "mip_filter"),
-            (vec![("mips", "full"), ("mip_filter", "rebake")], "mip_filter"),
+            (vec![("mip_filter", "rebake")], "mip_filter"),
             (vec![("mips", "some")], "mips"),
             (vec![("texture_precision", "bc1")], "texture_precision"),
             (vec![("mips", "full"), ("mips", "full")], "mips"),
@@ -617,6 +725,28 @@ mod tests {
         let z = TextureOptions { zstd_level: Some(3), ..Default::default() };
         assert!(z.check_for(false, true, false).is_err());
         assert!(z.check_for(true, true, false).is_ok());
+    }
+
+    #[test]
+    fn rebake_boxes_the_cube_and_needs_every_level_of_an_array() {
+        let n = 4;
+        let faces: Vec<Vec<i8>> = (0..6)
+            .map(|f| {
+                (0..n * n * 4).map(|k| (((k * 7 + f * 13) % 200) as i32 - 100) as i8).collect()
+            })
+            .collect();
+        let imgs: Vec<Texels<'_>> = faces.iter().map(|f| Texels::Snorm8(f)).collect();
+        let p = Progress::new();
+        let rebake =
+            TextureOptions { mips: true, mip_filter: MipFilter::Rebake, ..Default::default() };
+        let boxed = TextureOptions { mips: true, ..Default::default() };
+        assert_eq!(
+            build(n, n, Shape::Cube, &imgs, &rebake, &p).unwrap(),
+            build(n, n, Shape::Cube, &imgs, &boxed, &p).unwrap()
+        );
+        let l: Vec<u8> = (0..n * n * 4).map(|k| k as u8).collect();
+        let two = [Texels::Unorm8(&l), Texels::Unorm8(&l)];
+        assert!(matches!(build(n, n, Shape::Array(2), &two, &rebake, &p), Err(Error::Internal(_))));
     }
 
     #[test]

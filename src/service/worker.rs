@@ -166,7 +166,7 @@ pub fn encode_on_request(
             let mut files = Vec::with_capacity(4);
             for f in [float, exr(ExrPrecision::Half)] {
                 files.extend(
-                    crate::pipeline::encode_each(&layers, &f, progress)?
+                    crate::pipeline::encode_each(&layers, None, &f, progress)?
                         .into_iter()
                         .map(|f| f.bytes),
                 );
@@ -185,8 +185,8 @@ pub fn encode_on_request(
                 exr_precision: ExrPrecision::Float,
             };
             let (layers, _) = bake::bake_horizon(&map, &params, formats.precisions(), progress)?;
-            drop(map);
-            crate::pipeline::encode_each(&layers, &formats, progress)?
+            // `mip_filter=rebake` bakes the levels again from the map.
+            crate::pipeline::encode_each(&layers, Some((&map, &params)), &formats, progress)?
                 .into_iter()
                 .map(|f| f.bytes)
                 .collect()
@@ -212,7 +212,9 @@ pub fn encode_on_request(
 }
 
 /// The record's spelling of the formats a submission asked to encode with the bake: the CLI's
-/// `--format` list in its canonical order, plus `half` for half-float EXR.
+/// `--format` list in its canonical order, plus `half` for half-float EXR, then the texture
+/// options that differ from the defaults as a query (`ktx2,dds?texture_precision=bc7&mips=full`,
+/// [`TextureOptions::pairs`]).
 pub fn formats_field(f: &Formats) -> String {
     let mut parts: Vec<&str> = [
         (f.png8, "png8"),
@@ -228,7 +230,14 @@ pub fn formats_field(f: &Formats) -> String {
     if parts.is_empty() {
         parts.push("png8");
     }
-    parts.join(",")
+    let list = parts.join(",");
+    let pairs = f.texture.pairs();
+    if (f.ktx2 || f.dds) && !pairs.is_empty() {
+        let q: Vec<String> = pairs.into_iter().map(|(k, v)| format!("{k}={v}")).collect();
+        format!("{list}?{}", q.join("&"))
+    } else {
+        list
+    }
 }
 
 /// The formats a record's bake encodes (see [`formats_field`]; None is `png8`).
@@ -236,14 +245,18 @@ pub fn formats_field(f: &Formats) -> String {
 /// # Errors
 /// [`Error::Internal`] for a value this version does not write.
 pub fn formats_of(rec: &BakeRecord) -> Result<Formats> {
-    let list = rec.formats.as_deref().unwrap_or("png8");
+    let field = rec.formats.as_deref().unwrap_or("png8");
+    let (list, query) = field.split_once('?').unwrap_or((field, ""));
     let half = list.split(',').any(|p| p == "half");
     let names: Vec<&str> = list.split(',').filter(|p| *p != "half").collect();
-    let mut f = Formats::parse(&names.join(","), TexturePrecision::Unorm8)
-        .map_err(|e| Error::Internal(format!("stored formats `{list}`: {e}")))?;
+    let stored = |e: Error| Error::Internal(format!("stored formats `{field}`: {e}"));
+    let mut f = Formats::parse(&names.join(","), TexturePrecision::Unorm8).map_err(stored)?;
     if half {
         f.exr_precision = ExrPrecision::Half;
     }
+    let pairs =
+        query.split('&').filter(|p| !p.is_empty()).map(|p| p.split_once('=').unwrap_or((p, "")));
+    f.texture = TextureOptions::from_pairs(pairs).map_err(stored)?;
     Ok(f)
 }
 
@@ -273,8 +286,17 @@ struct BlobSink<'a> {
 
 impl BlobSink<'_> {
     /// The result name of the CLI's file `file`: `horizon_0.png` is png8 or png16 as asked, an
-    /// EXR is `.half.exr` at half precision.
+    /// EXR is `.half.exr` at half precision, a KTX2/DDS file the name of its variant
+    /// ([`texture_result_name`], the name its download looks up).
     fn result_name(&self, file: &str) -> String {
+        if let Some((stem, ext)) =
+            file.rsplit_once('.').filter(|(_, e)| *e == "ktx2" || *e == "dds")
+        {
+            let layer = stem.strip_prefix("horizon_").and_then(|i| i.parse::<usize>().ok());
+            let ext = if ext == "ktx2" { "ktx2" } else { "dds" };
+            let opts = self.formats.texture.for_container(ext == "ktx2");
+            return texture_result_name(ext, &opts, layer);
+        }
         let half = self.formats.exr_precision == ExrPrecision::Half;
         let pick = match file {
             "horizon_0.png" if self.formats.png16 => 2,

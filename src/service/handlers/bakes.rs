@@ -43,18 +43,33 @@ pub(super) fn body_error(
 }
 
 /// What a submission asks besides the bake's parameters: which result formats to encode with
-/// the bake (`formats`, the CLI's `--format` list, default `png8`) and at which EXR precision
-/// (`exr_precision`, the CLI's `--exr-precision`). They are not bake parameters: the same input
-/// and parameters are the same bake whatever formats were asked, and a format not asked is
-/// encoded on its first request.
+/// the bake (`formats`, the CLI's `--format` list, default `png8`), at which EXR precision
+/// (`exr_precision`, the CLI's `--exr-precision`) and, for `ktx2`/`dds`, which texture variant
+/// (SPEC §8's options, [`crate::encode::texture::OPTION_KEYS`], as the CLI's flags and the
+/// texture routes' query). They are not bake parameters: the same input and parameters are the
+/// same bake whatever formats were asked, and a format or variant not asked is encoded on its
+/// first request.
 #[derive(Debug, Clone, Default)]
 pub(super) struct Delivery {
     formats: Option<String>,
     exr_precision: Option<String>,
+    /// The texture options given, in order (each key at most once).
+    texture: Vec<(String, String)>,
 }
 
-/// The submission keys that are not bake parameters.
-const DELIVERY_KEYS: [&str; 2] = ["formats", "exr_precision"];
+/// The submission keys that are not bake parameters: `formats`, `exr_precision` and the
+/// texture options (SPEC §5, §8).
+const DELIVERY_KEYS: [&str; 9] = [
+    "formats",
+    "exr_precision",
+    "texture_precision",
+    "mips",
+    "mip_filter",
+    "supercompression",
+    "zstd_level",
+    "texture_layout",
+    "dds_header",
+];
 
 /// Every key a submission accepts: the bake parameters ([`crate::params::PARAM_NAMES`], the
 /// list [`BakeParams::set`] is tested against) and the delivery keys. The unknown-key message is
@@ -76,7 +91,17 @@ fn known_submission_key(key: &str) -> Result<(), Problem> {
 
 impl Delivery {
     fn set(&mut self, key: &str, value: &str) -> Result<(), Problem> {
-        let slot = if key == "formats" { &mut self.formats } else { &mut self.exr_precision };
+        let slot = match key {
+            "formats" => &mut self.formats,
+            "exr_precision" => &mut self.exr_precision,
+            _ => {
+                if self.texture.iter().any(|(k, _)| k == key) {
+                    return Err(Problem::param(key, "given more than once"));
+                }
+                self.texture.push((key.to_owned(), value.to_owned()));
+                return Ok(());
+            }
+        };
         if slot.is_some() {
             return Err(Problem::param(key, "given more than once"));
         }
@@ -84,8 +109,9 @@ impl Delivery {
         Ok(())
     }
 
-    /// The formats to encode with the bake, checked as the CLI checks `--format` and
-    /// `--exr-precision` (KTX2 and DDS at the service's `unorm8`).
+    /// The formats to encode with the bake, checked as the CLI checks `--format`,
+    /// `--exr-precision` and the texture flags (a texture option without `ktx2` or `dds`, or
+    /// one neither container asked for takes, is a 422 naming it).
     pub(super) fn resolve(&self) -> Result<Formats, Problem> {
         let list = self.formats.as_deref().unwrap_or("png8");
         let mut f = Formats::parse(list, TexturePrecision::Unorm8).map_err(|e| match e {
@@ -97,6 +123,18 @@ impl Delivery {
                 return Err(Problem::param("exr_precision", "applies only when formats has exr"));
             }
             f.exr_precision = ExrPrecision::parse("exr_precision", p)?;
+        }
+        if let Some((key, _)) = self.texture.first() {
+            if !(f.ktx2 || f.dds) {
+                return Err(Problem::param(
+                    key.clone(),
+                    "applies only when formats has ktx2 or dds",
+                ));
+            }
+            f.texture = crate::encode::TextureOptions::from_pairs(
+                self.texture.iter().map(|(k, v)| (k.as_str(), v.as_str())),
+            )?;
+            f.texture.check_for(f.ktx2, f.dds, false)?;
         }
         Ok(f)
     }
