@@ -398,20 +398,25 @@ pub fn check_submission(
 /// map, NaN without nodata) is the submission's 422 and the stored parameters are the resolved
 /// ones.
 ///
+/// Returns the format and size, and the input's georeferencing as bake.json reports it (with
+/// the resolved `cell_size`), for a bake resource to show before the bake runs.
+///
 /// # Errors
 /// As [`decode_for`].
 pub fn check_submission_for(
     bytes: &[u8],
     params: &mut BakeParams,
     limits: &Limits,
-) -> Result<(image::ImageFormat, u32, u32)> {
+) -> Result<((image::ImageFormat, u32, u32), Option<georef::GeorefReport>)> {
     let probed = probe(bytes, limits)?;
+    let mut report = None;
     if probed.0 != image::ImageFormat::Png || !matches!(params.nodata, NoData::Auto) {
-        decode_for(bytes, params, limits)?;
+        let (map, _) = decode_for(bytes, params, limits)?;
+        report = map.terrain.georef.as_ref().map(|g| g.report(params.cell_size));
     } else {
         georef::apply_dem_defaults(params, None)?;
     }
-    Ok(probed)
+    Ok((probed, report))
 }
 
 /// Samples decoded from an image, before the channel pick.

@@ -453,3 +453,62 @@ pub fn shadow_tif(
         crate::terrain::shadow::NODATA,
     )
 }
+
+/// The sun shadow of [`shadow_tif`] as an 8-bit grey + alpha PNG a browser can show: lit 255,
+/// shadowed 0, holes transparent (SPEC §3.7, `format=png`).
+///
+/// # Errors
+/// Whatever [`bake::shadow`] or the PNG encoder fails with.
+pub fn shadow_png(
+    map: &HeightMap,
+    params: &BakeParams,
+    azimuth_deg: f64,
+    elevation_deg: f64,
+    progress: &Progress,
+) -> Result<Vec<u8>> {
+    let plane = bake::shadow(map, params, azimuth_deg, elevation_deg, progress)?;
+    png::encode8(map.width, map.height, png::PngColor::GrayAlpha, &shadow_grey(&plane))
+}
+
+/// Grey + alpha samples of a shadow plane (1 lit, 0 shadowed, [`NODATA`](crate::terrain::shadow::NODATA)
+/// a hole): lit (255, 255), shadowed (0, 255), hole (0, 0).
+pub fn shadow_grey(plane: &[u8]) -> Vec<u8> {
+    plane
+        .iter()
+        .flat_map(|&s| match s {
+            crate::terrain::shadow::NODATA => [0, 0],
+            0 => [0, 255],
+            _ => [255, 255],
+        })
+        .collect()
+}
+
+/// A stored `svf.tif` (as [`terrain_files`] writes it) as an 8-bit grey + alpha PNG a browser
+/// can show: the sky-view factor 0..1 quantised to 0..255 as every 8-bit output is (SPEC §2),
+/// holes (the file's GDAL_NODATA) transparent (SPEC §3.7, `format=png`).
+///
+/// # Errors
+/// [`Error::Decode`] when the bytes are not a one-band float GeoTIFF; the PNG encoder's errors.
+pub fn svf_png(svf_tif: &[u8]) -> Result<Vec<u8>> {
+    let limits =
+        crate::heightmap::Limits { max_dim: u32::MAX, max_texels: u64::MAX, max_bytes: u64::MAX };
+    let (map, _) = crate::heightmap::decode(svf_tif, crate::params::Channel::Luma, &limits)?;
+    let holes = map.terrain.holes.as_deref();
+    let grey = svf_grey(&map.values, holes);
+    png::encode8(map.width, map.height, png::PngColor::GrayAlpha, &grey)
+}
+
+/// Grey + alpha samples of sky-view factors: (floor(v·255 + 0.5), 255), a hole (0, 0).
+pub fn svf_grey(values: &[f32], holes: Option<&[bool]>) -> Vec<u8> {
+    values
+        .iter()
+        .enumerate()
+        .flat_map(|(k, &v)| {
+            if holes.is_some_and(|h| h[k]) || !v.is_finite() {
+                [0, 0]
+            } else {
+                [encode::quantize8(v), 255]
+            }
+        })
+        .collect()
+}

@@ -873,3 +873,124 @@ async fn terrain_products_over_http() {
     assert_eq!(res.status(), 422);
     srv.stop().await;
 }
+
+/// Issue 24, the page's part: a GeoTIFF DEM's resource shows its georeferencing and the DEM
+/// defaults from submission on; `format=png` renders the SVF and the shadow as grey + alpha PNGs
+/// with the GeoTIFF's values (SVF quantised to 8 bits, shadow 0/255, holes transparent).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn dem_resource_and_png_renderings() {
+    use horizon_bake::encode::geotiff;
+    use horizon_bake::heightmap::georef::Georef;
+    let srv = Server::start(|_| {}).await;
+    let c = client();
+    let (w, h) = (24usize, 20usize);
+    // A ridge running north-south in metres, a hole in one corner (nodata -9999).
+    let mut dem: Vec<f32> = (0..w * h)
+        .map(|k| {
+            let (x, y) = ((k % w) as f32, (k / w) as f32);
+            400.0 + 300.0 * (-(x - 12.0).powi(2) / 8.0).exp() + 2.0 * y
+        })
+        .collect();
+    dem[0] = -9999.0;
+    dem[1] = -9999.0;
+    let g = Georef {
+        pixel_scale: Some(vec![30.0, 30.0, 0.0]),
+        tiepoints: Some(vec![0.0, 0.0, 0.0, 500000.0, 5500000.0, 0.0]),
+        geo_keys: Some(vec![1, 1, 0, 3, 1024, 0, 1, 1, 3072, 0, 1, 32632, 3076, 0, 1, 9001]),
+        ..Georef::default()
+    };
+    let band = [geotiff::Band { plane: &dem, description: "dem".into() }];
+    let tif = geotiff::encode(w, h, &band, Some(&g), -9999.0).unwrap();
+    let q = "method=exact&radius=unlimited&outputs=horizon,angles,svf";
+    let res = c
+        .post(srv.url(&format!("/v1/bakes?{q}")))
+        .header("content-type", "image/tiff")
+        .body(tif)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(res.status(), 202);
+    let loc = res.headers()["location"].to_str().unwrap().to_owned();
+    let v: Value = res.json().await.unwrap();
+    let geo = &v["georeferencing"];
+    assert_eq!(geo["epsg"], 32632, "{v}");
+    assert_eq!(geo["cell_size"], 30.0, "{v}");
+    assert_eq!(geo["units"], "metre", "{v}");
+    assert_eq!(geo["model"], "projected", "{v}");
+    assert_eq!(v["params"]["edge"], "none", "{v}");
+    assert_eq!(v["params"]["height_scale"].as_f64(), Some(1.0 / 30.0), "{v}");
+    let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
+    assert_eq!(v["status"], "succeeded", "{v}");
+    assert_eq!(v["georeferencing"]["epsg"], 32632);
+
+    // SVF: the PNG against the served GeoTIFF, texel by texel.
+    let svf_tif =
+        c.get(srv.url(&format!("{loc}/svf"))).send().await.unwrap().bytes().await.unwrap();
+    let (svf, _) = horizon_bake::heightmap::decode(
+        &svf_tif,
+        horizon_bake::params::Channel::Luma,
+        &Default::default(),
+    )
+    .unwrap();
+    let res = c.get(srv.url(&format!("{loc}/svf?format=png"))).send().await.unwrap();
+    assert_eq!(res.status(), 200);
+    assert_eq!(res.headers()["content-type"], "image/png");
+    let etag = res.headers()["etag"].to_str().unwrap().to_owned();
+    let png = image::load_from_memory(&res.bytes().await.unwrap()).unwrap();
+    let la = match png {
+        image::DynamicImage::ImageLumaA8(i) => i,
+        other => panic!("svf png is not grey + alpha 8-bit: {:?}", other.color()),
+    };
+    assert_eq!((la.width() as usize, la.height() as usize), (w, h));
+    let holes = svf.terrain.holes.clone().unwrap();
+    let mut interior = 0;
+    for (k, &hole) in holes.iter().enumerate() {
+        let p = la.get_pixel((k % w) as u32, (k / w) as u32).0;
+        if hole {
+            assert_eq!(p[1], 0, "a hole is transparent at {k}");
+        } else {
+            let want = (svf.values[k] as f64 * 255.0 + 0.5).floor() as u8;
+            assert_eq!(p, [want, 255], "svf at {k}: {}", svf.values[k]);
+            interior += usize::from(want < 250);
+        }
+    }
+    assert!(holes[0] && holes[1] && !holes[2]);
+    assert!(interior > 0, "the ridge occludes some sky");
+    let res = c
+        .get(srv.url(&format!("{loc}/svf?format=png")))
+        .header("if-none-match", etag)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(res.status(), 304);
+    let res = c.get(srv.url(&format!("{loc}/svf?format=jpeg"))).send().await.unwrap();
+    assert_eq!(res.status(), 422);
+
+    // Shadow at a low western sun: the PNG against the GeoTIFF (1 → 255, 0 → 0, 255 → clear).
+    let sun = "sun_azimuth=180&sun_elevation=8";
+    let res = c.get(srv.url(&format!("{loc}/shadow?{sun}"))).send().await.unwrap();
+    let tif = res.bytes().await.unwrap();
+    let mut dec = tiff::decoder::Decoder::new(std::io::Cursor::new(&tif[..])).unwrap();
+    let plane = match dec.read_image().unwrap() {
+        tiff::decoder::DecodingResult::U8(v) => v,
+        other => panic!("shadow.tif is not uint8: {other:?}"),
+    };
+    let res = c.get(srv.url(&format!("{loc}/shadow?{sun}&format=png"))).send().await.unwrap();
+    assert_eq!(res.status(), 200);
+    assert_eq!(res.headers()["content-type"], "image/png");
+    let la = image::load_from_memory(&res.bytes().await.unwrap()).unwrap().to_luma_alpha8();
+    let mut shadowed = 0;
+    for (k, &s) in plane.iter().enumerate() {
+        let p = la.get_pixel((k % w) as u32, (k / w) as u32).0;
+        let want = match s {
+            255 => [0, 0],
+            0 => [0, 255],
+            _ => [255, 255],
+        };
+        assert_eq!(p, want, "shadow at {k} (tif {s})");
+        shadowed += usize::from(s == 0);
+    }
+    assert_eq!(plane[0], 255, "the hole is nodata");
+    assert!(shadowed > 0, "the ridge casts a shadow at 8°");
+    srv.stop().await;
+}

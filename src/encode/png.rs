@@ -8,6 +8,8 @@ use crate::error::{Error, Result};
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum PngColor {
     Gray,
+    /// Grey and alpha (the terrain renderings: a hole is transparent).
+    GrayAlpha,
     Rgba,
 }
 
@@ -15,6 +17,7 @@ impl PngColor {
     fn channels(self) -> usize {
         match self {
             PngColor::Gray => 1,
+            PngColor::GrayAlpha => 2,
             PngColor::Rgba => 4,
         }
     }
@@ -250,6 +253,7 @@ impl<W: std::io::Write, T: PngSample> PngRowWriter<W, T> {
         ihdr.extend_from_slice(&h32.to_be_bytes());
         let color_type = match color {
             PngColor::Gray => 0,
+            PngColor::GrayAlpha => 4,
             PngColor::Rgba => 6,
         };
         ihdr.extend_from_slice(&[T::BITS, color_type, 0, 0, 0]);

@@ -41,7 +41,7 @@ pub struct Georef {
     pub gdal_nodata: Option<String>,
 }
 
-/// What bake.json reports of the georeferencing.
+/// What bake.json (and the service's bake resource) reports of the georeferencing.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct GeorefReport {
     /// `projected`, `geographic` or `unknown` (GTModelTypeGeoKey).

@@ -144,6 +144,9 @@ pub struct BakeRecord {
     /// fraction rather than 0.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub stopped_at: Option<LiveProgress>,
+    /// The input's georeferencing (a GeoTIFF DEM), as bake.json reports it: read at submission.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub georeferencing: Option<serde_json::Value>,
 }
 
 /// Progress as a worker reports it: the stage and the fraction of that stage done.
@@ -695,6 +698,7 @@ mod tests {
             worker: None,
             formats: None,
             stopped_at: None,
+            georeferencing: None,
         }
     }
 

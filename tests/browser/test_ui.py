@@ -13,7 +13,9 @@ repeats the map; dragging the light changes the readout and the image, which sti
 code and detail in an alert, a parameter's message next to its field, 429 with Retry-After);
 Cancel stops a bake; every download link answers 200 with its content type; the list links to
 bakes by `#id`; without WebGL2 the CPU preview is shown; with --api-key the page works once the
-key is entered, progress included.
+key is entered, progress included. Issue 24: a GeoTIFF DEM (made with rasterio) is sent
+without height_scale/edge, gets the DEM defaults, shows its CRS and cell size, and its SVF and
+the shadow of a sun the user sets are shown with the values of the server's GeoTIFFs.
 
 Run: HORIZON_BIN=target/debug/horizon-bake python -m pytest -q tests/browser
 """
@@ -794,3 +796,138 @@ def test_progress_and_errors_are_in_view_at_1280x900(browser, srv):
         p.assert_no_errors(allow_http_errors=True)
     finally:
         p.close()
+
+
+def _dem_geotiff() -> bytes:
+    """A small projected DEM as a GIS user has it: float32, EPSG:32632, 30 m cells, nodata -9999
+    in one corner; a north-south ridge so a low sun casts a shadow."""
+    import rasterio
+    from rasterio.io import MemoryFile
+    from rasterio.transform import from_origin
+
+    h, w = 40, 48
+    y, x = np.mgrid[0:h, 0:w].astype(np.float32)
+    dem = (300.0 + 250.0 * np.exp(-((x - 20.0) ** 2) / 10.0) + 1.5 * y).astype(np.float32)
+    dem[:3, :4] = -9999.0
+    with MemoryFile() as mem:
+        with mem.open(driver="GTiff", width=w, height=h, count=1, dtype="float32",
+                      crs=rasterio.crs.CRS.from_epsg(32632), nodata=-9999.0,
+                      transform=from_origin(500000.0, 5500000.0, 30.0, 30.0)) as ds:
+            ds.write(dem, 1)
+        return mem.read()
+
+
+def _shown_image(page, img_id: str) -> np.ndarray:
+    """What the page shows in <img id=img_id>, drawn to a canvas at its natural size: (grey,
+    alpha) per pixel, rows from the top."""
+    from harness import decode_rgba
+
+    px = page.evaluate(
+        """id => {
+          const img = document.getElementById(id);
+          const c = document.createElement('canvas');
+          c.width = img.naturalWidth;
+          c.height = img.naturalHeight;
+          const g = c.getContext('2d');
+          g.drawImage(img, 0, 0);
+          const b = g.getImageData(0, 0, c.width, c.height).data;
+          let s = '';
+          for (let i = 0; i < b.length; i += 0x8000) s += String.fromCharCode(...b.subarray(i, i + 0x8000));
+          return { width: c.width, height: c.height, rgba: btoa(s) };
+        }""", img_id)
+    rgba = decode_rgba(px)
+    assert np.array_equal(rgba[..., 0], rgba[..., 1]) and np.array_equal(rgba[..., 0], rgba[..., 2])
+    return np.stack([rgba[..., 0], rgba[..., 3]], axis=-1)
+
+
+def _read_geotiff(body: bytes):
+    from rasterio.io import MemoryFile
+
+    with MemoryFile(body) as mem, mem.open() as ds:
+        return ds.read(1), ds.nodata, ds.crs.to_epsg()
+
+
+def test_dem_gets_its_defaults_crs_svf_and_shadow(browser, srv):
+    """Issue 24: a GeoTIFF DEM dropped on the page is sent without height_scale/edge (the server
+    resolves 1/30 and none), the page shows its CRS and cell size, and the SVF and the shadow of
+    a sun the user sets appear with the values of the server's GeoTIFFs (read by GDAL)."""
+    if os.environ.get("CI") == "true":
+        import rasterio  # noqa: F401  (CI installs it: .ci/run)
+    else:
+        pytest.importorskip("rasterio")
+    p = Page(browser, srv.url + "/")
+    page = p.page
+    payload = {"name": "dem_utm.tif", "mimeType": "image/tiff", "buffer": _dem_geotiff()}
+    page.set_input_files("#file", payload)
+    page.wait_for_function("() => document.getElementById('file-info').textContent.includes('48 × 40')")
+    assert "DEM: defaults from the file" in page.text_content("#dem-info")
+    assert page.is_checked("#p-dem")
+    assert page.is_disabled("#p-height_scale") and page.is_disabled("#p-edge")
+    set_params(page, {"method": "exact", "radius": "unlimited"})
+    page.set_checked("#p-out-terrain", True)
+    with page.expect_response(lambda r: r.request.method == "POST" and "/v1/bakes" in r.url) as info:
+        page.click("#bake")
+    res = info.value
+    assert res.status == 202, res.text()
+    query = res.request.url.split("?", 1)[1]
+    assert "height_scale" not in query and "edge" not in query, query
+    assert "outputs=horizon%2Cangles%2Csvf" in query, query
+    bake_id = bake_id_of(res)
+    status, bake = srv.json(f"/v1/bakes/{bake_id}")
+    assert status == 200
+    assert bake["params"]["edge"] == "none", bake["params"]
+    assert abs(bake["params"]["height_scale"] - 1 / 30) < 1e-12, bake["params"]
+    assert bake["georeferencing"]["epsg"] == 32632, bake
+    # The page shows the server's CRS and cell size.
+    page.wait_for_function(
+        "() => document.getElementById('dem-info').dataset.epsg === '32632'", timeout=60_000)
+    dem_text = page.text_content("#dem-info")
+    assert "EPSG:32632" in dem_text and "cell size 30 metre" in dem_text, dem_text
+    assert "edge none" in dem_text, dem_text
+    meta = page.text_content("#meta")
+    assert "EPSG:32632" in meta and "30 metre" in meta, meta
+
+    # The SVF appears once the bake succeeded; its pixels are the GeoTIFF's values on 8 bits.
+    page.wait_for_selector("#svf-image[data-query]", state="visible", timeout=600_000)
+    shown = _shown_image(page, "svf-image")
+    status, _, body = srv.request(f"/v1/bakes/{bake_id}/svf")
+    assert status == 200
+    svf, nodata, epsg = _read_geotiff(body)
+    assert epsg == 32632 and nodata == -9999.0
+    assert shown.shape == svf.shape + (2,), (shown.shape, svf.shape)
+    hole = svf == nodata
+    assert hole[0, 0] and hole[2, 3] and not hole[10, 10]
+    want = np.floor(svf.astype(np.float64) * 255 + 0.5).clip(0, 255).astype(np.uint8)
+    for r, c in [(0, 0), (2, 3), (10, 10), (20, 20), (39, 47), (5, 30)]:
+        if hole[r, c]:
+            assert shown[r, c, 1] == 0, (r, c, shown[r, c])
+        else:
+            assert tuple(shown[r, c]) == (want[r, c], 255), (r, c, shown[r, c], svf[r, c])
+    assert np.array_equal(shown[..., 1] == 0, hole)
+    assert np.array_equal(shown[..., 0][~hole], want[~hole])
+    assert want[~hole].min() < 250, "the ridge occludes part of the sky"
+
+    # The shadow of a low sun from the west (azimuth 180° counted from east).
+    page.fill("#sun-azimuth", "180")
+    page.fill("#sun-elevation", "10")
+    page.click("#show-shadow")
+    page.wait_for_selector("#shadow-image[data-query*='sun_elevation=10']", state="visible",
+                           timeout=120_000)
+    shown = _shown_image(page, "shadow-image")
+    status, _, body = srv.request(f"/v1/bakes/{bake_id}/shadow?sun_azimuth=180&sun_elevation=10")
+    assert status == 200
+    shadow, nodata, epsg = _read_geotiff(body)
+    assert epsg == 32632 and nodata == 255
+    want = np.where(shadow == 1, 255, 0).astype(np.uint8)
+    for r, c in [(0, 0), (10, 10), (20, 25), (20, 30), (39, 47)]:
+        if shadow[r, c] == 255:
+            assert shown[r, c, 1] == 0, (r, c)
+        else:
+            assert tuple(shown[r, c]) == (want[r, c], 255), (r, c, shown[r, c], shadow[r, c])
+    assert np.array_equal(shown[..., 1] == 0, shadow == 255)
+    ok = shadow != 255
+    assert np.array_equal(shown[..., 0][ok], want[ok])
+    assert (shadow == 0).sum() > 0 and (shadow == 1).sum() > 0, "a 10° sun shadows part of it"
+    assert "azimuth 180°, elevation 10°" in page.text_content("#shadow-caption")
+    p.assert_no_errors()
+    p.close()

@@ -356,7 +356,7 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
     // A DEM's defaults (SPEC §2: cell size, height_scale, edge, curvature) are resolved here,
     // so the stored parameters, the dedup key and the bake resource show what will be baked.
     let limits = st.0.config.limits;
-    let (bytes, params, (fmt, width, height)) = blocking(move || {
+    let (bytes, params, ((fmt, width, height), georef)) = blocking(move || {
         let mut params = params;
         let probed = heightmap::check_submission_for(&bytes, &mut params, &limits)?;
         Ok((bytes, params, probed))
@@ -408,6 +408,7 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
         worker: None,
         formats: Some(worker::formats_field(&formats)),
         stopped_at: None,
+        georeferencing: georef.and_then(|g| serde_json::to_value(g).ok()),
     };
     let (status, rec) = match st.0.jobs.submit(bytes, rec).await.map_err(store_err)? {
         Submitted::Created(rec) => {

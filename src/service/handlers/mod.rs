@@ -189,6 +189,9 @@ pub struct BakeResource {
     /// Result formats: what the submission asked to encode with the bake, and what is stored
     /// (the rest is encoded on its first request).
     pub formats: FormatsView,
+    /// The input's georeferencing (a GeoTIFF DEM: model, EPSG code or citation, transform,
+    /// cell size, units), null for a plain image.
+    pub georeferencing: Option<Value>,
     pub links: std::collections::BTreeMap<String, String>,
 }
 
@@ -283,6 +286,7 @@ impl BakeResource {
                 requested: rec.formats.clone().unwrap_or_else(|| "png8".into()),
                 stored: rec.results.keys().cloned().collect(),
             },
+            georeferencing: rec.georeferencing.clone(),
             links,
         }
     }

@@ -146,7 +146,8 @@ pub async fn preview(
 
 /// `GET /v1/bakes/{id}/shadow?…`: the sun shadow (SPEC §3.7) of the bake's stored input with its
 /// resolved parameters, as a uint8 GeoTIFF, for `sun_azimuth` + `sun_elevation` or `sun_time` +
-/// `latitude` + `longitude` (NREL SPA). Computed on request on the preview pool, like a preview;
+/// `latitude` + `longitude` (NREL SPA); `format=png` for an 8-bit grey + alpha PNG a browser
+/// shows (lit 255, shadow 0, holes transparent). Computed on request on the preview pool, like a preview;
 /// its strong ETag is known before computing.
 pub async fn shadow(
     State(st): State<AppState>,
@@ -155,6 +156,8 @@ pub async fn shadow(
     headers: HeaderMap,
 ) -> Answer {
     const KEYS: &[&str] = &["sun_azimuth", "sun_elevation", "sun_time", "latitude", "longitude"];
+    let mut q = q;
+    let as_png = results::take_terrain_format(&mut q)?;
     let q = known_query(q, KEYS)?;
     let rec = finished(&st, &id).await?;
     let params = params_of(&rec).map_err(store_err)?;
@@ -170,8 +173,12 @@ pub async fn shadow(
     )
     .map_err(Problem::from)?;
     let bake_params: Vec<String> = rec.params.iter().map(|(k, v)| format!("{k}={v}")).collect();
-    let etag =
-        derived_etag(&["shadow", &rec.input_blob, &bake_params.join("&"), &format!("{az}|{el}")]);
+    let etag = derived_etag(&[
+        "shadow",
+        &rec.input_blob,
+        &bake_params.join("&"),
+        &format!("{az}|{el}|{as_png}"),
+    ]);
     const SHADOW_CACHE: &str = "private, max-age=86400";
     if etag_matches(&headers, &etag) {
         let mut res = StatusCode::NOT_MODIFIED.into_response();
@@ -190,12 +197,17 @@ pub async fn shadow(
         )?
         .0;
         crate::heightmap::georef::apply_dem_defaults(&mut params, map.terrain.georef.as_ref())?;
-        crate::pipeline::shadow_tif(&map, &params, az, el, &progress)
+        if as_png {
+            crate::pipeline::shadow_png(&map, &params, az, el, &progress)
+        } else {
+            crate::pipeline::shadow_tif(&map, &params, az, el, &progress)
+        }
     })
     .await?;
     let mut r = Response::new(Body::from(tif));
-    r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static("image/tiff"));
-    if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"shadow_{id}.tif\"")) {
+    let (ct, ext) = if as_png { ("image/png", "png") } else { ("image/tiff", "tif") };
+    r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(ct));
+    if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"shadow_{id}.{ext}\"")) {
         r.headers_mut().insert(header::CONTENT_DISPOSITION, v);
     }
     cache_headers(&mut r, &etag, SHADOW_CACHE);

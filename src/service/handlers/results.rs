@@ -438,14 +438,70 @@ pub async fn angles(
     terrain_product(&st, &id, q, &headers, "angles.tif", "angles").await
 }
 
-/// `GET /v1/bakes/{id}/svf`: `svf.tif`, the sky-view factor (SPEC §3.7).
+/// `GET /v1/bakes/{id}/svf`: `svf.tif`, the sky-view factor (SPEC §3.7); `format=png` renders
+/// it as an 8-bit grey + alpha PNG for a browser ([`crate::pipeline::svf_png`], on the preview
+/// pool), its strong ETag derived from the stored file's.
 pub async fn svf(
     State(st): State<AppState>,
     Path(id): Path<String>,
     Query(q): Query<Vec<(String, String)>>,
     headers: HeaderMap,
 ) -> Answer {
-    terrain_product(&st, &id, q, &headers, "svf.tif", "svf").await
+    let mut q = q;
+    let format = take_terrain_format(&mut q)?;
+    if !format {
+        return terrain_product(&st, &id, q, &headers, "svf.tif", "svf").await;
+    }
+    known_query(q, &[])?;
+    let rec = finished(&st, &id).await?;
+    let Some(hash) = rec.results.get("svf.tif").cloned() else {
+        return Err(not_produced(&id, "svf"));
+    };
+    let etag = derived_etag(&["svf.png", &hash]);
+    if etag_matches(&headers, &etag) {
+        let mut res = StatusCode::NOT_MODIFIED.into_response();
+        cache_headers(&mut res, &etag, IMMUTABLE_CACHE);
+        return Ok(res);
+    }
+    let png = previews::on_pool(&st, &format!("the svf image of bake {id}"), move |st| {
+        let tif = st.0.jobs.blob_store().get(&hash)?.ok_or_else(|| {
+            crate::Error::Internal(format!("result blob {hash} is missing from the blob store"))
+        })?;
+        crate::pipeline::svf_png(&tif)
+    })
+    .await?;
+    let mut r = Response::new(Body::from(png));
+    r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static("image/png"));
+    if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"svf_{id}.png\"")) {
+        r.headers_mut().insert(header::CONTENT_DISPOSITION, v);
+    }
+    cache_headers(&mut r, &etag, IMMUTABLE_CACHE);
+    Ok(r)
+}
+
+/// Takes `format` (`geotiff`, the default, or `png`) out of a terrain route's query: `true` for
+/// `png`.
+pub(super) fn take_terrain_format(q: &mut Vec<(String, String)>) -> Result<bool, Problem> {
+    let mut png = None;
+    let mut err = None;
+    q.retain(|(k, v)| {
+        if k != "format" {
+            return true;
+        }
+        if png.is_some() {
+            err = Some(Problem::param("format", "given more than once"));
+        }
+        match v.as_str() {
+            "geotiff" => png = Some(false),
+            "png" => png = Some(true),
+            _ => err = Some(Problem::param("format", format!("`{v}` is not geotiff or png"))),
+        }
+        false
+    });
+    match err {
+        Some(e) => Err(e),
+        None => Ok(png.unwrap_or(false)),
+    }
 }
 
 /// `GET /v1/bakes/{id}/fourier/{layer}`: `fourier_{layer}.png` as the CLI writes it (layer 0:

@@ -205,6 +205,12 @@ async function tiff(file, dv) {
       }
     } else if (tag === 277) spp = value;
     else if (tag === 339) info.float = value === 3;
+    else if (tag === 34735) info.geoKeys = true; // GeoKeyDirectory: a GeoTIFF (SPEC §2)
+    else if (tag === 33550 && type === 12 && u32(ifd, o + 4) >= 2) {
+      // ModelPixelScale: DOUBLEs at an offset; the first is the cell width in map units.
+      const at = await read(u32(ifd, o + 8), 8);
+      if (at.byteLength === 8) info.pixelScale = at.getFloat64(0, le);
+    }
   }
   info.color = { 1: 'gray', 2: 'gray+alpha', 3: 'rgb', 4: 'rgba' }[spp] || `${spp} samples`;
   return info;
@@ -402,6 +408,7 @@ const state = {
   previewFor: '',
   retryTimer: 0,
   range: null,         // {min, max} of the chosen PNG's normalised heights
+  terrainFor: '',      // id whose SVF the terrain panel shows
   size: undefined,     // render size (longer side) in `display` resolution, else native
 };
 
@@ -503,6 +510,18 @@ function syncForm() {
   const fourier = $('p-out-fourier').checked;
   $('p-fourier_terms').disabled = !fourier;
   $('p-fourier_range').disabled = !fourier;
+  // A DEM's defaults come from the file (SPEC §2): the page sends no height_scale or edge, so
+  // the server resolves them (cell size, 1/cell size, none).
+  const dem = $('p-dem').checked;
+  $('p-height_scale').disabled = dem;
+  $('p-edge').disabled = dem;
+}
+
+/** Shows the DEM row of the form, ticked, for a TIFF (a DEM until the server says otherwise). */
+function showDemRow(show, checked) {
+  for (const e of document.querySelectorAll('.dem-row')) e.hidden = !show;
+  $('p-dem').checked = show && checked;
+  syncForm();
 }
 
 /** The form's parameters as strings, only the enabled fields. */
@@ -514,7 +533,7 @@ function formParams() {
       const mode = $('p-radius-mode').value;
       p.radius = mode === 'texels' ? $('p-radius').value.trim() : mode;
     } else if (f === 'outputs') {
-      p.outputs = [['horizon', 'p-out-horizon'], ['fourier', 'p-out-fourier']]
+      p.outputs = [['horizon', 'p-out-horizon'], ['fourier', 'p-out-fourier'], ['angles,svf', 'p-out-terrain']]
         .filter(([, id]) => $(id).checked).map(([n]) => n).join(',');
     } else if (input && !input.disabled) {
       p[f] = String(input.value).trim();
@@ -543,6 +562,8 @@ function resetForm() {
   }
   $('p-out-horizon').checked = true;
   $('p-out-fourier').checked = false;
+  $('p-out-terrain').checked = false;
+  $('p-dem').checked = !$('dem-l').hidden;
   syncForm();
   clearErrors();
 }
@@ -570,12 +591,13 @@ function loadForm(p) {
   const outs = outputsOf(p);
   $('p-out-horizon').checked = outs.includes('horizon');
   $('p-out-fourier').checked = outs.includes('fourier');
+  $('p-out-terrain').checked = outs.includes('angles') || outs.includes('svf');
   syncForm();
   clearErrors();
   showRelief();
 }
 
-for (const id of ['p-radius-mode', 'p-method', 'p-out-fourier', 'p-out-horizon']) {
+for (const id of ['p-radius-mode', 'p-method', 'p-out-fourier', 'p-out-horizon', 'p-dem']) {
   $(id).addEventListener('change', syncForm);
 }
 $('reset').addEventListener('click', resetForm);
@@ -652,6 +674,24 @@ async function measureRelief() {
 $('p-height_scale').addEventListener('input', showRelief);
 $('p-channel').addEventListener('change', measureRelief);
 
+/**
+ * A TIFF (by its magic number or its name) may be a GeoTIFF DEM: the form then sends no
+ * height_scale or edge, and the server resolves the DEM defaults (SPEC §2); the CRS and cell
+ * size shown are the server's, once the bake resource answers.
+ */
+function showFileDem(file, h) {
+  const tiffFile = (h && h.format === 'tiff') || (!h && /\.tiff?$/i.test(file.name));
+  showDemRow(tiffFile, tiffFile);
+  const out = $('dem-info');
+  out.hidden = !tiffFile;
+  delete out.dataset.epsg;
+  delete out.dataset.cellSize;
+  if (!tiffFile) return;
+  out.textContent = h && h.geoKeys
+    ? `DEM: defaults from the file (GeoTIFF${h.pixelScale ? `, ${h.pixelScale} map units per cell` : ''}); the CRS and cell size show once the server has it.`
+    : 'DEM: defaults from the file, if it is a GeoTIFF (the server decides).';
+}
+
 async function chooseFile(file) {
   state.file = file;
   state.range = null;
@@ -675,12 +715,14 @@ async function chooseFile(file) {
     info.textContent = `${file.name}: ${h.width} × ${h.height}, ${h.format.toUpperCase()} ${h.color} ${depth}, ${fmtBytes(file.size)}`;
     info.dataset.width = h.width;
     info.dataset.height = h.height;
+    showFileDem(file, h);
     if (over.length) {
       info.className = 'err';
       info.textContent += ` — over the server's limits (${over.join('; ')}): it will be refused.`;
     }
   } catch (e) {
     state.fileInfo = null;
+    showFileDem(file, null);
     info.className = 'err';
     info.textContent = `${file.name} (${fmtBytes(file.size)}): ${e.message}; the server will refuse it.`;
   }
@@ -889,6 +931,11 @@ function showMeta(res) {
   row('radius', rr ? `${rr.texels} texels (asked: ${p.radius}) — ${rr.reason}` : String(p.radius ?? '?'));
   row('surface', `height_scale ${p.height_scale}, channel ${p.channel}, edge ${p.edge}, y_axis ${p.y_axis}`);
   row('encoding', `${p.encoding}, outputs ${outputsOf(p).join(', ')}`);
+  const g = res.georeferencing;
+  if (g) {
+    row('CRS', `${crsName(g)} (${g.model})`);
+    row('cell size', g.cell_size ? `${g.cell_size} ${g.units || 'map units'}` : '—');
+  }
   if (res.timings_ms) {
     row('timings', Object.entries(res.timings_ms).map(([k, v]) => `${k} ${Number(v).toFixed(1)} ms`).join(', '));
   }
@@ -999,10 +1046,119 @@ function showBake(res) {
   // Opened by #id, from the list, or just submitted: the form shows what this bake used.
   if (changed) loadForm(res.params);
   if (res.status === 'succeeded' && (changed || state.loadedId !== res.id)) loadViewer(res);
+  showDem(res);
+  showTerrain(res);
   if (res.status === 'failed' && res.error) {
     showError({ code: res.error.code || 'failed', detail: res.error.detail || res.error.message || JSON.stringify(res.error) }, `bake ${res.id} failed`);
   }
 }
+
+// --- DEM and terrain products -----------------------------------------------------------------
+
+function crsName(g) {
+  if (g.epsg) return `EPSG:${g.epsg}`;
+  return g.citation || 'unknown CRS';
+}
+
+/** The CRS, cell size and resolved DEM defaults of a bake's input, from its resource. */
+function showDem(res) {
+  const out = $('dem-info');
+  const g = res.georeferencing;
+  const p = res.params || {};
+  if (!g) {
+    if (res.input && res.input.format === 'tiff' && !out.hidden) {
+      out.textContent = 'TIFF without georeferencing: the plain-image defaults apply.';
+      delete out.dataset.epsg;
+      delete out.dataset.cellSize;
+    } else {
+      out.hidden = true;
+    }
+    return;
+  }
+  out.hidden = false;
+  out.dataset.epsg = g.epsg ? String(g.epsg) : '';
+  out.dataset.cellSize = g.cell_size ? String(g.cell_size) : '';
+  const cell = g.cell_size ? `cell size ${g.cell_size} ${g.units || 'map units'}` : 'no cell size';
+  out.textContent = `DEM: ${crsName(g)} (${g.model}), ${cell}; height_scale ${p.height_scale}, edge ${p.edge}.`;
+  // A DEM bake opened by #id: re-baking it keeps the file's defaults.
+  if ($('dem-l').hidden) showDemRow(true, true);
+}
+
+/** The terrain panel of a succeeded bake: its SVF (when baked) and the shadow of a sun. */
+function showTerrain(res) {
+  const sec = $('terrain');
+  if (res.status !== 'succeeded') {
+    sec.hidden = true;
+    return;
+  }
+  sec.hidden = false;
+  const p = res.params || {};
+  const hasSvf = outputsOf(p).includes('svf');
+  $('show-svf').disabled = !hasSvf;
+  $('sun-azimuth').title = `degrees, counted ${p.azimuth_from === 'north_cw' ? 'clockwise from north' : 'counter-clockwise from east'} (the bake's azimuth_from)`;
+  if (state.terrainFor !== res.id) {
+    state.terrainFor = res.id;
+    for (const id of ['svf', 'shadow']) {
+      $(`${id}-fig`).hidden = true;
+      const img = $(`${id}-image`);
+      if (img.src.startsWith('blob:')) URL.revokeObjectURL(img.src);
+      img.removeAttribute('src');
+      delete img.dataset.query;
+    }
+    $('terrain-note').textContent = hasSvf ? ''
+      : 'No sky-view factor in this bake: tick “terrain products” and bake again. The shadow works for any bake.';
+    if (hasSvf) showTerrainImage('svf', 'format=png', `sky-view factor (${p.svf_model || 'radiative'}): black 0, white 1; clear = nodata`);
+  }
+}
+
+/** Loads a terrain rendering (`svf` or `shadow`) of the current bake into its figure. */
+async function showTerrainImage(kind, query, caption) {
+  const bake = state.bake;
+  if (!bake) return;
+  const img = $(`${kind}-image`);
+  $(`${kind}-caption`).textContent = `${caption} — loading…`;
+  try {
+    const url = await blobUrl(`/v1/bakes/${encodeURIComponent(bake.id)}/${kind}?${query}`);
+    if (!state.bake || state.bake.id !== bake.id) {
+      URL.revokeObjectURL(url);
+      return;
+    }
+    await new Promise((resolve, reject) => {
+      img.addEventListener('load', resolve, { once: true });
+      img.addEventListener('error', () => reject(new Error(`the ${kind} image did not decode`)), { once: true });
+      const old = img.src;
+      img.src = url;
+      if (old.startsWith('blob:')) URL.revokeObjectURL(old);
+    });
+    img.dataset.query = query;
+    $(`${kind}-fig`).hidden = false;
+    $(`${kind}-caption`).textContent = caption;
+  } catch (e) {
+    $(`${kind}-caption`).textContent = '';
+    showError(e, kind);
+  }
+}
+
+$('show-svf').addEventListener('click', () => {
+  const p = (state.bake && state.bake.params) || {};
+  showTerrainImage('svf', 'format=png', `sky-view factor (${p.svf_model || 'radiative'}): black 0, white 1; clear = nodata`);
+});
+
+$('show-shadow').addEventListener('click', () => {
+  clearErrors();
+  const az = Number($('sun-azimuth').value);
+  const elev = Number($('sun-elevation').value);
+  if ($('sun-azimuth').value.trim() === '' || !Number.isFinite(az)) {
+    showError({ code: 'invalid_parameter', field: null, detail: 'sun azimuth: give a number of degrees' }, 'shadow');
+    return;
+  }
+  if ($('sun-elevation').value.trim() === '' || !Number.isFinite(elev) || elev < -90 || elev > 90) {
+    showError({ code: 'invalid_parameter', field: null, detail: 'sun elevation: give degrees between -90 and 90' }, 'shadow');
+    return;
+  }
+  const q = new URLSearchParams({ sun_azimuth: String(az), sun_elevation: String(elev), format: 'png' });
+  showTerrainImage('shadow', q.toString(), `sun shadow at azimuth ${az}°, elevation ${elev}°: white lit, black shadowed; clear = nodata`);
+});
 
 // --- recent bakes ---------------------------------------------------------------------------
 
