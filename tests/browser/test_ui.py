@@ -412,13 +412,15 @@ def test_queue_full_shows_retry_after(browser, srv):
 
 
 def test_cancel_stops_a_running_bake(browser, srv):
-    # A map no earlier test baked (no deduplication), slow on one thread.
+    # A map no earlier test baked (no deduplication), slow on one thread: 768² (exact, unlimited,
+    # 64 bins), since a 192² bake on an idle machine finished before the page's Cancel was
+    # clicked (the DELETE then answered 204, removing a finished bake).
     rng = np.random.default_rng(13)
     import io
 
     from PIL import Image
 
-    img = (rng.random((192, 192)) * 65535).astype(np.uint16)
+    img = (rng.random((768, 768)) * 65535).astype(np.uint16)
     buf = io.BytesIO()
     Image.fromarray(img).save(buf, format="PNG")
     p = Page(browser, srv.url + "/")
