@@ -48,17 +48,7 @@ async fn texture_variants_are_query_parameters_encoded_once() {
     let c = client();
     let png = terrain_png16(40, 28, 3);
     let pairs = [("radius", "6"), ("height_scale", "10")];
-    let res = c
-        .post(srv.url(&format!("/v1/bakes?{}", query(&pairs))))
-        .header("content-type", "image/png")
-        .body(png.clone())
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(res.status(), 202);
-    let loc = res.headers()["location"].to_str().unwrap().to_owned();
-    let done = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
-    assert_eq!(done["status"], "succeeded", "{done}");
+    let loc = submit_png_done(&c, &srv, &query(&pairs), &png).await;
 
     let bc7 = [("texture_precision", "bc7"), ("mips", "full"), ("supercompression", "zstd")];
     let bc5 = [
@@ -172,17 +162,7 @@ async fn rebake_variants_over_http() {
     let c = client();
     let png = terrain_png16(36, 20, 5);
     let pairs = [("radius", "6"), ("height_scale", "10")];
-    let res = c
-        .post(srv.url(&format!("/v1/bakes?{}", query(&pairs))))
-        .header("content-type", "image/png")
-        .body(png.clone())
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(res.status(), 202);
-    let loc = res.headers()["location"].to_str().unwrap().to_owned();
-    let done = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
-    assert_eq!(done["status"], "succeeded", "{done}");
+    let loc = submit_png_done(&c, &srv, &query(&pairs), &png).await;
     let rebake = [("mips", "full"), ("mip_filter", "rebake")];
     for (route, list) in [("horizon.ktx2", "ktx2"), ("horizon.dds", "dds")] {
         let before = encoded(&c, &srv).await;

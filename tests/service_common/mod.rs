@@ -196,6 +196,23 @@ pub async fn get_result(c: &reqwest::Client, url: &str) -> reqwest::Response {
     }
 }
 
+/// POSTs `png` as a raw `image/png` body with `query`, expects 202, waits until the bake
+/// succeeded and returns its `Location`.
+pub async fn submit_png_done(c: &reqwest::Client, srv: &Server, query: &str, png: &[u8]) -> String {
+    let res = c
+        .post(srv.url(&format!("/v1/bakes?{query}")))
+        .header("content-type", "image/png")
+        .body(png.to_vec())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(res.status(), 202, "{query}");
+    let loc = res.headers()["location"].to_str().unwrap().to_owned();
+    let done = wait_done(c, &srv.url(&loc), Duration::from_secs(60)).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    loc
+}
+
 /// Polls `GET url` until `status` is terminal; returns the resource.
 pub async fn wait_done(c: &reqwest::Client, url: &str, limit: Duration) -> Value {
     let t = Instant::now();

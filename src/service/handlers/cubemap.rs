@@ -38,6 +38,25 @@ pub(super) fn cache_headers(res: &mut Response, etag: &str, cache_control: &'sta
     res.headers_mut().insert(header::CACHE_CONTROL, HeaderValue::from_static(cache_control));
 }
 
+/// Bytes computed in memory, answered with their type, an inline file name, `ETag` and
+/// `Cache-Control`: the one shape of every computed download (cube maps, previews, shadows,
+/// SVF renderings).
+pub(super) fn computed_response(
+    body: Vec<u8>,
+    content_type: &'static str,
+    filename: &str,
+    etag: &str,
+    cache_control: &'static str,
+) -> Response {
+    let mut res = Response::new(Body::from(body));
+    res.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
+    if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"{filename}\"")) {
+        res.headers_mut().insert(header::CONTENT_DISPOSITION, v);
+    }
+    cache_headers(&mut res, etag, cache_control);
+    res
+}
+
 /// Cube maps depend only on the size and the format: cacheable by anyone for a day, and
 /// revalidated by the derived ETag without re-encoding.
 pub(super) const CUBE_CACHE: &str = "public, max-age=86400";
@@ -74,13 +93,7 @@ pub(super) async fn cube_answer(
     })
     .await
     .map_err(store_err)?;
-    let mut res = Response::new(Body::from(file.bytes));
-    res.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
-    if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"{}\"", file.name)) {
-        res.headers_mut().insert(header::CONTENT_DISPOSITION, v);
-    }
-    cache_headers(&mut res, &etag, CUBE_CACHE);
-    Ok(res)
+    Ok(computed_response(file.bytes, content_type, file.name, &etag, CUBE_CACHE))
 }
 
 /// `GET /v1/cubemap/{face}?size=N`: one face of the channel-factor cube map, RGBA8 UNORM PNG.

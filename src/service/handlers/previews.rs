@@ -135,13 +135,7 @@ pub async fn preview(
         preview::render_baking(&map, &params, &pp, &progress)?.to_png()
     })
     .await?;
-    let mut r = Response::new(Body::from(png));
-    r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static("image/png"));
-    if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"preview_{id}.png\"")) {
-        r.headers_mut().insert(header::CONTENT_DISPOSITION, v);
-    }
-    cache_headers(&mut r, &etag, PREVIEW_CACHE);
-    Ok(r)
+    Ok(computed_response(png, "image/png", &format!("preview_{id}.png"), &etag, PREVIEW_CACHE))
 }
 
 /// `GET /v1/bakes/{id}/shadow?…`: the sun shadow (SPEC §3.7) of the bake's stored input with its
@@ -204,14 +198,8 @@ pub async fn shadow(
         }
     })
     .await?;
-    let mut r = Response::new(Body::from(tif));
     let (ct, ext) = if as_png { ("image/png", "png") } else { ("image/tiff", "tif") };
-    r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(ct));
-    if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"shadow_{id}.{ext}\"")) {
-        r.headers_mut().insert(header::CONTENT_DISPOSITION, v);
-    }
-    cache_headers(&mut r, &etag, SHADOW_CACHE);
-    Ok(r)
+    Ok(computed_response(tif, ct, &format!("shadow_{id}.{ext}"), &etag, SHADOW_CACHE))
 }
 
 /// `GET /v1/bakes/{id}/profile?x=&y=` (texel column and row) or `?easting=&northing=` (map

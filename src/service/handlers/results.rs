@@ -470,13 +470,7 @@ pub async fn svf(
         crate::pipeline::svf_png(&tif)
     })
     .await?;
-    let mut r = Response::new(Body::from(png));
-    r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static("image/png"));
-    if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"svf_{id}.png\"")) {
-        r.headers_mut().insert(header::CONTENT_DISPOSITION, v);
-    }
-    cache_headers(&mut r, &etag, IMMUTABLE_CACHE);
-    Ok(r)
+    Ok(computed_response(png, "image/png", &format!("svf_{id}.png"), &etag, IMMUTABLE_CACHE))
 }
 
 /// Takes `format` (`geotiff`, the default, or `png`) out of a terrain route's query: `true` for
