@@ -114,7 +114,8 @@ pub fn make_kernel_for<'a>(
         // `unlimited` is max(W, H) texels here, as for Lengyel: a march's cost grows with R.
         Method::March => Box::new(
             kernels::march::March::new(grid, radius, params.bins, params.reduce)
-                .with_cancel(progress),
+                .with_cancel(progress)
+                .with_curvature(curvature(params)),
         ),
     }
 }

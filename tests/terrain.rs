@@ -101,6 +101,10 @@ fn dem_defaults_apply_unless_given() {
     let mut p = params(&[("earth_curvature", "on")]);
     let e = apply_dem_defaults(&mut p, Some(&g)).unwrap_err();
     assert!(matches!(&e, Error::Param { field, .. } if field == "earth_curvature"), "{e}");
+    // The march casts rays: on by default for a DEM, as for exact.
+    let mut p = params(&[("method", "march"), ("radius", "64")]);
+    apply_dem_defaults(&mut p, Some(&g)).unwrap();
+    assert_eq!(p.earth_curvature, horizon_bake::params::EarthCurvature::On);
     // Geographic, non-square: refused naming the fix, unless cell_size is given.
     let geo = utm_georef(0.001, 0.001, 2);
     let e = apply_dem_defaults(&mut params(&[]), Some(&geo)).unwrap_err();

@@ -174,7 +174,7 @@ pub struct ParamFlags {
     /// Radius in map units (needs a cell size); replaces --radius.
     #[arg(long, allow_hyphen_values = true)]
     pub max_distance: Option<String>,
-    /// on or off (default: on for a GeoTIFF DEM with method=exact).
+    /// on or off (default: on for a GeoTIFF DEM with method=exact or march).
     #[arg(long)]
     pub earth_curvature: Option<String>,
     /// Refraction coefficient of the curvature drop (default 0).

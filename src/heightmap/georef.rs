@@ -244,7 +244,8 @@ impl Georef {
 /// georeferencing); `max_distance` or `earth_curvature=on` without a cell size.
 pub fn apply_dem_defaults(params: &mut BakeParams, georef: Option<&Georef>) -> Result<()> {
     let ex = params.explicit;
-    let exact = params.method == crate::params::Method::Exact;
+    // The methods that cast rays, and so can lower far points (lengyel has no ray).
+    let rays = matches!(params.method, crate::params::Method::Exact | crate::params::Method::March);
     let dem = georef.filter(|g| g.is_dem());
     if let Some(g) = dem {
         let cell = match params.cell_size {
@@ -260,17 +261,17 @@ pub fn apply_dem_defaults(params: &mut BakeParams, georef: Option<&Georef>) -> R
         set("cell_size", cell.to_string())?;
         set("height_scale", (1.0 / cell).to_string())?;
         set("edge", "none".into())?;
-        // Only the exact kernel models the drop so far: the other methods keep it off by
-        // default (and refuse it when asked, below).
-        if exact {
+        // Only the ray methods model the drop: the others keep it off by default (and refuse
+        // it when asked, below).
+        if rays {
             set("earth_curvature", "on".into())?;
         }
     }
-    if params.earth_curvature == EarthCurvature::On && params.method != crate::params::Method::Exact
-    {
+    if params.earth_curvature == EarthCurvature::On && !rays {
         return Err(Error::param(
             "earth_curvature",
-            "is modelled by method=exact only so far; use method=exact or earth_curvature=off",
+            "is modelled by the ray methods (exact, march) only; use one of them or \
+             earth_curvature=off",
         ));
     }
     if params.cell_size.is_none() {

@@ -22,6 +22,12 @@
 //! it misses is the top of a bulge between samples. `tests/march.rs` checks the kernel against a
 //! scalar f64 oracle of the same samples and against [`super::exact`] for its tolerance.
 //!
+//! # Earth curvature
+//! With [`March::with_curvature`] a point at arc length s is lowered by c·s² texels (SPEC §3.7,
+//! c as [`ExactHorizon::with_curvature`] takes it), so a sample's ratio (h̃ − h0)/s loses c·s:
+//! one more constant per sample, the same for every lane, folded into the multiply by 1/s as a
+//! fused multiply-add (with c = 0 it adds −0, and the result is the same f32 as without it).
+//!
 //! # Skipping what cannot count
 //! The horizon of a bin is a maximum, so a sample no larger than the best so far changes
 //! nothing. The pieces of a ray are grouped into segments of a few pieces whose cells one or two
@@ -68,12 +74,14 @@ pub const MAX_TILE: usize = 1 << 24;
 /// Height outside the map with `edge=none`.
 const LOW: f32 = f32::MIN;
 
-/// An interior point of a piece: r = rA + α·(rB − rA) + β·twist, ratio = r·inv.
+/// An interior point of a piece: r = rA + α·(rB − rA) + β·twist, ratio = r·inv − drop.
 #[derive(Debug, Clone, Copy, Default)]
 struct Inner {
     alpha: f32,
     beta: f32,
     inv: f32,
+    /// The curvature drop over s at the point, c·s (0 without curvature).
+    drop: f32,
 }
 
 /// One piece of a ray, between two crossings (or a crossing and R) inside one cell. Its end
@@ -90,6 +98,8 @@ struct Piece {
     taps: usize,
     cell: isize,
     inv: f32,
+    /// The curvature drop over s at the end, c·s (0 without curvature).
+    drop: f32,
     inner: [Inner; MAX_INNER],
     /// Interior points in use.
     k: usize,
@@ -164,6 +174,8 @@ pub struct March<'a> {
     isa: Isa,
     fallback: Option<ExactHorizon<'a>>,
     progress: Option<Progress>,
+    /// Earth-curvature drop per texel² (see [`March::with_curvature`]).
+    curv: f64,
     /// Which bins the reduction reads: all of them, or one per channel for `reduce=point`
     /// (unless the per-bin values are asked for, as the Fourier output does).
     cast: Vec<bool>,
@@ -183,12 +195,7 @@ impl<'a> March<'a> {
         let pad = radius as usize + 2;
         let stride = pad + grid.width + pad + STRIP;
         let row_step = grid.row_step();
-        let rays = (0..bins)
-            .map(|n| {
-                let (dx, dy) = exact::direction(n as f64 * 2.0 * PI / bins as f64, row_step);
-                ray_samples(dx, dy, radius as f64, stride as isize)
-            })
-            .collect();
+        let rays = make_rays(bins, row_step, radius, stride, 0.0);
         let (lo, hi) = grid.range();
         let reference = ((lo as f64 + hi as f64) * 0.5) as f32;
         let tol = 64.0 * f32::EPSILON * (hi - reference).abs().max((lo - reference).abs());
@@ -211,6 +218,7 @@ impl<'a> March<'a> {
             isa: Isa::detect(),
             fallback,
             progress: None,
+            curv: 0.0,
             cast,
             all: vec![true; bins],
         }
@@ -220,6 +228,21 @@ impl<'a> March<'a> {
     pub fn with_cancel(mut self, progress: &Progress) -> Self {
         self.fallback = self.fallback.map(|f| f.with_cancel(progress));
         self.progress = Some(progress.clone());
+        self
+    }
+
+    /// Lowers a point at arc length s by `curv`·s² texels (the earth's curvature, SPEC §3.7:
+    /// `curv` = cell_size² · height_scale / (2 R_e), as [`ExactHorizon::with_curvature`] takes
+    /// it; the fallback for huge tiles gets it too). The drop only lowers samples, so a
+    /// segment's bound from the window maxima stays an upper bound and the skips stay exact.
+    pub fn with_curvature(mut self, curv: f64) -> Self {
+        let curv = if curv.is_finite() && curv > 0.0 { curv } else { 0.0 };
+        if curv != self.curv {
+            self.curv = curv;
+            let row_step = self.grid.row_step();
+            self.rays = make_rays(self.bins, row_step, self.radius, self.stride, curv);
+            self.fallback = self.fallback.map(|f| f.with_curvature(curv));
+        }
         self
     }
 
@@ -239,8 +262,11 @@ impl<'a> March<'a> {
 
     /// Fills `tile` with rows `y0 − pad .. y0 + rows + pad` of the map, relative to the
     /// reference height, wrapped or padded with [`LOW`], and `twist` with each cell's
-    /// h00 − h10 − h01 + h11 (the cell whose top-left texel has that index); NaN for a cell with
-    /// a corner off the map, so no interior point of a piece off the surface ever counts; and
+    /// h00 − h10 − h01 + h11 (the cell whose top-left texel has that index); 0 for a cell with
+    /// a corner off the map (an interior point of a piece off the surface lerps an end at
+    /// [`LOW`] and never counts; only a piece along the map's border line, where β = 0, has
+    /// both ends on the surface there, and its interior points are real points of the ray:
+    /// with the curvature drop they can beat both ends, and the slope at s → 0 is one); and
     /// `wmax` with the largest height of the WIN×WIN window whose top-left texel has that index
     /// (clipped at the tile's end). Returns a margin, in height, that covers the f32 rounding
     /// of a sample against the exact bilinear value of its corners (see [`strip_body`]).
@@ -282,7 +308,7 @@ impl<'a> March<'a> {
         }
         let n = tile.len();
         twist.clear();
-        twist.resize(n, f32::NAN);
+        twist.resize(n, 0.0);
         let st = self.stride;
         for i in 0..n.saturating_sub(st + 1) {
             let (a, b, c, d) = (tile[i], tile[i + 1], tile[i + st], tile[i + st + 1]);
@@ -316,9 +342,19 @@ impl<'a> March<'a> {
     }
 }
 
+/// The rays of `bins` azimuths (see [`ray_samples`]).
+fn make_rays(bins: usize, row_step: i64, radius: u32, stride: usize, curv: f64) -> Vec<Ray> {
+    (0..bins)
+        .map(|n| {
+            let (dx, dy) = exact::direction(n as f64 * 2.0 * PI / bins as f64, row_step);
+            ray_samples(dx, dy, radius as f64, stride as isize, curv)
+        })
+        .collect()
+}
+
 /// The pieces of the ray along image direction (`dx`, `dy`) (unit), up to `radius`, as offsets
-/// into tiles of row length `stride`.
-fn ray_samples(dx: f64, dy: f64, radius: f64, stride: isize) -> Ray {
+/// into tiles of row length `stride`, with the curvature drop `curv`·s² (texels).
+fn ray_samples(dx: f64, dy: f64, radius: f64, stride: isize, curv: f64) -> Ray {
     let off = |c: i64, r: i64| r as isize * stride + c as isize;
     let (ax, ay) = (dx.abs(), dy.abs());
     // Grid-line crossings, in order of s, then R.
@@ -374,14 +410,22 @@ fn ray_samples(dx: f64, dy: f64, radius: f64, stride: isize) -> Ray {
                 alpha: (t / len) as f32,
                 beta: (-dx * dy * t * (len - t)) as f32,
                 inv: (1.0 / (prev + t)) as f32,
+                drop: (curv * (prev + t)) as f32,
             };
         }
         if pieces.is_empty() {
             // The slope at s → 0: the derivative of chord − dx·dy·twist·t·(L − t) at t = 0.
-            inner[k] = Inner { alpha: (1.0 / len) as f32, beta: (-dx * dy * len) as f32, inv: 1.0 };
+            // (At s = 0 the drop's slope 2·c·s is 0 too.)
+            inner[k] = Inner {
+                alpha: (1.0 / len) as f32,
+                beta: (-dx * dy * len) as f32,
+                inv: 1.0,
+                drop: 0.0,
+            };
             k += 1;
         }
-        pieces.push(Piece { o, f, taps, cell: off(cx, cy), inv: (1.0 / s) as f32, inner, k });
+        let (inv, drop) = ((1.0 / s) as f32, (curv * s) as f32);
+        pieces.push(Piece { o, f, taps, cell: off(cx, cy), inv, drop, inner, k });
         let (tc1, tr1) = if taps == 4 || fy == 0.0 { (c + 1, r) } else { (c, r) };
         let tr1 = if taps == 4 || fx == 0.0 { tr1.max(r + 1) } else { tr1 };
         let bx = [cx.min(c), cy.min(r), (cx + 1).max(tc1), (cy + 1).max(tr1)];
@@ -504,10 +548,11 @@ fn run<const L: usize, const TAPS: usize, const K: usize, const FMA: bool>(
             let (ra, t) = (r_a[l], tw[l]);
             let d = rb - ra;
             let mut m = best[l];
-            let v = rb * p.inv;
+            let v = madd::<FMA>(rb, p.inv, -p.drop);
             m = if v > m { v } else { m };
             for q in &inner {
-                let v = madd::<FMA>(t, q.beta, madd::<FMA>(d, q.alpha, ra)) * q.inv;
+                let r = madd::<FMA>(t, q.beta, madd::<FMA>(d, q.alpha, ra));
+                let v = madd::<FMA>(r, q.inv, -q.drop);
                 m = if v > m { v } else { m };
             }
             best[l] = m;
@@ -557,6 +602,7 @@ fn strip_body<const L: usize, const FMA: bool>(
                 let w1: &[f32; L] = lanes_at(t.wmax, base, seg.win[1]);
                 let mut any = false;
                 for l in 0..L {
+                    // (The curvature drop only lowers samples: still an upper bound.)
                     let bound = (w0[l].max(w1[l]) - h0[l] + t.tol) * seg.inv_start;
                     any |= bound > best[l];
                 }
