@@ -48,6 +48,7 @@ PY_PACKAGES = [  # (module, PyPI name)
     ("tifffile", "tifffile"),
     ("OpenEXR", "OpenEXR"),
     ("whitebox_workflows", "whitebox-workflows"),
+    ("rasterio", "rasterio"),  # the terrain section: GDAL reads our GeoTIFFs, reprojects the DEM
 ]
 
 
@@ -355,6 +356,391 @@ def spot_check(m, tools, n, seed):
 
 
 # ---------------------------------------------------------------------------------------------
+# 6. terrain products (issue 24): a real DEM in metres, angles and sky-view factor at 32
+#    azimuths, unlimited radius, against GRASS r.horizon (+ the SVF formula on its output) and
+#    Whitebox Workflows horizon_angle / sky_view_factor
+
+
+def elev_tif(work):
+    """R terra's ex/elev.tif (SRTM-derived, int16, EPSG:4326, GPL-3+): $HB_ELEV_TIF, else
+    extracted from the Debian package r-cran-terra (apt-get download + dpkg-deb -x, no install),
+    as tests/terrain/check_dem.py obtains it."""
+    import glob
+
+    if os.environ.get("HB_ELEV_TIF"):
+        return os.environ["HB_ELEV_TIF"]
+    d = os.path.join(work, "terra")
+    found = glob.glob(os.path.join(d, "**", "ex", "elev.tif"), recursive=True)
+    if found:
+        return found[0]
+    os.makedirs(d, exist_ok=True)
+    p = subprocess.run(["apt-get", "download", "r-cran-terra"], cwd=d, capture_output=True)
+    if p.returncode != 0:
+        subprocess.run(["apt-get", "update", "-qq"], check=True)
+        subprocess.run(["apt-get", "download", "r-cran-terra"], cwd=d, check=True,
+                       capture_output=True)
+    deb = glob.glob(os.path.join(d, "r-cran-terra_*.deb"))[0]
+    subprocess.run(["dpkg-deb", "-x", deb, os.path.join(d, "x")], check=True)
+    return glob.glob(os.path.join(d, "**", "ex", "elev.tif"), recursive=True)[0]
+
+
+def largest_valid_square(valid):
+    """(row, col, side) of the largest square of True cells (dynamic programming)."""
+    import numpy as np
+
+    h, w = valid.shape
+    best = (0, 0, 0)
+    dp = np.zeros((h + 1, w + 1), dtype=np.int32)
+    for r in range(h):
+        for c in range(w):
+            if valid[r, c]:
+                dp[r + 1, c + 1] = 1 + min(dp[r, c + 1], dp[r + 1, c], dp[r, c])
+                if dp[r + 1, c + 1] > best[2]:
+                    k = int(dp[r + 1, c + 1])
+                    best = (r - k + 1, c - k + 1, k)
+    return best
+
+
+class TerrainDem:
+    """elev.tif reprojected to UTM 32N at its native resolution to find the largest square with
+    no nodata, then that square resampled (GDAL cubic) to size² cells in metres, written as a
+    float32 GeoTIFF in a location where every tool's north is the grid's (see docs/peers.md)."""
+
+    def __init__(self, size, work):
+        import numpy as np
+        import rasterio
+        from rasterio.transform import Affine
+        from rasterio.warp import Resampling, calculate_default_transform, reproject
+
+        src_path = elev_tif(work)
+        utm = "EPSG:32632"
+        with rasterio.open(src_path) as s:
+            tr, w, h = calculate_default_transform(s.crs, utm, s.width, s.height, *s.bounds)
+            native = np.full((h, w), -9999.0, dtype=np.float64)
+            reproject(rasterio.band(s, 1), native, dst_transform=tr, dst_crs=utm,
+                      resampling=Resampling.bilinear, dst_nodata=-9999.0)
+            src_crs, src_tr, src_data = s.crs, s.transform, s.read(1)
+            src_nodata = s.nodata
+            self.src_shape = (s.height, s.width)
+        # one native cell of margin, so the cubic kernel never reaches a hole
+        r, c, k = largest_valid_square(native > -9000.0)
+        r, c, k = r + 1, c + 1, k - 2
+        self.native_cell = tr.a
+        self.extent = k * tr.a
+        self.cell = self.extent / size
+        x0, y0 = tr * (c, r)
+        dst_tr = Affine(self.cell, 0.0, x0, 0.0, -self.cell, y0)
+        dem = np.full((size, size), np.nan, dtype=np.float64)
+        reproject(src_data.astype(np.float64), dem, src_transform=src_tr, src_crs=src_crs,
+                  src_nodata=src_nodata, dst_transform=dst_tr, dst_crs=utm,
+                  resampling=Resampling.cubic, dst_nodata=np.nan)
+        if not np.all(np.isfinite(dem)):
+            sys.exit(f"the {size}² crop of elev.tif has {int(np.sum(~np.isfinite(dem)))} holes")
+        self.heights = dem.astype(np.float32)
+        self.size, self.native_side = size, k
+        self.src = src_path
+        self.sha = hashlib.sha256(open(src_path, "rb").read()).hexdigest()[:16]
+        self.tif = os.path.join(work, f"elev_{size}.tif")
+        write_geotiff_m(self.tif, self.heights, self.cell)
+
+
+def write_geotiff_m(path, heights, cell):
+    """float32 GeoTIFF in metres, cell `cell` m, north up, UTM 16N (EPSG:32616) at easting
+    500 000 (its central meridian) and northings 0..H·cell (the equator): grid north is true
+    north there, so GRASS's rays (turned to true north) run along our grid directions."""
+    import numpy as np
+    import tifffile
+
+    h, w = heights.shape
+    geokeys = [1, 1, 0, 4,
+               1024, 0, 1, 1, 1025, 0, 1, 1, 3072, 0, 1, 32616, 3076, 0, 1, 9001]
+    tifffile.imwrite(path, heights.astype(np.float32), extratags=[
+        (33550, "d", 3, (cell, cell, 0.0), False),
+        (33922, "d", 6, (0.0, 0.0, 0.0, 500000.0, h * cell, 0.0), False),
+        (34735, "H", len(geokeys), geokeys, False),
+    ])
+
+
+class Acc:
+    """|Δα| (degrees) accumulated azimuth by azimuth: the mean, and the 99th percentile from a
+    histogram of 1e-4° bins (exact to 1e-4°), so 2048² × 32 values never sit in memory."""
+    STEP, N = 1e-4, 900_001
+
+    def __init__(self):
+        import numpy as np
+
+        self.hist = np.zeros(self.N, dtype=np.int64)
+        self.sum, self.n = 0.0, 0
+
+    def add(self, d):
+        import numpy as np
+
+        d = np.abs(np.asarray(d, dtype=np.float64)).ravel()
+        self.sum += float(d.sum())
+        self.n += d.size
+        self.hist += np.bincount(np.minimum((d / self.STEP).astype(np.int64), self.N - 1),
+                                 minlength=self.N)
+
+    def mean(self):
+        return self.sum / self.n
+
+    def p99(self):
+        import numpy as np
+
+        cum = np.cumsum(self.hist)
+        return (int(np.searchsorted(cum, 0.99 * self.n)) + 1) * self.STEP
+
+
+def svf_visual(sin_sum, n):
+    return 1.0 - sin_sum / n
+
+
+def accepts_sweep(binary, work):
+    """Whether this binary bakes with --method sweep (the sweep kernel lands separately)."""
+    import numpy as np
+    from PIL import Image
+
+    png = os.path.join(work, "probe.png")
+    Image.fromarray((np.arange(64, dtype=np.uint16) * 1000).reshape(8, 8)).save(png)
+    out = os.path.join(work, "probe_out")
+    shutil.rmtree(out, ignore_errors=True)
+    p = subprocess.run([binary, "bake", png, "-o", out, "--method", "sweep", "--radius",
+                        "unlimited", "--edge", "none"], capture_output=True, text=True)
+    return p.returncode == 0, p.stderr.strip().splitlines()[-1:] if p.returncode else []
+
+
+def run_ours_terrain(binary, dem, work, name, extra):
+    out = os.path.join(work, f"terrain_{name}")
+    shutil.rmtree(out, ignore_errors=True)
+    cmd = [binary, "bake", dem.tif, "-o", out, "--bins", str(DIRECTIONS), "--outputs",
+           "angles,svf", "--svf-model", "visual", "--format", "geotiff", *extra]
+    c0, t0 = child_cpu(), time.perf_counter()
+    p = subprocess.run(cmd, capture_output=True, text=True)
+    wall, cpu = time.perf_counter() - t0, child_cpu() - c0
+    if p.returncode != 0:
+        sys.exit(f"{' '.join(cmd)} failed ({p.returncode}): {p.stderr.strip()}")
+    bake = json.load(open(os.path.join(out, "bake.json")))
+    pr = bake["params"]
+    log(f"    {name}: {wall:.1f} s wall; method {pr['method']}, radius "
+        f"{pr.get('resolved_radius')}, curvature {pr['earth_curvature']}, edge {pr['edge']}")
+    return out, {"wall": wall, "cpu": cpu, "kernel": bake["timings_ms"]["bake"] / 1e3,
+                 "params": pr, "cmd": " ".join(cmd[1:]).replace(work + "/", "")}
+
+
+def read_band(path, k):
+    import rasterio
+
+    with rasterio.open(path) as a:
+        return a.read(k + 1).astype("float64")
+
+
+def terrain_section(args, binary, work):
+    import numpy as np
+
+    dem = TerrainDem(args.terrain_size, work)
+    n = dem.size
+    log(f"terrain: elev.tif {dem.src_shape} -> UTM 32N, {dem.native_side}² native cells of "
+        f"{dem.native_cell:.1f} m -> {n}² at {dem.cell:.3f} m; heights "
+        f"{float(dem.heights.min()):.1f}..{float(dem.heights.max()):.1f} m")
+    dirs = [360.0 * k / DIRECTIONS for k in range(DIRECTIONS)]
+    rows = []  # (name, threads, timing, acc or None, svf array or None, note)
+
+    # the reference: exact, unlimited radius, DEM defaults (edge none, curvature on)
+    ref_dir, t_ref = run_ours_terrain(binary, dem, work, "exact", ["--method", "exact",
+                                                                   "--radius", "unlimited"])
+    ref_angles = os.path.join(ref_dir, "angles.tif")
+    ref_svf = read_band(os.path.join(ref_dir, "svf.tif"), 0)
+
+    def ours_row(name, label, extra, note):
+        d, t = run_ours_terrain(binary, dem, work, name, extra)
+        acc = Acc()
+        for k in range(DIRECTIONS):
+            acc.add(read_band(os.path.join(d, "angles.tif"), k) - read_band(ref_angles, k))
+        svf = read_band(os.path.join(d, "svf.tif"), 0)
+        rows.append((label, "2", t, acc, svf, note))
+
+    rows.append(("horizon-bake `exact` (reference)", "2", t_ref, None, None,
+                 "`--method exact --radius unlimited`; DEM defaults: edge none, curvature on"))
+    ours_row("march", "horizon-bake `march`",
+             ["--method", "march", "--max-distance", repr(n * dem.cell)],
+             f"`--max-distance` {n * dem.cell:.0f} m = {n} texels")
+    ok, why = accepts_sweep(binary, work)
+    sweep_note = None
+    if ok:
+        ours_row("sweep", "horizon-bake `sweep`", ["--method", "sweep", "--radius", "unlimited"],
+                 "`--method sweep --radius unlimited`")
+    else:
+        sweep_note = f"this binary does not accept `--method sweep` yet ({' '.join(why)})"
+        log(f"  sweep skipped: {sweep_note}")
+    ours_row("exact_flat", "horizon-bake `exact`, earth_curvature=off", [
+        "--method", "exact", "--radius", "unlimited", "--earth-curvature", "off"],
+        "the size of the curvature drop itself (Whitebox has none)")
+
+    # GRASS r.horizon, maxdistance past every cell, degrees; always applies the curvature drop
+    log("  GRASS r.horizon")
+    out = os.path.join(work, "terrain_grass")
+    shutil.rmtree(out, ignore_errors=True)
+    os.makedirs(out)
+    script = os.path.join(out, "run.sh")
+    open(script, "w").write(GRASS_SCRIPT)
+    maxdist = (math.ceil(math.hypot(n, n)) + 1) * dem.cell
+    env = dict(os.environ, PEERS_TIF=dem.tif, PEERS_OUT=out,
+               PEERS_STEP=repr(360.0 / DIRECTIONS), PEERS_MAXDIST=repr(maxdist))
+    c0, t0 = child_cpu(), time.perf_counter()
+    p = subprocess.run(["grass", "--tmp-location", "EPSG:32616", "--exec", "bash", script],
+                       capture_output=True, text=True, env=env)
+    if p.returncode != 0:
+        sys.exit(f"GRASS failed ({p.returncode}):\n{p.stdout[-2000:]}\n{p.stderr[-2000:]}")
+    real, user, sys_ = (float(x) for x in open(os.path.join(out, "time.txt")).read().split()[-3:])
+    listed = open(os.path.join(out, "names.txt")).read().split()
+    want = [f"hor_{int(a):03d}_{round(a % 1 * 100):02d}" for a in dirs]
+    if listed != want:
+        sys.exit(f"unexpected r.horizon map names {listed} (expected {want})")
+    acc, sin_sum = Acc(), np.zeros((n, n))
+    import tifffile
+    for k in range(DIRECTIONS):
+        g = tifffile.imread(os.path.join(out, f"az{k:02d}.tif")).astype(np.float64)
+        g = np.maximum(np.nan_to_num(g, nan=0.0), 0.0)
+        acc.add(g - read_band(ref_angles, k))
+        sin_sum += np.sin(np.radians(g))
+    t_gr = {"wall": real, "cpu": user + sys_, "kernel": real,
+            "cmd": f"r.horizon -d elevation=dem step={360.0 / DIRECTIONS} start=0 end=360 "
+                   f"maxdistance={maxdist:.1f} output=hor"}
+    rows.append(("GRASS `r.horizon` (+ SVF formula)", "1", t_gr, acc,
+                 svf_visual(sin_sum, DIRECTIONS),
+                 "the process: reads the map, 32 rasters out; SVF = 1 − mean sin max(α, 0)"))
+
+    # Whitebox Workflows: horizon_angle per azimuth, then its own sky_view_factor
+    import whitebox_workflows as wbw
+
+    wbe = wbw.WbEnvironment()
+    wbe.verbose = False
+    wdem = wbe.read_raster(dem.tif)
+    md = wdem.metadata()
+    log("  Whitebox horizon_angle x32")
+    acc, sin_sum, secs, cpu = Acc(), np.zeros((n, n)), 0.0, 0.0
+    for k, phi in enumerate(dirs):
+        c0, t0 = time.process_time(), time.perf_counter()
+        r = wbe.horizon_angle(wdem, azimuth=(90.0 - phi) % 360.0)
+        secs += time.perf_counter() - t0
+        cpu += time.process_time() - c0
+        g = np.asarray(r.to_numpy(), dtype=np.float64).reshape(n, n)
+        del r
+        g = np.maximum(np.nan_to_num(np.where(g == md.nodata, 0.0, g), nan=0.0), 0.0)
+        acc.add(g - read_band(ref_angles, k))
+        sin_sum += np.sin(np.radians(g))
+    rows.append(("Whitebox `horizon_angle` (+ SVF formula)",
+                 f"{os.cpu_count()} (max_procs {wbe.max_procs})",
+                 {"wall": secs, "cpu": cpu, "kernel": secs}, acc, svf_visual(sin_sum, DIRECTIONS),
+                 "32 calls on a raster in memory, no curvature drop; SVF = 1 − mean sin max(α, 0)"))
+    log("  Whitebox sky_view_factor")
+    c0, t0 = time.process_time(), time.perf_counter()
+    r = wbe.sky_view_factor(wdem, az_fraction=360.0 / DIRECTIONS, observer_hgt_offset=0.0)
+    secs, cpu = time.perf_counter() - t0, time.process_time() - c0
+    g = np.asarray(r.to_numpy(), dtype=np.float64).reshape(n, n)
+    g = np.where(g == md.nodata, np.nan, g)
+    rows.append(("Whitebox `sky_view_factor`", f"{os.cpu_count()} (max_procs {wbe.max_procs})",
+                 {"wall": secs, "cpu": cpu, "kernel": secs}, None, g,
+                 f"az_fraction {360.0 / DIRECTIONS}, observer_hgt_offset 0; its own SVF"))
+    return dem, rows, ref_svf, sweep_note
+
+
+def terrain_table(dem, rows, ref_svf):
+    import numpy as np
+
+    n = dem.size
+    out = ["| tool | threads | compute s | wall s | Mtexel/s @32 | mean \\|Δα\\| ° | p99 \\|Δα\\| ° "
+           "| mean \\|Δsvf\\| | p99 \\|Δsvf\\| | note |",
+           "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
+    for name, threads, tm, acc, svf, note in rows:
+        mts = n * n / 1e6 / tm["kernel"]
+        err = "— | —" if acc is None else f"{acc.mean():.4f} | {acc.p99():.4f}"
+        if svf is None:
+            serr = "— | —"
+        else:
+            d = np.abs(svf - ref_svf)
+            d = d[np.isfinite(d)]
+            serr = f"{float(d.mean()):.5f} | {float(np.percentile(d, 99)):.5f}"
+        out.append(f"| {name} | {threads} | {tm['kernel']:,.1f} | {tm['wall']:,.1f} | {mts:.3f} "
+                   f"| {err} | {serr} | {note} |")
+    return "\n".join(out)
+
+
+TERRAIN_HEAD = """## Terrain products (generated)
+
+Generated {date} by `python3 scripts/peers.py --terrain-only --terrain-size {n}`: one run on a
+**shared, noisy** machine ({nproc} cores, {cpu}); tools: {grass}; {wb}; {ours}{binnote}.
+
+DEM: R `terra`'s `ex/elev.tif` (SRTM-derived, Luxembourg, int16, EPSG:4326, {src_h}×{src_w}
+cells; sha256 `{sha}…`), reprojected to UTM 32N (bilinear) at its native {native:.1f} m, the
+largest square with no nodata found ({side}² native cells, one cell of margin), and that square
+**upsampled** by GDAL's cubic resampling to **{n}² cells of {cell:.3f} m** ({factor:.1f}× finer
+than the source: the fine relief is the cubic interpolant's, the large relief is real). Heights
+{hmin:.1f} to {hmax:.1f} m. Every tool reads the same float32 GeoTIFF in metres.
+
+Reference: `horizon-bake bake elev_{n}.tif --method exact --radius unlimited --bins 32
+--outputs angles,svf --svf-model visual --format geotiff`, with the DEM defaults (cell size
+from the file, `height_scale` = 1/cell, `edge=none`, `earth_curvature=on`, refraction 0):
+SPEC §3.2 with the drop d²/(2·6 371 km), the drop GRASS applies. |Δα| over every texel and all
+32 azimuths against it (α clamped at 0 for the peers, as SPEC §3.2 defines it); |Δsvf| in the
+visual form 1 − mean sin α (Whitebox's form) over every texel. *Mtexel/s @32*: texels / compute
+time, every row at 32 azimuths (SVF alone for `sky_view_factor`). Compute: ours
+`timings_ms.bake` (kernel and products, without decode and GeoTIFF encode), GRASS the
+`r.horizon` process, Whitebox its calls on a raster in memory.
+"""
+
+TERRAIN_PROSE = """
+Conventions made equal, so the numbers compare like with like:
+
+- **Directions.** GRASS counts counter-clockwise from east (our `east_ccw`), Whitebox clockwise
+  from north (called with (90° − φ) mod 360°). GRASS turns each ray to *true* north through the
+  projection; the GeoTIFF therefore sits in UTM 16N on the central meridian at the equator
+  (easting 500 000, northings 0..size·cell), where grid convergence is zero, so its rays run
+  along ours. (On elev.tif's own UTM 32N grid they would be off by about 2°.)
+- **Radius and border.** Unlimited for all: ours `--radius unlimited` with `edge=none`, GRASS
+  `maxdistance` past the map's diagonal, Whitebox `max_dist` unset. `march` is given
+  `--max-distance` = the map's side: at that radius its per-band tile exceeds `MAX_TILE` and it
+  runs as the exact kernel (the documented fallback), so its row is exact's time and error.
+- **Curvature.** Ours and GRASS lower a point d away by d²/(2·6 371 km); Whitebox has no drop:
+  the `earth_curvature=off` row is the drop's own size in angle, the part of Whitebox's Δα that
+  is convention rather than error.
+- **Negative angles.** GRASS writes −90° where a ray leaves the map at once and keeps negative
+  angles; Whitebox keeps them too: both are clamped at 0 for |Δα| and for the SVF formula on
+  their angles. Whitebox's `sky_view_factor` is its own (visual form, observer offset set to 0
+  instead of its Python default 0.05).
+"""
+
+
+def write_terrain_report(args, mach, vers, dem, rows, ref_svf, sweep_note):
+    now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    body = TERRAIN_HEAD.format(
+        date=now, n=dem.size, nproc=mach["nproc"], cpu=mach["cpu"], grass=vers["grass"],
+        wb=vers["whitebox"], ours=vers["ours"],
+        binnote=(" (" + args.bin_note + ")") if args.bin_note else "",
+        src_h=dem.src_shape[0], src_w=dem.src_shape[1], sha=dem.sha, native=dem.native_cell,
+        side=dem.native_side, cell=dem.cell, factor=dem.native_cell / dem.cell,
+        hmin=float(dem.heights.min()), hmax=float(dem.heights.max()))
+    body += "\n" + terrain_table(dem, rows, ref_svf) + "\n"
+    if sweep_note:
+        body += f"\n`sweep`: not measured, {sweep_note}.\n"
+    body += TERRAIN_PROSE
+    old = open(args.out).read() if os.path.exists(args.out) else ""
+    begin, end = "<!-- peers-terrain:begin -->", "<!-- peers-terrain:end -->"
+    if begin in old and end in old:
+        text = old[:old.index(begin) + len(begin)] + "\n" + body + "\n" + old[old.index(end):]
+    else:
+        block = begin + "\n" + body + "\n" + end + "\n"
+        anchor = "<!-- peers:end -->"
+        if anchor in old:
+            i = old.index(anchor) + len(anchor)
+            text = old[:i] + "\n\n" + block + old[i:]
+        else:
+            text = old + "\n" + block
+    open(args.out, "w").write(text)
+    log("\n" + terrain_table(dem, rows, ref_svf))
+
+
+# ---------------------------------------------------------------------------------------------
 # 5. statistics and report
 
 
@@ -434,6 +820,12 @@ def main():
     ap.add_argument("--check-tol", type=float, default=0.25,
                     help="fail if the reference is further than this from the march, degrees")
     ap.add_argument("--no-install", action="store_true", help="fail instead of installing")
+    ap.add_argument("--terrain", action="store_true",
+                    help="also run the terrain-products comparison (issue 24; see docs/peers.md)")
+    ap.add_argument("--terrain-only", action="store_true",
+                    help="run only the terrain-products comparison (keeps the other block)")
+    ap.add_argument("--terrain-size", type=int, default=2048,
+                    help="side of the upsampled DEM of the terrain comparison (default 2048)")
     args = ap.parse_args()
 
     if not args.no_install:
@@ -446,6 +838,14 @@ def main():
 
     mach = machine()
     vers = tool_versions(binary)
+    if args.terrain or args.terrain_only:
+        dem, rows, ref_svf, sweep_note = terrain_section(args, binary, work)
+        write_terrain_report(args, mach, vers, dem, rows, ref_svf, sweep_note)
+        log(f"wrote the terrain block of {args.out}")
+        if args.terrain_only:
+            if not args.work:
+                shutil.rmtree(work, ignore_errors=True)
+            return
     maps = make_maps(args, work)
     results = []
     for m in maps:

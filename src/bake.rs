@@ -666,7 +666,9 @@ pub fn horizon_profile(
 /// The sun shadow of every texel (SPEC §3.7): [`crate::terrain::shadow::LIT`] where the sun at
 /// `azimuth_deg` (counted as `params.azimuth_from` says) and `elevation_deg` stands above the
 /// exact horizon at its own azimuth, with the bake's radius, edge, curvature and holes (holes:
-/// [`crate::terrain::shadow::NODATA`]). One exact ray per texel, whatever `params.method`.
+/// [`crate::terrain::shadow::NODATA`]). One exact ray per texel with the ray methods; with
+/// `lengyel` (no ray), lit means L_z > s of §3.3 decoded from its baked 8-bit layers
+/// ([`crate::terrain::shadow::lit_from_layers`]).
 ///
 /// # Errors
 /// [`crate::Error::Canceled`] when `progress` is canceled.
@@ -692,6 +694,20 @@ pub fn shadow(
     if elevation_deg <= 0.0 {
         return Ok(out);
     }
+    let phi =
+        crate::terrain::profile::tangent_azimuth(azimuth_deg, params.azimuth_from, params.y_axis);
+    if params.method == Method::Lengyel {
+        let (layers, _) = bake_horizon(map, params, crate::layers::Precisions::U8, progress)?;
+        let [l0, l1] = layers.u8.as_ref().expect("8-bit layers were asked for");
+        crate::terrain::shadow::lit_from_layers(
+            [l0, l1],
+            params.encoding,
+            phi,
+            elevation_deg,
+            &mut out,
+        );
+        return Ok(out);
+    }
     let heights = map.scaled(params.height_scale);
     check_scaled(&heights)?;
     let radius = resolve_radius(params, w, h, &heights);
@@ -701,8 +717,6 @@ pub fn shadow(
     let k = kernels::exact::ExactHorizon::new(grid, r, 16, crate::params::Reduce::Point)
         .with_curvature(curvature(params))
         .with_holes(holes);
-    let phi =
-        crate::terrain::profile::tangent_azimuth(azimuth_deg, params.azimuth_from, params.y_axis);
     progress.start(Stage::Bake, h as u64);
     out.par_chunks_mut(w).enumerate().try_for_each(|(y, row)| {
         if progress.is_canceled() {

@@ -311,3 +311,98 @@ fn dem_products_read_by_gdal() {
     eprintln!("{text}{}", String::from_utf8_lossy(&out.stderr));
     assert!(out.status.success(), "tests/terrain/check_dem.py failed");
 }
+
+#[test]
+fn lengyel_shadow_is_lz_above_the_decoded_layers() {
+    // SPEC §3.7: with `lengyel` (no ray) lit means L_z > s of §3.3 decoded from the baked layers.
+    // The oracle: the two stored 8-bit channels that bracket the sun's azimuth, blended linearly
+    // by its position between them (§3.3's factors written out), against sin e; on a rough map
+    // with holes, every texel, both encodings, both azimuth conventions.
+    let (w, h) = (48usize, 40usize);
+    let mut seed = 0x5AD0u64;
+    let mut rnd = || {
+        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (seed >> 33) as f32 / (1u64 << 31) as f32
+    };
+    let v: Vec<f32> = (0..w * h)
+        .map(|k| {
+            let (x, y) = ((k % w) as f32, (k / w) as f32);
+            if rnd() < 0.02 {
+                -9999.0
+            } else {
+                6.0 * (x * 0.31).sin() * (y * 0.23).cos() + 3.0 * rnd()
+            }
+        })
+        .collect();
+    let map = decode_with(
+        &tiff_f32(w as u32, h as u32, &v),
+        Channel::Luma,
+        NoData::Value(-9999.0),
+        &Limits::default(),
+    )
+    .unwrap()
+    .0;
+    let holes = map.terrain.holes.clone().unwrap();
+    let pr = Progress::new();
+    for (encoding, el) in [("linear", 14.0f64), ("sqrt", 27.0)] {
+        let base = [("radius", "16"), ("height_scale", "1"), ("encoding", encoding)];
+        let with = |extra: &[(&'static str, &'static str)]| {
+            let mut kv = base.to_vec();
+            kv.extend_from_slice(extra);
+            params(&kv)
+        };
+        let p = with(&[("method", "lengyel")]);
+        let az = 200.0f64; // east_ccw: 250° from north, clockwise (y up)
+        let got = bake::shadow(&map, &p, az, el, &pr).unwrap();
+        let compass = bake::shadow(
+            &map,
+            &with(&[("method", "lengyel"), ("azimuth_from", "north_cw")]),
+            250.0,
+            el,
+            &pr,
+        )
+        .unwrap();
+        assert_eq!(got, compass, "{encoding}: the same sun counted from north");
+        let (layers, _) = bake::bake_horizon(&map, &p, bake::Precisions::U8, &pr).unwrap();
+        let [l0, l1] = layers.u8.as_ref().unwrap();
+        let channel = |t: usize, c: usize| {
+            let b = if c < 4 { l0[t * 4 + c] } else { l1[t * 4 + c - 4] };
+            let v = b as f64 / 255.0;
+            if encoding == "sqrt" {
+                v * v
+            } else {
+                v
+            }
+        };
+        let pos = az / 45.0;
+        let (c, frac) = (pos.floor() as usize % 8, pos - pos.floor());
+        let lz = el.to_radians().sin();
+        let (mut lit, mut dark, mut ties) = (0, 0, 0);
+        for t in 0..w * h {
+            if holes[t] {
+                assert_eq!(got[t], 255, "{encoding}: hole {t} is nodata");
+                continue;
+            }
+            let s = (1.0 - frac) * channel(t, c) + frac * channel(t, (c + 1) % 8);
+            if (lz - s).abs() < 1e-5 {
+                ties += 1;
+                continue;
+            }
+            let want = u8::from(lz > s);
+            assert_eq!(got[t], want, "{encoding}: texel {t}, L_z {lz} vs s {s}");
+            if want == 1 {
+                lit += 1;
+            } else {
+                dark += 1;
+            }
+        }
+        assert!(ties < 10, "{encoding}: {ties} texels within 1e-5 of the sun");
+        assert!(lit > 100 && dark > 100, "{encoding}: {lit} lit, {dark} shadowed");
+        // The exact ray at the same radius disagrees somewhere: the layers are 8 channels of a
+        // bin maximum, not the horizon at the sun's azimuth.
+        let ray = bake::shadow(&map, &with(&[("method", "exact")]), az, el, &pr).unwrap();
+        let differ = ray.iter().zip(&got).filter(|(a, b)| a != b).count();
+        eprintln!("{encoding}: lengyel {lit} lit, {dark} shadowed; differs from the exact ray on {differ} texels");
+        assert!(differ > 0, "{encoding}: the lengyel shadow equals the exact ray's");
+    }
+}

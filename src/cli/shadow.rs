@@ -32,7 +32,8 @@ pub struct ShadowArgs {
     /// Longitude of the place in degrees, east positive (with --sun-time).
     #[arg(long, allow_hyphen_values = true)]
     pub longitude: Option<String>,
-    /// The bake parameters (`--radius` defaults to unlimited; the horizon is always exact).
+    /// The bake parameters (`--radius` defaults to unlimited and the horizon is the exact ray's,
+    /// unless `--method lengyel`, whose baked layers are decoded).
     #[command(flatten)]
     pub params: Box<ParamFlags>,
 }
@@ -43,11 +44,14 @@ pub struct ShadowArgs {
 /// Parameter, decode and I/O errors, each one line.
 pub fn run(args: ShadowArgs) -> Result<()> {
     let mut flags = (*args.params).clone();
-    if flags.radius.is_none() && flags.max_distance.is_none() {
+    // `--method lengyel` decodes its layers (SPEC §3.7) at its own radius; otherwise the shadow
+    // is the exact ray's, to the edge unless a radius is given.
+    let lengyel = flags.method.as_deref() == Some("lengyel");
+    if !lengyel && flags.radius.is_none() && flags.max_distance.is_none() {
         flags.radius = Some("unlimited".into());
     }
     let mut params = flags.params()?;
-    if params.method != crate::params::Method::Exact {
+    if !lengyel && params.method != crate::params::Method::Exact {
         params.set("method", "exact")?;
     }
     let (az, el, sun) = crate::terrain::sun::resolve(

@@ -186,7 +186,7 @@ cell = 250.0
 bad = holes[:-1, :-1] | holes[1:, :-1] | holes[:-1, 1:] | holes[1:, 1:]
 
 
-def horizon_deg(col, row, phi, curvature=True):
+def horizon_deg(col, row, phi, curvature=True, radius=math.inf):
     dx, dy = math.cos(phi), -math.sin(phi)  # y up = north = toward row 0
     if abs(dx) < 1e-12:
         dx = 0.0
@@ -196,7 +196,7 @@ def horizon_deg(col, row, phi, curvature=True):
     def to_edge(p, d, last):
         return (last - p) / d if d > 0 else (p / -d if d < 0 else math.inf)
 
-    s_end = min(to_edge(col, dx, W - 1), to_edge(row, dy, H - 1))
+    s_end = min(to_edge(col, dx, W - 1), to_edge(row, dy, H - 1), radius)
     if s_end <= 0:
         return 0.0
     h0 = dem[row, col]
@@ -363,6 +363,59 @@ if code == 0:
     check(a9.shape[0] == 9, "9 bands")
     vis = 1 - np.mean(np.sin(np.radians(a9[:, ~holes])), axis=0)
     check(np.allclose(s9[~holes], vis, atol=1e-5), "visual svf = 1 - mean sin of its angles")
+
+# --- march with the earth-curvature drop (a DEM default for the ray methods) ---
+OUT4 = os.path.join(WORK, "utm_march_curved")
+R4 = max(W, H)
+code, err = run("bake", UTM, "-o", OUT4, "--format", "geotiff", "--outputs", "angles",
+                "--method", "march", "--max-distance", str(R4 * cell), "--bins", str(BINS))
+check(code == 0, f"march, 32 bins, max_distance {R4 * cell:.0f} m (exit {code} {err[:200]})")
+if code == 0:
+    b4 = json.load(open(os.path.join(OUT4, "bake.json")))
+    check(b4["params"]["earth_curvature"] == "on", "march on a DEM: earth_curvature=on by default")
+    with rasterio.open(os.path.join(OUT4, "angles.tif")) as a:
+        a4 = a.read().astype(np.float64)
+    curved, flat = [], []
+    for row, col in pick[:40]:
+        for n in range(BINS):
+            phi = 2 * math.pi * n / BINS
+            got = a4[n, row, col]
+            curved.append(abs(got - horizon_deg(col, row, phi, True, R4)))
+            flat.append(abs(got - horizon_deg(col, row, phi, False, R4)))
+    curved, flat = np.array(curved), np.array(flat)
+    print(f"march + curvature against the curved reference: mean {curved.mean():.4f}, "
+          f"p99 {np.percentile(curved, 99):.4f}, max {curved.max():.3f} deg; against the flat "
+          f"one: mean {flat.mean():.4f}")
+    check(curved.mean() <= 0.1 and np.percentile(curved, 99) <= 0.5,
+          "march + curvature within SPEC 3.2a's tolerance of the curved reference")
+    check(curved.mean() < 0.5 * flat.mean(), "march models the drop: closer to the curved reference")
+
+# --- lengyel shadow (CLI): L_z > s of SPEC 3.3 decoded from the stored 8-bit layers ---
+OUT5 = os.path.join(WORK, "utm_lengyel")
+code, err = run("bake", UTM, "-o", OUT5, "--method", "lengyel")
+SHADOW3 = os.path.join(WORK, "shadow_lengyel.tif")
+EL3 = 3.0
+code2, err2 = run("shadow", UTM, "-o", SHADOW3, "--method", "lengyel", "--sun-azimuth",
+                  str(SUN_AZ), "--sun-elevation", str(EL3), "--azimuth-from", "north_cw")
+check(code == 0 and code2 == 0, f"lengyel bake and shadow (exit {code} {err[:200]}; {code2} {err2[:200]})")
+if code == 0 and code2 == 0:
+    import warnings  # noqa: E402
+
+    warnings.filterwarnings("ignore", category=rasterio.errors.NotGeoreferencedWarning)
+    with rasterio.open(os.path.join(OUT5, "horizon_0.png")) as l0, \
+            rasterio.open(os.path.join(OUT5, "horizon_1.png")) as l1, \
+            rasterio.open(SHADOW3) as o:
+        ch = np.concatenate([l0.read(), l1.read()]).astype(np.float64) / 255.0  # 8 channels
+        sh3 = o.read(1)
+    pos = ((90.0 - SUN_AZ) % 360.0) / 45.0  # SPEC 2: channel c at c*45 deg, east_ccw, y up
+    c, t = int(pos) % 8, pos - int(pos)
+    s = (1 - t) * ch[c] + t * ch[(c + 1) % 8]
+    want = (math.sin(math.radians(EL3)) > s).astype(np.uint8)
+    sure = ~holes & (np.abs(math.sin(math.radians(EL3)) - s) > 1e-5)
+    print(f"lengyel shadow: {np.mean(sh3[~holes] == 0):.1%} in shadow, "
+          f"{int(np.sum(sh3[sure] != want[sure]))} of {int(sure.sum())} texels off the decode")
+    check(np.all(sh3[sure] == want[sure]) and np.all(sh3[holes] == 255),
+          "lengyel shadow = (sin e > s decoded from horizon_0/1.png), holes nodata")
 
 if failures:
     print(f"{len(failures)} check(s) failed")
