@@ -147,6 +147,10 @@ pub struct BakeRecord {
     /// The input's georeferencing (a GeoTIFF DEM), as bake.json reports it: read at submission.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub georeferencing: Option<serde_json::Value>,
+    /// A tiled bake's tiles (SPEC §7.1): done out of total, once finished (a running one's
+    /// live count is in its progress).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tiles: Option<crate::jobs::tiles::TileCount>,
 }
 
 /// Progress as a worker reports it: the stage and the fraction of that stage done.
@@ -154,12 +158,15 @@ pub struct BakeRecord {
 pub struct LiveProgress {
     pub stage: crate::progress::Stage,
     pub fraction: f64,
+    /// A tiled bake's tiles done out of total (SPEC §7.1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tiles: Option<crate::jobs::tiles::TileCount>,
 }
 
 impl LiveProgress {
     /// A snapshot of `p`.
     pub fn of(p: &crate::progress::Progress) -> Self {
-        LiveProgress { stage: p.stage(), fraction: p.fraction() }
+        LiveProgress { stage: p.stage(), fraction: p.fraction(), tiles: None }
     }
 }
 
@@ -699,6 +706,7 @@ mod tests {
             formats: None,
             stopped_at: None,
             georeferencing: None,
+            tiles: None,
         }
     }
 
