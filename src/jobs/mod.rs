@@ -871,9 +871,8 @@ impl Jobs {
                 _ = tokio::time::sleep(Duration::from_millis(250)) => {}
             }
         };
-        let Ok(permit) = self.0.slots.clone().acquire_owned().await else {
-            return Ended::Done(Err(Error::Canceled));
-        };
+        // The assembly takes no slot either: an idle work loop holds one while it waits for
+        // work, and the assembly is the last step of work already claimed.
         let count = tiles::TileCount { done: tiles.len() as u32, total: tiles.len() as u32 };
         let out = self
             .on_pool(move || {
@@ -882,7 +881,6 @@ impl Jobs {
                 Ok(done)
             })
             .await;
-        drop(permit);
         out.map_or(Ended::Panicked, Ended::Done)
     }
 
