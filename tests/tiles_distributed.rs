@@ -9,7 +9,6 @@ mod service_common;
 use serde_json::Value;
 use service_common::*;
 use std::collections::{BTreeMap, BTreeSet};
-use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -21,7 +20,6 @@ struct Engines {
     admin_url: String,
     s3_endpoint: String,
     bucket: String,
-    dir: PathBuf,
 }
 
 fn engines() -> Option<Engines> {
@@ -32,8 +30,8 @@ fn engines() -> Option<Engines> {
         var("HORIZON_TEST_S3_BUCKET"),
         var("HORIZON_TEST_ENGINES"),
     ) {
-        (Some(admin_url), Some(s3_endpoint), Some(bucket), Some(dir)) => {
-            Some(Engines { admin_url, s3_endpoint, bucket, dir: PathBuf::from(dir) })
+        (Some(admin_url), Some(s3_endpoint), Some(bucket), Some(_)) => {
+            Some(Engines { admin_url, s3_endpoint, bucket })
         }
         _ => {
             assert!(
@@ -59,7 +57,6 @@ struct Cluster {
 struct Node {
     child: Child,
     base: String,
-    worker_id: String,
 }
 
 impl Drop for Cluster {
@@ -146,11 +143,7 @@ impl Cluster {
             std::thread::sleep(Duration::from_millis(50));
         }
         let addr = std::fs::read_to_string(&addr_file).unwrap();
-        self.nodes.push(Node {
-            child,
-            base: format!("http://{}", addr.trim()),
-            worker_id: worker_id.to_owned(),
-        });
+        self.nodes.push(Node { child, base: format!("http://{}", addr.trim()) });
         i
     }
 
@@ -207,20 +200,6 @@ async fn get_json(c: &reqwest::Client, url: &str) -> (u16, Value) {
     (s, r.json().await.unwrap_or(Value::Null))
 }
 
-/// Polls until the bake is `running` (and returns the resource).
-async fn wait_running(c: &reqwest::Client, url: &str) -> Value {
-    let t = Instant::now();
-    loop {
-        let (_, v) = get_json(c, url).await;
-        if v["status"] == "running" {
-            return v;
-        }
-        assert!(t.elapsed() < Duration::from_secs(60), "never running: {v}");
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
-}
-
-
 impl Cluster {
     fn url_of(&self, i: usize, id: &str) -> String {
         format!("{}/v1/bakes/{id}", self.base(i))
@@ -243,7 +222,10 @@ fn cli_layers(dir: &std::path::Path, png: &[u8], flags: &[&str]) -> [Vec<u8>; 2]
         .status()
         .unwrap();
     assert!(st.success());
-    [std::fs::read(out.join("horizon_0.png")).unwrap(), std::fs::read(out.join("horizon_1.png")).unwrap()]
+    [
+        std::fs::read(out.join("horizon_0.png")).unwrap(),
+        std::fs::read(out.join("horizon_1.png")).unwrap(),
+    ]
 }
 
 async fn layers(c: &reqwest::Client, url: &str) -> [Vec<u8>; 2] {
@@ -305,10 +287,8 @@ async fn two_workers_bake_the_tiles_of_one_map_with_the_cli_s_bytes() {
         assert!(ours[0] == cli[0], "edge={edge}: layer 0 differs from the CLI's");
         assert!(ours[1] == cli[1], "edge={edge}: layer 1 differs from the CLI's");
     }
-    let (n1, n2) = (
-        metric(&c, cl.base(w1), SUCCEEDED).await,
-        metric(&c, cl.base(w2), SUCCEEDED).await,
-    );
+    let (n1, n2) =
+        (metric(&c, cl.base(w1), SUCCEEDED).await, metric(&c, cl.base(w2), SUCCEEDED).await);
     assert_eq!(n1 + n2, 32.0, "w1 {n1}, w2 {n2}");
     assert!(n1 > 0.0 && n2 > 0.0, "both workers should bake tiles: w1 {n1}, w2 {n2}");
     // The tiles' intermediate blobs are gone: the bucket holds the input and the results.
@@ -477,7 +457,8 @@ async fn the_embedded_mode_tiles_the_2048_map_with_the_same_bytes() {
     let _serial = SERIAL.lock().await;
     let Some(cl) = Cluster::new("tilesemb").await else { return };
     let server = Server::start(|c| {
-        c.tiles = horizon_bake::service::tiled::TileSettings { tile_above: 512 * 512, tile_size: 512 };
+        c.tiles =
+            horizon_bake::service::tiled::TileSettings { tile_above: 512 * 512, tile_size: 512 };
     })
     .await;
     let c = client();

@@ -200,6 +200,11 @@ pub struct TileContext {
     /// How long the split took, ms (the bake's `decode` timing).
     #[serde(default)]
     pub split_ms: f64,
+    /// The whole map's decode statistics (`heightmap::stream::MapStats::to_json`: hole fill,
+    /// nodata, georeferencing), which turn a tile's raw heights into the whole decode's crop;
+    /// null when the tile heights are stored already filled.
+    #[serde(default)]
+    pub stats: serde_json::Value,
 }
 
 /// One tile as the repository keeps it: a unit of work with its own status, attempt (the
@@ -430,6 +435,7 @@ mod tests {
             radius_reason: String::new(),
             input: None,
             split_ms: 0.0,
+            stats: serde_json::Value::Null,
         };
         let mut t = TileRecord::new("b", 1, "h".into(), ctx);
         t.status = Status::Running;

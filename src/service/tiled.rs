@@ -10,15 +10,19 @@
 //! - **assemble**: stream the PNG layers band by band from the tiles' blobs, reading each tile's
 //!   rows by range: no whole layer is ever in memory.
 //!
-//! The blob layouts are tilestream's (TILES.md): `HBH1` tile heights and `HBR1` tile results.
-//! Until its streaming decoder lands, the split decodes the input whole (a stand-in behind the
-//! same layout).
+//! The blobs are [`crate::heightmap::stream`]'s `HBH1` tile heights (decoded from the input
+//! in row bands, never whole) and [`crate::encode::assemble`]'s `HBR1` tile results (read back
+//! by range, one band at a time).
 
 use crate::bake;
+use crate::encode::assemble::{self, Plane, Section, TilePiece, TileRows};
 use crate::encode::{png, Formats};
 use crate::error::{Error, Result};
+use crate::heightmap::stream::{self, MapStats, TileHeights, Window};
 use crate::heightmap::{self, HeightMap, Limits};
-use crate::jobs::store::{now_ms, BakeRecord, BlobStore, RadiusInfo, Status, Timings};
+use crate::jobs::store::{
+    now_ms, read_range, BakeRecord, BlobSeekReader, BlobStore, RadiusInfo, Status, Timings,
+};
 use crate::jobs::tiles::{self, TileContext, TilePlan, TileRecord};
 use crate::jobs::{Blobs, Tiler};
 use crate::params::{BakeParams, Radius};
@@ -26,7 +30,7 @@ use crate::pipeline::ms;
 use crate::progress::{Progress, Stage};
 use crate::service::worker::{formats_of, params_of, HORIZON_RESULTS};
 use std::collections::BTreeMap;
-use std::io::{Read, Write};
+use std::io::Write;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -114,28 +118,66 @@ impl Tiler for ServiceTiler {
         blobs: &Blobs,
     ) -> Result<Vec<TileRecord>> {
         let t = Instant::now();
-        let mut params = params_of(rec)?;
+        let params = params_of(rec)?;
         progress.start(Stage::Decode, 1);
-        let bytes = blobs
-            .get(&rec.input_blob)?
-            .ok_or_else(|| Error::Internal(format!("input blob {} is missing", rec.input_blob)))?;
-        let (map, info) = heightmap::decode_for(&bytes, &mut params, &self.limits)?;
-        drop(bytes);
-        let pieces = split_map(&map, &params, self.settings.tile_size)?;
-        drop(map);
-        let split_ms = ms(t);
-        let mut out = Vec::with_capacity(pieces.len());
-        for (mut ctx, index, blob) in pieces {
+        let decode = |windows: &[Window], sink: &mut dyn FnMut(usize, Vec<u8>) -> Result<()>| {
+            let input =
+                BlobSeekReader::open(self.store.clone(), &rec.input_blob)?.ok_or_else(|| {
+                    Error::Internal(format!("input blob {} is missing", rec.input_blob))
+                })?;
+            stream::decode_tiles(
+                input,
+                &rec.input_blob,
+                params.channel,
+                params.nodata,
+                &self.limits,
+                windows,
+                sink,
+            )
+        };
+        // `radius=auto` needs the whole map's height range before the halo is known: one pass
+        // for the statistics alone, then the pass that cuts the tiles.
+        let by_distance = params.max_distance.is_some() && params.cell_size.is_some();
+        let first = if params.radius == Radius::Auto && !by_distance {
+            Some(decode(&[], &mut |_, _| Ok(()))?)
+        } else {
+            None
+        };
+        if params.radius == Radius::Unlimited && !by_distance {
+            return Err(Error::param("radius", "radius=unlimited needs the whole map: not tiled"));
+        }
+        let (w, h) = (rec.width, rec.height);
+        let radius = bake::resolve_radius_in(&params, w as usize, h as usize, || {
+            first.as_ref().map_or((0.0, 0.0), |s| s.scaled_range(params.height_scale))
+        });
+        let halo = tiles::halo_for(radius.texels);
+        let plan = TilePlan::new(w, h, self.settings.tile_size, halo, params.edge)?;
+        let windows: Vec<Window> = plan.tiles().map(|g| window_of(&g)).collect();
+        let mut hashes = vec![String::new(); windows.len()];
+        let stats = decode(&windows, &mut |i, blob| {
             if progress.is_canceled() {
                 return Err(Error::Canceled);
             }
-            ctx.input = Some(info.clone());
-            ctx.split_ms = split_ms;
-            let hash = blobs.put(&blob)?;
-            out.push(TileRecord::new(&rec.id, index, hash, ctx));
-        }
+            hashes[i] = blobs.put(&blob)?;
+            Ok(())
+        })?;
+        let range = stats.scaled_range(params.height_scale);
+        bake::check_scaled(&[range.0, range.1])?;
+        let ctx = TileContext {
+            plan,
+            range,
+            radius: radius.texels,
+            radius_reason: radius.reason,
+            input: Some(stats.info.clone()),
+            split_ms: ms(t),
+            stats: stats.to_json(),
+        };
         progress.advance(1);
-        Ok(out)
+        Ok(hashes
+            .into_iter()
+            .enumerate()
+            .map(|(i, hash)| TileRecord::new(&rec.id, i as u32, hash, ctx.clone()))
+            .collect())
     }
 
     fn bake_tile(
@@ -150,8 +192,13 @@ impl Tiler for ServiceTiler {
         let bytes = blobs
             .get(&tile.input_blob)?
             .ok_or_else(|| Error::Internal(format!("tile blob {} is missing", tile.input_blob)))?;
-        let window = decode_heights(&bytes)?;
+        let heights = TileHeights::decode(&bytes)?;
         drop(bytes);
+        let window = if tile.context.stats.is_null() {
+            raw_window(heights)
+        } else {
+            heights.into_map(&MapStats::from_json(&tile.context.stats)?)
+        };
         let mut w = blobs.writer()?;
         bake_tile_into(window, &params, &formats, &tile.context, tile.index, progress, &mut w)?;
         let hash = w.commit()?;
@@ -173,26 +220,19 @@ impl Tiler for ServiceTiler {
         let pieces: Vec<(tiles::TileGeom, String)> = tiles
             .iter()
             .map(|t| {
-                let h =
-                    t.results.get("tile").cloned().ok_or_else(|| {
-                        Error::Internal(format!("tile {} has no result", t.index))
-                    })?;
-                Ok((t.geom(), h))
+                let h = t.results.get("tile").cloned();
+                let h = h.ok_or_else(|| Error::Internal(format!("tile {} has no result", t.index)));
+                Ok((t.geom(), h?))
             })
             .collect::<Result<_>>()?;
-        let outs = [blobs.writer()?, blobs.writer()?];
-        let read = |hash: &str, start: u64, buf: &mut [u8]| -> Result<()> {
-            let mut r = self
-                .store
-                .open_range(hash, start, start + buf.len() as u64)?
-                .ok_or_else(|| Error::Internal(format!("tile result {hash} is missing")))?;
-            r.read_exact(buf)?;
-            Ok(())
-        };
+        let store = self.store.clone();
+        let read: assemble::ReadRange =
+            Box::new(move |hash: &str, start, len| read_range(store.as_ref(), hash, start, len));
+        let mut writer = || blobs.writer();
         let [a, b] = if formats.png16 {
-            assemble_pngs::<u16, _>(&ctx.plan, &pieces, read, progress, outs)?
+            assemble_pngs::<u16, _>(&ctx.plan, &pieces, read, progress, &mut writer)?
         } else {
-            assemble_pngs::<u8, _>(&ctx.plan, &pieces, read, progress, outs)?
+            assemble_pngs::<u8, _>(&ctx.plan, &pieces, read, progress, &mut writer)?
         };
         let (h0, h1) = (a.commit()?, b.commit()?);
         let (n0, n1) = if formats.png16 {
@@ -226,8 +266,13 @@ impl Tiler for ServiceTiler {
     }
 }
 
+/// The window of a tile, as the streamed decode cuts it.
+fn window_of(g: &tiles::TileGeom) -> Window {
+    Window { x0: g.window_x, y0: g.window_y, width: g.window_w, height: g.window_h }
+}
+
 /// Cuts a decoded map into the windows of its tile plan: for each tile its context (the whole
-/// map's range and radius), its index and its `HBH1` heights blob.
+/// map's range and radius), its index and its `HBH1` heights blob (values already filled).
 ///
 /// # Errors
 /// [`Error::Param`] for heights beyond f32 (`height_scale`), `radius=unlimited`, and the plan's
@@ -244,10 +289,10 @@ pub fn split_map(
         (l.min(s), u.max(s))
     });
     bake::check_scaled(&[lo, hi])?;
-    let radius = bake::resolve_radius_in(params, map.width, map.height, || (lo, hi));
     if params.radius == Radius::Unlimited && params.max_distance.is_none() {
         return Err(Error::param("radius", "radius=unlimited needs the whole map: not tiled"));
     }
+    let radius = bake::resolve_radius_in(params, map.width, map.height, || (lo, hi));
     let plan = TilePlan::new(w, h, tile_size, tiles::halo_for(radius.texels), params.edge)?;
     let ctx = TileContext {
         plan,
@@ -256,6 +301,7 @@ pub fn split_map(
         radius_reason: radius.reason,
         input: None,
         split_ms: 0.0,
+        stats: serde_json::Value::Null,
     };
     let holes = map.terrain.holes.as_deref();
     Ok(plan
@@ -274,96 +320,25 @@ pub fn split_map(
                     }
                 }
             }
-            let blob = encode_heights(&g, &values, hole.as_deref());
+            let blob = TileHeights { window: window_of(&g), values, holes: hole }.encode();
             (ctx.clone(), g.index, blob)
         })
         .collect())
 }
 
-/// The `HBH1` blob of a window (TILES.md §1): magic, width, height, x0, y0, flags, f32 values,
-/// then hole bits (LSB first) when there are holes.
-fn encode_heights(g: &tiles::TileGeom, values: &[f32], holes: Option<&[bool]>) -> Vec<u8> {
-    let mut out = Vec::with_capacity(32 + values.len() * 4);
-    out.extend_from_slice(b"HBH1");
-    out.extend_from_slice(&g.window_w.to_le_bytes());
-    out.extend_from_slice(&g.window_h.to_le_bytes());
-    out.extend_from_slice(&g.window_x.to_le_bytes());
-    out.extend_from_slice(&g.window_y.to_le_bytes());
-    out.extend_from_slice(&(holes.is_some() as u32).to_le_bytes());
-    for v in values {
-        out.extend_from_slice(&v.to_le_bytes());
-    }
-    if let Some(holes) = holes {
-        let mut bits = vec![0u8; holes.len().div_ceil(8)];
-        for (k, _) in holes.iter().enumerate().filter(|(_, &h)| h) {
-            bits[k / 8] |= 1 << (k % 8);
-        }
-        out.extend_from_slice(&bits);
-    }
-    out
-}
-
-/// The window a `HBH1` blob holds, as a height map (holes kept; their fill is in the values).
-fn decode_heights(bytes: &[u8]) -> Result<HeightMap> {
-    let bad = || Error::Internal("a tile heights blob is corrupt".into());
-    if bytes.len() < 32 || &bytes[..4] != b"HBH1" {
-        return Err(bad());
-    }
-    let u32_at = |o: usize| u32::from_le_bytes(bytes[o..o + 4].try_into().unwrap_or([0; 4]));
-    let (w, h, flags) = (u32_at(4) as usize, u32_at(8) as usize, u32_at(28));
-    let n = w * h;
-    let body = bytes.get(32..32 + 4 * n).ok_or_else(bad)?;
-    let values: Vec<f32> =
-        body.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
-    let holes = if flags & 1 == 1 {
-        let bits = bytes.get(32 + 4 * n..32 + 4 * n + n.div_ceil(8)).ok_or_else(bad)?;
-        Some((0..n).map(|k| bits[k / 8] & (1 << (k % 8)) != 0).collect())
-    } else {
-        None
-    };
-    Ok(HeightMap {
-        width: w,
-        height: h,
-        values,
-        terrain: heightmap::Terrain { georef: None, nodata: None, holes },
-    })
-}
-
-/// A quantised sample as tile results store it (little-endian).
-trait LeSample: bake::Sample + png::PngSample {
-    const SIZE: usize;
-    const TAG: u32;
-    fn put(self, out: &mut Vec<u8>);
-    fn get(b: &[u8]) -> Self;
-}
-
-impl LeSample for u8 {
-    const SIZE: usize = 1;
-    const TAG: u32 = 1;
-    fn put(self, out: &mut Vec<u8>) {
-        out.push(self);
-    }
-    fn get(b: &[u8]) -> Self {
-        b[0]
+/// A window whose heights were stored already filled (the in-memory split of a decoded map).
+fn raw_window(t: TileHeights) -> HeightMap {
+    HeightMap {
+        width: t.window.width as usize,
+        height: t.window.height as usize,
+        values: t.values,
+        terrain: heightmap::Terrain { georef: None, nodata: None, holes: t.holes },
     }
 }
 
-impl LeSample for u16 {
-    const SIZE: usize = 2;
-    const TAG: u32 = 2;
-    fn put(self, out: &mut Vec<u8>) {
-        out.extend_from_slice(&self.to_le_bytes());
-    }
-    fn get(b: &[u8]) -> Self {
-        u16::from_le_bytes([b[0], b[1]])
-    }
-}
-
-/// Bytes before a `HBR1` result's data: header (16) + one section descriptor (16).
-const RESULT_HEADER: u64 = 32;
-
-/// Bakes a tile's window and writes its interior as a `HBR1` result (TILES.md §2: one section,
-/// the horizon layers at the precision `formats` asks for, layer 0 then layer 1, RGBA rows).
+/// Bakes a tile's window and writes its interior as a `HBR1` tile result
+/// ([`assemble::write_tile_result`]: one section, the horizon layers at the precision `formats`
+/// asks for).
 ///
 /// # Errors
 /// [`Error::Canceled`], the writer's errors.
@@ -385,105 +360,76 @@ pub fn bake_tile_into<W: Write>(
     let precisions = bake::Precisions { u8: !formats.png16, u16: formats.png16, f32: false };
     let layers =
         bake::bake_window(window, params, interior, ctx.range, ctx.radius, precisions, progress)?;
-    fn write<T: LeSample, W: Write>(
-        out: &mut W,
-        g: &tiles::TileGeom,
-        ls: &[Vec<T>; 2],
-    ) -> Result<()> {
-        let mut head = Vec::with_capacity(RESULT_HEADER as usize);
-        head.extend_from_slice(b"HBR1");
-        head.extend_from_slice(&g.interior.w.to_le_bytes());
-        head.extend_from_slice(&g.interior.h.to_le_bytes());
-        head.extend_from_slice(&1u32.to_le_bytes());
-        head.extend_from_slice(&[T::SIZE as u8, 0, 0, 0]);
-        head.extend_from_slice(&2u32.to_le_bytes());
-        head.extend_from_slice(&4u32.to_le_bytes());
-        head.extend_from_slice(&T::TAG.to_le_bytes());
-        out.write_all(&head)?;
-        let mut buf = Vec::with_capacity(ls[0].len() * T::SIZE);
-        for l in ls {
-            buf.clear();
-            for &v in l {
-                v.put(&mut buf);
-            }
-            out.write_all(&buf)?;
-        }
-        Ok(())
-    }
-    match (&layers.u8, &layers.u16) {
-        (_, Some(l)) if formats.png16 => write(out, &g, l),
-        (Some(l), _) => write(out, &g, l),
-        _ => Err(Error::Internal("a tile baked no layer".into())),
-    }
+    let section = match (&layers.u8, &layers.u16) {
+        (_, Some([l0, l1])) if formats.png16 => Section {
+            tag: assemble::tag::HORIZON_U16,
+            channels: 4,
+            planes: vec![Plane::U16(l0), Plane::U16(l1)],
+        },
+        (Some([l0, l1]), _) => Section {
+            tag: assemble::tag::HORIZON_U8,
+            channels: 4,
+            planes: vec![Plane::U8(l0), Plane::U8(l1)],
+        },
+        _ => return Err(Error::Internal("a tile baked no layer".into())),
+    };
+    assemble::write_tile_result(out, g.interior.w, g.interior.h, &[section])?;
+    Ok(())
 }
 
-/// Rows per band of the assembly (each band reads one range of each tile of its tile row).
-const BAND: u32 = 64;
+/// A horizon sample of the assembled PNGs, with the tile result section that holds it.
+trait Layered: bake::Sample + png::PngSample + assemble::LeSample {
+    const TAG: u32;
+}
 
-/// Streams the two PNG layers of a tiled bake into `outs`, band by band in row order, reading
-/// each tile's rows of the band by range through `read(hash, offset, buf)`: memory is one band
-/// of both layers, whatever the map size.
+impl Layered for u8 {
+    const TAG: u32 = assemble::tag::HORIZON_U8;
+}
+
+impl Layered for u16 {
+    const TAG: u32 = assemble::tag::HORIZON_U16;
+}
+
+/// Streams the two PNG layers of a tiled bake into writers made by `writer`, band by band in
+/// row order, each band read by range from the tiles it crosses ([`TileRows`]): memory is one
+/// band, whatever the map size.
 ///
 /// # Errors
-/// [`Error::Canceled`], `read`'s and the encoder's errors.
-fn assemble_pngs<T: LeSample, W: Write + Send + 'static>(
+/// [`Error::Canceled`], the reads', the encoder's and the writers' errors.
+fn assemble_pngs<T: Layered, W: Write>(
     plan: &TilePlan,
     pieces: &[(tiles::TileGeom, String)],
-    read: impl Fn(&str, u64, &mut [u8]) -> Result<()>,
+    read: assemble::ReadRange,
     progress: &Progress,
-    outs: [W; 2],
+    writer: &mut dyn FnMut() -> Result<W>,
 ) -> Result<[W; 2]> {
     let (w, h) = (plan.width as usize, plan.height as usize);
-    let [o0, o1] = outs;
-    let mut writers = [
-        png::PngRowWriter::<W, T>::new(o0, w, h, png::PngColor::Rgba)?,
-        png::PngRowWriter::<W, T>::new(o1, w, h, png::PngColor::Rgba)?,
-    ];
-    progress.start(Stage::Encode, h as u64);
-    let mut rows: [Vec<T>; 2] = [Vec::new(), Vec::new()];
-    let mut raw = Vec::new();
-    for tr in 0..plan.rows {
-        let row_tiles: Vec<&(tiles::TileGeom, String)> =
-            pieces.iter().filter(|(g, _)| g.row == tr).collect();
-        let (y_start, th) = match row_tiles.first() {
-            Some((g, _)) => (g.interior.y, g.interior.h),
-            None => return Err(Error::Internal(format!("tile row {tr} is empty"))),
-        };
-        let mut y = 0;
-        while y < th {
+    let pieces = pieces
+        .iter()
+        .map(|(g, hash)| TilePiece {
+            x0: g.interior.x,
+            y0: g.interior.y,
+            width: g.interior.w,
+            height: g.interior.h,
+            hash: hash.clone(),
+        })
+        .collect();
+    let mut rows = TileRows::new(read, pieces, w, h)?;
+    progress.start(Stage::Encode, 2 * h as u64);
+    let mut layer = |plane: usize| -> Result<W> {
+        let mut source = |p: usize, y0: usize, out: &mut [T]| -> Result<()> {
             if progress.is_canceled() {
                 return Err(Error::Canceled);
             }
-            let n = BAND.min(th - y);
-            for (layer, buf) in rows.iter_mut().enumerate() {
-                buf.clear();
-                buf.resize(n as usize * w * 4, T::default());
-                for (g, hash) in &row_tiles {
-                    let (tw, tht) = (g.interior.w as usize, g.interior.h as usize);
-                    let plane = (tw * tht * 4 * T::SIZE) as u64;
-                    let row_bytes = tw * 4 * T::SIZE;
-                    let start = RESULT_HEADER + layer as u64 * plane + y as u64 * row_bytes as u64;
-                    raw.resize(n as usize * row_bytes, 0);
-                    read(hash, start, &mut raw)?;
-                    for r in 0..n as usize {
-                        let dst = &mut buf[(r * w + g.interior.x as usize) * 4..][..tw * 4];
-                        let src = &raw[r * row_bytes..(r + 1) * row_bytes];
-                        for (d, s) in dst.iter_mut().zip(src.chunks_exact(T::SIZE)) {
-                            *d = T::get(s);
-                        }
-                    }
-                }
-            }
-            let [w0, w1] = &mut writers;
-            let (a, b) = rayon::join(|| w0.write_rows(&rows[0]), || w1.write_rows(&rows[1]));
-            a.and(b)?;
-            progress.advance(n as u64);
-            y += n;
-        }
-        let _ = y_start;
-    }
-    let [w0, w1] = writers;
-    Ok([w0.finish()?, w1.finish()?])
+            rows.read(T::TAG, p, y0, out)?;
+            progress.advance((out.len() / (w * 4)) as u64);
+            Ok(())
+        };
+        assemble::write_png::<T, W>(writer()?, w, h, png::PngColor::Rgba, plane, &mut source)
+    };
+    let a = layer(0)?;
+    let b = layer(1)?;
+    Ok([a, b])
 }
 
 /// A tiled bake of `map` done in memory, step by step as the service does it across workers:
@@ -504,22 +450,22 @@ pub fn bake_tiled_in_memory(
     let mut results: BTreeMap<String, Vec<u8>> = BTreeMap::new();
     let mut geoms = Vec::new();
     for (ctx, index, blob) in &pieces {
-        let window = decode_heights(blob)?;
+        let window = raw_window(TileHeights::decode(blob)?);
         let mut out = Vec::new();
         bake_tile_into(window, params, formats, ctx, *index, &progress, &mut out)?;
         let key = format!("tile{index}");
         results.insert(key.clone(), out);
         geoms.push((plan.tile(*index), key));
     }
-    let read = |k: &str, start: u64, buf: &mut [u8]| -> Result<()> {
+    let read: assemble::ReadRange = Box::new(move |k: &str, start, len| {
         let b = results.get(k).ok_or_else(|| Error::Internal(k.to_owned()))?;
         let s = start as usize;
-        buf.copy_from_slice(b.get(s..s + buf.len()).ok_or_else(|| Error::Internal(k.to_owned()))?);
-        Ok(())
-    };
+        Ok(b.get(s..s + len).ok_or_else(|| Error::Internal(k.to_owned()))?.to_vec())
+    });
+    let mut writer = || Ok(Vec::new());
     if formats.png16 {
-        assemble_pngs::<u16, _>(&plan, &geoms, read, &progress, [Vec::new(), Vec::new()])
+        assemble_pngs::<u16, _>(&plan, &geoms, read, &progress, &mut writer)
     } else {
-        assemble_pngs::<u8, _>(&plan, &geoms, read, &progress, [Vec::new(), Vec::new()])
+        assemble_pngs::<u8, _>(&plan, &geoms, read, &progress, &mut writer)
     }
 }
