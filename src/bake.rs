@@ -36,6 +36,19 @@ pub fn resolve_radius(
     height: usize,
     heights: &[f32],
 ) -> ResolvedRadius {
+    resolve_radius_in(params, width, height, || {
+        Grid::new(width, height, heights, params.edge, params.y_axis).range()
+    })
+}
+
+/// [`resolve_radius`] with the map's scaled height range given by `range` (asked only for
+/// `auto`): a tiled bake resolves it once, on the whole map's range (SPEC §7.1).
+pub fn resolve_radius_in(
+    params: &BakeParams,
+    width: usize,
+    height: usize,
+    range: impl FnOnce() -> (f32, f32),
+) -> ResolvedRadius {
     let cap = width.max(height).max(1) as u32;
     if let (Some(d), Some(cell)) = (params.max_distance, params.cell_size) {
         // SPEC §3.7: ceil(max_distance / cell_size) texels (capped like a fixed radius).
@@ -52,8 +65,7 @@ pub fn resolve_radius(
             ResolvedRadius { texels: cap, reason: format!("unlimited: max(W, H) = {cap} texels") }
         }
         Radius::Auto => {
-            let g = Grid::new(width, height, heights, params.edge, params.y_axis);
-            let (lo, hi) = g.range();
+            let (lo, hi) = range();
             let dh = (hi - lo) as f64;
             let tan = params.min_elevation_deg.to_radians().tan();
             // tan 45° is 0.9999999999999999 in f64: without the relative slack, Δh = 10 texels
@@ -201,6 +213,85 @@ pub fn bake_horizon(
     progress.start(Stage::Bake, map.height as u64);
     let layers = run_into_layers(kernel.as_ref(), params.encoding, precisions, progress)?;
     Ok((layers, radius))
+}
+
+/// A kernel restricted to rows `oy .. oy + rows` of `inner`: a tile's interior rows inside
+/// its window (the halo rows are read, never computed).
+struct RowWindow<'a> {
+    inner: Box<dyn HorizonRows + 'a>,
+    oy: usize,
+    rows: usize,
+}
+
+impl HorizonRows for RowWindow<'_> {
+    fn width(&self) -> usize {
+        self.inner.width()
+    }
+    fn height(&self) -> usize {
+        self.rows
+    }
+    fn bins(&self) -> usize {
+        self.inner.bins()
+    }
+    fn texel_cost(&self) -> f64 {
+        self.inner.texel_cost()
+    }
+    fn rows(&self, y0: usize, channels: &mut [f32], bins_out: Option<&mut [f32]>) {
+        self.inner.rows(self.oy + y0, channels, bins_out);
+    }
+}
+
+/// Bakes the interior of one tile of a tiled bake (SPEC §7.1): `window` is the tile's window of
+/// the map (interior + halo, unscaled values and holes as the whole map's decode has them),
+/// `interior` = (column, row, width, height) of the interior inside the window, `range` the
+/// whole map's scaled height range and `radius` the radius resolved on the whole map. Returns
+/// the interior's layers at `precisions`: per texel the same values as the untiled bake.
+///
+/// # Errors
+/// [`crate::Error::Canceled`] when `progress` is canceled.
+pub fn bake_window(
+    window: HeightMap,
+    params: &BakeParams,
+    interior: (usize, usize, usize, usize),
+    range: (f32, f32),
+    radius: u32,
+    precisions: Precisions,
+    progress: &Progress,
+) -> Result<HorizonLayers> {
+    let (ww, wh) = (window.width, window.height);
+    let (ox, oy, iw, ih) = interior;
+    assert!(ox + iw <= ww && oy + ih <= wh, "interior outside its window");
+    let mut window = window;
+    let holes = window.terrain.holes.take();
+    let heights = window.into_scaled(params.height_scale);
+    let grid = Grid::new(ww, wh, &heights, params.edge, params.y_axis).with_range(range.0, range.1);
+    let kernel = make_kernel_for(params, grid, radius, progress, holes.as_deref());
+    let kernel = masked(kernel, holes.as_deref());
+    let rows = RowWindow { inner: kernel, oy, rows: ih };
+    progress.start(Stage::Bake, ih as u64);
+    let full = run_into_layers(&rows, params.encoding, precisions, progress)?;
+    // Keep the interior's columns.
+    fn cut<T: Copy>(
+        layers: Option<[Vec<T>; 2]>,
+        ww: usize,
+        ox: usize,
+        iw: usize,
+    ) -> Option<[Vec<T>; 2]> {
+        layers.map(|ls| {
+            ls.map(|l| {
+                l.chunks_exact(ww * 4)
+                    .flat_map(|row| row[ox * 4..(ox + iw) * 4].iter().copied())
+                    .collect()
+            })
+        })
+    }
+    Ok(HorizonLayers {
+        width: iw,
+        height: ih,
+        u8: cut(full.u8, ww, ox, iw),
+        u16: cut(full.u16, ww, ox, iw),
+        f32: cut(full.f32, ww, ox, iw),
+    })
 }
 
 /// Kernels take height differences in f32: the scaled heights and their range must be finite.

@@ -16,6 +16,7 @@
 //! to nodata by the bake.
 
 pub mod georef;
+pub mod stream;
 
 use crate::error::{Error, LimitError, Result};
 use crate::params::{BakeParams, Channel, NoData};
@@ -120,16 +121,46 @@ pub const MAX_ABS_HEIGHT: f32 = 1e29;
 
 fn check_finite(values: &[f32], width: usize) -> Result<()> {
     if let Some(k) = values.iter().position(|v| !v.is_finite()) {
-        return Err(Error::InvalidInput(format!(
-            "height at column {}, row {} is {} (heights must be finite; if it marks missing \
-             data, declare it with `nodata={}`)",
-            k % width.max(1),
-            k / width.max(1),
-            values[k],
-            if values[k].is_nan() { "nan".to_string() } else { values[k].to_string() }
-        )));
+        return Err(nonfinite_error(k, width, values[k]));
     }
     Ok(())
+}
+
+/// The refusal of non-finite texel `k` (row-major in a map `width` wide) holding `v`.
+fn nonfinite_error(k: usize, width: usize, v: f32) -> Error {
+    Error::InvalidInput(format!(
+        "height at column {}, row {} is {} (heights must be finite; if it marks missing \
+         data, declare it with `nodata={}`)",
+        k % width.max(1),
+        k / width.max(1),
+        v,
+        if v.is_nan() { "nan".to_string() } else { v.to_string() }
+    ))
+}
+
+/// The refusal of texel `k` holding `v`, beyond ±[`MAX_ABS_HEIGHT`].
+fn range_error(k: usize, width: usize, v: f32) -> Error {
+    Error::InvalidInput(format!(
+        "height at column {}, row {} is {:e}, beyond ±{MAX_ABS_HEIGHT:e}: the input's values \
+         are out of range",
+        k % width.max(1),
+        k / width.max(1),
+        v
+    ))
+}
+
+/// The refusal of texel `k` holding `v` that is not a hole of a map with holes (non-finite or
+/// out of range; [`fill_holes`]'s message).
+fn bad_texel_error(k: usize, width: usize, v: f32) -> Error {
+    if !v.is_finite() {
+        return Error::InvalidInput(format!(
+            "height at column {}, row {} is {v}: heights must be finite and within \
+             ±{MAX_ABS_HEIGHT:e} (declare missing data with `nodata`)",
+            k % width.max(1),
+            k / width.max(1)
+        ));
+    }
+    range_error(k, width, v)
 }
 
 /// Decoded input values must also be within ±[`MAX_ABS_HEIGHT`], so that an overflow is blamed
@@ -137,13 +168,7 @@ fn check_finite(values: &[f32], width: usize) -> Result<()> {
 /// [`HeightMap::from_values`] may go further: the kernels handle any finite value.)
 fn check_range(values: &[f32], width: usize) -> Result<()> {
     if let Some(k) = values.iter().position(|v| v.abs() > MAX_ABS_HEIGHT) {
-        return Err(Error::InvalidInput(format!(
-            "height at column {}, row {} is {:e}, beyond ±{MAX_ABS_HEIGHT:e}: the input's values \
-             are out of range",
-            k % width.max(1),
-            k / width.max(1),
-            values[k]
-        )));
+        return Err(range_error(k, width, values[k]));
     }
     Ok(())
 }
@@ -537,20 +562,7 @@ fn fill_holes(values: &mut [f32], holes: &[bool], width: usize) -> Result<()> {
             continue;
         }
         if !v.is_finite() || v.abs() > MAX_ABS_HEIGHT {
-            check_finite(&values[k..k + 1], 1).map_err(|_| {
-                Error::InvalidInput(format!(
-                    "height at column {}, row {} is {v}: heights must be finite and within \
-                     ±{MAX_ABS_HEIGHT:e} (declare missing data with `nodata`)",
-                    k % width.max(1),
-                    k / width.max(1)
-                ))
-            })?;
-            return Err(Error::InvalidInput(format!(
-                "height at column {}, row {} is {v:e}, beyond ±{MAX_ABS_HEIGHT:e}: the input's \
-                 values are out of range",
-                k % width.max(1),
-                k / width.max(1)
-            )));
+            return Err(bad_texel_error(k, width, v));
         }
         lo = lo.min(v);
         hi = hi.max(v);
@@ -596,13 +608,35 @@ fn compression_name(c: u16) -> String {
 /// is exactly what terrain tools export. Signed integers are used as they are (DEM convention),
 /// and a georeferenced DEM keeps every sample type as it is (heights in metres).
 fn decode_tiff(bytes: &[u8], channel: Channel, max_alloc: u64) -> Result<Decoded> {
-    use tiff::decoder::DecodingResult as R;
-    use tiff::ColorType as C;
     let mut tl = tiff::decoder::Limits::default();
     let cap = usize::try_from(max_alloc).unwrap_or(usize::MAX);
     tl.decoding_buffer_size = cap;
     tl.intermediate_buffer_size = cap;
     let mut dec = tiff_decoder(bytes)?.with_limits(tl);
+    let meta = tiff_meta(&mut dec)?;
+    let img = dec.read_image().map_err(tiff_error)?;
+    let (values, bit_depth, float, stored) = tiff_values(&img, &meta, channel)?;
+    Ok(Decoded { values, color: meta.color, bit_depth, float, stored, georef: meta.georef })
+}
+
+/// What a TIFF's header says about its samples (shared by the whole decode and the streamed
+/// one in [`stream`], so both read a file the same way).
+struct TiffMeta {
+    georef: Option<georef::Georef>,
+    /// A georeferenced DEM: every sample type used as it is.
+    dem: bool,
+    /// Samples per texel.
+    n: usize,
+    color: &'static str,
+    ct: tiff::ColorType,
+}
+
+/// Checks the compression and colour type of the current image of `dec` and reads its
+/// georeferencing.
+fn tiff_meta<R: std::io::Read + std::io::Seek>(
+    dec: &mut tiff::decoder::Decoder<R>,
+) -> Result<TiffMeta> {
+    use tiff::ColorType as C;
     let compression = dec
         .find_tag_unsigned::<u16>(tiff::tags::Tag::Compression)
         .map_err(tiff_error)?
@@ -614,7 +648,7 @@ fn decode_tiff(bytes: &[u8], channel: Channel, max_alloc: u64) -> Result<Decoded
             compression_name(compression)
         )));
     }
-    let georef = georef::Georef::read(&mut dec)?;
+    let georef = georef::Georef::read(dec)?;
     let dem = georef.as_ref().is_some_and(|g| g.is_dem());
     let ct = dec.colortype().map_err(tiff_error)?;
     let (n, color) = match ct {
@@ -628,12 +662,23 @@ fn decode_tiff(bytes: &[u8], channel: Channel, max_alloc: u64) -> Result<Decoded
             )))
         }
     };
-    let img = dec.read_image().map_err(tiff_error)?;
+    Ok(TiffMeta { georef, dem, n, color, ct })
+}
+
+/// The heights of decoded TIFF samples `img` (a whole image, or a strip or tile of one), with
+/// `channel` picked: (values, bit depth, float, stored scale).
+fn tiff_values(
+    img: &tiff::decoder::DecodingResult,
+    meta: &TiffMeta,
+    channel: Channel,
+) -> Result<(Vec<f32>, u8, bool, f64)> {
+    use tiff::decoder::DecodingResult as R;
+    let (dem, n) = (meta.dem, meta.n);
     let (s8, s16): (f64, f64) = if dem { (1.0, 1.0) } else { (255.0, 65535.0) };
     let n8 = |v: u8| if dem { v as f32 } else { v as f32 / 255.0 };
     let n16 = |v: u16| (v as f64 / s16) as f32;
     let id = |v: f32| v;
-    let (values, bit_depth, float, stored) = match &img {
+    Ok(match img {
         R::U8(b) => (samples(b, n, channel, n8), 8, false, s8),
         R::U16(b) => (samples(b, n, channel, n16), 16, false, s16),
         R::I8(b) => (samples(b, n, channel, |v: i8| v as f32), 8, false, 1.0),
@@ -644,13 +689,13 @@ fn decode_tiff(bytes: &[u8], channel: Channel, max_alloc: u64) -> Result<Decoded
         R::F64(b) => (samples(b, n, channel, |v: f64| v as f32), 64, true, 1.0),
         _ => {
             return Err(Error::Unsupported(format!(
-                "TIFF sample type of a {}-bit {color} image; use 8/16-bit unsigned, \
+                "TIFF sample type of a {}-bit {} image; use 8/16-bit unsigned, \
                  8/16/32-bit signed integer or 32/64-bit float",
-                ct.bit_depth()
+                meta.ct.bit_depth(),
+                meta.color
             )))
         }
-    };
-    Ok(Decoded { values, color, bit_depth, float, stored, georef })
+    })
 }
 
 /// OpenEXR through the `exr` crate directly: `image`'s decoder insists on R, G and B channels,

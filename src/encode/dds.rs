@@ -69,13 +69,13 @@ fn legacy_pixel_format(f: PixelFormat) -> Result<(u32, [u8; 4], u32, [u32; 4])> 
     })
 }
 
-/// Writes `t` as a DDS file with the header `header` asks for.
+/// The DDS header (and DX10 extension) of `t`: its format, size, shape and level count
+/// (`t.levels` is only counted, not read), everything before the data. [`write`] appends the
+/// images; the streamed writer of `encode::assemble` writes level 0 band by band after it.
 ///
 /// # Errors
-/// [`Error::Param`] (`dds_header`) for what a legacy header cannot hold (BC7, an array of more
-/// than one layer); [`Error::Internal`] for a texture whose levels do not fit its size.
-pub fn write(t: &Texture, header: DdsHeader) -> Result<Vec<u8>> {
-    t.check()?;
+/// As [`write`].
+pub(crate) fn header_bytes(t: &Texture, header: DdsHeader) -> Result<Vec<u8>> {
     let (w, h) = (t.width as u32, t.height as u32);
     let mips = t.levels.len() as u32;
     let cube = t.shape == Shape::Cube;
@@ -86,8 +86,7 @@ pub fn write(t: &Texture, header: DdsHeader) -> Result<Vec<u8>> {
             "a legacy DDS header holds no array; add texture_layout=separate",
         ));
     }
-    let data_len: usize = t.levels.iter().flatten().map(Vec::len).sum();
-    let mut out = Vec::with_capacity(4 + 124 + 20 + data_len);
+    let mut out = Vec::with_capacity(4 + 124 + 20);
     let put = |out: &mut Vec<u8>, v: u32| out.extend(v.to_le_bytes());
 
     out.extend(b"DDS ");
@@ -137,6 +136,18 @@ pub fn write(t: &Texture, header: DdsHeader) -> Result<Vec<u8>> {
             if t.format == PixelFormat::Bc5Unorm { ALPHA_UNKNOWN } else { ALPHA_STRAIGHT },
         );
     }
+    Ok(out)
+}
+
+/// Writes `t` as a DDS file with the header `header` asks for.
+///
+/// # Errors
+/// [`Error::Param`] (`dds_header`) for what a legacy header cannot hold (BC7, an array of more
+/// than one layer); [`Error::Internal`] for a texture whose levels do not fit its size.
+pub fn write(t: &Texture, header: DdsHeader) -> Result<Vec<u8>> {
+    t.check()?;
+    let mut out = header_bytes(t, header)?;
+    out.reserve(t.levels.iter().flatten().map(Vec::len).sum());
     for image in 0..t.images() {
         for level in &t.levels {
             out.extend(&level[image]);

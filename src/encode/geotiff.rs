@@ -94,7 +94,7 @@ fn fp_predict(row: &[f32], out: &mut [u8]) {
 }
 
 /// One compressed tile of `plane`: tile (tx, ty), padded with `fill` past the map's edge.
-fn tile_bytes(
+pub(crate) fn tile_bytes(
     plane: &[f32],
     width: usize,
     height: usize,
@@ -159,8 +159,7 @@ pub fn encode(
         })
         .collect();
     let descriptions: Vec<&str> = bands.iter().map(|b| b.description.as_str()).collect();
-    let layout = Layout { bits: 32, sample_format: 3, predictor: 3 };
-    assemble(width, height, tiles, &descriptions, layout, georef, &nodata_text(nodata))
+    assemble(width, height, tiles, &descriptions, FLOAT32, georef, &nodata_text(nodata))
 }
 
 /// Encodes one uint8 band (`shadow.tif`: 1 lit, 0 shadowed) as a tiled GeoTIFF, DEFLATE with
@@ -207,11 +206,17 @@ pub fn encode_u8(
 
 /// Sample layout of a file: bits per sample, SampleFormat (1 uint, 3 float), Predictor.
 #[derive(Clone, Copy)]
-struct Layout {
+pub(crate) struct Layout {
     bits: u16,
     sample_format: u16,
     predictor: u16,
 }
+
+/// The layout of the float32 files of [`encode`].
+pub(crate) const FLOAT32: Layout = Layout { bits: 32, sample_format: 3, predictor: 3 };
+
+/// Largest file a classic TIFF holds here (offsets are u32; 1 MiB kept for the IFD).
+pub(crate) const MAX_CLASSIC: u64 = u32::MAX as u64 - (1 << 20);
 
 /// The file around compressed `tiles` (band-major, row-major within a band).
 fn assemble(
@@ -234,9 +239,39 @@ fn assemble(
         out.extend_from_slice(t);
     }
     drop(tiles);
-    if out.len() as u64 > u32::MAX as u64 - (1 << 20) {
+    if out.len() as u64 > MAX_CLASSIC {
         return Err(Error::Internal("a GeoTIFF beyond 4 GiB needs BigTIFF, not written".into()));
     }
+    // The IFD, word-aligned.
+    if out.len() % 2 == 1 {
+        out.push(0);
+    }
+    let ifd = out.len();
+    out[4..8].copy_from_slice(&(ifd as u32).to_le_bytes());
+    let at = IfdAt { ifd, offsets: &offsets, counts: &counts };
+    out.extend(ifd_bytes(width, height, &at, descriptions, layout, georef, nodata));
+    Ok(out)
+}
+
+/// Where the tiles of a file went: the IFD's offset, each tile's offset and byte count.
+pub(crate) struct IfdAt<'a> {
+    pub ifd: usize,
+    pub offsets: &'a [u64],
+    pub counts: &'a [u32],
+}
+
+/// The IFD at `at.ifd` (word-aligned) and the values that do not fit in its entries, for tiles
+/// at `at.offsets` (band-major, row-major within a band): the end of the file.
+pub(crate) fn ifd_bytes(
+    width: usize,
+    height: usize,
+    at: &IfdAt<'_>,
+    descriptions: &[&str],
+    layout: Layout,
+    georef: Option<&Georef>,
+    nodata: &str,
+) -> Vec<u8> {
+    let (offsets, counts) = (at.offsets, at.counts);
     let spp = descriptions.len() as u16;
     let mut e = vec![
         longs(256, &[width as u32]),
@@ -250,7 +285,7 @@ fn assemble(
         longs(322, &[TILE as u32]),
         longs(323, &[TILE as u32]),
         longs(324, &offsets.iter().map(|&o| o as u32).collect::<Vec<_>>()),
-        longs(325, &counts),
+        longs(325, counts),
         shorts(339, &vec![layout.sample_format; spp as usize]),
         ascii(42112, &gdal_metadata(descriptions)),
         ascii(georef::TAG_GDAL_NODATA, nodata),
@@ -279,12 +314,8 @@ fn assemble(
         }
     }
     e.sort_by_key(|x| x.tag);
-    // The IFD, word-aligned, then the values that do not fit in an entry.
-    if out.len() % 2 == 1 {
-        out.push(0);
-    }
-    let ifd = out.len();
-    out[4..8].copy_from_slice(&(ifd as u32).to_le_bytes());
+    let ifd = at.ifd;
+    let mut out = Vec::with_capacity(2 + 12 * e.len() + 4);
     let mut extra = ifd + 2 + 12 * e.len() + 4;
     let mut tail: Vec<u8> = Vec::new();
     out.extend_from_slice(&(e.len() as u16).to_le_bytes());
@@ -308,7 +339,7 @@ fn assemble(
     }
     out.extend_from_slice(&0u32.to_le_bytes());
     out.extend_from_slice(&tail);
-    Ok(out)
+    out
 }
 
 #[cfg(test)]

@@ -101,15 +101,7 @@ fn dfd(f: PixelFormat) -> Vec<u8> {
 /// [`crate::Error::Internal`] when the levels do not fit the texture's size, or zstd fails.
 pub fn write(t: &Texture, zstd_level: Option<i32>) -> Result<Vec<u8>> {
     t.check()?;
-    let (vk_format, type_size, ..) = describe(t.format);
-    let (layer_count, face_count) = match t.shape {
-        Shape::Array(n) => (n, 1u32),
-        Shape::Cube => (0, 6),
-    };
     let levels = t.levels.len();
-    let dfd = dfd(t.format);
-    let header_len = 12 + 9 * 4 + 4 * 4 + 2 * 8;
-    let dfd_offset = header_len + levels * 3 * 8;
     // Raw level data: images in layer/face order, each level on its own.
     let raw: Vec<Vec<u8>> = t.levels.iter().map(|l| l.concat()).collect();
     // Each level compressed on its own (independent: side by side on rayon).
@@ -128,6 +120,35 @@ pub fn write(t: &Texture, zstd_level: Option<i32>) -> Result<Vec<u8>> {
         Some(c) => (c.iter().map(Vec::as_slice).collect(), 1),
         None => (raw.iter().map(Vec::as_slice).collect(), t.format.block_bytes()),
     };
+    let lens: Vec<(usize, usize)> =
+        stored.iter().zip(&raw).map(|(s, r)| (s.len(), r.len())).collect();
+    let (mut out, offsets) = prefix(t, &lens, align, zstd_level.is_some());
+    for l in (0..levels).rev() {
+        out.resize(offsets[l], 0);
+        out.extend_from_slice(stored[l]);
+    }
+    Ok(out)
+}
+
+/// Everything of a KTX2 file before its level data, for `t`'s format, size, shape and level
+/// count (`t.levels` is only counted), with levels of `lens[l]` = (stored, uncompressed) bytes
+/// aligned to `align`: the bytes and each level's offset. [`write`] appends the levels; the
+/// streamed writer of `encode::assemble` writes level 0 band by band after the same bytes.
+pub(crate) fn prefix(
+    t: &Texture,
+    lens: &[(usize, usize)],
+    align: usize,
+    zstd: bool,
+) -> (Vec<u8>, Vec<usize>) {
+    let (vk_format, type_size, ..) = describe(t.format);
+    let (layer_count, face_count) = match t.shape {
+        Shape::Array(n) => (n, 1u32),
+        Shape::Cube => (0, 6),
+    };
+    let levels = lens.len();
+    let dfd = dfd(t.format);
+    let header_len = 12 + 9 * 4 + 4 * 4 + 2 * 8;
+    let dfd_offset = header_len + levels * 3 * 8;
     // Levels are stored smallest first (KTX2 §3.9), each aligned to lcm(block size, 4) when not
     // supercompressed (block sizes here are 4, 8 or 16: multiples of 4).
     let mut offsets = vec![0usize; levels];
@@ -135,7 +156,7 @@ pub fn write(t: &Texture, zstd_level: Option<i32>) -> Result<Vec<u8>> {
     for l in (0..levels).rev() {
         end = end.div_ceil(align) * align;
         offsets[l] = end;
-        end += stored[l].len();
+        end += lens[l].0;
     }
     let mut out = Vec::with_capacity(end);
     out.extend(IDENTIFIER);
@@ -148,7 +169,7 @@ pub fn write(t: &Texture, zstd_level: Option<i32>) -> Result<Vec<u8>> {
         layer_count,
         face_count,
         levels as u32,
-        if zstd_level.is_some() { SUPERCOMPRESSION_ZSTD } else { 0 },
+        if zstd { SUPERCOMPRESSION_ZSTD } else { 0 },
     ] {
         out.extend(v.to_le_bytes());
     }
@@ -160,15 +181,11 @@ pub fn write(t: &Texture, zstd_level: Option<i32>) -> Result<Vec<u8>> {
     out.extend(0u64.to_le_bytes()); // sgdByteLength
     for l in 0..levels {
         out.extend((offsets[l] as u64).to_le_bytes());
-        out.extend((stored[l].len() as u64).to_le_bytes());
-        out.extend((raw[l].len() as u64).to_le_bytes());
+        out.extend((lens[l].0 as u64).to_le_bytes());
+        out.extend((lens[l].1 as u64).to_le_bytes());
     }
     out.extend(&dfd);
-    for l in (0..levels).rev() {
-        out.resize(offsets[l], 0);
-        out.extend_from_slice(stored[l]);
-    }
-    Ok(out)
+    (out, offsets)
 }
 
 /// Encodes one single-level, uncompressed texture: `Shape::Array(n)` with `n` images, or

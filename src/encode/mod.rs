@@ -10,6 +10,7 @@
 //! the service produce byte-identical outputs from one place; [`Formats`] says which files a
 //! caller asked for and which layer precisions the bake must therefore produce.
 
+pub mod assemble;
 pub mod bcn;
 pub mod dds;
 pub mod exr;

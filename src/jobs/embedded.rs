@@ -17,7 +17,8 @@ use crate::jobs::repo::{Beat, CancelResult, Claim, Counts, JobRepo, Outcome, Sub
 use crate::jobs::store::{
     now_ms, BakeRecord, BakeStore, BlobStore, ListQuery, Listing, LiveProgress, RedbStore, Status,
 };
-use std::collections::{HashMap, HashSet, VecDeque};
+use crate::jobs::tiles::{TileClaim, TileOutcome, TileRecord};
+use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
 use std::path::Path;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
@@ -33,6 +34,21 @@ struct Mem {
     claims: HashMap<String, (u32, Option<LiveProgress>, bool)>,
     /// hash → owner → pinned until (Unix ms).
     pins: HashMap<String, HashMap<String, u64>>,
+    /// Tiles of tiled bakes (bake id → tiles by index, each with its cancel flag). In memory:
+    /// after a crash the bake is queued again and its claim splits it again.
+    tiles: BTreeMap<String, Vec<(TileRecord, bool)>>,
+}
+
+fn cancel_tiles_in(mem: &mut Mem, id: &str) {
+    if let Some(ts) = mem.tiles.get_mut(id) {
+        for (t, cancel) in ts {
+            match t.status {
+                Status::Queued => t.status = Status::Canceled,
+                Status::Running => *cancel = true,
+                _ => {}
+            }
+        }
+    }
 }
 
 /// [`JobRepo`] on redb and memory.
@@ -290,6 +306,7 @@ impl JobRepo for EmbeddedRepo {
                         if let Some(c) = mem.claims.get_mut(&id) {
                             c.2 = true;
                         }
+                        cancel_tiles_in(mem, &id);
                         Ok(CancelResult::Requested(rec))
                     }
                     _ => Ok(CancelResult::Finished(rec)),
@@ -317,6 +334,7 @@ impl JobRepo for EmbeddedRepo {
             })?;
             mem.queue.clear();
             mem.claims.clear();
+            mem.tiles.clear();
             for mut r in unfinished {
                 if r.status == Status::Running {
                     r.status = Status::Queued;
@@ -428,6 +446,9 @@ impl JobRepo for EmbeddedRepo {
             let now = now_ms();
             let mut used = HashSet::new();
             each_record(store, |r| used.extend(r.blobs().map(str::to_owned)))?;
+            for ts in mem.tiles.values() {
+                used.extend(ts.iter().flat_map(|(t, _)| t.blobs().map(str::to_owned)));
+            }
             let mut deleted = 0;
             for hash in hashes {
                 if let Some(owners) = mem.pins.get_mut(&hash) {
@@ -449,12 +470,139 @@ impl JobRepo for EmbeddedRepo {
     }
 
     async fn referenced_blobs(&self) -> Result<HashSet<String>> {
-        self.read(|store| {
+        self.locked(|store, mem| {
             let mut out = HashSet::new();
             each_record(store, |r| out.extend(r.blobs().map(str::to_owned)))?;
+            for ts in mem.tiles.values() {
+                out.extend(ts.iter().flat_map(|(t, _)| t.blobs().map(str::to_owned)));
+            }
             Ok(out)
         })
         .await
+    }
+
+    async fn add_tiles(&self, claim: &Claim, tiles: Vec<TileRecord>) -> Result<bool> {
+        let (id, attempt, owner) = (claim.id.clone(), claim.attempt, claim.owner());
+        let added = {
+            let mut g = lock(&self.mem);
+            if g.claims.get(&id).map(|c| c.0) != Some(attempt) {
+                false
+            } else {
+                let hashes: Vec<String> = tiles.iter().map(|t| t.input_blob.clone()).collect();
+                let entry = g.tiles.entry(id.clone()).or_default();
+                for t in tiles {
+                    if !entry.iter().any(|(e, _)| e.index == t.index) {
+                        entry.push((t, false));
+                    }
+                }
+                entry.sort_by_key(|(t, _)| t.index);
+                unpin(&mut g, hashes, &owner);
+                true
+            }
+        };
+        self.notify(&id);
+        Ok(added)
+    }
+
+    async fn tiles(&self, id: &str) -> Result<Vec<TileRecord>> {
+        let g = lock(&self.mem);
+        Ok(g.tiles
+            .get(id)
+            .map(|ts| ts.iter().map(|(t, _)| t.clone()).collect())
+            .unwrap_or_default())
+    }
+
+    async fn claim_tile(&self, worker: &str, _lease: Duration) -> Result<Option<TileClaim>> {
+        let claim = {
+            let mut g = lock(&self.mem);
+            let Mem { claims, tiles, .. } = &mut *g;
+            let mut found = None;
+            for (bid, ts) in tiles.iter_mut() {
+                if !claims.get(bid).is_some_and(|c| !c.2) {
+                    continue;
+                }
+                if let Some((t, _)) = ts.iter_mut().find(|(t, _)| t.status == Status::Queued) {
+                    t.status = Status::Running;
+                    t.attempts += 1;
+                    t.worker = Some(worker.to_owned());
+                    found = Some(TileClaim {
+                        bake_id: bid.clone(),
+                        index: t.index,
+                        attempt: t.attempts,
+                        worker: worker.to_owned(),
+                        tile: t.clone(),
+                    });
+                    break;
+                }
+            }
+            found
+        };
+        if let Some(c) = &claim {
+            self.notify(&c.bake_id);
+        }
+        Ok(claim)
+    }
+
+    async fn heartbeat_tile(&self, claim: &TileClaim, _lease: Duration) -> Result<Beat> {
+        let g = lock(&self.mem);
+        let bake_stop = g.claims.get(&claim.bake_id).is_none_or(|c| c.2);
+        let tile = g
+            .tiles
+            .get(&claim.bake_id)
+            .and_then(|ts| ts.iter().find(|(t, _)| t.index == claim.index));
+        Ok(match tile {
+            Some((t, cancel))
+                if t.status == Status::Running
+                    && t.attempts == claim.attempt
+                    && t.worker.as_deref() == Some(claim.worker.as_str()) =>
+            {
+                Beat::Alive { cancel: *cancel || bake_stop }
+            }
+            _ => Beat::Lost,
+        })
+    }
+
+    async fn complete_tile(
+        &self,
+        claim: &TileClaim,
+        outcome: TileOutcome,
+        max_attempts: u32,
+    ) -> Result<bool> {
+        let done = {
+            let mut g = lock(&self.mem);
+            let owner = claim.owner();
+            let slot = g
+                .tiles
+                .get_mut(&claim.bake_id)
+                .and_then(|ts| ts.iter_mut().find(|(t, _)| t.index == claim.index));
+            match slot {
+                Some((t, cancel))
+                    if t.status == Status::Running
+                        && t.attempts == claim.attempt
+                        && t.worker.as_deref() == Some(claim.worker.as_str()) =>
+                {
+                    *t = outcome.apply(t.clone(), claim, max_attempts);
+                    *cancel = false;
+                    let results: Vec<String> = t.results.values().cloned().collect();
+                    unpin(&mut g, results, &owner);
+                    true
+                }
+                _ => false,
+            }
+        };
+        self.notify(&claim.bake_id);
+        Ok(done)
+    }
+
+    async fn cancel_tiles(&self, id: &str) -> Result<()> {
+        cancel_tiles_in(&mut lock(&self.mem), id);
+        self.notify(id);
+        Ok(())
+    }
+
+    async fn remove_tiles(&self, id: &str) -> Result<Vec<String>> {
+        let removed = lock(&self.mem).tiles.remove(id).unwrap_or_default();
+        Ok(removed.iter().flat_map(|(t, _)| t.blobs().map(str::to_owned)).collect())
     }
 
     async fn ping(&self) -> Result<()> {

@@ -33,6 +33,7 @@ pub mod postgres;
 pub mod repo;
 pub mod s3;
 pub mod store;
+pub mod tiles;
 
 use crate::error::{Error, Result};
 use crate::progress::Progress;
@@ -57,6 +58,73 @@ pub type Runner = Arc<dyn Fn(&BakeRecord, &Progress, &Blobs) -> Result<BakeRecor
 
 /// Called when a bake this node ran reaches a final status: (status, seconds, texels).
 pub type FinishHook = Arc<dyn Fn(Status, f64, u64) + Send + Sync>;
+
+/// What a tiled bake (SPEC §7.1) computes, handed to the core by the service. Each step runs on
+/// the bake pool; the core owns the lifecycle: the bake's claim runs [`Tiler::split`], records
+/// the tiles, waits (holding no bake slot) while any worker claims, leases, heartbeats and
+/// completes them exactly as bakes, then runs [`Tiler::assemble`] and records the bake.
+pub trait Tiler: Send + Sync + 'static {
+    /// Whether `rec` is baked in tiles.
+    fn is_tiled(&self, rec: &BakeRecord) -> bool;
+    /// Cuts the input into tile inputs (blobs written through `blobs`): the queued tiles.
+    ///
+    /// # Errors
+    /// Decode, parameter and store failures; [`Error::Canceled`].
+    fn split(
+        &self,
+        rec: &BakeRecord,
+        progress: &Progress,
+        blobs: &Blobs,
+    ) -> Result<Vec<tiles::TileRecord>>;
+    /// Bakes one tile: its results (name → blob written through `blobs`).
+    ///
+    /// # Errors
+    /// Kernel and store failures; [`Error::Canceled`].
+    fn bake_tile(
+        &self,
+        rec: &BakeRecord,
+        tile: &tiles::TileRecord,
+        progress: &Progress,
+        blobs: &Blobs,
+    ) -> Result<std::collections::BTreeMap<String, String>>;
+    /// Assembles the bake's results from its succeeded tiles (in index order): the record with
+    /// its results, input description, radius and timings filled in.
+    ///
+    /// # Errors
+    /// Encode and store failures; [`Error::Canceled`].
+    fn assemble(
+        &self,
+        rec: &BakeRecord,
+        tiles: &[tiles::TileRecord],
+        progress: &Progress,
+        blobs: &Blobs,
+    ) -> Result<BakeRecord>;
+}
+
+/// Called when a tile this node ran ends: `succeeded`, `failed`, `canceled`, `released` or
+/// `lost` (fenced off), the label of `horizon_tiles_total`.
+pub type TileHook = Arc<dyn Fn(&'static str) + Send + Sync>;
+
+/// The tiled-bake half of the core, set once before [`Jobs::start`].
+#[derive(Clone)]
+pub struct Tiling {
+    pub tiler: Arc<dyn Tiler>,
+    pub on_tile: Option<TileHook>,
+}
+
+/// How a bake's run on this node ended, before it becomes an [`Outcome`].
+enum Ended {
+    Done(Result<BakeRecord>),
+    Panicked,
+    /// A tile failed its last attempt.
+    TileFailed(BakeFailure),
+}
+
+/// Work a worker claimed.
+enum Work {
+    Bake(Claim),
+    Tile(tiles::TileClaim),
+}
 
 /// How the core behaves (from the service's flags).
 #[derive(Clone)]
@@ -84,6 +152,23 @@ struct LocalRun {
     progress: Progress,
     /// Set by shutdown: the cancellation means "hand it back", not "the owner canceled it".
     requeue: Arc<AtomicBool>,
+    /// A tiled bake's tiles done / total, for its heartbeats and resource.
+    tiles: Arc<Mutex<Option<tiles::TileCount>>>,
+}
+
+impl LocalRun {
+    fn new() -> Self {
+        LocalRun {
+            progress: Progress::new(),
+            requeue: Arc::new(AtomicBool::new(false)),
+            tiles: Default::default(),
+        }
+    }
+
+    fn live(&self) -> LiveProgress {
+        let tiles = *self.tiles.lock().unwrap_or_else(|e| e.into_inner());
+        LiveProgress { tiles, ..LiveProgress::of(&self.progress) }
+    }
 }
 
 struct Inner {
@@ -103,6 +188,7 @@ struct Inner {
     /// Local fan-out of the repository's change feed (and of local progress).
     changes: broadcast::Sender<String>,
     rt: tokio::runtime::Handle,
+    tiling: std::sync::OnceLock<Tiling>,
 }
 
 /// The jobs core. Cheap to clone.
@@ -181,6 +267,23 @@ impl std::io::Write for PinnedWriter {
     }
 }
 
+/// What the API says of a failed bake or tile: the error itself when it is the input's fault,
+/// a pointer to the log for ours.
+fn failure_of(id: &str, e: &Error) -> BakeFailure {
+    let message = match e {
+        Error::Io(_) | Error::Internal(_) | Error::Unavailable(_) => {
+            tracing::error!(bake = %id, code = e.code(), error = %e, "bake failed");
+            "an internal error occurred; it has been logged".to_owned()
+        }
+        _ => {
+            // The input's fault, not ours: one line so an operator can still find it.
+            tracing::warn!(bake = %id, code = e.code(), error = %e, "bake failed");
+            e.to_string()
+        }
+    };
+    BakeFailure { code: e.code().to_owned(), message }
+}
+
 /// Attempts after which a bake whose store kept failing under it (`store_unavailable`) fails
 /// instead of going back to the queue once more.
 const UNAVAILABLE_ATTEMPTS: u32 = 5;
@@ -235,7 +338,34 @@ impl Jobs {
             tracker: TaskTracker::new(),
             changes,
             rt,
+            tiling: std::sync::OnceLock::new(),
         })))
+    }
+
+    /// Turns tiled bakes on (call before [`Jobs::start`]; later calls are ignored).
+    pub fn set_tiling(&self, tiling: Tiling) {
+        let _ = self.0.tiling.set(tiling);
+    }
+
+    fn tiling(&self) -> Option<&Tiling> {
+        self.0.tiling.get()
+    }
+
+    /// Runs `f` on the bake pool inside `catch_unwind`; None when it panicked.
+    async fn on_pool<T, F>(&self, f: F) -> Option<Result<T>>
+    where
+        T: Send + 'static,
+        F: FnOnce() -> Result<T> + Send + 'static,
+    {
+        let (tx, rx) = tokio::sync::oneshot::channel();
+        self.0.pool.spawn(move || {
+            let out = catch_unwind(AssertUnwindSafe(f));
+            let _ = tx.send(out);
+        });
+        match rx.await {
+            Ok(Ok(r)) => Some(r),
+            _ => None,
+        }
     }
 
     /// The configuration.
@@ -337,7 +467,7 @@ impl Jobs {
     fn overlay(&self, mut r: BakeRecord) -> BakeRecord {
         if r.status == Status::Running {
             if let Some(l) = self.local().get(&r.id) {
-                r.progress = Some(LiveProgress::of(&l.progress));
+                r.progress = Some(l.live());
             }
         }
         r
@@ -379,8 +509,12 @@ impl Jobs {
         let out = self.0.repo.request_cancel(id).await?;
         match &out {
             CancelResult::Requested(_) => {
-                if let Some(l) = self.local().get(id) {
-                    l.progress.cancel();
+                // The bake and every tile of it this node runs.
+                let tile_prefix = format!("{id}/tile");
+                for (k, l) in self.local().iter() {
+                    if k == id || k.starts_with(&tile_prefix) {
+                        l.progress.cancel();
+                    }
                 }
             }
             CancelResult::Canceled(_) => {
@@ -488,12 +622,20 @@ impl Jobs {
                 p = self.0.slots.clone().acquire_owned() => match p { Ok(p) => p, Err(_) => return },
                 _ = self.0.stop.cancelled() => return,
             };
-            let claim = loop {
+            let work = loop {
                 if self.0.stop.is_cancelled() {
                     return;
                 }
+                // Tiles of bakes already running first: they finish started work.
+                if self.tiling().is_some() {
+                    match self.0.repo.claim_tile(&self.0.cfg.worker_id, self.0.cfg.lease).await {
+                        Ok(Some(t)) => break Work::Tile(t),
+                        Ok(None) => {}
+                        Err(e) => tracing::warn!(error = %e, "cannot claim a tile; retrying"),
+                    }
+                }
                 match self.0.repo.claim(&self.0.cfg.worker_id, self.0.cfg.lease).await {
-                    Ok(Some(c)) => break c,
+                    Ok(Some(c)) => break Work::Bake(c),
                     Ok(None) => {}
                     Err(e) => tracing::warn!(error = %e, "cannot claim a bake; retrying"),
                 }
@@ -505,33 +647,38 @@ impl Jobs {
             };
             let me = self.clone();
             self.0.tracker.spawn(async move {
-                me.run_claim(claim).await;
-                drop(permit);
+                match work {
+                    Work::Bake(claim) => me.run_claim(claim, permit).await,
+                    Work::Tile(tile) => {
+                        me.run_tile(tile).await;
+                        drop(permit);
+                    }
+                }
             });
         }
     }
 
-    async fn run_claim(&self, claim: Claim) {
+    async fn run_claim(&self, claim: Claim, permit: tokio::sync::OwnedSemaphorePermit) {
         let id = claim.id.clone();
-        let run = LocalRun { progress: Progress::new(), requeue: Arc::new(AtomicBool::new(false)) };
+        let run = LocalRun::new();
         self.local().insert(id.clone(), run.clone());
         let _ = self.0.changes.send(id.clone());
         let lost = Arc::new(AtomicBool::new(false));
         let beat = {
-            let (repo, claim, progress, lost) =
-                (self.0.repo.clone(), claim.clone(), run.progress.clone(), lost.clone());
+            let (repo, claim, run, lost) =
+                (self.0.repo.clone(), claim.clone(), run.clone(), lost.clone());
             let (every, lease) = (self.0.cfg.heartbeat, self.0.cfg.lease);
             tokio::spawn(async move {
                 loop {
                     tokio::time::sleep(every).await;
-                    match repo.heartbeat(&claim, LiveProgress::of(&progress), lease).await {
-                        Ok(Beat::Alive { cancel: true }) => progress.cancel(),
+                    match repo.heartbeat(&claim, run.live(), lease).await {
+                        Ok(Beat::Alive { cancel: true }) => run.progress.cancel(),
                         Ok(Beat::Alive { cancel: false }) => {}
                         Ok(Beat::Lost) => {
                             tracing::warn!(bake = %claim.id, attempt = claim.attempt,
                                 "lease lost: stopping, the bake belongs to another worker now");
                             lost.store(true, Ordering::SeqCst);
-                            progress.cancel();
+                            run.progress.cancel();
                             return;
                         }
                         Err(e) => tracing::warn!(bake = %claim.id, error = %e, "heartbeat failed"),
@@ -541,48 +688,42 @@ impl Jobs {
         };
 
         let started = Instant::now();
-        let (tx, rx) = tokio::sync::oneshot::channel();
-        let runner = self.0.runner.clone();
-        let blobs = self.blobs_for(claim.owner());
-        let (record, progress) = (claim.record.clone(), run.progress.clone());
-        self.0.pool.spawn(move || {
-            let out = catch_unwind(AssertUnwindSafe(|| runner(&record, &progress, &blobs)));
-            let _ = tx.send(out);
-        });
-        let out = rx.await;
+        let tiler = self.tiling().map(|t| t.tiler.clone()).filter(|t| t.is_tiled(&claim.record));
+        let tiled = tiler.is_some();
+        let (ended, permit) = match tiler {
+            Some(tiler) => (self.coordinate(&claim, &run, &lost, tiler, permit).await, None),
+            None => {
+                let runner = self.0.runner.clone();
+                let blobs = self.blobs_for(claim.owner());
+                let (record, progress) = (claim.record.clone(), run.progress.clone());
+                let out = self.on_pool(move || runner(&record, &progress, &blobs)).await;
+                (out.map_or(Ended::Panicked, Ended::Done), Some(permit))
+            }
+        };
         beat.abort();
         let seconds = started.elapsed().as_secs_f64();
         let texels = claim.record.width as u64 * claim.record.height as u64;
 
-        let outcome = match out {
-            Ok(Ok(Ok(rec))) => Outcome::Succeeded(Box::new(rec)),
-            Ok(Ok(Err(Error::Canceled))) if run.requeue.load(Ordering::SeqCst) => Outcome::Released,
-            Ok(Ok(Err(Error::Canceled))) => {
-                Outcome::Canceled(Some(crate::jobs::store::LiveProgress::of(&run.progress)))
+        let outcome = match ended {
+            Ended::Done(Ok(rec)) => Outcome::Succeeded(Box::new(rec)),
+            Ended::Done(Err(Error::Canceled)) if run.requeue.load(Ordering::SeqCst) => {
+                Outcome::Released
             }
+            Ended::Done(Err(Error::Canceled)) => Outcome::Canceled(Some(run.live())),
             // The store went away mid-bake (a result blob could not be pinned or written): not
             // the bake's fault. It goes back to the queue, to be baked again once the store is
             // back (recording that waits for it too), a bounded number of times.
-            Ok(Ok(Err(e @ Error::Unavailable(_)))) if claim.attempt < UNAVAILABLE_ATTEMPTS => {
+            Ended::Done(Err(e @ Error::Unavailable(_))) if claim.attempt < UNAVAILABLE_ATTEMPTS => {
                 tracing::warn!(bake = %id, attempt = claim.attempt, error = %e,
                     "store unavailable during the bake: handing it back to the queue");
                 Outcome::Released
             }
-            Ok(Ok(Err(e))) => {
-                let message = match &e {
-                    Error::Io(_) | Error::Internal(_) | Error::Unavailable(_) => {
-                        tracing::error!(bake = %id, code = e.code(), error = %e, "bake failed");
-                        "an internal error occurred; it has been logged".to_owned()
-                    }
-                    _ => {
-                        // The input's fault, not ours: one line so an operator can still find it.
-                        tracing::warn!(bake = %id, code = e.code(), error = %e, "bake failed");
-                        e.to_string()
-                    }
-                };
-                Outcome::Failed(BakeFailure { code: e.code().to_owned(), message })
+            Ended::Done(Err(e)) => Outcome::Failed(failure_of(&id, &e)),
+            Ended::TileFailed(f) => {
+                tracing::warn!(bake = %id, code = %f.code, error = %f.message, "tiled bake failed");
+                Outcome::Failed(f)
             }
-            Ok(Err(_)) | Err(_) => {
+            Ended::Panicked => {
                 tracing::error!(bake = %id, "bake panicked");
                 Outcome::Failed(BakeFailure {
                     code: "internal".into(),
@@ -602,9 +743,252 @@ impl Jobs {
             if let Some(f) = &self.0.on_finish {
                 f(status, seconds, texels);
             }
+            if tiled {
+                // The tiles' blobs were intermediate: the bake's results are assembled.
+                self.drop_tiles(&id).await;
+            }
         }
+        drop(permit);
         self.local().remove(&id);
         let _ = self.0.changes.send(id);
+    }
+
+    /// Removes a finished tiled bake's tiles and the blobs only they referenced.
+    async fn drop_tiles(&self, id: &str) {
+        match self.0.repo.remove_tiles(id).await {
+            Ok(hashes) => {
+                if let Err(e) =
+                    self.0.repo.delete_blobs_if_unused(hashes, self.0.blobs.clone()).await
+                {
+                    tracing::warn!(bake = %id, error = %e, "cannot remove tile blobs yet");
+                }
+            }
+            Err(e) => tracing::warn!(bake = %id, error = %e, "cannot remove the tiles"),
+        }
+    }
+
+    /// Runs a tiled bake's claim: split (unless an earlier attempt did), wait for the tiles
+    /// without holding a bake slot, then assemble.
+    async fn coordinate(
+        &self,
+        claim: &Claim,
+        run: &LocalRun,
+        lost: &AtomicBool,
+        tiler: Arc<dyn Tiler>,
+        permit: tokio::sync::OwnedSemaphorePermit,
+    ) -> Ended {
+        let progress = run.progress.clone();
+        let blobs = self.blobs_for(claim.owner());
+        let rec = claim.record.clone();
+        let existing = match self.0.repo.tiles(&claim.id).await {
+            Ok(t) => t,
+            Err(e) => return Ended::Done(Err(e)),
+        };
+        if existing.is_empty() {
+            let (t, p, b, r) = (tiler.clone(), progress.clone(), blobs.clone(), rec.clone());
+            let tiles = match self.on_pool(move || t.split(&r, &p, &b)).await {
+                Some(Ok(t)) => t,
+                Some(Err(e)) => return Ended::Done(Err(e)),
+                None => return Ended::Panicked,
+            };
+            match self.0.repo.add_tiles(claim, tiles).await {
+                Ok(true) => {}
+                Ok(false) => {
+                    lost.store(true, Ordering::SeqCst);
+                    return Ended::Done(Err(Error::Canceled));
+                }
+                Err(e) => return Ended::Done(Err(e)),
+            }
+        }
+        // Waiting costs no bake slot: this node's own slots bake tiles meanwhile.
+        drop(permit);
+        let mut wake = self.0.repo.subscribe();
+        let mut reported = 0u64;
+        let mut started = false;
+        let tiles = loop {
+            if progress.is_canceled() {
+                if !run.requeue.load(Ordering::SeqCst) && !lost.load(Ordering::SeqCst) {
+                    if let Err(e) = self.0.repo.cancel_tiles(&claim.id).await {
+                        tracing::warn!(bake = %claim.id, error = %e, "cannot cancel the tiles");
+                    }
+                }
+                return Ended::Done(Err(Error::Canceled));
+            }
+            let tiles = match self.0.repo.tiles(&claim.id).await {
+                Ok(t) => t,
+                Err(e) => {
+                    tracing::warn!(bake = %claim.id, error = %e, "cannot read the tiles; retrying");
+                    tokio::time::sleep(Duration::from_millis(250)).await;
+                    continue;
+                }
+            };
+            let total = tiles.len() as u64;
+            let done = tiles.iter().filter(|t| t.status == Status::Succeeded).count() as u64;
+            if !started {
+                progress.start(crate::progress::Stage::Bake, total);
+                started = true;
+            }
+            if done > reported {
+                progress.advance(done - reported);
+                reported = done;
+            }
+            *run.tiles.lock().unwrap_or_else(|e| e.into_inner()) =
+                Some(tiles::TileCount { done: done as u32, total: total as u32 });
+            if let Some(f) = tiles.iter().find(|t| t.status == Status::Failed) {
+                if let Err(e) = self.0.repo.cancel_tiles(&claim.id).await {
+                    tracing::warn!(bake = %claim.id, error = %e, "cannot cancel the tiles");
+                }
+                let g = f.geom();
+                let why = f
+                    .error
+                    .clone()
+                    .unwrap_or(BakeFailure { code: "internal".into(), message: "unknown".into() });
+                return Ended::TileFailed(BakeFailure {
+                    code: why.code,
+                    message: format!(
+                        "tile {} (column {}, row {}: texels {}..{} × {}..{}) failed after {} \
+                         attempts: {}",
+                        f.index,
+                        g.col,
+                        g.row,
+                        g.interior.x,
+                        g.interior.x + g.interior.w,
+                        g.interior.y,
+                        g.interior.y + g.interior.h,
+                        f.attempts,
+                        why.message
+                    ),
+                });
+            }
+            if tiles.iter().any(|t| t.status == Status::Canceled) {
+                return Ended::Done(Err(Error::Canceled));
+            }
+            if done == total {
+                break tiles;
+            }
+            tokio::select! {
+                _ = wake.recv() => {}
+                _ = tokio::time::sleep(Duration::from_millis(250)) => {}
+            }
+        };
+        // The assembly takes no slot either: an idle work loop holds one while it waits for
+        // work, and the assembly is the last step of work already claimed.
+        let count = tiles::TileCount { done: tiles.len() as u32, total: tiles.len() as u32 };
+        let out = self
+            .on_pool(move || {
+                let mut done = tiler.assemble(&rec, &tiles, &progress, &blobs)?;
+                done.tiles = Some(count);
+                Ok(done)
+            })
+            .await;
+        out.map_or(Ended::Panicked, Ended::Done)
+    }
+
+    /// Runs one claimed tile: heartbeats its lease, bakes it on the pool, records the outcome
+    /// (refused when the claim went stale meanwhile).
+    async fn run_tile(&self, claim: tiles::TileClaim) {
+        let key = format!("{}/tile{}", claim.bake_id, claim.index);
+        let run = LocalRun::new();
+        self.local().insert(key.clone(), run.clone());
+        let lost = Arc::new(AtomicBool::new(false));
+        let beat = {
+            let (repo, claim, progress, lost) =
+                (self.0.repo.clone(), claim.clone(), run.progress.clone(), lost.clone());
+            let (every, lease) = (self.0.cfg.heartbeat, self.0.cfg.lease);
+            tokio::spawn(async move {
+                loop {
+                    tokio::time::sleep(every).await;
+                    match repo.heartbeat_tile(&claim, lease).await {
+                        Ok(Beat::Alive { cancel: true }) => progress.cancel(),
+                        Ok(Beat::Alive { cancel: false }) => {}
+                        Ok(Beat::Lost) => {
+                            tracing::warn!(bake = %claim.bake_id, tile = claim.index,
+                                attempt = claim.attempt,
+                                "tile lease lost: stopping, it belongs to another worker now");
+                            lost.store(true, Ordering::SeqCst);
+                            progress.cancel();
+                            return;
+                        }
+                        Err(e) => tracing::warn!(bake = %claim.bake_id, tile = claim.index,
+                            error = %e, "tile heartbeat failed"),
+                    }
+                }
+            })
+        };
+        let tiler = self.tiling().map(|t| t.tiler.clone());
+        let bake = self.0.repo.get(&claim.bake_id).await;
+        let out = match (tiler, bake) {
+            (Some(tiler), Ok(Some(rec))) => {
+                let blobs = self.blobs_for(claim.owner());
+                let (tile, progress) = (claim.tile.clone(), run.progress.clone());
+                self.on_pool(move || tiler.bake_tile(&rec, &tile, &progress, &blobs)).await
+            }
+            (_, Ok(None)) => Some(Err(Error::Canceled)),
+            (_, Err(e)) => Some(Err(e)),
+            (None, _) => Some(Err(Error::Internal("tiling is off on this node".into()))),
+        };
+        beat.abort();
+        let outcome = match out {
+            Some(Ok(results)) => tiles::TileOutcome::Succeeded(results),
+            Some(Err(Error::Canceled)) if run.requeue.load(Ordering::SeqCst) => {
+                tiles::TileOutcome::Released
+            }
+            Some(Err(Error::Canceled)) => tiles::TileOutcome::Canceled,
+            Some(Err(e @ Error::Unavailable(_))) if claim.attempt < UNAVAILABLE_ATTEMPTS => {
+                tracing::warn!(bake = %claim.bake_id, tile = claim.index, error = %e,
+                    "store unavailable during a tile: handing it back");
+                tiles::TileOutcome::Released
+            }
+            Some(Err(e)) => tiles::TileOutcome::Failed(failure_of(&key, &e)),
+            None => {
+                tracing::error!(bake = %claim.bake_id, tile = claim.index, "tile panicked");
+                tiles::TileOutcome::Failed(BakeFailure {
+                    code: "internal".into(),
+                    message: "an internal error occurred; it has been logged".into(),
+                })
+            }
+        };
+        let label = match &outcome {
+            tiles::TileOutcome::Succeeded(_) => "succeeded",
+            tiles::TileOutcome::Failed(_) => "failed",
+            tiles::TileOutcome::Canceled => "canceled",
+            tiles::TileOutcome::Released => "released",
+        };
+        let recorded = if lost.load(Ordering::SeqCst) {
+            false
+        } else {
+            let mut wait = Duration::from_millis(100);
+            loop {
+                match self
+                    .0
+                    .repo
+                    .complete_tile(&claim, outcome.clone(), self.0.cfg.max_attempts)
+                    .await
+                {
+                    Ok(done) => break done,
+                    Err(e) if wait < Duration::from_secs(5) => {
+                        tracing::warn!(bake = %claim.bake_id, tile = claim.index, error = %e,
+                            "cannot record a tile; retrying");
+                        tokio::time::sleep(wait).await;
+                        wait *= 2;
+                    }
+                    Err(e) => {
+                        tracing::warn!(bake = %claim.bake_id, tile = claim.index, error = %e,
+                            "cannot record a tile; its lease will run out");
+                        break false;
+                    }
+                }
+            }
+        };
+        if !recorded {
+            tracing::warn!(bake = %claim.bake_id, tile = claim.index, attempt = claim.attempt,
+                "tile outcome refused: the claim is stale");
+        }
+        if let Some(hook) = self.tiling().and_then(|t| t.on_tile.clone()) {
+            hook(if recorded { label } else { "lost" });
+        }
+        self.local().remove(&key);
+        let _ = self.0.changes.send(claim.bake_id.clone());
     }
 
     /// Records an outcome, retrying while the repository is unreachable (until the claim is

@@ -26,6 +26,7 @@ use crate::jobs::repo::{Beat, CancelResult, Claim, Counts, JobRepo, Outcome, Sub
 use crate::jobs::store::{
     now_ms, BakeFailure, BakeRecord, BlobStore, ListQuery, Listing, LiveProgress, Status,
 };
+use crate::jobs::tiles::{TileClaim, TileOutcome, TileRecord};
 use sqlx::postgres::{PgListener, PgPool, PgPoolOptions, PgRow};
 use sqlx::{Postgres, Row, Transaction};
 use std::collections::HashSet;
@@ -40,7 +41,8 @@ const REAPER_LOCK: i64 = 0x686f_7269_7a6f_6e02;
 const PIN_TTL_SECS: f64 = 3600.0;
 
 /// Schema versions, applied in order, each once.
-const MIGRATIONS: &[&str] = &[r"
+const MIGRATIONS: &[&str] = &[
+    r"
 CREATE TABLE bakes (
     id text PRIMARY KEY,
     status text NOT NULL,
@@ -68,7 +70,23 @@ CREATE TABLE blob_pins (
     pinned_until timestamptz NOT NULL,
     PRIMARY KEY (hash, owner)
 );
-"];
+",
+    r"
+CREATE TABLE tiles (
+    bake_id text NOT NULL REFERENCES bakes (id) ON DELETE CASCADE,
+    idx integer NOT NULL,
+    status text NOT NULL,
+    record jsonb NOT NULL,
+    worker text,
+    attempt integer NOT NULL DEFAULT 0,
+    lease_until timestamptz,
+    cancel_requested boolean NOT NULL DEFAULT false,
+    PRIMARY KEY (bake_id, idx)
+);
+CREATE INDEX tiles_queued ON tiles (bake_id, idx) WHERE status = 'queued';
+CREATE INDEX tiles_leases ON tiles (lease_until) WHERE status = 'running';
+",
+];
 
 fn pg_err(e: sqlx::Error) -> Error {
     match e {
@@ -90,6 +108,58 @@ fn pg_err(e: sqlx::Error) -> Error {
 
 fn json_err(e: serde_json::Error) -> Error {
     Error::Internal(format!("corrupt bake record: {e}"))
+}
+
+const TILE_COLUMNS: &str = "bake_id, idx, status, record, worker, attempt";
+
+fn tile_of(row: &PgRow) -> Result<TileRecord> {
+    let json: serde_json::Value = row.try_get("record").map_err(pg_err)?;
+    let mut t: TileRecord = serde_json::from_value(json).map_err(json_err)?;
+    let status: String = row.try_get("status").map_err(pg_err)?;
+    t.status = Status::parse(&status).map_err(|_| Error::Internal(format!("status {status}")))?;
+    t.attempts = row.try_get::<i32, _>("attempt").map_err(pg_err)?.max(0) as u32;
+    t.worker = row.try_get("worker").map_err(pg_err)?;
+    Ok(t)
+}
+
+/// Writes a tile's JSON and columns (the lease and cancel flag end unless it is running).
+async fn write_tile(tx: &mut Transaction<'_, Postgres>, t: &TileRecord) -> Result<()> {
+    sqlx::query(
+        "UPDATE tiles SET status = $3, record = $4, worker = $5, attempt = $6, \
+         lease_until = CASE WHEN $3 = 'running' THEN lease_until END, \
+         cancel_requested = CASE WHEN $3 = 'running' THEN cancel_requested ELSE false END \
+         WHERE bake_id = $1 AND idx = $2",
+    )
+    .bind(&t.bake_id)
+    .bind(t.index as i32)
+    .bind(t.status.as_str())
+    .bind(serde_json::to_value(t).map_err(json_err)?)
+    .bind(&t.worker)
+    .bind(t.attempts as i32)
+    .execute(&mut **tx)
+    .await
+    .map_err(pg_err)?;
+    Ok(())
+}
+
+async fn cancel_tiles_tx(tx: &mut Transaction<'_, Postgres>, id: &str) -> Result<()> {
+    sqlx::query(
+        "UPDATE tiles SET status = 'canceled', \
+         record = record || jsonb_build_object('status', 'canceled') \
+         WHERE bake_id = $1 AND status = 'queued'",
+    )
+    .bind(id)
+    .execute(&mut **tx)
+    .await
+    .map_err(pg_err)?;
+    sqlx::query(
+        "UPDATE tiles SET cancel_requested = true WHERE bake_id = $1 AND status = 'running'",
+    )
+    .bind(id)
+    .execute(&mut **tx)
+    .await
+    .map_err(pg_err)?;
+    Ok(())
 }
 
 /// [`JobRepo`] on PostgreSQL.
@@ -504,6 +574,7 @@ impl JobRepo for PgRepo {
                     .execute(&mut *tx)
                     .await
                     .map_err(pg_err)?;
+                cancel_tiles_tx(&mut tx, id).await?;
                 CancelResult::Requested(rec)
             }
             _ => CancelResult::Finished(rec),
@@ -554,6 +625,32 @@ impl JobRepo for PgRepo {
             write(&mut tx, &rec).await?;
             notify(&mut tx, &rec.id).await?;
             ids.push(rec.id);
+        }
+        let rows = sqlx::query(&format!(
+            "SELECT {TILE_COLUMNS} FROM tiles WHERE status = 'running' AND lease_until < now() \
+             FOR UPDATE SKIP LOCKED"
+        ))
+        .fetch_all(&mut *tx)
+        .await
+        .map_err(pg_err)?;
+        for row in &rows {
+            let mut t = tile_of(row)?;
+            if t.attempts >= max_attempts {
+                t.status = Status::Failed;
+                t.error = Some(BakeFailure {
+                    code: "worker_lost".into(),
+                    message: format!(
+                        "the worker running this tile stopped answering, {} times",
+                        t.attempts
+                    ),
+                });
+            } else {
+                t.status = Status::Queued;
+            }
+            t.worker = None;
+            write_tile(&mut tx, &t).await?;
+            notify(&mut tx, &t.bake_id).await?;
+            ids.push(format!("{}/tile{}", t.bake_id, t.index));
         }
         tx.commit().await.map_err(pg_err)?;
         Ok(ids)
@@ -723,5 +820,166 @@ impl JobRepo for PgRepo {
 
     fn subscribe(&self) -> broadcast::Receiver<String> {
         self.changes.subscribe()
+    }
+
+    async fn add_tiles(&self, claim: &Claim, tiles: Vec<TileRecord>) -> Result<bool> {
+        let mut tx = self.begin().await?;
+        let Some(current) = Self::select_for_update(&mut tx, &claim.id).await? else {
+            return Ok(false);
+        };
+        if current.status != Status::Running
+            || current.attempts != claim.attempt
+            || current.worker.as_deref() != Some(claim.worker.as_str())
+        {
+            return Ok(false);
+        }
+        let hashes: Vec<String> = tiles.iter().map(|t| t.input_blob.clone()).collect();
+        for t in &tiles {
+            sqlx::query(
+                "INSERT INTO tiles (bake_id, idx, status, record, attempt) \
+                 VALUES ($1, $2, 'queued', $3, 0) ON CONFLICT (bake_id, idx) DO NOTHING",
+            )
+            .bind(&t.bake_id)
+            .bind(t.index as i32)
+            .bind(serde_json::to_value(t).map_err(json_err)?)
+            .execute(&mut *tx)
+            .await
+            .map_err(pg_err)?;
+        }
+        add_refs(&mut tx, &claim.id, &hashes, &claim.owner()).await?;
+        notify(&mut tx, &claim.id).await?;
+        tx.commit().await.map_err(pg_err)?;
+        Ok(true)
+    }
+
+    async fn tiles(&self, id: &str) -> Result<Vec<TileRecord>> {
+        let rows = sqlx::query(&format!(
+            "SELECT {TILE_COLUMNS} FROM tiles WHERE bake_id = $1 ORDER BY idx"
+        ))
+        .bind(id)
+        .fetch_all(&self.pool)
+        .await
+        .map_err(pg_err)?;
+        rows.iter().map(tile_of).collect()
+    }
+
+    async fn claim_tile(&self, worker: &str, lease: Duration) -> Result<Option<TileClaim>> {
+        let mut tx = self.begin().await?;
+        let row = sqlx::query(&format!(
+            "UPDATE tiles SET status = 'running', worker = $1, attempt = attempt + 1, \
+             lease_until = now() + make_interval(secs => $2), cancel_requested = false \
+             WHERE (bake_id, idx) = (SELECT t.bake_id, t.idx FROM tiles t \
+                 JOIN bakes b ON b.id = t.bake_id \
+                 WHERE t.status = 'queued' AND b.status = 'running' AND NOT b.cancel_requested \
+                 ORDER BY t.bake_id, t.idx LIMIT 1 FOR UPDATE OF t SKIP LOCKED) \
+             RETURNING {TILE_COLUMNS}"
+        ))
+        .bind(worker)
+        .bind(lease.as_secs_f64())
+        .fetch_optional(&mut *tx)
+        .await
+        .map_err(pg_err)?;
+        let Some(row) = row else {
+            tx.commit().await.map_err(pg_err)?;
+            return Ok(None);
+        };
+        let t = tile_of(&row)?;
+        notify(&mut tx, &t.bake_id).await?;
+        tx.commit().await.map_err(pg_err)?;
+        Ok(Some(TileClaim {
+            bake_id: t.bake_id.clone(),
+            index: t.index,
+            attempt: t.attempts,
+            worker: worker.to_owned(),
+            tile: t,
+        }))
+    }
+
+    async fn heartbeat_tile(&self, claim: &TileClaim, lease: Duration) -> Result<Beat> {
+        let cancel: Option<bool> = sqlx::query_scalar(
+            "UPDATE tiles t SET lease_until = now() + make_interval(secs => $5) \
+             WHERE bake_id = $1 AND idx = $2 AND attempt = $3 AND worker = $4 \
+             AND status = 'running' \
+             RETURNING t.cancel_requested OR NOT EXISTS (SELECT 1 FROM bakes b \
+                 WHERE b.id = t.bake_id AND b.status = 'running' AND NOT b.cancel_requested)",
+        )
+        .bind(&claim.bake_id)
+        .bind(claim.index as i32)
+        .bind(claim.attempt as i32)
+        .bind(&claim.worker)
+        .bind(lease.as_secs_f64())
+        .fetch_optional(&self.pool)
+        .await
+        .map_err(pg_err)?;
+        Ok(match cancel {
+            Some(cancel) => Beat::Alive { cancel },
+            None => Beat::Lost,
+        })
+    }
+
+    async fn complete_tile(
+        &self,
+        claim: &TileClaim,
+        outcome: TileOutcome,
+        max_attempts: u32,
+    ) -> Result<bool> {
+        let mut tx = self.begin().await?;
+        let row = sqlx::query(&format!(
+            "SELECT {TILE_COLUMNS} FROM tiles WHERE bake_id = $1 AND idx = $2 FOR UPDATE"
+        ))
+        .bind(&claim.bake_id)
+        .bind(claim.index as i32)
+        .fetch_optional(&mut *tx)
+        .await
+        .map_err(pg_err)?;
+        let Some(current) = row.as_ref().map(tile_of).transpose()? else { return Ok(false) };
+        if current.status != Status::Running
+            || current.attempts != claim.attempt
+            || current.worker.as_deref() != Some(claim.worker.as_str())
+        {
+            return Ok(false);
+        }
+        let t = outcome.apply(current, claim, max_attempts);
+        write_tile(&mut tx, &t).await?;
+        let results: Vec<String> = t.results.values().cloned().collect();
+        add_refs(&mut tx, &t.bake_id, &results, &claim.owner()).await?;
+        notify(&mut tx, &t.bake_id).await?;
+        tx.commit().await.map_err(pg_err)?;
+        Ok(true)
+    }
+
+    async fn cancel_tiles(&self, id: &str) -> Result<()> {
+        let mut tx = self.begin().await?;
+        cancel_tiles_tx(&mut tx, id).await?;
+        notify(&mut tx, id).await?;
+        tx.commit().await.map_err(pg_err)
+    }
+
+    async fn remove_tiles(&self, id: &str) -> Result<Vec<String>> {
+        let mut tx = self.begin().await?;
+        let rows =
+            sqlx::query(&format!("DELETE FROM tiles WHERE bake_id = $1 RETURNING {TILE_COLUMNS}"))
+                .bind(id)
+                .fetch_all(&mut *tx)
+                .await
+                .map_err(pg_err)?;
+        let mut hashes: Vec<String> = Vec::new();
+        for row in &rows {
+            hashes.extend(tile_of(row)?.blobs().map(str::to_owned));
+        }
+        // The bake's own blobs (input, results) stay referenced.
+        let own: HashSet<String> = match Self::select_for_update(&mut tx, id).await? {
+            Some(r) => r.blobs().map(str::to_owned).collect(),
+            None => HashSet::new(),
+        };
+        hashes.retain(|h| !own.contains(h));
+        sqlx::query("DELETE FROM blob_refs WHERE bake_id = $1 AND hash = ANY($2)")
+            .bind(id)
+            .bind(&hashes)
+            .execute(&mut *tx)
+            .await
+            .map_err(pg_err)?;
+        tx.commit().await.map_err(pg_err)?;
+        Ok(hashes)
     }
 }

@@ -21,6 +21,7 @@ use crate::error::Result;
 use crate::jobs::store::{
     BakeFailure, BakeRecord, BlobStore, ListQuery, Listing, LiveProgress, Status,
 };
+use crate::jobs::tiles::{TileClaim, TileOutcome, TileRecord};
 use std::collections::HashSet;
 use std::sync::Arc;
 use std::time::Duration;
@@ -221,6 +222,37 @@ pub trait JobRepo: Send + Sync + 'static {
     async fn referenced_blobs(&self) -> Result<HashSet<String>>;
     /// Whether the backend answers (readiness).
     async fn ping(&self) -> Result<()>;
+
+    // Tiled bakes (SPEC §7.1): each tile is claimed, leased, heartbeated and fenced like a bake.
+    // A tile change is announced under its bake's id.
+
+    /// Adds the tiles of the bake `claim` holds (those not already there from an earlier
+    /// attempt keep their state), unless the claim is stale (false). References their input
+    /// blobs and unpins `claim.owner()`'s pins of them.
+    async fn add_tiles(&self, claim: &Claim, tiles: Vec<TileRecord>) -> Result<bool>;
+    /// The tiles of bake `id`, by index.
+    async fn tiles(&self, id: &str) -> Result<Vec<TileRecord>>;
+    /// Takes the first queued tile of a running, uncanceled bake for `worker` for `lease`:
+    /// status `running`, attempt + 1 (its fencing number).
+    async fn claim_tile(&self, worker: &str, lease: Duration) -> Result<Option<TileClaim>>;
+    /// Extends the tile's lease; `cancel` when the tile or its bake was asked to stop or the
+    /// bake is no longer running; `Lost` when the claim is stale.
+    async fn heartbeat_tile(&self, claim: &TileClaim, lease: Duration) -> Result<Beat>;
+    /// Records how the claimed tile ended ([`TileOutcome::apply`]), unless the claim is stale
+    /// (false, nothing written): a worker that lost its lease cannot replace the results of the
+    /// claim that took over. References the result blobs and unpins `claim.owner()`'s pins.
+    async fn complete_tile(
+        &self,
+        claim: &TileClaim,
+        outcome: TileOutcome,
+        max_attempts: u32,
+    ) -> Result<bool>;
+    /// Stops every tile of bake `id`: queued ones become `canceled`, running ones are asked to
+    /// stop (their workers learn it at their next heartbeat).
+    async fn cancel_tiles(&self, id: &str) -> Result<()>;
+    /// Removes the tiles of bake `id` and their references; returns the blobs they referenced
+    /// (for [`JobRepo::delete_blobs_if_unused`]).
+    async fn remove_tiles(&self, id: &str) -> Result<Vec<String>>;
     /// Ids of bakes as they change, on every node.
     fn subscribe(&self) -> broadcast::Receiver<String>;
 }

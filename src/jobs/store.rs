@@ -147,6 +147,10 @@ pub struct BakeRecord {
     /// The input's georeferencing (a GeoTIFF DEM), as bake.json reports it: read at submission.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub georeferencing: Option<serde_json::Value>,
+    /// A tiled bake's tiles (SPEC §7.1): done out of total, once finished (a running one's
+    /// live count is in its progress).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tiles: Option<crate::jobs::tiles::TileCount>,
 }
 
 /// Progress as a worker reports it: the stage and the fraction of that stage done.
@@ -154,12 +158,15 @@ pub struct BakeRecord {
 pub struct LiveProgress {
     pub stage: crate::progress::Stage,
     pub fraction: f64,
+    /// A tiled bake's tiles done out of total (SPEC §7.1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tiles: Option<crate::jobs::tiles::TileCount>,
 }
 
 impl LiveProgress {
     /// A snapshot of `p`.
     pub fn of(p: &crate::progress::Progress) -> Self {
-        LiveProgress { stage: p.stage(), fraction: p.fraction() }
+        LiveProgress { stage: p.stage(), fraction: p.fraction(), tiles: None }
     }
 }
 
@@ -362,6 +369,99 @@ pub trait BlobStore: Send + Sync + 'static {
         let Some((_, mut r)) = self.open(hash)? else { return Ok(None) };
         std::io::copy(&mut (&mut r).take(start), &mut std::io::sink())?;
         Ok(Some(Box::new(r.take(end.saturating_sub(start)))))
+    }
+}
+
+/// Reads `len` bytes from byte `start` of the blob `hash` (a ranged read: S3 a ranged GET, the
+/// file store a seek), what `encode::assemble::TileRows` pulls tile results with.
+///
+/// # Errors
+/// [`Error::Internal`] when the blob is missing; the backend's failure.
+pub fn read_range(store: &dyn BlobStore, hash: &str, start: u64, len: usize) -> Result<Vec<u8>> {
+    use std::io::Read;
+    let mut r = store
+        .open_range(hash, start, start + len as u64)?
+        .ok_or_else(|| Error::Internal(format!("blob {hash} is missing")))?;
+    let mut out = vec![0u8; len];
+    r.read_exact(&mut out)?;
+    Ok(out)
+}
+
+/// A blob read as `Read + Seek` through ranged reads of [`BlobStore::open_range`], a window of
+/// [`BlobSeekReader::WINDOW`] bytes at a time: a TIFF decoder seeks to its IFD and its strips
+/// without the blob ever being in memory or on local disk whole.
+pub struct BlobSeekReader {
+    store: std::sync::Arc<dyn BlobStore>,
+    hash: String,
+    len: u64,
+    pos: u64,
+    buf: Vec<u8>,
+    buf_at: u64,
+}
+
+impl BlobSeekReader {
+    /// Bytes fetched per ranged read.
+    pub const WINDOW: usize = 4 << 20;
+
+    /// A reader over the blob `hash` of `store`, `None` when it is not stored.
+    ///
+    /// # Errors
+    /// The backend's failure.
+    pub fn open(store: std::sync::Arc<dyn BlobStore>, hash: &str) -> Result<Option<Self>> {
+        let Some((len, _)) = store.open(hash)? else { return Ok(None) };
+        Ok(Some(BlobSeekReader {
+            store,
+            hash: hash.to_string(),
+            len,
+            pos: 0,
+            buf: Vec::new(),
+            buf_at: 0,
+        }))
+    }
+
+    /// The blob's length in bytes.
+    pub fn len(&self) -> u64 {
+        self.len
+    }
+
+    /// Whether the blob is empty.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+}
+
+impl std::io::Read for BlobSeekReader {
+    fn read(&mut self, out: &mut [u8]) -> std::io::Result<usize> {
+        if self.pos >= self.len || out.is_empty() {
+            return Ok(0);
+        }
+        let end = self.buf_at + self.buf.len() as u64;
+        if self.pos < self.buf_at || self.pos >= end {
+            let n = (Self::WINDOW as u64).min(self.len - self.pos) as usize;
+            self.buf =
+                read_range(&*self.store, &self.hash, self.pos, n).map_err(std::io::Error::other)?;
+            self.buf_at = self.pos;
+        }
+        let off = (self.pos - self.buf_at) as usize;
+        let n = out.len().min(self.buf.len() - off);
+        out[..n].copy_from_slice(&self.buf[off..off + n]);
+        self.pos += n as u64;
+        Ok(n)
+    }
+}
+
+impl std::io::Seek for BlobSeekReader {
+    fn seek(&mut self, to: std::io::SeekFrom) -> std::io::Result<u64> {
+        let pos = match to {
+            std::io::SeekFrom::Start(p) => Some(p),
+            std::io::SeekFrom::End(d) => self.len.checked_add_signed(d),
+            std::io::SeekFrom::Current(d) => self.pos.checked_add_signed(d),
+        };
+        let pos = pos.ok_or_else(|| {
+            std::io::Error::new(std::io::ErrorKind::InvalidInput, "seek before the blob's start")
+        })?;
+        self.pos = pos;
+        Ok(pos)
     }
 }
 
@@ -699,6 +799,7 @@ mod tests {
             formats: None,
             stopped_at: None,
             georeferencing: None,
+            tiles: None,
         }
     }
 

@@ -35,6 +35,10 @@ pub struct Grid<'a> {
     pub heights: &'a [f32],
     pub edge: Edge,
     pub y_axis: YAxis,
+    /// The height range of the whole map when this grid is a window of it (a tile of a tiled
+    /// bake, SPEC §7.1): kernels that work relative to the range see the whole map's, so a
+    /// texel's result does not depend on the window it is computed in.
+    pub whole_range: Option<(f32, f32)>,
 }
 
 impl<'a> Grid<'a> {
@@ -44,7 +48,14 @@ impl<'a> Grid<'a> {
     /// If `heights.len() != width * height` (a programming error, not an input error).
     pub fn new(width: usize, height: usize, heights: &'a [f32], edge: Edge, y_axis: YAxis) -> Self {
         assert_eq!(heights.len(), width * height, "grid size mismatch");
-        Grid { width, height, heights, edge, y_axis }
+        Grid { width, height, heights, edge, y_axis, whole_range: None }
+    }
+
+    /// This grid as a window of a map whose heights span `lo ..= hi` ([`Grid::range`] answers
+    /// that instead of the window's own range).
+    pub fn with_range(mut self, lo: f32, hi: f32) -> Self {
+        self.whole_range = Some((lo, hi));
+        self
     }
 
     /// Image row step for one unit of tangent-space +y: −1 with `y_axis=up` (toward the top).
@@ -79,8 +90,12 @@ impl<'a> Grid<'a> {
         self.at(x as i64 + i, y as i64 + j * self.row_step())
     }
 
-    /// Minimum and maximum height (0, 0 for an empty grid).
+    /// Minimum and maximum height (0, 0 for an empty grid); the whole map's for a window of it
+    /// ([`Grid::with_range`]).
     pub fn range(&self) -> (f32, f32) {
+        if let Some(r) = self.whole_range {
+            return r;
+        }
         let mut lo = f32::INFINITY;
         let mut hi = f32::NEG_INFINITY;
         for &v in self.heights {

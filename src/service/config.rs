@@ -24,11 +24,11 @@ pub struct ServeArgs {
     /// Largest accepted request body in bytes (an upload, multipart included).
     #[arg(long, env = "HORIZON_MAX_BODY_BYTES", default_value_t = 256 * 1024 * 1024)]
     pub max_body_bytes: u64,
-    /// Largest width or height of an input, in texels.
-    #[arg(long, env = "HORIZON_MAX_DIM", default_value_t = 16384)]
+    /// Largest width or height of an input, in texels (maps above --tile-above are tiled).
+    #[arg(long, env = "HORIZON_MAX_DIM", default_value_t = 65536)]
     pub max_dim: u32,
-    /// Largest width × height of an input.
-    #[arg(long, env = "HORIZON_MAX_TEXELS", default_value_t = 8192 * 8192)]
+    /// Largest width × height of an input (maps above --tile-above are tiled).
+    #[arg(long, env = "HORIZON_MAX_TEXELS", default_value_t = 65536 * 65536)]
     pub max_texels: u64,
     /// Threads of the dedicated bake pool (0 = one per core).
     #[arg(long, env = "HORIZON_BAKE_THREADS", default_value_t = 0)]
@@ -117,6 +117,13 @@ pub struct ServeArgs {
     /// Claims of one bake before a lost worker fails it (`worker_lost`).
     #[arg(long, env = "HORIZON_MAX_ATTEMPTS", default_value_t = 3)]
     pub max_attempts: u32,
+    /// Maps with more texels than this (width × height) are baked in tiles, spread over every
+    /// worker (SPEC §7.1).
+    #[arg(long, env = "HORIZON_TILE_ABOVE", default_value_t = 4096 * 4096)]
+    pub tile_above: u64,
+    /// Interior size of a tile, in texels (each also reads a halo of the radius + 1 around it).
+    #[arg(long, env = "HORIZON_TILE_SIZE", default_value_t = 2048)]
+    pub tile_size: u32,
     /// Let pages served from this origin (`https://tools.example.com`, or `*`) call the API
     /// from a browser (CORS). Off by default: only the server's own page can.
     #[arg(long, env = "HORIZON_CORS_ORIGIN")]
@@ -131,8 +138,8 @@ impl Default for ServeArgs {
             data_dir: PathBuf::from("./data"),
             addr_file: None,
             max_body_bytes: 256 * 1024 * 1024,
-            max_dim: 16384,
-            max_texels: 8192 * 8192,
+            max_dim: 65536,
+            max_texels: 65536 * 65536,
             bake_threads: 0,
             max_concurrent_bakes: 1,
             queue_capacity: 64,
@@ -161,6 +168,8 @@ impl Default for ServeArgs {
             heartbeat_ms: 1000,
             max_attempts: 3,
             cors_origin: None,
+            tile_above: 4096 * 4096,
+            tile_size: 2048,
         }
     }
 }
@@ -234,6 +243,8 @@ pub struct Config {
     pub max_attempts: u32,
     /// The origin allowed to call the API from a browser (`--cors-origin`), if any.
     pub cors_origin: Option<String>,
+    /// When and how maps are tiled (`--tile-above`, `--tile-size`).
+    pub tiles: crate::service::tiled::TileSettings,
 }
 
 fn at_least_one(field: &str, v: u64) -> Result<()> {
@@ -336,6 +347,7 @@ impl Config {
                  the embedded store serves one process (role `all`)",
             ));
         }
+        at_least_one("tile_size", a.tile_size as u64)?;
         at_least_one("lease_secs", a.lease_secs)?;
         at_least_one("heartbeat_ms", a.heartbeat_ms)?;
         at_least_one("max_attempts", a.max_attempts as u64)?;
@@ -412,6 +424,10 @@ impl Config {
             heartbeat: Duration::from_millis(a.heartbeat_ms),
             max_attempts: a.max_attempts,
             cors_origin,
+            tiles: crate::service::tiled::TileSettings {
+                tile_above: a.tile_above,
+                tile_size: a.tile_size,
+            },
         })
     }
 
@@ -441,7 +457,8 @@ mod tests {
         assert_eq!(d.queue_capacity, c.queue_capacity);
         assert_eq!(d.limits, c.limits);
         assert_eq!(c.queue_capacity, 64);
-        assert_eq!(c.limits.max_dim, 16384);
+        assert_eq!(c.limits.max_dim, 65536);
+        assert_eq!((c.tiles.tile_above, c.tiles.tile_size), (4096 * 4096, 2048));
         assert!(c.bake_threads >= 1);
         let a = ServeArgs { queue_capacity: 0, ..Default::default() };
         match Config::from_args(a) {

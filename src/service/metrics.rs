@@ -37,7 +37,13 @@ pub struct Metrics {
     texels: AtomicU64,
     encoded: AtomicU64,
     renders: [AtomicU64; 2],
+    /// Tiles this node ran, by how they ended ([`TILE_LABELS`]).
+    tiles: [AtomicU64; 5],
 }
+
+/// How a tile this node ran ended (`horizon_tiles_total{status=…}`): `lost` is a tile whose
+/// outcome was refused because another worker took it over (its lease ran out).
+pub const TILE_LABELS: [&str; 5] = ["succeeded", "failed", "canceled", "released", "lost"];
 
 /// What a render counted by [`Metrics::rendered`] produced.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -92,6 +98,13 @@ impl Metrics {
         }
         self.duration_count.fetch_add(1, Ordering::Relaxed);
         self.duration_sum_us.fetch_add((seconds * 1e6) as u64, Ordering::Relaxed);
+    }
+
+    /// Counts a tile this node ran, by how it ended (one of [`TILE_LABELS`]).
+    pub fn tile(&self, label: &str) {
+        if let Some(i) = TILE_LABELS.iter().position(|l| *l == label) {
+            self.tiles[i].fetch_add(1, Ordering::Relaxed);
+        }
     }
 
     /// Counts a result encoded on its first request.
@@ -194,6 +207,18 @@ impl Metrics {
         for kind in Render::ALL {
             let n = self.renders[kind as usize].load(Ordering::Relaxed);
             let _ = writeln!(s, "horizon_renders_total{{kind=\"{}\"}} {n}", kind.label());
+        }
+        let _ = writeln!(
+            s,
+            "# HELP horizon_tiles_total Tiles of tiled bakes this node ran, by how they ended."
+        );
+        let _ = writeln!(s, "# TYPE horizon_tiles_total counter");
+        for (label, n) in TILE_LABELS.iter().zip(&self.tiles) {
+            let _ = writeln!(
+                s,
+                "horizon_tiles_total{{status=\"{label}\"}} {}",
+                n.load(Ordering::Relaxed)
+            );
         }
         s
     }

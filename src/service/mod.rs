@@ -27,6 +27,7 @@ pub mod handlers;
 pub mod headers;
 pub mod metrics;
 pub mod problem;
+pub mod tiled;
 pub mod ui;
 pub mod upload;
 pub mod worker;
@@ -180,6 +181,16 @@ impl AppState {
             worker::runner(config.limits),
             Some(Arc::new(move |s, secs, texels| hook_metrics.finished(s, secs, texels))),
         )?;
+        // Maps above --tile-above are baked in tiles across every worker (SPEC §7.1).
+        let tile_metrics = metrics.clone();
+        jobs.set_tiling(crate::jobs::Tiling {
+            tiler: Arc::new(tiled::ServiceTiler {
+                limits: config.limits,
+                settings: config.tiles,
+                store: jobs.blob_store().clone(),
+            }),
+            on_tile: Some(Arc::new(move |label| tile_metrics.tile(label))),
+        });
         Ok(AppState(Arc::new(Shared {
             uploads: Arc::new(Semaphore::new(config.max_inflight_uploads)),
             config,

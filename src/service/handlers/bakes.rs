@@ -367,6 +367,8 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
         image::ImageFormat::Tiff => "tiff",
         _ => "exr",
     };
+    // A map above --tile-above is baked in tiles (SPEC §7.1): refuse now what tiles cannot do.
+    crate::service::tiled::check(&params, &formats, width, height, &st.0.config.tiles)?;
     let pairs: Vec<(String, String)> =
         params.to_pairs().into_iter().map(|(k, v)| (k.to_owned(), v)).collect();
     let (bytes, input_hash, key) = blocking(move || {
@@ -409,6 +411,7 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
         formats: Some(worker::formats_field(&formats)),
         stopped_at: None,
         georeferencing: georef.and_then(|g| serde_json::to_value(g).ok()),
+        tiles: None,
     };
     let (status, rec) = match st.0.jobs.submit(bytes, rec).await.map_err(store_err)? {
         Submitted::Created(rec) => {

@@ -192,6 +192,9 @@ pub struct BakeResource {
     /// The input's georeferencing (a GeoTIFF DEM: model, EPSG code or citation, transform,
     /// cell size, units), null for a plain image.
     pub georeferencing: Option<Value>,
+    /// A tiled bake's tiles done out of total (SPEC §7.1); absent for an untiled bake.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub tiles: Option<crate::jobs::tiles::TileCount>,
     pub links: std::collections::BTreeMap<String, String>,
 }
 
@@ -217,9 +220,11 @@ impl BakeResource {
             (_, Status::Succeeded) => ProgressView { fraction: 1.0, stage: Stage::Done },
             // A canceled bake keeps the fraction it had reached (and the stage it stopped in).
             (_, Status::Canceled) if rec.stopped_at.is_some() => {
-                let p = rec
-                    .stopped_at
-                    .unwrap_or(store::LiveProgress { stage: Stage::Queued, fraction: 0.0 });
+                let p = rec.stopped_at.unwrap_or(store::LiveProgress {
+                    stage: Stage::Queued,
+                    fraction: 0.0,
+                    tiles: None,
+                });
                 ProgressView { fraction: overall(p.stage, p.fraction), stage: p.stage }
             }
             (_, s) if s.is_terminal() => ProgressView { fraction: 0.0, stage: Stage::Done },
@@ -287,6 +292,10 @@ impl BakeResource {
                 stored: rec.results.keys().cloned().collect(),
             },
             georeferencing: rec.georeferencing.clone(),
+            tiles: match (rec.progress, status) {
+                (Some(p), Status::Running) => p.tiles.or(rec.tiles),
+                _ => rec.tiles,
+            },
             links,
         }
     }

@@ -1,0 +1,476 @@
+//! Tiled bakes (SPEC §7.1) across real processes on the real engines (PostgreSQL and an S3
+//! server started by `scripts/engines.sh`, as tests/distributed.rs does): one API node and two
+//! workers bake the tiles of one map; a killed worker's tiles are taken over; DELETE stops every
+//! tile; a stalled worker cannot overwrite a tile another wrote; the results are the CLI's
+//! untiled bytes. Without the engines these tests say so and pass, except under `CI=true`.
+
+mod service_common;
+
+use serde_json::Value;
+use service_common::*;
+use std::collections::{BTreeMap, BTreeSet};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+static SERIAL: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
+const BIN: &str = env!("CARGO_BIN_EXE_horizon-bake");
+
+struct Engines {
+    admin_url: String,
+    s3_endpoint: String,
+    bucket: String,
+}
+
+fn engines() -> Option<Engines> {
+    let var = |k: &str| std::env::var(k).ok().filter(|v| !v.is_empty());
+    match (
+        var("HORIZON_TEST_DATABASE_URL"),
+        var("HORIZON_TEST_S3_ENDPOINT"),
+        var("HORIZON_TEST_S3_BUCKET"),
+        var("HORIZON_TEST_ENGINES"),
+    ) {
+        (Some(admin_url), Some(s3_endpoint), Some(bucket), Some(_)) => {
+            Some(Engines { admin_url, s3_endpoint, bucket })
+        }
+        _ => {
+            assert!(
+                std::env::var("CI").as_deref() != Ok("true"),
+                "CI=true but PostgreSQL/S3 are not running: start them with \
+                 `scripts/engines.sh start DIR` and source DIR/env"
+            );
+            eprintln!("distributed tests skipped: run `scripts/engines.sh start DIR; . DIR/env`");
+            None
+        }
+    }
+}
+
+/// One deployment: a fresh database and bucket prefix, and the nodes started on it.
+struct Cluster {
+    eng: Engines,
+    db_url: String,
+    prefix: String,
+    tmp: tempfile::TempDir,
+    nodes: Vec<Node>,
+}
+
+struct Node {
+    child: Child,
+    base: String,
+}
+
+impl Drop for Cluster {
+    fn drop(&mut self) {
+        for n in &mut self.nodes {
+            let _ = n.child.kill();
+            let _ = n.child.wait();
+        }
+    }
+}
+
+fn signal(pid: u32, sig: &str) {
+    let ok = Command::new("kill").args([&format!("-{sig}"), &pid.to_string()]).status().unwrap();
+    assert!(ok.success(), "kill -{sig} {pid} failed");
+}
+
+impl Cluster {
+    async fn new(name: &str) -> Option<Cluster> {
+        let eng = engines()?;
+        let tag = format!("{name}_{}", std::process::id());
+        let admin = sqlx::PgPool::connect(&eng.admin_url).await.unwrap();
+        sqlx::query(&format!("DROP DATABASE IF EXISTS {tag}")).execute(&admin).await.unwrap();
+        sqlx::query(&format!("CREATE DATABASE {tag}")).execute(&admin).await.unwrap();
+        admin.close().await;
+        let db_url = match eng.admin_url.rsplit_once('/') {
+            Some((base, _)) => format!("{base}/{tag}"),
+            None => unreachable!(),
+        };
+        Some(Cluster { eng, db_url, prefix: tag, tmp: tempfile::tempdir().unwrap(), nodes: vec![] })
+    }
+
+    /// Starts `serve --role role` with the shared stores; returns its index.
+    fn start(&mut self, role: &str, worker_id: &str, extra: &[&str]) -> usize {
+        let i = self.nodes.len();
+        let dir = self.tmp.path().join(format!("node{i}"));
+        std::fs::create_dir_all(&dir).unwrap();
+        let addr_file = dir.join("addr");
+        let log = std::fs::File::create(dir.join("log")).unwrap();
+        let mut args: Vec<String> = [
+            "serve",
+            "--role",
+            role,
+            "--addr",
+            "127.0.0.1:0",
+            "--worker-id",
+            worker_id,
+            "--database-url",
+            &self.db_url,
+            "--s3-endpoint",
+            &self.eng.s3_endpoint,
+            "--s3-bucket",
+            &self.eng.bucket,
+            "--s3-prefix",
+            &self.prefix,
+            "--lease-secs",
+            "2",
+            "--heartbeat-ms",
+            "200",
+            "--bake-threads",
+            "2",
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+        args.push("--addr-file".into());
+        args.push(addr_file.display().to_string());
+        args.push("--data-dir".into());
+        args.push(dir.join("data").display().to_string());
+        args.extend(extra.iter().map(|s| s.to_string()));
+        let child = Command::new(BIN)
+            .args(&args)
+            .env("RUST_LOG", "info")
+            .stdout(Stdio::null())
+            .stderr(log)
+            .spawn()
+            .unwrap();
+        let t = Instant::now();
+        while !addr_file.exists() || std::fs::read_to_string(&addr_file).unwrap().is_empty() {
+            assert!(
+                t.elapsed() < Duration::from_secs(60),
+                "node {i} did not start: {}",
+                std::fs::read_to_string(dir.join("log")).unwrap_or_default()
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        let addr = std::fs::read_to_string(&addr_file).unwrap();
+        self.nodes.push(Node { child, base: format!("http://{}", addr.trim()) });
+        i
+    }
+
+    fn base(&self, i: usize) -> &str {
+        &self.nodes[i].base
+    }
+
+    fn pid(&self, i: usize) -> u32 {
+        self.nodes[i].child.id()
+    }
+
+    fn log(&self, i: usize) -> String {
+        std::fs::read_to_string(self.tmp.path().join(format!("node{i}/log"))).unwrap_or_default()
+    }
+
+    async fn db(&self) -> sqlx::PgPool {
+        sqlx::PgPool::connect(&self.db_url).await.unwrap()
+    }
+
+    /// Every blob object under this cluster's prefix.
+    async fn bucket_blobs(&self) -> BTreeSet<String> {
+        use futures_util::StreamExt;
+        use object_store::ObjectStore;
+        let s3 = object_store::aws::AmazonS3Builder::new()
+            .with_endpoint(&self.eng.s3_endpoint)
+            .with_bucket_name(&self.eng.bucket)
+            .with_region("us-east-1")
+            .with_allow_http(true)
+            .with_access_key_id(std::env::var("AWS_ACCESS_KEY_ID").unwrap())
+            .with_secret_access_key(std::env::var("AWS_SECRET_ACCESS_KEY").unwrap())
+            .build()
+            .unwrap();
+        let root = object_store::path::Path::from(format!("{}/blobs", self.prefix));
+        let metas: Vec<_> = s3.list(Some(&root)).collect().await;
+        metas.into_iter().map(|m| m.unwrap().location.filename().unwrap().to_owned()).collect()
+    }
+}
+
+async fn submit(c: &reqwest::Client, base: &str, png: &[u8], query: &str) -> (u16, Value) {
+    let r = c
+        .post(format!("{base}/v1/bakes?{query}"))
+        .header("content-type", "image/png")
+        .body(png.to_vec())
+        .send()
+        .await
+        .unwrap();
+    let s = r.status().as_u16();
+    (s, r.json().await.unwrap())
+}
+
+async fn get_json(c: &reqwest::Client, url: &str) -> (u16, Value) {
+    let r = c.get(url).send().await.unwrap();
+    let s = r.status().as_u16();
+    (s, r.json().await.unwrap_or(Value::Null))
+}
+
+impl Cluster {
+    fn url_of(&self, i: usize, id: &str) -> String {
+        format!("{}/v1/bakes/{id}", self.base(i))
+    }
+}
+
+/// Tiling flags for every node: maps above 512² are tiled.
+fn tiling(tile: &str) -> Vec<&str> {
+    vec!["--tile-above", "262144", "--tile-size", tile]
+}
+
+/// The CLI's untiled layers (png8) of `png` with `flags`.
+fn cli_layers(dir: &std::path::Path, png: &[u8], flags: &[&str]) -> [Vec<u8>; 2] {
+    let input = dir.join(format!("in-{}.png", flags.join("_")));
+    let out = dir.join(format!("cli-{}", flags.join("_")));
+    std::fs::write(&input, png).unwrap();
+    let st = Command::new(BIN)
+        .args(["bake", input.to_str().unwrap(), "-o", out.to_str().unwrap(), "--format", "png8"])
+        .args(flags)
+        .status()
+        .unwrap();
+    assert!(st.success());
+    [
+        std::fs::read(out.join("horizon_0.png")).unwrap(),
+        std::fs::read(out.join("horizon_1.png")).unwrap(),
+    ]
+}
+
+async fn layers(c: &reqwest::Client, url: &str) -> [Vec<u8>; 2] {
+    let mut out = [Vec::new(), Vec::new()];
+    for (k, o) in out.iter_mut().enumerate() {
+        let r = c.get(format!("{url}/horizon/{k}")).send().await.unwrap();
+        assert_eq!(r.status(), 200, "layer {k}");
+        *o = r.bytes().await.unwrap().to_vec();
+    }
+    out
+}
+
+async fn metric(c: &reqwest::Client, base: &str, name: &str) -> f64 {
+    let text = c.get(format!("{base}/metrics")).send().await.unwrap().text().await.unwrap();
+    text.lines()
+        .find(|l| l.starts_with(name))
+        .and_then(|l| l.rsplit(' ').next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("{name} missing:\n{text}"))
+}
+
+/// (index, status, worker, attempt) of every tile of bake `id`.
+async fn tile_rows(db: &sqlx::PgPool, id: &str) -> Vec<(i32, String, Option<String>, i32)> {
+    sqlx::query_as("SELECT idx, status, worker, attempt FROM tiles WHERE bake_id = $1 ORDER BY idx")
+        .bind(id)
+        .fetch_all(db)
+        .await
+        .unwrap()
+}
+
+const SUCCEEDED: &str = "horizon_tiles_total{status=\"succeeded\"}";
+
+/// A 2048² map in 512² tiles, R 40, edge wrap and none, one API and two workers: both layers
+/// are the CLI's untiled bytes, both workers baked tiles, the resource says 16 of 16, and an
+/// unlimited radius on the same map is a 422.
+#[tokio::test(flavor = "multi_thread")]
+async fn two_workers_bake_the_tiles_of_one_map_with_the_cli_s_bytes() {
+    let _serial = SERIAL.lock().await;
+    let Some(mut cl) = Cluster::new("tiles2w").await else { return };
+    let api = cl.start("api", "api-a", &tiling("512"));
+    let w1 = cl.start("worker", "w1", &tiling("512"));
+    let w2 = cl.start("worker", "w2", &tiling("512"));
+    let c = client();
+    let png = terrain_png16(2048, 2048, 31);
+    let (s, p) = submit(&c, cl.base(api), &png, "radius=unlimited").await;
+    assert_eq!(s, 422, "{p}");
+    assert_eq!(p["field"], "radius", "{p}");
+    assert!(p["detail"].as_str().unwrap().contains("max_distance"), "{p}");
+    for edge in ["wrap", "none"] {
+        let (s, v) = submit(&c, cl.base(api), &png, &format!("radius=40&edge={edge}")).await;
+        assert_eq!(s, 202, "{v}");
+        let id = v["id"].as_str().unwrap().to_owned();
+        let done = wait_done(&c, &cl.url_of(api, &id), Duration::from_secs(300)).await;
+        assert_eq!(done["status"], "succeeded", "{done}");
+        assert_eq!(done["tiles"]["done"], 16, "{done}");
+        assert_eq!(done["tiles"]["total"], 16, "{done}");
+        let ours = layers(&c, &cl.url_of(api, &id)).await;
+        let cli = cli_layers(cl.tmp.path(), &png, &["--radius", "40", "--edge", edge]);
+        assert!(ours[0] == cli[0], "edge={edge}: layer 0 differs from the CLI's");
+        assert!(ours[1] == cli[1], "edge={edge}: layer 1 differs from the CLI's");
+    }
+    let (n1, n2) =
+        (metric(&c, cl.base(w1), SUCCEEDED).await, metric(&c, cl.base(w2), SUCCEEDED).await);
+    assert_eq!(n1 + n2, 32.0, "w1 {n1}, w2 {n2}");
+    assert!(n1 > 0.0 && n2 > 0.0, "both workers should bake tiles: w1 {n1}, w2 {n2}");
+    // The tiles' intermediate blobs are gone: the bucket holds the input and the results.
+    let blobs = cl.bucket_blobs().await;
+    assert_eq!(blobs.len(), 1 + 2 * 2, "{blobs:?}");
+}
+
+/// kill -9 of a worker running tiles: its tiles are taken over after the lease, the bake
+/// succeeds with the CLI's bytes.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_killed_worker_s_tiles_are_taken_over() {
+    let _serial = SERIAL.lock().await;
+    let Some(mut cl) = Cluster::new("tileskill").await else { return };
+    let api = cl.start("api", "api-a", &tiling("256"));
+    let w1 = cl.start("worker", "w1", &tiling("256"));
+    cl.start("worker", "w2", &tiling("256"));
+    let c = client();
+    let png = terrain_png16(1024, 1024, 32);
+    let q = "radius=40&method=march";
+    let (s, v) = submit(&c, cl.base(api), &png, q).await;
+    assert_eq!(s, 202, "{v}");
+    let id = v["id"].as_str().unwrap().to_owned();
+    let db = cl.db().await;
+    // Wait for a tile running on w1, then kill it.
+    let t = Instant::now();
+    let victim = loop {
+        let rows = tile_rows(&db, &id).await;
+        if let Some(r) = rows.iter().find(|r| r.1 == "running" && r.2.as_deref() == Some("w1")) {
+            break r.0;
+        }
+        assert!(t.elapsed() < Duration::from_secs(60), "no tile ran on w1: {rows:?}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    };
+    signal(cl.pid(w1), "KILL");
+    // The victim tile is claimed again (attempt 2) once its lease runs out.
+    let t = Instant::now();
+    let mut retaken = false;
+    loop {
+        let rows = tile_rows(&db, &id).await;
+        if rows.iter().any(|r| r.0 == victim && r.3 >= 2) {
+            retaken = true;
+        }
+        let (_, v) = get_json(&c, &cl.url_of(api, &id)).await;
+        if v["status"] != "running" && v["status"] != "queued" {
+            assert_eq!(v["status"], "succeeded", "{v}");
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(180), "not finished: {v}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    assert!(retaken, "tile {victim} was never claimed again");
+    let ours = layers(&c, &cl.url_of(api, &id)).await;
+    let cli = cli_layers(cl.tmp.path(), &png, &["--radius", "40", "--method", "march"]);
+    assert!(ours == cli, "the result after a takeover differs from the CLI's");
+}
+
+/// DELETE of a tiled bake stops every tile within 2 s, wherever they run.
+#[tokio::test(flavor = "multi_thread")]
+async fn delete_stops_every_tile_within_two_seconds() {
+    let _serial = SERIAL.lock().await;
+    let Some(mut cl) = Cluster::new("tilesdel").await else { return };
+    let api = cl.start("api", "api-a", &tiling("256"));
+    let w1 = cl.start("worker", "w1", &tiling("256"));
+    let w2 = cl.start("worker", "w2", &tiling("256"));
+    let c = client();
+    let png = terrain_png16(1024, 1024, 33);
+    let (s, v) = submit(&c, cl.base(api), &png, "method=exact&bins=128&radius=60").await;
+    assert_eq!(s, 202, "{v}");
+    let id = v["id"].as_str().unwrap().to_owned();
+    let db = cl.db().await;
+    let t = Instant::now();
+    loop {
+        let rows = tile_rows(&db, &id).await;
+        let running: BTreeSet<_> =
+            rows.iter().filter(|r| r.1 == "running").filter_map(|r| r.2.clone()).collect();
+        if running.len() == 2 {
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(60), "tiles never ran on both: {rows:?}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let t = Instant::now();
+    let r = c.delete(cl.url_of(api, &id)).send().await.unwrap();
+    assert_eq!(r.status(), 202);
+    loop {
+        let rows = tile_rows(&db, &id).await;
+        let busy = metric(&c, cl.base(w1), "horizon_bakes_running").await
+            + metric(&c, cl.base(w2), "horizon_bakes_running").await;
+        if busy == 0.0 && rows.iter().all(|r| r.1 != "running") {
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(2), "tiles still running after 2 s: {rows:?}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let v = wait_done(&c, &cl.url_of(api, &id), Duration::from_secs(5)).await;
+    assert_eq!(v["status"], "canceled", "{v}");
+    assert!(t.elapsed() < Duration::from_secs(2), "cancel took {:?}", t.elapsed());
+}
+
+/// A worker stopped (SIGSTOP) past its tile's lease, then resumed, cannot overwrite the tile
+/// another worker wrote meanwhile: its completion is refused (`lost`), the result is the CLI's.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_stalled_worker_cannot_overwrite_a_tile_another_wrote() {
+    let _serial = SERIAL.lock().await;
+    let Some(mut cl) = Cluster::new("tilesstop").await else { return };
+    let api = cl.start("api", "api-a", &tiling("256"));
+    let w1 = cl.start("worker", "w1", &tiling("256"));
+    let w2 = cl.start("worker", "w2", &tiling("256"));
+    let c = client();
+    let png = terrain_png16(1024, 1024, 34);
+    let q = "radius=40&method=march&edge=none";
+    let (s, v) = submit(&c, cl.base(api), &png, q).await;
+    assert_eq!(s, 202, "{v}");
+    let id = v["id"].as_str().unwrap().to_owned();
+    let db = cl.db().await;
+    let t = Instant::now();
+    let victim = loop {
+        let rows = tile_rows(&db, &id).await;
+        if let Some(r) = rows.iter().find(|r| r.1 == "running" && r.2.as_deref() == Some("w1")) {
+            break r.0;
+        }
+        assert!(t.elapsed() < Duration::from_secs(60), "no tile ran on w1: {rows:?}");
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    };
+    signal(cl.pid(w1), "STOP");
+    // w2 takes the tile over and finishes it.
+    let t = Instant::now();
+    let mut seen: BTreeMap<i32, (String, Option<String>, i32)> = BTreeMap::new();
+    loop {
+        for r in tile_rows(&db, &id).await {
+            seen.insert(r.0, (r.1, r.2, r.3));
+        }
+        let (_, v) = get_json(&c, &cl.url_of(api, &id)).await;
+        if v["status"] == "succeeded" {
+            break;
+        }
+        assert!(v["status"] != "failed" && v["status"] != "canceled", "{v}");
+        assert!(t.elapsed() < Duration::from_secs(180), "not finished: {v}");
+        tokio::time::sleep(Duration::from_millis(30)).await;
+    }
+    let (_, status_worker_attempt) = seen.get_key_value(&victim).unwrap();
+    assert!(status_worker_attempt.2 >= 2, "tile {victim}: {status_worker_attempt:?}");
+    let before = get_json(&c, &cl.url_of(api, &id)).await.1;
+    signal(cl.pid(w1), "CONT");
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let after = get_json(&c, &cl.url_of(api, &id)).await.1;
+    for k in ["status", "attempts", "worker", "finished_at", "formats"] {
+        assert_eq!(after[k], before[k], "{k} changed after the stalled worker resumed");
+    }
+    assert!(
+        metric(&c, cl.base(w1), "horizon_tiles_total{status=\"lost\"}").await >= 1.0,
+        "the stalled worker's tile outcome was not refused:\n{}",
+        cl.log(w1)
+    );
+    assert!(metric(&c, cl.base(w2), SUCCEEDED).await >= 1.0);
+    let ours = layers(&c, &cl.url_of(api, &id)).await;
+    let cli =
+        cli_layers(cl.tmp.path(), &png, &["--radius", "40", "--method", "march", "--edge", "none"]);
+    assert!(ours == cli, "the result differs from the CLI's");
+}
+
+/// The embedded mode (one process, its own pool) tiles the same 2048² map with the same bytes
+/// as the CLI's untiled bake.
+#[tokio::test(flavor = "multi_thread")]
+async fn the_embedded_mode_tiles_the_2048_map_with_the_same_bytes() {
+    let _serial = SERIAL.lock().await;
+    let Some(cl) = Cluster::new("tilesemb").await else { return };
+    let server = Server::start(|c| {
+        c.tiles =
+            horizon_bake::service::tiled::TileSettings { tile_above: 512 * 512, tile_size: 512 };
+    })
+    .await;
+    let c = client();
+    let png = terrain_png16(2048, 2048, 31);
+    let (s, v) = submit(&c, &server.base, &png, "radius=40&edge=wrap").await;
+    assert_eq!(s, 202, "{v}");
+    let id = v["id"].as_str().unwrap().to_owned();
+    let url = server.url(&format!("/v1/bakes/{id}"));
+    let done = wait_done(&c, &url, Duration::from_secs(300)).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    assert_eq!(done["tiles"]["total"], 16, "{done}");
+    let ours = layers(&c, &url).await;
+    let cli = cli_layers(cl.tmp.path(), &png, &["--radius", "40", "--edge", "wrap"]);
+    assert!(ours == cli, "embedded tiled layers differ from the CLI's");
+}
