@@ -561,9 +561,13 @@ def terrain_section(args, binary, work):
 
     rows.append(("horizon-bake `exact` (reference)", "2", t_ref, None, None,
                  "`--method exact --radius unlimited`; DEM defaults: edge none, curvature on"))
+    pad = n + 2
+    tile = (1 + 2 * pad) * (2 * pad + n + 64)
+    fallback = ("its band tile exceeds MAX_TILE: runs as the exact kernel" if tile > 1 << 24
+                else "its own kernel")
     ours_row("march", "horizon-bake `march`",
              ["--method", "march", "--max-distance", repr(n * dem.cell)],
-             f"`--max-distance` {n * dem.cell:.0f} m = {n} texels")
+             f"`--max-distance` {n * dem.cell:.0f} m = {n} texels; {fallback}")
     ok, why = accepts_sweep(binary, work)
     sweep_note = None
     if ok:
@@ -671,7 +675,7 @@ TERRAIN_HEAD = """## Terrain products (generated)
 Generated {date} by `python3 scripts/peers.py --terrain-only --terrain-size {n}`: one run on a
 **shared, noisy** machine ({nproc} cores, {cpu}); tools: {grass}; {wb}; {ours}{binnote}.
 
-DEM: R `terra`'s `ex/elev.tif` (SRTM-derived, Luxembourg, int16, EPSG:4326, {src_h}×{src_w}
+DEM: R `terra`'s `ex/elev.tif` (SRTM-derived, Luxembourg, int16, EPSG:4326, {src_w}×{src_h}
 cells; sha256 `{sha}…`), reprojected to UTM 32N (bilinear) at its native {native:.1f} m, the
 largest square with no nodata found ({side}² native cells, one cell of margin), and that square
 **upsampled** by GDAL's cubic resampling to **{n}² cells of {cell:.3f} m** ({factor:.1f}× finer
@@ -699,8 +703,9 @@ Conventions made equal, so the numbers compare like with like:
   along ours. (On elev.tif's own UTM 32N grid they would be off by about 2°.)
 - **Radius and border.** Unlimited for all: ours `--radius unlimited` with `edge=none`, GRASS
   `maxdistance` past the map's diagonal, Whitebox `max_dist` unset. `march` is given
-  `--max-distance` = the map's side: at that radius its per-band tile exceeds `MAX_TILE` and it
-  runs as the exact kernel (the documented fallback), so its row is exact's time and error.
+  `--max-distance` = the map's side (its note says whether its padded band tile, (1 + 2·(R+2))
+  rows of 2·(R+2) + W + 64 floats, exceeds `MAX_TILE` = 2²⁴, where it runs as the exact kernel
+  with the same drop: the documented fallback for huge radii).
 - **Curvature.** Ours and GRASS lower a point d away by d²/(2·6 371 km); Whitebox has no drop:
   the `earth_curvature=off` row is the drop's own size in angle, the part of Whitebox's Δα that
   is convention rather than error.
@@ -994,7 +999,14 @@ this file is prose and is kept when the script rewrites the block.
 cargo build --release                 # the script uses target/release/horizon-bake (else target/debug)
 python3 scripts/peers.py              # rewrites the generated block of docs/peers.md
 python3 scripts/peers.py --bin PATH --out /tmp/peers.md --work /tmp/peers-work   # other binary, keep files
+python3 scripts/peers.py --terrain-only --terrain-size 2048   # only the terrain products (issue 24)
 ```
+
+The terrain comparison (`--terrain` adds it to a full run, `--terrain-only` runs it alone and
+keeps the other block) reads R terra's `elev.tif` (from `$HB_ELEV_TIF`, or `apt-get download
+r-cran-terra`), needs `rasterio` (pip) and writes its own block between the `peers-terrain`
+markers. At 2048² × 32 azimuths the peers take most of half an hour on 2 cores (Whitebox
+`horizon_angle` the longest); `--terrain-size 1024` is four times quicker.
 
 It installs what is missing: numpy, pillow, tifffile, OpenEXR and whitebox-workflows with `pip`,
 and GRASS GIS with `apt-get install grass-core` (as root; a few minutes the first time). Nothing

@@ -789,7 +789,10 @@ pub fn shadow(
         crate::terrain::profile::tangent_azimuth(azimuth_deg, params.azimuth_from, params.y_axis);
     if params.method == Method::Lengyel {
         let (layers, _) = bake_horizon(map, params, crate::layers::Precisions::U8, progress)?;
-        let [l0, l1] = layers.u8.as_ref().expect("8-bit layers were asked for");
+        let [l0, l1] = layers
+            .u8
+            .as_ref()
+            .ok_or_else(|| crate::Error::Internal("no 8-bit layers for the shadow".into()))?;
         crate::terrain::shadow::lit_from_layers(
             [l0, l1],
             params.encoding,
