@@ -98,7 +98,8 @@ pub fn make_kernel<'a>(
 
 /// [`make_kernel`] for a map with nodata `holes`: `exact` skips the cells that touch a hole
 /// exactly (SPEC §2); the other methods see the holes' fill far below the map
-/// ([`crate::heightmap::HOLE_DEPTH`]). Outputs at holes are masked by the callers.
+/// ([`crate::heightmap::HOLE_DEPTH`]), and `march` takes the exact walk within its radius of
+/// one ([`kernels::march::March::with_holes`]). Outputs at holes are masked by the callers.
 pub fn make_kernel_for<'a>(
     params: &BakeParams,
     grid: Grid<'a>,
@@ -127,7 +128,8 @@ pub fn make_kernel_for<'a>(
         Method::March => Box::new(
             kernels::march::March::new(grid, radius, params.bins, params.reduce)
                 .with_cancel(progress)
-                .with_curvature(curvature(params)),
+                .with_curvature(curvature(params))
+                .with_holes(holes),
         ),
     }
 }
