@@ -161,6 +161,21 @@ async fn the_embedded_service_tiles_a_map_with_the_same_bytes() {
             assert!(bytes[..] == lib[&format!("horizon_{k}.png8")][..], "edge={edge} layer {k}");
         }
     }
+    // Another format would decode the whole map again: refused (422) rather than done.
+    let last = c.get(srv.url("/v1/bakes?limit=1&order=desc")).send().await.unwrap();
+    let last: Value = last.json().await.unwrap();
+    let id = last["items"][0]["id"].as_str().unwrap().to_owned();
+    let url = srv.url(&format!("/v1/bakes/{id}/horizon/0?format=png16"));
+    let t = Instant::now();
+    let status = loop {
+        let r = c.get(&url).send().await.unwrap();
+        if r.status() != 202 {
+            break r.status().as_u16();
+        }
+        assert!(t.elapsed() < Duration::from_secs(10), "still encoding");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    assert_eq!(status, 422);
     let m = c.get(srv.url("/metrics")).send().await.unwrap().text().await.unwrap();
     assert_eq!(metric(&m, "horizon_tiles_total{status=\"succeeded\"}"), 18.0);
     assert_eq!(metric(&m, "horizon_tiles_total{status=\"failed\"}"), 0.0);

@@ -349,6 +349,15 @@ pub fn decode_input(
     params: &BakeParams,
     limits: &Limits,
 ) -> Result<(heightmap::HeightMap, heightmap::InputInfo)> {
+    if rec.tiles.is_some() {
+        // Its map is above --tile-above: no process decodes it whole (SPEC §7.1).
+        return Err(Error::InvalidInput(
+            "this bake was baked in tiles (its map is above --tile-above): only the layers it \
+             was submitted with exist, and its map is never decoded whole again; submit it \
+             again with the formats you need (png8 or png16)"
+                .into(),
+        ));
+    }
     let bytes = blobs
         .get(&rec.input_blob)?
         .ok_or_else(|| Error::Internal(format!("input blob {} is missing", rec.input_blob)))?;
