@@ -288,6 +288,35 @@ pub fn probe_reader<R: Read + Seek>(
     Ok((fmt.name(), w as u32, h as u32))
 }
 
+/// [`probe_reader`] for a submission with `params`, as
+/// [`super::check_submission_for`] without decoding the values: the header's format and size,
+/// a TIFF's georeferencing with the DEM defaults of SPEC §2 applied to `params`, and the
+/// georeferencing report. For an input too large to hold (its values are checked when the
+/// bake decodes it).
+///
+/// # Errors
+/// As [`probe_reader`]; a TIFF's compression we do not read, colour types we do not read, and
+/// the refusals of the DEM defaults.
+pub fn probe_for<R: Read + Seek>(
+    mut input: R,
+    params: &mut crate::params::BakeParams,
+    limits: &Limits,
+) -> Result<((&'static str, u32, u32), Option<super::georef::GeorefReport>)> {
+    let probed = probe_reader(&mut input, limits)?;
+    let georef = if probed.0 == "tiff" {
+        input.seek(SeekFrom::Start(0))?;
+        contained("TIFF", || {
+            let mut dec = tiff::decoder::Decoder::new(&mut input).map_err(tiff_error)?;
+            Ok(tiff_meta(&mut dec)?.georef)
+        })?
+    } else {
+        None
+    };
+    super::georef::apply_dem_defaults(params, georef.as_ref())?;
+    let report = georef.as_ref().map(|g| g.report(params.cell_size));
+    Ok((probed, report))
+}
+
 /// Decoded rows of heights, a band at a time.
 trait Rows {
     /// Replaces `out` with the next band of rows (`width` values each); returns how many rows,

@@ -455,6 +455,21 @@ impl Jobs {
         self.0.repo.submit(rec, self.0.cfg.queue_capacity, &owner).await
     }
 
+    /// [`Jobs::submit`] for an input already stored as blob `rec.input_blob` through
+    /// `blobs_for("submit/{id}")` (a large upload streamed to the store as it arrived).
+    ///
+    /// # Errors
+    /// Repository failures; [`Error::Internal`] when the blob is not stored.
+    pub async fn submit_stored(&self, rec: BakeRecord) -> Result<Submitted> {
+        let owner = format!("submit/{}", rec.id);
+        let store = self.0.blobs.clone();
+        let hash = rec.input_blob.clone();
+        if !blocking(move || store.contains(&hash)).await? {
+            return Err(Error::Internal("the stored input is missing".into()));
+        }
+        self.0.repo.submit(rec, self.0.cfg.queue_capacity, &owner).await
+    }
+
     /// A bake, with the live progress when this node runs it.
     ///
     /// # Errors
