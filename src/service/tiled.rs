@@ -225,14 +225,15 @@ impl Tiler for ServiceTiler {
                 Ok((t.geom(), h?))
             })
             .collect::<Result<_>>()?;
-        let store = self.store.clone();
-        let read: assemble::ReadRange =
-            Box::new(move |hash: &str, start, len| read_range(store.as_ref(), hash, start, len));
-        let mut writer = || blobs.writer();
+        let read = || -> assemble::ReadRange {
+            let store = self.store.clone();
+            Box::new(move |hash: &str, start, len| read_range(store.as_ref(), hash, start, len))
+        };
+        let outs = [blobs.writer()?, blobs.writer()?];
         let [a, b] = if formats.png16 {
-            assemble_pngs::<u16, _>(&ctx.plan, &pieces, read, progress, &mut writer)?
+            assemble_pngs::<u16, _>(&ctx.plan, &pieces, &read, progress, outs)?
         } else {
-            assemble_pngs::<u8, _>(&ctx.plan, &pieces, read, progress, &mut writer)?
+            assemble_pngs::<u8, _>(&ctx.plan, &pieces, &read, progress, outs)?
         };
         let (h0, h1) = (a.commit()?, b.commit()?);
         let (n0, n1) = if formats.png16 {
@@ -390,21 +391,22 @@ impl Layered for u16 {
     const TAG: u32 = assemble::tag::HORIZON_U16;
 }
 
-/// Streams the two PNG layers of a tiled bake into writers made by `writer`, band by band in
-/// row order, each band read by range from the tiles it crosses ([`TileRows`]): memory is one
-/// band, whatever the map size.
+/// Streams the two PNG layers of a tiled bake into `outs`, band by band in row order, each band
+/// read by range from the tiles it crosses ([`TileRows`], one per layer over readers made by
+/// `read`): the two layers are encoded side by side (deflate is single-threaded), as the
+/// untiled bake does, and memory is one band per layer, whatever the map size.
 ///
 /// # Errors
 /// [`Error::Canceled`], the reads', the encoder's and the writers' errors.
-fn assemble_pngs<T: Layered, W: Write>(
+fn assemble_pngs<T: Layered, W: Write + Send>(
     plan: &TilePlan,
     pieces: &[(tiles::TileGeom, String)],
-    read: assemble::ReadRange,
+    read: &(dyn Fn() -> assemble::ReadRange + Sync),
     progress: &Progress,
-    writer: &mut dyn FnMut() -> Result<W>,
+    outs: [W; 2],
 ) -> Result<[W; 2]> {
     let (w, h) = (plan.width as usize, plan.height as usize);
-    let pieces = pieces
+    let pieces: Vec<TilePiece> = pieces
         .iter()
         .map(|(g, hash)| TilePiece {
             x0: g.interior.x,
@@ -414,22 +416,23 @@ fn assemble_pngs<T: Layered, W: Write>(
             hash: hash.clone(),
         })
         .collect();
-    let mut rows = TileRows::new(read, pieces, w, h)?;
+    let rows = [TileRows::new(read(), pieces.clone(), w, h)?, TileRows::new(read(), pieces, w, h)?];
     progress.start(Stage::Encode, 2 * h as u64);
-    let mut layer = |plane: usize| -> Result<W> {
-        let mut source = |p: usize, y0: usize, out: &mut [T]| -> Result<()> {
+    let layer = |plane: usize, mut rows: TileRows, out: W| -> Result<W> {
+        let mut source = |p: usize, y0: usize, buf: &mut [T]| -> Result<()> {
             if progress.is_canceled() {
                 return Err(Error::Canceled);
             }
-            rows.read(T::TAG, p, y0, out)?;
-            progress.advance((out.len() / (w * 4)) as u64);
+            rows.read(T::TAG, p, y0, buf)?;
+            progress.advance((buf.len() / (w * 4)) as u64);
             Ok(())
         };
-        assemble::write_png::<T, W>(writer()?, w, h, png::PngColor::Rgba, plane, &mut source)
+        assemble::write_png::<T, W>(out, w, h, png::PngColor::Rgba, plane, &mut source)
     };
-    let a = layer(0)?;
-    let b = layer(1)?;
-    Ok([a, b])
+    let [r0, r1] = rows;
+    let [o0, o1] = outs;
+    let (a, b) = rayon::join(|| layer(0, r0, o0), || layer(1, r1, o1));
+    Ok([a?, b?])
 }
 
 /// A tiled bake of `map` done in memory, step by step as the service does it across workers:
@@ -457,15 +460,19 @@ pub fn bake_tiled_in_memory(
         results.insert(key.clone(), out);
         geoms.push((plan.tile(*index), key));
     }
-    let read: assemble::ReadRange = Box::new(move |k: &str, start, len| {
-        let b = results.get(k).ok_or_else(|| Error::Internal(k.to_owned()))?;
-        let s = start as usize;
-        Ok(b.get(s..s + len).ok_or_else(|| Error::Internal(k.to_owned()))?.to_vec())
-    });
-    let mut writer = || Ok(Vec::new());
+    let results = Arc::new(results);
+    let read = || -> assemble::ReadRange {
+        let results = results.clone();
+        Box::new(move |k: &str, start, len| {
+            let b = results.get(k).ok_or_else(|| Error::Internal(k.to_owned()))?;
+            let s = start as usize;
+            Ok(b.get(s..s + len).ok_or_else(|| Error::Internal(k.to_owned()))?.to_vec())
+        })
+    };
+    let outs = [Vec::new(), Vec::new()];
     if formats.png16 {
-        assemble_pngs::<u16, _>(&plan, &geoms, read, &progress, &mut writer)
+        assemble_pngs::<u16, _>(&plan, &geoms, &read, &progress, outs)
     } else {
-        assemble_pngs::<u8, _>(&plan, &geoms, read, &progress, &mut writer)
+        assemble_pngs::<u8, _>(&plan, &geoms, &read, &progress, outs)
     }
 }
