@@ -248,3 +248,47 @@ fn refusals_are_the_whole_decodes() {
     let small = Limits { max_dim: 100, ..limits };
     assert!(stream::probe_reader(Cursor::new(&png), &small).is_err());
 }
+
+#[test]
+fn decodes_through_ranged_reads_of_a_blob_store() {
+    use horizon_bake::jobs::store::{BlobSeekReader, BlobStore, FsBlobStore};
+    let dir = tempfile::tempdir().unwrap();
+    let store: std::sync::Arc<dyn BlobStore> =
+        std::sync::Arc::new(FsBlobStore::open(dir.path()).unwrap());
+    let (w, h) = (517usize, 40usize);
+    let mut rng = Rng(9);
+    let values: Vec<f32> = (0..w * h).map(|_| rng.f32() * 10.0).collect();
+    let limits = Limits::default();
+    for bytes in [
+        tiff_f32_tiled(w, h, &values, -9999.0),
+        tiff_i16_strips(41, 27, &(0..41 * 27).map(|k| k as i16).collect::<Vec<_>>()),
+    ] {
+        let hash = store.put(&bytes, &|_| Ok(())).unwrap();
+        let (whole, _) =
+            heightmap::decode_with(&bytes, Channel::Luma, NoData::Auto, &limits).unwrap();
+        let windows = plan(whole.width, whole.height, 16, 4, true);
+        let mut n = 0;
+        let r = BlobSeekReader::open(store.clone(), &hash).unwrap().unwrap();
+        assert_eq!(r.len(), bytes.len() as u64);
+        let stats = stream::decode_tiles(
+            r,
+            &hash,
+            Channel::Luma,
+            NoData::Auto,
+            &limits,
+            &windows,
+            &mut |i, blob| {
+                let map = TileHeights::decode(&blob).unwrap();
+                let (want, _) = crop(&whole, &windows[i]);
+                assert_eq!(map.values, want);
+                n += 1;
+                Ok(())
+            },
+        )
+        .unwrap();
+        assert_eq!(n, windows.len());
+        assert_eq!(stats.info.content_hash, hash);
+        let r = BlobSeekReader::open(store.clone(), &hash).unwrap().unwrap();
+        assert_eq!(stream::probe_reader(r, &limits).unwrap().1 as usize, whole.width);
+    }
+}
