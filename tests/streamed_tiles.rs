@@ -292,3 +292,18 @@ fn decodes_through_ranged_reads_of_a_blob_store() {
         assert_eq!(stream::probe_reader(r, &limits).unwrap().1 as usize, whole.width);
     }
 }
+
+#[test]
+fn what_cannot_stream_is_refused_from_the_header() {
+    let limits = Limits::default();
+    let png = png_bytes(image::GrayImage::new(30, 20).into());
+    stream::check_streamable(Cursor::new(&png), Channel::Luma, &limits).unwrap();
+    let tif = tiff_i16_strips(4, 4, &[1; 16]);
+    stream::check_streamable(Cursor::new(&tif), Channel::Luma, &limits).unwrap();
+    let mut exr = vec![0x76, 0x2f, 0x31, 0x01];
+    exr.extend_from_slice(&[0; 60]);
+    match stream::check_streamable(Cursor::new(&exr), Channel::Luma, &limits) {
+        Err(horizon_bake::Error::Unsupported(m)) => assert!(m.contains("OpenEXR"), "{m}"),
+        other => panic!("{other:?}"),
+    }
+}
