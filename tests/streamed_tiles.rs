@@ -307,3 +307,50 @@ fn what_cannot_stream_is_refused_from_the_header() {
         other => panic!("{other:?}"),
     }
 }
+
+#[test]
+fn truncated_and_corrupt_inputs_are_errors_not_panics() {
+    let limits = Limits::default();
+    let mut rng = Rng(5);
+    let g16 = image::ImageBuffer::<image::Luma<u16>, _>::from_fn(33, 21, |x, y| {
+        image::Luma([(x * 1000 + y * 77) as u16])
+    });
+    let png = png_bytes(g16.into());
+    let tif = tiff_i16_strips(41, 27, &(0..41 * 27).map(|k| k as i16).collect::<Vec<_>>());
+    for bytes in [png, tif] {
+        let windows = plan(16, 16, 8, 2, true);
+        for cut in [8, 30, bytes.len() / 2, bytes.len() - 5] {
+            let r = stream::decode_tiles(
+                Cursor::new(&bytes[..cut]),
+                "x",
+                Channel::Luma,
+                NoData::Auto,
+                &limits,
+                &windows,
+                &mut |_, _| Ok(()),
+            );
+            assert!(r.is_err(), "cut at {cut} of {} decoded", bytes.len());
+        }
+        for _ in 0..40 {
+            let mut b = bytes.clone();
+            let k = 8 + (rng.next_u64() as usize) % (b.len() - 8);
+            b[k] ^= 1 << (rng.next_u64() % 8);
+            // Either result, never a panic (a whole-decode Ok must be a streamed Ok too).
+            let whole = heightmap::decode_with(&b, Channel::Luma, NoData::Auto, &limits);
+            let streamed = stream::decode_tiles(
+                Cursor::new(&b),
+                "x",
+                Channel::Luma,
+                NoData::Auto,
+                &limits,
+                &windows,
+                &mut |_, _| Ok(()),
+            );
+            if let Ok((m, _)) = whole {
+                let s = streamed.unwrap_or_else(|e| panic!("byte {k}: whole ok, streamed {e}"));
+                let lo = m.values.iter().copied().fold(f32::INFINITY, f32::min);
+                assert_eq!(s.min.to_bits(), lo.to_bits(), "byte {k}");
+            }
+        }
+    }
+}
