@@ -73,7 +73,12 @@ where
     }
 }
 
-/// `body` with the idle timeout and the size limit applied (see the module documentation).
+/// A guarded body yields (is Pending once) after each this many bytes.
+pub const PACE: u64 = 1 << 20;
+
+/// `body` with the idle timeout and the size limit applied (see the module documentation),
+/// pausing once per [`PACE`] bytes so the multipart parser, which reads until its source is
+/// Pending, never gathers a large part in memory.
 pub fn guarded(body: Body, limit: u64, idle: Duration) -> Body {
     let start = Some((body.into_data_stream(), 0u64));
     let stream = futures_util::stream::unfold(start, move |state| async move {
@@ -88,6 +93,11 @@ pub fn guarded(body: Body, limit: u64, idle: Duration) -> Body {
                     drain(&mut s, idle, DRAIN_BOUND).await;
                     Err(BodyTooLarge(limit).into())
                 } else {
+                    if seen / PACE != (seen - chunk.len() as u64) / PACE {
+                        // Pending once per PACE bytes: a reader that polls until Pending (the
+                        // multipart parser does) buffers at most this much of a fast body.
+                        tokio::task::yield_now().await;
+                    }
                     return Some((Ok(chunk), Some((s, seen))));
                 }
             }
@@ -171,12 +181,13 @@ pub const SPOOL_DEPTH: usize = 8;
 impl Spool {
     /// A spool that keeps up to `above` bytes in memory (reserving `expected`, the announced
     /// length, when it fits), then streams into the writer `open` gives.
+    ///
+    /// A body announced larger than `above` goes to the writer from its first byte.
     pub fn new(expected: usize, above: usize, open: OpenWriter) -> Self {
         let mut buf = Vec::new();
-        if expected <= above {
-            // A hint only: a refusal of the allocator is not an error.
-            let _ = buf.try_reserve_exact(expected);
-        }
+        let above = if expected > above { 0 } else { above };
+        // A hint only: a refusal of the allocator is not an error.
+        let _ = buf.try_reserve_exact(expected.min(above));
         Spool { buf, above, open: Some(open), tx: None, task: None }
     }
 

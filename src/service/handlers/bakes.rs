@@ -219,6 +219,14 @@ pub(super) async fn read_multipart(
     let query = (query, query_delivery);
     let timeout = st.0.config.body_timeout;
     let max_bytes = st.0.config.max_body_bytes;
+    // The whole request's announced length: past the threshold, the image part is spooled
+    // from its first byte.
+    let announced = req
+        .headers()
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok()?.parse::<u64>().ok())
+        .unwrap_or(0)
+        .min(max_bytes) as usize;
     let mut mp = axum::extract::Multipart::from_request(req, st).await.map_err(|e| {
         Problem::new(
             StatusCode::BAD_REQUEST,
@@ -241,7 +249,7 @@ pub(super) async fn read_multipart(
                     return Err(Problem::param("heightmap", "given more than once"));
                 }
                 // Read piece by piece: a large image goes to the blob store as it arrives.
-                let mut spool = spool_for(st, id, 0);
+                let mut spool = spool_for(st, id, announced);
                 while let Some(chunk) =
                     field.chunk().await.map_err(|e| multipart_error(&e, timeout, max_bytes))?
                 {
