@@ -426,6 +426,29 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
     };
     // A map above --tile-above is baked in tiles (SPEC §7.1): refuse now what tiles cannot do.
     crate::service::tiled::check(&params, &formats, width, height, &st.0.config.tiles)?;
+    // Its tiles are cut by the streamed decode: refuse now (415/422) an encoding it cannot
+    // stream (OpenEXR, interlaced PNG, planar TIFF) rather than fail the bake at its split.
+    let (bytes, stored) = if st.0.config.tiles.tiles(width, height) {
+        let store = st.0.jobs.blob_store().clone();
+        let channel = params.channel;
+        blocking(move || {
+            match (&bytes, &stored) {
+                (Some(b), _) => {
+                    heightmap::stream::check_streamable(std::io::Cursor::new(b), channel, &limits)?
+                }
+                (None, Some((hash, _))) => {
+                    let r = crate::jobs::store::BlobSeekReader::open(store, hash)?
+                        .ok_or_else(|| Error::Internal("the stored upload is gone".into()))?;
+                    heightmap::stream::check_streamable(r, channel, &limits)?
+                }
+                (None, None) => {}
+            }
+            Ok((bytes, stored))
+        })
+        .await?
+    } else {
+        (bytes, stored)
+    };
     let pairs: Vec<(String, String)> =
         params.to_pairs().into_iter().map(|(k, v)| (k.to_owned(), v)).collect();
     let (bytes, input_hash, input_bytes, key) = blocking(move || {
