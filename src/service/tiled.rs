@@ -86,11 +86,15 @@ pub fn check(
              outputs=horizon",
         ));
     }
-    if formats.exr || formats.ktx2 || formats.dds {
+    if formats.exr {
         return Err(Error::param(
             "formats",
-            "a tiled bake (map above --tile-above) is assembled as png8 or png16 layers",
+            "a tiled bake (map above --tile-above) is assembled as png8, png16, ktx2 or dds \
+             (level 0, uncompressed); not exr",
         ));
+    }
+    if formats.ktx2 || formats.dds {
+        assemble::check_tiled_texture(&formats.texture)?;
     }
     if params.radius != Radius::Auto || by_distance {
         let r = bake::resolve_radius_in(params, width as usize, height as usize, || (0.0, 0.0));
@@ -229,21 +233,44 @@ impl Tiler for ServiceTiler {
             let store = self.store.clone();
             Box::new(move |hash: &str, start, len| read_range(store.as_ref(), hash, start, len))
         };
-        let outs = [blobs.writer()?, blobs.writer()?];
-        let [a, b] = if formats.png16 {
-            assemble_pngs::<u16, _>(&ctx.plan, &pieces, &read, progress, outs)?
-        } else {
-            assemble_pngs::<u8, _>(&ctx.plan, &pieces, &read, progress, outs)?
-        };
-        let (h0, h1) = (a.commit()?, b.commit()?);
-        let (n0, n1) = if formats.png16 {
-            (HORIZON_RESULTS[2], HORIZON_RESULTS[3])
-        } else {
-            (HORIZON_RESULTS[0], HORIZON_RESULTS[1])
-        };
         let mut done = rec.clone();
-        done.results.insert(n0.to_owned(), h0);
-        done.results.insert(n1.to_owned(), h1);
+        let textures = formats.ktx2 || formats.dds;
+        if formats.png8 || formats.png16 || !textures {
+            let outs = [blobs.writer()?, blobs.writer()?];
+            let [a, b] = if formats.png16 {
+                assemble_pngs::<u16, _>(&ctx.plan, &pieces, &read, progress, outs)?
+            } else {
+                assemble_pngs::<u8, _>(&ctx.plan, &pieces, &read, progress, outs)?
+            };
+            let (h0, h1) = (a.commit()?, b.commit()?);
+            let (n0, n1) = if formats.png16 {
+                (HORIZON_RESULTS[2], HORIZON_RESULTS[3])
+            } else {
+                (HORIZON_RESULTS[0], HORIZON_RESULTS[1])
+            };
+            done.results.insert(n0.to_owned(), h0);
+            done.results.insert(n1.to_owned(), h1);
+        }
+        if textures {
+            let (w, h) = (ctx.plan.width as usize, ctx.plan.height as usize);
+            let mut rows = TileRows::new(read(), pieces_of(&pieces), w, h)?;
+            let mut kept = Vec::new();
+            assemble::write_textures(
+                &mut rows,
+                w,
+                h,
+                &formats,
+                &mut |_| blobs.writer(),
+                &mut |name, writer| {
+                    kept.push((
+                        crate::service::worker::result_name(&formats, name),
+                        writer.commit()?,
+                    ));
+                    Ok(())
+                },
+            )?;
+            done.results.extend(kept);
+        }
         done.status = Status::Succeeded;
         done.input = ctx.input.clone();
         done.radius = Some(RadiusInfo { texels: ctx.radius, reason: ctx.radius_reason.clone() });
@@ -358,23 +385,30 @@ pub fn bake_tile_into<W: Write>(
     }
     let (ox, oy) = g.interior_offset();
     let interior = (ox as usize, oy as usize, g.interior.w as usize, g.interior.h as usize);
-    let precisions = bake::Precisions { u8: !formats.png16, u16: formats.png16, f32: false };
+    let mut precisions = formats.precisions();
+    if !(precisions.u8 || precisions.u16 || precisions.f32) {
+        precisions.u8 = true;
+    }
     let layers =
         bake::bake_window(window, params, interior, ctx.range, ctx.radius, precisions, progress)?;
-    let section = match (&layers.u8, &layers.u16) {
-        (_, Some([l0, l1])) if formats.png16 => Section {
-            tag: assemble::tag::HORIZON_U16,
-            channels: 4,
-            planes: vec![Plane::U16(l0), Plane::U16(l1)],
-        },
-        (Some([l0, l1]), _) => Section {
-            tag: assemble::tag::HORIZON_U8,
-            channels: 4,
-            planes: vec![Plane::U8(l0), Plane::U8(l1)],
-        },
-        _ => return Err(Error::Internal("a tile baked no layer".into())),
-    };
-    assemble::write_tile_result(out, g.interior.w, g.interior.h, &[section])?;
+    // One section per precision the formats need (PNGs and textures read their own).
+    let mut sections = Vec::new();
+    if let Some([l0, l1]) = &layers.u8 {
+        let planes = vec![Plane::U8(l0), Plane::U8(l1)];
+        sections.push(Section { tag: assemble::tag::HORIZON_U8, channels: 4, planes });
+    }
+    if let Some([l0, l1]) = &layers.u16 {
+        let planes = vec![Plane::U16(l0), Plane::U16(l1)];
+        sections.push(Section { tag: assemble::tag::HORIZON_U16, channels: 4, planes });
+    }
+    if let Some([l0, l1]) = &layers.f32 {
+        let planes = vec![Plane::F32(l0), Plane::F32(l1)];
+        sections.push(Section { tag: assemble::tag::HORIZON_F32, channels: 4, planes });
+    }
+    if sections.is_empty() {
+        return Err(Error::Internal("a tile baked no layer".into()));
+    }
+    assemble::write_tile_result(out, g.interior.w, g.interior.h, &sections)?;
     Ok(())
 }
 
@@ -389,6 +423,20 @@ impl Layered for u8 {
 
 impl Layered for u16 {
     const TAG: u32 = assemble::tag::HORIZON_U16;
+}
+
+/// Where each tile's interior lies in the map, and its result blob.
+fn pieces_of(pieces: &[(tiles::TileGeom, String)]) -> Vec<TilePiece> {
+    pieces
+        .iter()
+        .map(|(g, hash)| TilePiece {
+            x0: g.interior.x,
+            y0: g.interior.y,
+            width: g.interior.w,
+            height: g.interior.h,
+            hash: hash.clone(),
+        })
+        .collect()
 }
 
 /// Streams the two PNG layers of a tiled bake into `outs`, band by band in row order, each band
@@ -406,16 +454,7 @@ fn assemble_pngs<T: Layered, W: Write + Send>(
     outs: [W; 2],
 ) -> Result<[W; 2]> {
     let (w, h) = (plan.width as usize, plan.height as usize);
-    let pieces: Vec<TilePiece> = pieces
-        .iter()
-        .map(|(g, hash)| TilePiece {
-            x0: g.interior.x,
-            y0: g.interior.y,
-            width: g.interior.w,
-            height: g.interior.h,
-            hash: hash.clone(),
-        })
-        .collect();
+    let pieces = pieces_of(pieces);
     let rows = [TileRows::new(read(), pieces.clone(), w, h)?, TileRows::new(read(), pieces, w, h)?];
     progress.start(Stage::Encode, 2 * h as u64);
     let layer = |plane: usize, mut rows: TileRows, out: W| -> Result<W> {
