@@ -184,6 +184,29 @@ fn textures_are_byte_identical() {
                         })
                         .collect(),
                 };
+                // The one-call writer of every texture file gives the same files.
+                let mut got: Vec<(&'static str, Vec<u8>)> = Vec::new();
+                assemble::write_textures(
+                    &mut rows,
+                    w,
+                    h,
+                    &formats,
+                    &mut |_| Ok(Vec::new()),
+                    &mut |name, bytes| {
+                        got.push((name, bytes));
+                        Ok(())
+                    },
+                )
+                .unwrap();
+                let want: Vec<&str> = files
+                    .iter()
+                    .map(|f| f.name)
+                    .filter(|n| n.ends_with(".ktx2") || n.ends_with(".dds"))
+                    .collect();
+                assert_eq!(got.iter().map(|g| g.0).collect::<Vec<_>>(), want);
+                for (name, bytes) in &got {
+                    assert!(bytes.as_slice() == file(&files, name), "write_textures {name}");
+                }
                 for (planes, ktx, dds) in sets {
                     let (k, d) = match precision {
                         TexturePrecision::Unorm8 => {

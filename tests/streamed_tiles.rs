@@ -248,3 +248,109 @@ fn refusals_are_the_whole_decodes() {
     let small = Limits { max_dim: 100, ..limits };
     assert!(stream::probe_reader(Cursor::new(&png), &small).is_err());
 }
+
+#[test]
+fn decodes_through_ranged_reads_of_a_blob_store() {
+    use horizon_bake::jobs::store::{BlobSeekReader, BlobStore, FsBlobStore};
+    let dir = tempfile::tempdir().unwrap();
+    let store: std::sync::Arc<dyn BlobStore> =
+        std::sync::Arc::new(FsBlobStore::open(dir.path()).unwrap());
+    let (w, h) = (517usize, 40usize);
+    let mut rng = Rng(9);
+    let values: Vec<f32> = (0..w * h).map(|_| rng.f32() * 10.0).collect();
+    let limits = Limits::default();
+    for bytes in [
+        tiff_f32_tiled(w, h, &values, -9999.0),
+        tiff_i16_strips(41, 27, &(0..41 * 27).map(|k| k as i16).collect::<Vec<_>>()),
+    ] {
+        let hash = store.put(&bytes, &|_| Ok(())).unwrap();
+        let (whole, _) =
+            heightmap::decode_with(&bytes, Channel::Luma, NoData::Auto, &limits).unwrap();
+        let windows = plan(whole.width, whole.height, 16, 4, true);
+        let mut n = 0;
+        let r = BlobSeekReader::open(store.clone(), &hash).unwrap().unwrap();
+        assert_eq!(r.len(), bytes.len() as u64);
+        let stats = stream::decode_tiles(
+            r,
+            &hash,
+            Channel::Luma,
+            NoData::Auto,
+            &limits,
+            &windows,
+            &mut |i, blob| {
+                let map = TileHeights::decode(&blob).unwrap();
+                let (want, _) = crop(&whole, &windows[i]);
+                assert_eq!(map.values, want);
+                n += 1;
+                Ok(())
+            },
+        )
+        .unwrap();
+        assert_eq!(n, windows.len());
+        assert_eq!(stats.info.content_hash, hash);
+        let r = BlobSeekReader::open(store.clone(), &hash).unwrap().unwrap();
+        assert_eq!(stream::probe_reader(r, &limits).unwrap().1 as usize, whole.width);
+    }
+}
+
+#[test]
+fn what_cannot_stream_is_refused_from_the_header() {
+    let limits = Limits::default();
+    let png = png_bytes(image::GrayImage::new(30, 20).into());
+    stream::check_streamable(Cursor::new(&png), Channel::Luma, &limits).unwrap();
+    let tif = tiff_i16_strips(4, 4, &[1; 16]);
+    stream::check_streamable(Cursor::new(&tif), Channel::Luma, &limits).unwrap();
+    let mut exr = vec![0x76, 0x2f, 0x31, 0x01];
+    exr.extend_from_slice(&[0; 60]);
+    match stream::check_streamable(Cursor::new(&exr), Channel::Luma, &limits) {
+        Err(horizon_bake::Error::Unsupported(m)) => assert!(m.contains("OpenEXR"), "{m}"),
+        other => panic!("{other:?}"),
+    }
+}
+
+#[test]
+fn truncated_and_corrupt_inputs_are_errors_not_panics() {
+    let limits = Limits::default();
+    let mut rng = Rng(5);
+    let g16 = image::ImageBuffer::<image::Luma<u16>, _>::from_fn(33, 21, |x, y| {
+        image::Luma([(x * 1000 + y * 77) as u16])
+    });
+    let png = png_bytes(g16.into());
+    let tif = tiff_i16_strips(41, 27, &(0..41 * 27).map(|k| k as i16).collect::<Vec<_>>());
+    for bytes in [png, tif] {
+        let windows = plan(16, 16, 8, 2, true);
+        for cut in [8, 30, bytes.len() / 2, bytes.len() - 5] {
+            let r = stream::decode_tiles(
+                Cursor::new(&bytes[..cut]),
+                "x",
+                Channel::Luma,
+                NoData::Auto,
+                &limits,
+                &windows,
+                &mut |_, _| Ok(()),
+            );
+            assert!(r.is_err(), "cut at {cut} of {} decoded", bytes.len());
+        }
+        for _ in 0..40 {
+            let mut b = bytes.clone();
+            let k = 8 + (rng.next_u64() as usize) % (b.len() - 8);
+            b[k] ^= 1 << (rng.next_u64() % 8);
+            // Either result, never a panic (a whole-decode Ok must be a streamed Ok too).
+            let whole = heightmap::decode_with(&b, Channel::Luma, NoData::Auto, &limits);
+            let streamed = stream::decode_tiles(
+                Cursor::new(&b),
+                "x",
+                Channel::Luma,
+                NoData::Auto,
+                &limits,
+                &windows,
+                &mut |_, _| Ok(()),
+            );
+            if let Ok((m, _)) = whole {
+                let s = streamed.unwrap_or_else(|e| panic!("byte {k}: whole ok, streamed {e}"));
+                let lo = m.values.iter().copied().fold(f32::INFINITY, f32::min);
+                assert_eq!(s.min.to_bits(), lo.to_bits(), "byte {k}");
+            }
+        }
+    }
+}

@@ -125,6 +125,11 @@ fn what_tiles_cannot_do_is_refused_with_the_parameter_named() {
     );
     let exr = Formats::parse("exr", TexturePrecision::Unorm8).unwrap();
     assert_eq!(field("radius=8", &exr, 100, 100).unwrap().0, "formats");
+    let mut bc7 = Formats::parse("ktx2", TexturePrecision::Bc7).unwrap();
+    bc7.texture.precision = horizon_bake::encode::TexturePrecision::Bc7;
+    assert_eq!(field("radius=8", &bc7, 100, 100).unwrap().0, "texture_precision");
+    let ktx2 = Formats::parse("ktx2,dds", TexturePrecision::Unorm8).unwrap();
+    assert!(field("radius=8", &ktx2, 100, 100).is_none());
     assert_eq!(field("radius=8&outputs=horizon,fourier", &png8, 100, 100).unwrap().0, "outputs");
     assert!(field("radius=8", &png8, 100, 100).is_none());
 }
@@ -161,8 +166,32 @@ async fn the_embedded_service_tiles_a_map_with_the_same_bytes() {
             assert!(bytes[..] == lib[&format!("horizon_{k}.png8")][..], "edge={edge} layer {k}");
         }
     }
+    // KTX2 and DDS (level 0, unorm8) are assembled from the tiles too: the library's bytes.
+    // (A new bake: `formats` is not part of a bake's identity.)
+    let loc = submit_png_done(&c, &srv, "radius=7&formats=png8,ktx2,dds", &png).await;
+    let lib = library_files(&png, &[("radius", "7")]);
+    for name in ["horizon.ktx2", "horizon.dds"] {
+        let r = get_result(&c, &srv.url(&format!("{loc}/{name}"))).await;
+        assert_eq!(r.status(), 200, "{name}");
+        assert!(r.bytes().await.unwrap()[..] == lib[name][..], "{name} differs");
+    }
+    // Another format would decode the whole map again: refused (422) rather than done.
+    let last = c.get(srv.url("/v1/bakes?limit=1&order=desc")).send().await.unwrap();
+    let last: Value = last.json().await.unwrap();
+    let id = last["items"][0]["id"].as_str().unwrap().to_owned();
+    let url = srv.url(&format!("/v1/bakes/{id}/horizon/0?format=png16"));
+    let t = Instant::now();
+    let status = loop {
+        let r = c.get(&url).send().await.unwrap();
+        if r.status() != 202 {
+            break r.status().as_u16();
+        }
+        assert!(t.elapsed() < Duration::from_secs(10), "still encoding");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    assert_eq!(status, 422);
     let m = c.get(srv.url("/metrics")).send().await.unwrap().text().await.unwrap();
-    assert_eq!(metric(&m, "horizon_tiles_total{status=\"succeeded\"}"), 18.0);
+    assert_eq!(metric(&m, "horizon_tiles_total{status=\"succeeded\"}"), 27.0);
     assert_eq!(metric(&m, "horizon_tiles_total{status=\"failed\"}"), 0.0);
 
     // Refusals at submission.

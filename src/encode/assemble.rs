@@ -606,3 +606,77 @@ pub fn write_geotiff<W: Write>(
     ))?;
     Ok(out)
 }
+
+/// File names of the horizon textures, as [`super::horizon_files`] names them.
+const KTX2_NAMES: [&str; 2] = ["horizon_0.ktx2", "horizon_1.ktx2"];
+const DDS_NAMES: [&str; 2] = ["horizon_0.dds", "horizon_1.dds"];
+
+/// Writes the KTX2 and DDS horizon files `formats` asks for, level 0 streamed from the horizon
+/// sections of `rows` at the texture precision (`tag::HORIZON_U8`, `HORIZON_U16` or
+/// `HORIZON_F32`): `horizon.ktx2` / `horizon.dds` (one 2-layer array), or with
+/// `texture_layout=separate` one file per layer, the same bytes and names as
+/// [`super::horizon_files`]. Each file goes into the writer `open(name)` gives and is handed
+/// to `keep(name, writer)` once written.
+///
+/// # Errors
+/// [`check_tiled_texture`]'s refusals; the row source's and the writers' errors.
+pub fn write_textures<W: Write>(
+    rows: &mut TileRows,
+    width: usize,
+    height: usize,
+    formats: &super::Formats,
+    open: &mut dyn FnMut(&'static str) -> Result<W>,
+    keep: &mut dyn FnMut(&'static str, W) -> Result<()>,
+) -> Result<()> {
+    if !(formats.ktx2 || formats.dds) {
+        return Ok(());
+    }
+    let opts = &formats.texture;
+    check_tiled_texture(opts)?;
+    let separate = opts.layout == super::texture::TextureLayout::Separate;
+    let sets: Vec<(&[usize], &'static str, &'static str)> = if separate {
+        vec![(&[0], KTX2_NAMES[0], DDS_NAMES[0]), (&[1], KTX2_NAMES[1], DDS_NAMES[1])]
+    } else {
+        vec![(&[0, 1], "horizon.ktx2", "horizon.dds")]
+    };
+    fn one<T: LeSample, W: Write>(
+        rows: &mut TileRows,
+        tag: u32,
+        (width, height): (usize, usize),
+        (planes, name, ktx): (&[usize], &'static str, bool),
+        header: DdsHeader,
+        open: &mut dyn FnMut(&'static str) -> Result<W>,
+        keep: &mut dyn FnMut(&'static str, W) -> Result<()>,
+    ) -> Result<()> {
+        let mut src = |p: usize, y: usize, out: &mut [T]| rows.read(tag, p, y, out);
+        let out = open(name)?;
+        let out = if ktx {
+            write_ktx2(out, width, height, planes, &mut src)?
+        } else {
+            write_dds(out, width, height, planes, header, &mut src)?
+        };
+        keep(name, out)
+    }
+    let size = (width, height);
+    // KTX2 files first, then DDS, as horizon_files orders them.
+    for (wanted, ktx) in [(formats.ktx2, true), (formats.dds, false)] {
+        if !wanted {
+            continue;
+        }
+        for &(planes, ktx_name, dds_name) in &sets {
+            let name = if ktx { ktx_name } else { dds_name };
+            let job = (planes, name, ktx);
+            let header = opts.dds_header;
+            match opts.precision {
+                TexturePrecision::Unorm8 => {
+                    one::<u8, W>(rows, tag::HORIZON_U8, size, job, header, open, keep)?
+                }
+                TexturePrecision::Unorm16 => {
+                    one::<u16, W>(rows, tag::HORIZON_U16, size, job, header, open, keep)?
+                }
+                _ => one::<f32, W>(rows, tag::HORIZON_F32, size, job, header, open, keep)?,
+            }
+        }
+    }
+    Ok(())
+}

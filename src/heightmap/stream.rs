@@ -288,6 +288,54 @@ pub fn probe_reader<R: Read + Seek>(
     Ok((fmt.name(), w as u32, h as u32))
 }
 
+/// What [`probe_for`] reads: (format name, width, height) and the georeferencing report.
+pub type ProbedFor = ((&'static str, u32, u32), Option<super::georef::GeorefReport>);
+
+/// [`probe_reader`] for a submission with `params`, as
+/// [`super::check_submission_for`] without decoding the values: the header's format and size,
+/// a TIFF's georeferencing with the DEM defaults of SPEC §2 applied to `params`, and the
+/// georeferencing report. For an input too large to hold (its values are checked when the
+/// bake decodes it).
+///
+/// # Errors
+/// As [`probe_reader`]; a TIFF's compression we do not read, colour types we do not read, and
+/// the refusals of the DEM defaults.
+pub fn probe_for<R: Read + Seek>(
+    mut input: R,
+    params: &mut crate::params::BakeParams,
+    limits: &Limits,
+) -> Result<ProbedFor> {
+    let probed = probe_reader(&mut input, limits)?;
+    let georef = if probed.0 == "tiff" {
+        input.seek(SeekFrom::Start(0))?;
+        contained("TIFF", || {
+            let mut dec = tiff::decoder::Decoder::new(&mut input).map_err(tiff_error)?;
+            Ok(tiff_meta(&mut dec)?.georef)
+        })?
+    } else {
+        None
+    };
+    super::georef::apply_dem_defaults(params, georef.as_ref())?;
+    let report = georef.as_ref().map(|g| g.report(params.cell_size));
+    Ok((probed, report))
+}
+
+/// Whether `input` can be decoded in row bands ([`decode_tiles`]), checked from its header (and
+/// a TIFF's first strip or tile), for a submission that will be tiled to refuse now what would
+/// fail the bake later: OpenEXR, an interlaced PNG, a TIFF with separate colour planes or with
+/// strips or tiles too large to decode one at a time.
+///
+/// # Errors
+/// [`Error::Unsupported`] or [`Error::InvalidInput`] saying which and how to fix it; the
+/// header's refusals.
+pub fn check_streamable<R: Read + Seek>(
+    mut input: R,
+    channel: Channel,
+    limits: &Limits,
+) -> Result<()> {
+    contained("streamed", || open_rows(&mut input, channel, limits).map(|_| ()))
+}
+
 /// Decoded rows of heights, a band at a time.
 trait Rows {
     /// Replaces `out` with the next band of rows (`width` values each); returns how many rows,
@@ -388,6 +436,9 @@ impl<R: Read + Seek> Rows for PngRows<R> {
     }
 }
 
+/// Bit depth, float, stored scale of decoded TIFF samples.
+type SampleKind = (u8, bool, f64);
+
 /// Largest TIFF strip or tile we decode at once: a file written as one strip of a huge map
 /// would be the whole map.
 const MAX_CHUNK_BYTES: u64 = 512 << 20;
@@ -453,7 +504,7 @@ impl<R: Read + Seek> TiffRows<R> {
     }
 
     /// The next band and the sample kind of its chunks.
-    fn band(&mut self, out: &mut Vec<f32>) -> Result<(usize, Option<(u8, bool, f64)>)> {
+    fn band(&mut self, out: &mut Vec<f32>) -> Result<(usize, Option<SampleKind>)> {
         if self.rows_done >= self.height {
             return Ok((0, None));
         }
@@ -510,11 +561,22 @@ impl<R: Read + Seek> Rows for TiffRows<R> {
 }
 
 /// Opens a band reader over `input` (rewound), and says what it reads.
+/// A band reader just opened: what it reads, and (TIFF) its first band, read to learn the
+/// sample kind.
+struct Opened<'r> {
+    rows: Box<dyn Rows + 'r>,
+    kind: Kind,
+    fmt: Format,
+    georef: Option<Georef>,
+    first: Vec<f32>,
+    first_rows: usize,
+}
+
 fn open_rows<'r, R: Read + Seek + 'r>(
     mut input: R,
     channel: Channel,
     limits: &Limits,
-) -> Result<(Box<dyn Rows + 'r>, Kind, Format, Option<Georef>, Vec<f32>, usize)> {
+) -> Result<Opened<'r>> {
     input.seek(SeekFrom::Start(0))?;
     let mut head = Vec::with_capacity(64);
     (&mut input).take(64).read_to_end(&mut head)?;
@@ -523,7 +585,14 @@ fn open_rows<'r, R: Read + Seek + 'r>(
     match fmt {
         Format::Png => {
             let (rows, kind) = PngRows::open(input, channel, limits)?;
-            Ok((Box::new(rows), kind, fmt, None, Vec::new(), 0))
+            Ok(Opened {
+                rows: Box::new(rows),
+                kind,
+                fmt,
+                georef: None,
+                first: Vec::new(),
+                first_rows: 0,
+            })
         }
         Format::Tiff => {
             let (mut rows, georef) = TiffRows::open(input, limits)?;
@@ -534,7 +603,7 @@ fn open_rows<'r, R: Read + Seek + 'r>(
             let (bit_depth, float, stored) =
                 k.ok_or_else(|| Error::Decode("the TIFF holds no image data".into()))?;
             let kind = Kind { color: rows.meta.color, bit_depth, float, stored };
-            Ok((Box::new(rows), kind, fmt, georef, first, n))
+            Ok(Opened { rows: Box::new(rows), kind, fmt, georef, first, first_rows: n })
         }
         Format::Exr => Err(Error::Unsupported(
             "an OpenEXR input cannot be decoded in row bands for a tiled bake; convert it to a \
@@ -782,7 +851,7 @@ fn decode_tiles_inner<R: Read + Seek>(
         (w as usize, h as usize)
     };
     let plan = schedule(windows, h)?;
-    let (mut rows, kind, fmt, georef, mut band, mut band_rows) =
+    let Opened { mut rows, kind, fmt, georef, first: mut band, first_rows: mut band_rows } =
         open_rows(&mut *input, channel, limits)?;
     let nodata = match nodata {
         NoData::Auto => georef.as_ref().and_then(|g| g.nodata()),
@@ -861,7 +930,8 @@ fn decode_tiles_inner<R: Read + Seek>(
     // Second pass: the first rows again, for the windows that cross the top edge.
     if !plan.second.is_empty() {
         drop(rows);
-        let (mut rows2, _, _, _, mut band2, mut n2) = open_rows(&mut *input, channel, limits)?;
+        let again = open_rows(&mut *input, channel, limits)?;
+        let (mut rows2, mut band2, mut n2) = (again.rows, again.first, again.first_rows);
         let mut ring = Ring { lo: 0, rows: VecDeque::new() };
         let mut next = 0;
         let mut y = 0;

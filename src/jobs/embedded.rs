@@ -518,7 +518,7 @@ impl JobRepo for EmbeddedRepo {
             let Mem { claims, tiles, .. } = &mut *g;
             let mut found = None;
             for (bid, ts) in tiles.iter_mut() {
-                if !claims.get(bid).is_some_and(|c| !c.2) {
+                if claims.get(bid).is_none_or(|c| c.2) {
                     continue;
                 }
                 if let Some((t, _)) = ts.iter_mut().find(|(t, _)| t.status == Status::Queued) {

@@ -114,7 +114,7 @@ pub struct Tiling {
 
 /// How a bake's run on this node ended, before it becomes an [`Outcome`].
 enum Ended {
-    Done(Result<BakeRecord>),
+    Done(Result<Box<BakeRecord>>),
     Panicked,
     /// A tile failed its last attempt.
     TileFailed(BakeFailure),
@@ -122,8 +122,8 @@ enum Ended {
 
 /// Work a worker claimed.
 enum Work {
-    Bake(Claim),
-    Tile(tiles::TileClaim),
+    Bake(Box<Claim>),
+    Tile(Box<tiles::TileClaim>),
 }
 
 /// How the core behaves (from the service's flags).
@@ -455,6 +455,21 @@ impl Jobs {
         self.0.repo.submit(rec, self.0.cfg.queue_capacity, &owner).await
     }
 
+    /// [`Jobs::submit`] for an input already stored as blob `rec.input_blob` through
+    /// `blobs_for("submit/{id}")` (a large upload streamed to the store as it arrived).
+    ///
+    /// # Errors
+    /// Repository failures; [`Error::Internal`] when the blob is not stored.
+    pub async fn submit_stored(&self, rec: BakeRecord) -> Result<Submitted> {
+        let owner = format!("submit/{}", rec.id);
+        let store = self.0.blobs.clone();
+        let hash = rec.input_blob.clone();
+        if !blocking(move || store.contains(&hash)).await? {
+            return Err(Error::Internal("the stored input is missing".into()));
+        }
+        self.0.repo.submit(rec, self.0.cfg.queue_capacity, &owner).await
+    }
+
     /// A bake, with the live progress when this node runs it.
     ///
     /// # Errors
@@ -629,13 +644,13 @@ impl Jobs {
                 // Tiles of bakes already running first: they finish started work.
                 if self.tiling().is_some() {
                     match self.0.repo.claim_tile(&self.0.cfg.worker_id, self.0.cfg.lease).await {
-                        Ok(Some(t)) => break Work::Tile(t),
+                        Ok(Some(t)) => break Work::Tile(Box::new(t)),
                         Ok(None) => {}
                         Err(e) => tracing::warn!(error = %e, "cannot claim a tile; retrying"),
                     }
                 }
                 match self.0.repo.claim(&self.0.cfg.worker_id, self.0.cfg.lease).await {
-                    Ok(Some(c)) => break Work::Bake(c),
+                    Ok(Some(c)) => break Work::Bake(Box::new(c)),
                     Ok(None) => {}
                     Err(e) => tracing::warn!(error = %e, "cannot claim a bake; retrying"),
                 }
@@ -648,9 +663,9 @@ impl Jobs {
             let me = self.clone();
             self.0.tracker.spawn(async move {
                 match work {
-                    Work::Bake(claim) => me.run_claim(claim, permit).await,
+                    Work::Bake(claim) => me.run_claim(*claim, permit).await,
                     Work::Tile(tile) => {
-                        me.run_tile(tile).await;
+                        me.run_tile(*tile).await;
                         drop(permit);
                     }
                 }
@@ -697,7 +712,7 @@ impl Jobs {
                 let blobs = self.blobs_for(claim.owner());
                 let (record, progress) = (claim.record.clone(), run.progress.clone());
                 let out = self.on_pool(move || runner(&record, &progress, &blobs)).await;
-                (out.map_or(Ended::Panicked, Ended::Done), Some(permit))
+                (out.map_or(Ended::Panicked, |r| Ended::Done(r.map(Box::new))), Some(permit))
             }
         };
         beat.abort();
@@ -705,7 +720,7 @@ impl Jobs {
         let texels = claim.record.width as u64 * claim.record.height as u64;
 
         let outcome = match ended {
-            Ended::Done(Ok(rec)) => Outcome::Succeeded(Box::new(rec)),
+            Ended::Done(Ok(rec)) => Outcome::Succeeded(rec),
             Ended::Done(Err(Error::Canceled)) if run.requeue.load(Ordering::SeqCst) => {
                 Outcome::Released
             }
@@ -881,7 +896,7 @@ impl Jobs {
                 Ok(done)
             })
             .await;
-        out.map_or(Ended::Panicked, Ended::Done)
+        out.map_or(Ended::Panicked, |r| Ended::Done(r.map(Box::new)))
     }
 
     /// Runs one claimed tile: heartbeats its lease, bakes it on the pool, records the outcome

@@ -86,11 +86,15 @@ pub fn check(
              outputs=horizon",
         ));
     }
-    if formats.exr || formats.ktx2 || formats.dds {
+    if formats.exr {
         return Err(Error::param(
             "formats",
-            "a tiled bake (map above --tile-above) is assembled as png8 or png16 layers",
+            "a tiled bake (map above --tile-above) is assembled as png8, png16, ktx2 or dds \
+             (level 0, uncompressed); not exr",
         ));
+    }
+    if formats.ktx2 || formats.dds {
+        assemble::check_tiled_texture(&formats.texture)?;
     }
     if params.radius != Radius::Auto || by_distance {
         let r = bake::resolve_radius_in(params, width as usize, height as usize, || (0.0, 0.0));
@@ -225,24 +229,48 @@ impl Tiler for ServiceTiler {
                 Ok((t.geom(), h?))
             })
             .collect::<Result<_>>()?;
-        let store = self.store.clone();
-        let read: assemble::ReadRange =
-            Box::new(move |hash: &str, start, len| read_range(store.as_ref(), hash, start, len));
-        let mut writer = || blobs.writer();
-        let [a, b] = if formats.png16 {
-            assemble_pngs::<u16, _>(&ctx.plan, &pieces, read, progress, &mut writer)?
-        } else {
-            assemble_pngs::<u8, _>(&ctx.plan, &pieces, read, progress, &mut writer)?
-        };
-        let (h0, h1) = (a.commit()?, b.commit()?);
-        let (n0, n1) = if formats.png16 {
-            (HORIZON_RESULTS[2], HORIZON_RESULTS[3])
-        } else {
-            (HORIZON_RESULTS[0], HORIZON_RESULTS[1])
+        let read = || -> assemble::ReadRange {
+            let store = self.store.clone();
+            Box::new(move |hash: &str, start, len| read_range(store.as_ref(), hash, start, len))
         };
         let mut done = rec.clone();
-        done.results.insert(n0.to_owned(), h0);
-        done.results.insert(n1.to_owned(), h1);
+        let textures = formats.ktx2 || formats.dds;
+        if formats.png8 || formats.png16 || !textures {
+            let outs = [blobs.writer()?, blobs.writer()?];
+            let [a, b] = if formats.png16 {
+                assemble_pngs::<u16, _>(&ctx.plan, &pieces, &read, progress, outs)?
+            } else {
+                assemble_pngs::<u8, _>(&ctx.plan, &pieces, &read, progress, outs)?
+            };
+            let (h0, h1) = (a.commit()?, b.commit()?);
+            let (n0, n1) = if formats.png16 {
+                (HORIZON_RESULTS[2], HORIZON_RESULTS[3])
+            } else {
+                (HORIZON_RESULTS[0], HORIZON_RESULTS[1])
+            };
+            done.results.insert(n0.to_owned(), h0);
+            done.results.insert(n1.to_owned(), h1);
+        }
+        if textures {
+            let (w, h) = (ctx.plan.width as usize, ctx.plan.height as usize);
+            let mut rows = TileRows::new(read(), pieces_of(&pieces), w, h)?;
+            let mut kept = Vec::new();
+            assemble::write_textures(
+                &mut rows,
+                w,
+                h,
+                &formats,
+                &mut |_| blobs.writer(),
+                &mut |name, writer| {
+                    kept.push((
+                        crate::service::worker::result_name(&formats, name),
+                        writer.commit()?,
+                    ));
+                    Ok(())
+                },
+            )?;
+            done.results.extend(kept);
+        }
         done.status = Status::Succeeded;
         done.input = ctx.input.clone();
         done.radius = Some(RadiusInfo { texels: ctx.radius, reason: ctx.radius_reason.clone() });
@@ -357,23 +385,30 @@ pub fn bake_tile_into<W: Write>(
     }
     let (ox, oy) = g.interior_offset();
     let interior = (ox as usize, oy as usize, g.interior.w as usize, g.interior.h as usize);
-    let precisions = bake::Precisions { u8: !formats.png16, u16: formats.png16, f32: false };
+    let mut precisions = formats.precisions();
+    if !(precisions.u8 || precisions.u16 || precisions.f32) {
+        precisions.u8 = true;
+    }
     let layers =
         bake::bake_window(window, params, interior, ctx.range, ctx.radius, precisions, progress)?;
-    let section = match (&layers.u8, &layers.u16) {
-        (_, Some([l0, l1])) if formats.png16 => Section {
-            tag: assemble::tag::HORIZON_U16,
-            channels: 4,
-            planes: vec![Plane::U16(l0), Plane::U16(l1)],
-        },
-        (Some([l0, l1]), _) => Section {
-            tag: assemble::tag::HORIZON_U8,
-            channels: 4,
-            planes: vec![Plane::U8(l0), Plane::U8(l1)],
-        },
-        _ => return Err(Error::Internal("a tile baked no layer".into())),
-    };
-    assemble::write_tile_result(out, g.interior.w, g.interior.h, &[section])?;
+    // One section per precision the formats need (PNGs and textures read their own).
+    let mut sections = Vec::new();
+    if let Some([l0, l1]) = &layers.u8 {
+        let planes = vec![Plane::U8(l0), Plane::U8(l1)];
+        sections.push(Section { tag: assemble::tag::HORIZON_U8, channels: 4, planes });
+    }
+    if let Some([l0, l1]) = &layers.u16 {
+        let planes = vec![Plane::U16(l0), Plane::U16(l1)];
+        sections.push(Section { tag: assemble::tag::HORIZON_U16, channels: 4, planes });
+    }
+    if let Some([l0, l1]) = &layers.f32 {
+        let planes = vec![Plane::F32(l0), Plane::F32(l1)];
+        sections.push(Section { tag: assemble::tag::HORIZON_F32, channels: 4, planes });
+    }
+    if sections.is_empty() {
+        return Err(Error::Internal("a tile baked no layer".into()));
+    }
+    assemble::write_tile_result(out, g.interior.w, g.interior.h, &sections)?;
     Ok(())
 }
 
@@ -390,21 +425,9 @@ impl Layered for u16 {
     const TAG: u32 = assemble::tag::HORIZON_U16;
 }
 
-/// Streams the two PNG layers of a tiled bake into writers made by `writer`, band by band in
-/// row order, each band read by range from the tiles it crosses ([`TileRows`]): memory is one
-/// band, whatever the map size.
-///
-/// # Errors
-/// [`Error::Canceled`], the reads', the encoder's and the writers' errors.
-fn assemble_pngs<T: Layered, W: Write>(
-    plan: &TilePlan,
-    pieces: &[(tiles::TileGeom, String)],
-    read: assemble::ReadRange,
-    progress: &Progress,
-    writer: &mut dyn FnMut() -> Result<W>,
-) -> Result<[W; 2]> {
-    let (w, h) = (plan.width as usize, plan.height as usize);
-    let pieces = pieces
+/// Where each tile's interior lies in the map, and its result blob.
+fn pieces_of(pieces: &[(tiles::TileGeom, String)]) -> Vec<TilePiece> {
+    pieces
         .iter()
         .map(|(g, hash)| TilePiece {
             x0: g.interior.x,
@@ -413,23 +436,42 @@ fn assemble_pngs<T: Layered, W: Write>(
             height: g.interior.h,
             hash: hash.clone(),
         })
-        .collect();
-    let mut rows = TileRows::new(read, pieces, w, h)?;
+        .collect()
+}
+
+/// Streams the two PNG layers of a tiled bake into `outs`, band by band in row order, each band
+/// read by range from the tiles it crosses ([`TileRows`], one per layer over readers made by
+/// `read`): the two layers are encoded side by side (deflate is single-threaded), as the
+/// untiled bake does, and memory is one band per layer, whatever the map size.
+///
+/// # Errors
+/// [`Error::Canceled`], the reads', the encoder's and the writers' errors.
+fn assemble_pngs<T: Layered, W: Write + Send>(
+    plan: &TilePlan,
+    pieces: &[(tiles::TileGeom, String)],
+    read: &(dyn Fn() -> assemble::ReadRange + Sync),
+    progress: &Progress,
+    outs: [W; 2],
+) -> Result<[W; 2]> {
+    let (w, h) = (plan.width as usize, plan.height as usize);
+    let pieces = pieces_of(pieces);
+    let rows = [TileRows::new(read(), pieces.clone(), w, h)?, TileRows::new(read(), pieces, w, h)?];
     progress.start(Stage::Encode, 2 * h as u64);
-    let mut layer = |plane: usize| -> Result<W> {
-        let mut source = |p: usize, y0: usize, out: &mut [T]| -> Result<()> {
+    let layer = |plane: usize, mut rows: TileRows, out: W| -> Result<W> {
+        let mut source = |p: usize, y0: usize, buf: &mut [T]| -> Result<()> {
             if progress.is_canceled() {
                 return Err(Error::Canceled);
             }
-            rows.read(T::TAG, p, y0, out)?;
-            progress.advance((out.len() / (w * 4)) as u64);
+            rows.read(T::TAG, p, y0, buf)?;
+            progress.advance((buf.len() / (w * 4)) as u64);
             Ok(())
         };
-        assemble::write_png::<T, W>(writer()?, w, h, png::PngColor::Rgba, plane, &mut source)
+        assemble::write_png::<T, W>(out, w, h, png::PngColor::Rgba, plane, &mut source)
     };
-    let a = layer(0)?;
-    let b = layer(1)?;
-    Ok([a, b])
+    let [r0, r1] = rows;
+    let [o0, o1] = outs;
+    let (a, b) = rayon::join(|| layer(0, r0, o0), || layer(1, r1, o1));
+    Ok([a?, b?])
 }
 
 /// A tiled bake of `map` done in memory, step by step as the service does it across workers:
@@ -457,15 +499,19 @@ pub fn bake_tiled_in_memory(
         results.insert(key.clone(), out);
         geoms.push((plan.tile(*index), key));
     }
-    let read: assemble::ReadRange = Box::new(move |k: &str, start, len| {
-        let b = results.get(k).ok_or_else(|| Error::Internal(k.to_owned()))?;
-        let s = start as usize;
-        Ok(b.get(s..s + len).ok_or_else(|| Error::Internal(k.to_owned()))?.to_vec())
-    });
-    let mut writer = || Ok(Vec::new());
+    let results = Arc::new(results);
+    let read = || -> assemble::ReadRange {
+        let results = results.clone();
+        Box::new(move |k: &str, start, len| {
+            let b = results.get(k).ok_or_else(|| Error::Internal(k.to_owned()))?;
+            let s = start as usize;
+            Ok(b.get(s..s + len).ok_or_else(|| Error::Internal(k.to_owned()))?.to_vec())
+        })
+    };
+    let outs = [Vec::new(), Vec::new()];
     if formats.png16 {
-        assemble_pngs::<u16, _>(&plan, &geoms, read, &progress, &mut writer)
+        assemble_pngs::<u16, _>(&plan, &geoms, &read, &progress, outs)
     } else {
-        assemble_pngs::<u8, _>(&plan, &geoms, read, &progress, &mut writer)
+        assemble_pngs::<u8, _>(&plan, &geoms, &read, &progress, outs)
     }
 }

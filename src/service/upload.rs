@@ -10,6 +10,12 @@
 //!   under it, and most clients then report a reset instead of the 413.
 //!
 //! (Unfinished request headers are hyper's to time out: see [`crate::service::serve`].)
+//!
+//! A large upload is never held in memory (SPEC §7.1): [`Spool`] keeps the first
+//! [`STREAM_UPLOAD_ABOVE`] bytes of a body in memory (the small-input path, unchanged), and past
+//! that streams the body into a blob writer of the store (a temporary file renamed to its hash,
+//! or an S3 multipart upload), which hashes it as it goes. The server's memory then grows by a
+//! few chunks in flight, not by the input.
 
 use axum::body::{Body, Bytes};
 use futures_util::StreamExt;
@@ -67,7 +73,12 @@ where
     }
 }
 
-/// `body` with the idle timeout and the size limit applied (see the module documentation).
+/// A guarded body yields (is Pending once) after each this many bytes.
+pub const PACE: u64 = 1 << 20;
+
+/// `body` with the idle timeout and the size limit applied (see the module documentation),
+/// pausing once per [`PACE`] bytes so the multipart parser, which reads until its source is
+/// Pending, never gathers a large part in memory.
 pub fn guarded(body: Body, limit: u64, idle: Duration) -> Body {
     let start = Some((body.into_data_stream(), 0u64));
     let stream = futures_util::stream::unfold(start, move |state| async move {
@@ -82,6 +93,11 @@ pub fn guarded(body: Body, limit: u64, idle: Duration) -> Body {
                     drain(&mut s, idle, DRAIN_BOUND).await;
                     Err(BodyTooLarge(limit).into())
                 } else {
+                    if seen / PACE != (seen - chunk.len() as u64) / PACE {
+                        // Pending once per PACE bytes: a reader that polls until Pending (the
+                        // multipart parser does) buffers at most this much of a fast body.
+                        tokio::task::yield_now().await;
+                    }
                     return Some((Ok(chunk), Some((s, seen))));
                 }
             }
@@ -110,6 +126,143 @@ pub async fn read_all(body: Body, expected: usize) -> Result<Vec<u8>, axum::Erro
     Ok(out)
 }
 
+/// Uploads larger than this are streamed to the blob store instead of read into memory.
+pub const STREAM_UPLOAD_ABOVE: usize = 64 << 20;
+
+/// An upload's body once read: in memory, or already stored as a blob.
+#[derive(Debug)]
+pub enum Upload {
+    Memory(Vec<u8>),
+    /// Stored (and pinned for the submission) under `hash`, `len` bytes.
+    Stored {
+        hash: String,
+        len: u64,
+    },
+}
+
+enum Piece {
+    Data(Bytes),
+    /// The body ended: commit the blob.
+    Done,
+}
+
+/// Where a spilled upload is written: a blob writer committed once the body ends.
+pub trait SpoolWriter: std::io::Write + Send {
+    /// Publishes the bytes written; returns their hash.
+    ///
+    /// # Errors
+    /// The store's failure.
+    fn commit(self: Box<Self>) -> crate::Result<String>;
+}
+
+impl SpoolWriter for crate::jobs::PinnedWriter {
+    fn commit(self: Box<Self>) -> crate::Result<String> {
+        crate::jobs::PinnedWriter::commit(*self)
+    }
+}
+
+/// Opens the blob writer a spilled upload streams into (called once, on a blocking thread).
+pub type OpenWriter = Box<dyn FnOnce() -> crate::Result<Box<dyn SpoolWriter>> + Send>;
+
+/// A body read piece by piece: in memory up to a threshold, then streamed to a blob writer
+/// on a blocking thread (at most [`SPOOL_DEPTH`] pieces in flight). Dropped before
+/// [`Spool::finish`], the writer discards what it wrote.
+pub struct Spool {
+    buf: Vec<u8>,
+    above: usize,
+    open: Option<OpenWriter>,
+    tx: Option<tokio::sync::mpsc::Sender<Piece>>,
+    task: Option<tokio::task::JoinHandle<crate::Result<(String, u64)>>>,
+}
+
+/// Pieces of a spilled upload queued for the blob writer.
+pub const SPOOL_DEPTH: usize = 8;
+
+impl Spool {
+    /// A spool that keeps up to `above` bytes in memory (reserving `expected`, the announced
+    /// length, when it fits), then streams into the writer `open` gives.
+    ///
+    /// A body announced larger than `above` goes to the writer from its first byte.
+    pub fn new(expected: usize, above: usize, open: OpenWriter) -> Self {
+        let mut buf = Vec::new();
+        let above = if expected > above { 0 } else { above };
+        // A hint only: a refusal of the allocator is not an error.
+        let _ = buf.try_reserve_exact(expected.min(above));
+        Spool { buf, above, open: Some(open), tx: None, task: None }
+    }
+
+    async fn send(&mut self, piece: Piece) -> crate::Result<()> {
+        let Some(tx) = &self.tx else { return Ok(()) };
+        if tx.send(piece).await.is_err() {
+            // The writer stopped: its error says why.
+            return Err(self.join().await.err().unwrap_or_else(|| {
+                crate::Error::Internal("the upload's blob writer stopped".into())
+            }));
+        }
+        Ok(())
+    }
+
+    async fn join(&mut self) -> crate::Result<(String, u64)> {
+        match self.task.take() {
+            Some(t) => {
+                t.await.map_err(|e| crate::Error::Internal(format!("upload writer: {e}")))?
+            }
+            None => Err(crate::Error::Internal("the upload's blob writer is gone".into())),
+        }
+    }
+
+    /// Adds a piece of the body.
+    ///
+    /// # Errors
+    /// The blob store's failure, once the body spilled to it.
+    pub async fn push(&mut self, chunk: Bytes) -> crate::Result<()> {
+        if self.tx.is_none() {
+            if self.buf.len() + chunk.len() <= self.above {
+                self.buf.extend_from_slice(&chunk);
+                return Ok(());
+            }
+            let open = self.open.take().ok_or_else(|| {
+                crate::Error::Internal("the upload's blob writer was opened twice".into())
+            })?;
+            let (tx, mut rx) = tokio::sync::mpsc::channel::<Piece>(SPOOL_DEPTH);
+            self.task = Some(tokio::task::spawn_blocking(move || {
+                use std::io::Write;
+                let mut w = open()?;
+                let mut len = 0u64;
+                while let Some(p) = rx.blocking_recv() {
+                    match p {
+                        Piece::Data(b) => {
+                            w.write_all(&b)?;
+                            len += b.len() as u64;
+                        }
+                        Piece::Done => return Ok((w.commit()?, len)),
+                    }
+                }
+                // The body failed or the request was dropped: the writer discards its bytes.
+                Err(crate::Error::Canceled)
+            }));
+            self.tx = Some(tx);
+            let head = Bytes::from(std::mem::take(&mut self.buf));
+            self.send(Piece::Data(head)).await?;
+        }
+        self.send(Piece::Data(chunk)).await
+    }
+
+    /// The whole body: in memory, or the stored blob.
+    ///
+    /// # Errors
+    /// The blob store's failure.
+    pub async fn finish(mut self) -> crate::Result<Upload> {
+        if self.tx.is_none() {
+            return Ok(Upload::Memory(std::mem::take(&mut self.buf)));
+        }
+        self.send(Piece::Done).await?;
+        self.tx = None;
+        let (hash, len) = self.join().await?;
+        Ok(Upload::Stored { hash, len })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -128,6 +281,59 @@ mod tests {
         assert_eq!(read.load(std::sync::atomic::Ordering::SeqCst), 10, "the rest was not drained");
         let ok = guarded(Body::from(vec![1u8; 250]), 250, Duration::from_secs(5));
         assert_eq!(axum::body::to_bytes(ok, usize::MAX).await.unwrap().len(), 250);
+    }
+
+    /// A file-store writer with nothing to pin.
+    struct Plain(Box<dyn crate::jobs::store::BlobWriter>);
+    impl std::io::Write for Plain {
+        fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
+            self.0.write(b)
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            self.0.flush()
+        }
+    }
+    impl SpoolWriter for Plain {
+        fn commit(self: Box<Self>) -> crate::Result<String> {
+            self.0.commit(&|_| Ok(()))
+        }
+    }
+
+    fn opener(store: &std::sync::Arc<crate::jobs::store::FsBlobStore>) -> OpenWriter {
+        use crate::jobs::store::BlobStore;
+        let s = store.clone();
+        Box::new(move || Ok(Box::new(Plain(s.writer()?)) as Box<dyn SpoolWriter>))
+    }
+
+    #[tokio::test]
+    async fn a_large_body_spills_to_the_store_a_small_one_stays_in_memory() {
+        use crate::jobs::store::{BlobStore, FsBlobStore};
+        let dir = tempfile::tempdir().unwrap();
+        let store = std::sync::Arc::new(FsBlobStore::open(dir.path()).unwrap());
+        let pieces: Vec<Vec<u8>> = (0..40u8).map(|k| vec![k; 1000 + k as usize]).collect();
+        let all: Vec<u8> = pieces.concat();
+        let mut spool = Spool::new(all.len(), 5000, opener(&store));
+        for p in &pieces {
+            spool.push(Bytes::from(p.clone())).await.unwrap();
+        }
+        match spool.finish().await.unwrap() {
+            Upload::Stored { hash, len } => {
+                assert_eq!(len, all.len() as u64);
+                assert_eq!(hash, blake3::hash(&all).to_hex().to_string());
+                assert_eq!(store.get(&hash).unwrap().unwrap(), all);
+            }
+            other => panic!("{other:?}"),
+        }
+        let mut small = Spool::new(0, 5000, opener(&store));
+        small.push(Bytes::from(vec![7u8; 4999])).await.unwrap();
+        assert!(matches!(small.finish().await.unwrap(), Upload::Memory(v) if v.len() == 4999));
+        // A body that fails half-way leaves no blob behind.
+        let before = store.list().unwrap().len();
+        let mut broken = Spool::new(0, 100, opener(&store));
+        broken.push(Bytes::from(vec![1u8; 5000])).await.unwrap();
+        drop(broken);
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        assert_eq!(store.list().unwrap().len(), before);
     }
 
     #[tokio::test]

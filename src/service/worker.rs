@@ -289,26 +289,31 @@ impl BlobSink<'_> {
     /// EXR is `.half.exr` at half precision, a KTX2/DDS file the name of its variant
     /// ([`texture_result_name`], the name its download looks up).
     fn result_name(&self, file: &str) -> String {
-        if let Some((stem, ext)) =
-            file.rsplit_once('.').filter(|(_, e)| *e == "ktx2" || *e == "dds")
-        {
-            let layer = stem.strip_prefix("horizon_").and_then(|i| i.parse::<usize>().ok());
-            let ext = if ext == "ktx2" { "ktx2" } else { "dds" };
-            let opts = self.formats.texture.for_container(ext == "ktx2");
-            return texture_result_name(ext, &opts, layer);
-        }
-        let half = self.formats.exr_precision == ExrPrecision::Half;
-        let pick = match file {
-            "horizon_0.png" if self.formats.png16 => 2,
-            "horizon_1.png" if self.formats.png16 => 3,
-            "horizon_0.png" => 0,
-            "horizon_1.png" => 1,
-            "horizon_0.exr" if half => 6,
-            "horizon_1.exr" if half => 7,
-            other => return other.to_owned(),
-        };
-        HORIZON_RESULTS[pick].to_owned()
+        result_name(&self.formats, file)
     }
+}
+
+/// The result name of the CLI's file `file` when `formats` are produced: `horizon_0.png` is
+/// png8 or png16 as asked, an EXR is `.half.exr` at half precision, a KTX2/DDS file the name of
+/// its variant ([`texture_result_name`], the name its download looks up).
+pub fn result_name(formats: &Formats, file: &str) -> String {
+    if let Some((stem, ext)) = file.rsplit_once('.').filter(|(_, e)| *e == "ktx2" || *e == "dds") {
+        let layer = stem.strip_prefix("horizon_").and_then(|i| i.parse::<usize>().ok());
+        let ext = if ext == "ktx2" { "ktx2" } else { "dds" };
+        let opts = formats.texture.for_container(ext == "ktx2");
+        return texture_result_name(ext, &opts, layer);
+    }
+    let half = formats.exr_precision == ExrPrecision::Half;
+    let pick = match file {
+        "horizon_0.png" if formats.png16 => 2,
+        "horizon_1.png" if formats.png16 => 3,
+        "horizon_0.png" => 0,
+        "horizon_1.png" => 1,
+        "horizon_0.exr" if half => 6,
+        "horizon_1.exr" if half => 7,
+        other => return other.to_owned(),
+    };
+    HORIZON_RESULTS[pick].to_owned()
 }
 
 impl crate::pipeline::Sink for BlobSink<'_> {
@@ -349,6 +354,15 @@ pub fn decode_input(
     params: &BakeParams,
     limits: &Limits,
 ) -> Result<(heightmap::HeightMap, heightmap::InputInfo)> {
+    if rec.tiles.is_some() {
+        // Its map is above --tile-above: no process decodes it whole (SPEC §7.1).
+        return Err(Error::InvalidInput(
+            "this bake was baked in tiles (its map is above --tile-above): only the layers it \
+             was submitted with exist, and its map is never decoded whole again; submit it \
+             again with the formats you need (png8 or png16)"
+                .into(),
+        ));
+    }
     let bytes = blobs
         .get(&rec.input_blob)?
         .ok_or_else(|| Error::Internal(format!("input blob {} is missing", rec.input_blob)))?;

@@ -199,14 +199,34 @@ pub(super) fn merge_json(
     Ok((merged, delivery))
 }
 
+/// The spool an upload for bake `id` reads into: in memory up to
+/// [`upload::STREAM_UPLOAD_ABOVE`], then streamed to the blob store, pinned for the submission.
+fn spool_for(st: &AppState, id: &str, expected: usize) -> upload::Spool {
+    let blobs = st.0.jobs.blobs_for(format!("submit/{id}"));
+    upload::Spool::new(
+        expected,
+        upload::STREAM_UPLOAD_ABOVE,
+        Box::new(move || Ok(Box::new(blobs.writer()?) as Box<dyn upload::SpoolWriter>)),
+    )
+}
+
 pub(super) async fn read_multipart(
     st: &AppState,
     req: Request,
-) -> Result<(Vec<u8>, (BakeParams, Delivery)), Problem> {
+    id: &str,
+) -> Result<(upload::Upload, (BakeParams, Delivery)), Problem> {
     let (query, query_delivery, query_keys) = query_params(req.uri())?;
     let query = (query, query_delivery);
     let timeout = st.0.config.body_timeout;
     let max_bytes = st.0.config.max_body_bytes;
+    // The whole request's announced length: past the threshold, the image part is spooled
+    // from its first byte.
+    let announced = req
+        .headers()
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok()?.parse::<u64>().ok())
+        .unwrap_or(0)
+        .min(max_bytes) as usize;
     let mut mp = axum::extract::Multipart::from_request(req, st).await.map_err(|e| {
         Problem::new(
             StatusCode::BAD_REQUEST,
@@ -214,10 +234,10 @@ pub(super) async fn read_multipart(
             format!("malformed multipart body: {}", e.body_text()),
         )
     })?;
-    let mut image: Option<Vec<u8>> = None;
+    let mut image: Option<upload::Upload> = None;
     let mut params: Option<(BakeParams, Delivery)> = None;
     loop {
-        let field = match mp.next_field().await {
+        let mut field = match mp.next_field().await {
             Ok(Some(f)) => f,
             Ok(None) => break,
             Err(e) => return Err(multipart_error(&e, timeout, max_bytes)),
@@ -228,9 +248,14 @@ pub(super) async fn read_multipart(
                 if image.is_some() {
                     return Err(Problem::param("heightmap", "given more than once"));
                 }
-                let bytes =
-                    field.bytes().await.map_err(|e| multipart_error(&e, timeout, max_bytes))?;
-                image = Some(bytes.to_vec());
+                // Read piece by piece: a large image goes to the blob store as it arrives.
+                let mut spool = spool_for(st, id, announced);
+                while let Some(chunk) =
+                    field.chunk().await.map_err(|e| multipart_error(&e, timeout, max_bytes))?
+                {
+                    spool.push(chunk).await.map_err(store_err)?;
+                }
+                image = Some(spool.finish().await.map_err(store_err)?);
             }
             "params" => {
                 if params.is_some() {
@@ -273,7 +298,8 @@ pub(super) async fn read_raw(
     st: &AppState,
     req: Request,
     ct: &str,
-) -> Result<(Vec<u8>, (BakeParams, Delivery)), Problem> {
+    id: &str,
+) -> Result<(upload::Upload, (BakeParams, Delivery)), Problem> {
     let mime = ct.split(';').next().unwrap_or("").trim().to_ascii_lowercase();
     let (params, delivery, _) = query_params(req.uri())?;
     let timeout = st.0.config.body_timeout;
@@ -283,9 +309,14 @@ pub(super) async fn read_raw(
         .and_then(|v| v.to_str().ok()?.parse::<u64>().ok())
         .unwrap_or(0)
         .min(st.0.config.max_body_bytes) as usize;
-    let bytes = upload::read_all(req.into_body(), announced)
-        .await
-        .map_err(|e| body_error(&e, timeout, st.0.config.max_body_bytes))?;
+    use futures_util::StreamExt;
+    let mut spool = spool_for(st, id, announced);
+    let mut body = req.into_body().into_data_stream();
+    while let Some(chunk) = body.next().await {
+        let chunk = chunk.map_err(|e| body_error(&e, timeout, st.0.config.max_body_bytes))?;
+        spool.push(chunk).await.map_err(store_err)?;
+    }
+    let bytes = spool.finish().await.map_err(store_err)?;
     // Checked after the body is read, so the client gets this answer rather than a reset.
     if !mime.is_empty() && !RAW_TYPES.contains(&mime.as_str()) {
         return Err(Error::Unsupported(format!(
@@ -334,11 +365,13 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
     let (parts, body) = req.into_parts();
     let body = upload::guarded(body, st.0.config.max_body_bytes, st.0.config.body_timeout);
     let req = Request::from_parts(parts, body);
-    let (bytes, (params, delivery)) = if ct.to_ascii_lowercase().starts_with("multipart/form-data")
+    // The id is chosen first: a large upload is stored (pinned for it) while it arrives.
+    let id = new_id();
+    let (upload, (params, delivery)) = if ct.to_ascii_lowercase().starts_with("multipart/form-data")
     {
-        read_multipart(&st, req).await?
+        read_multipart(&st, req, &id).await?
     } else {
-        read_raw(&st, req, &ct).await?
+        read_raw(&st, req, &ct, &id).await?
     };
     // Rules joining several parameters (bins against method and outputs), once all are merged.
     params.check().map_err(Problem::from)?;
@@ -356,12 +389,36 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
     // A DEM's defaults (SPEC §2: cell size, height_scale, edge, curvature) are resolved here,
     // so the stored parameters, the dedup key and the bake resource show what will be baked.
     let limits = st.0.config.limits;
-    let (bytes, params, ((fmt, width, height), georef)) = blocking(move || {
-        let mut params = params;
-        let probed = heightmap::check_submission_for(&bytes, &mut params, &limits)?;
-        Ok((bytes, params, probed))
-    })
-    .await?;
+    // The bytes when in memory, or the stored blob (hash, length) of a large upload.
+    let (bytes, stored, params, ((fmt, width, height), georef)) = match upload {
+        upload::Upload::Memory(bytes) => {
+            blocking(move || {
+                let mut params = params;
+                let probed = heightmap::check_submission_for(&bytes, &mut params, &limits)?;
+                Ok((Some(bytes), None, params, probed))
+            })
+            .await?
+        }
+        upload::Upload::Stored { hash, len } => {
+            // Too large to hold: its header (format, dimensions, georeferencing and the DEM
+            // defaults) is read from the store by ranged reads; its values are checked by the
+            // decode when the bake runs.
+            let store = st.0.jobs.blob_store().clone();
+            blocking(move || {
+                let mut params = params;
+                let r = crate::jobs::store::BlobSeekReader::open(store, &hash)?
+                    .ok_or_else(|| Error::Internal("the stored upload is gone".into()))?;
+                let ((f, w, h), georef) = heightmap::stream::probe_for(r, &mut params, &limits)?;
+                let f = match f {
+                    "png" => image::ImageFormat::Png,
+                    "tiff" => image::ImageFormat::Tiff,
+                    _ => image::ImageFormat::OpenExr,
+                };
+                Ok((None, Some((hash, len)), params, ((f, w, h), georef)))
+            })
+            .await?
+        }
+    };
     let format = match fmt {
         image::ImageFormat::Png => "png",
         image::ImageFormat::Tiff => "tiff",
@@ -369,10 +426,37 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
     };
     // A map above --tile-above is baked in tiles (SPEC §7.1): refuse now what tiles cannot do.
     crate::service::tiled::check(&params, &formats, width, height, &st.0.config.tiles)?;
+    // Its tiles are cut by the streamed decode: refuse now (415/422) an encoding it cannot
+    // stream (OpenEXR, interlaced PNG, planar TIFF) rather than fail the bake at its split.
+    let (bytes, stored) = if st.0.config.tiles.tiles(width, height) {
+        let store = st.0.jobs.blob_store().clone();
+        let channel = params.channel;
+        blocking(move || {
+            match (&bytes, &stored) {
+                (Some(b), _) => {
+                    heightmap::stream::check_streamable(std::io::Cursor::new(b), channel, &limits)?
+                }
+                (None, Some((hash, _))) => {
+                    let r = crate::jobs::store::BlobSeekReader::open(store, hash)?
+                        .ok_or_else(|| Error::Internal("the stored upload is gone".into()))?;
+                    heightmap::stream::check_streamable(r, channel, &limits)?
+                }
+                (None, None) => {}
+            }
+            Ok((bytes, stored))
+        })
+        .await?
+    } else {
+        (bytes, stored)
+    };
     let pairs: Vec<(String, String)> =
         params.to_pairs().into_iter().map(|(k, v)| (k.to_owned(), v)).collect();
-    let (bytes, input_hash, key) = blocking(move || {
-        let input_hash = blake3::hash(&bytes).to_hex().to_string();
+    let (bytes, input_hash, input_bytes, key) = blocking(move || {
+        let (input_hash, len) = match (&bytes, stored) {
+            (Some(b), _) => (blake3::hash(b).to_hex().to_string(), b.len() as u64),
+            (None, Some(s)) => s,
+            (None, None) => return Err(Error::Internal("an upload with no bytes".into())),
+        };
         let mut h = blake3::Hasher::new();
         h.update(input_hash.as_bytes());
         for (k, v) in &pairs {
@@ -381,19 +465,19 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
             h.update(b"=");
             h.update(v.as_bytes());
         }
-        Ok((bytes, input_hash, h.finalize().to_hex().to_string()))
+        Ok((bytes, input_hash, len, h.finalize().to_hex().to_string()))
     })
     .await
     .map_err(store_err)?;
 
     let rec = BakeRecord {
-        id: new_id(),
+        id,
         status: Status::Queued,
         dedup_key: key,
         params: params.to_pairs().into_iter().map(|(k, v)| (k.to_owned(), v)).collect(),
         input_blob: input_hash,
         input_format: format.into(),
-        input_bytes: bytes.len() as u64,
+        input_bytes,
         width,
         height,
         input: None,
@@ -413,7 +497,11 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
         georeferencing: georef.and_then(|g| serde_json::to_value(g).ok()),
         tiles: None,
     };
-    let (status, rec) = match st.0.jobs.submit(bytes, rec).await.map_err(store_err)? {
+    let submitted = match bytes {
+        Some(bytes) => st.0.jobs.submit(bytes, rec).await,
+        None => st.0.jobs.submit_stored(rec).await,
+    };
+    let (status, rec) = match submitted.map_err(store_err)? {
         Submitted::Created(rec) => {
             st.0.metrics.submitted(false);
             (StatusCode::ACCEPTED, rec)
