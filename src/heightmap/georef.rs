@@ -244,7 +244,9 @@ impl Georef {
 /// georeferencing); `max_distance` or `earth_curvature=on` without a cell size.
 pub fn apply_dem_defaults(params: &mut BakeParams, georef: Option<&Georef>) -> Result<()> {
     let ex = params.explicit;
-    let exact = params.method == crate::params::Method::Exact;
+    // The methods that model the earth's curvature (SPEC §3.7).
+    let curved = |m| matches!(m, crate::params::Method::Exact | crate::params::Method::Sweep);
+    let exact = curved(params.method);
     let dem = georef.filter(|g| g.is_dem());
     if let Some(g) = dem {
         let cell = match params.cell_size {
@@ -266,11 +268,11 @@ pub fn apply_dem_defaults(params: &mut BakeParams, georef: Option<&Georef>) -> R
             set("earth_curvature", "on".into())?;
         }
     }
-    if params.earth_curvature == EarthCurvature::On && params.method != crate::params::Method::Exact
-    {
+    if params.earth_curvature == EarthCurvature::On && !curved(params.method) {
         return Err(Error::param(
             "earth_curvature",
-            "is modelled by method=exact only so far; use method=exact or earth_curvature=off",
+            "is modelled by method=exact and sweep only so far; use one of them or \
+             earth_curvature=off",
         ));
     }
     if params.cell_size.is_none() {
