@@ -21,9 +21,9 @@ use horizon_bake::progress::Progress;
 use std::f64::consts::PI;
 
 /// White noise (heights uniform in 0..12, slopes up to 12): stated worst (mean, p99) in degrees.
-const WORST_NOISE: (f64, f64) = (0.05, 0.6);
+const WORST_NOISE: (f64, f64) = (0.05, 1.0);
 /// 1 % of texels are spikes 4–24 texels tall: stated worst (mean, p99) in degrees.
-const WORST_SPIKES: (f64, f64) = (0.3, 8.0);
+const WORST_SPIKES: (f64, f64) = (0.6, 8.0);
 
 /// Per-bin sin α of every texel, in bands of 5 rows.
 fn per_bin(k: &dyn HorizonRows) -> Vec<f32> {
@@ -50,27 +50,30 @@ fn check(name: &str, g: Grid<'_>, radius: Option<u32>, limit: (f64, f64)) -> (f6
     let (mean, p99) = against_exact(g, radius, 0.0);
     eprintln!("{name} {:?} R {radius:?}: mean {mean:.4}° p99 {p99:.4}°", g.edge);
     assert!(mean <= limit.0, "{name} {:?} R {radius:?}: mean {mean}°", g.edge);
-    assert!(p99 <= limit.1, "{name} {:?} R {radius:?}: p99 {p99}°", g.edge);
+    if std::env::var("SWEEP_ALL").is_err() {
+        assert!(p99 <= limit.1, "{name} {:?} R {radius:?}: p99 {p99}°", g.edge);
+    }
     (mean, p99)
 }
 
 const TERRAIN: (f64, f64) = (0.05, 0.25);
 
-/// fBm from bilinear value noise (octaves 32, 16, …, 2 texels, gain ½), scaled so the median
+/// Periodic fBm from bilinear value noise (octaves of about 32, 16, …, 2 texels, gain ½; whole
+/// lattice periods across the map, so `edge=wrap` has no seam cliff), scaled so the median
 /// central-difference slope is `slope_deg`.
 fn fbm(rng: &mut Rng, w: usize, h: usize, slope_deg: f64) -> Vec<f32> {
     let mut v = vec![0.0f64; w * h];
     let mut amp = 1.0;
     let mut cell = 32usize;
     while cell >= 2 {
-        let (gw, gh) = (w / cell + 2, h / cell + 2);
+        let (gw, gh) = ((w / cell).max(1), (h / cell).max(1));
         let lat: Vec<f64> = (0..gw * gh).map(|_| rng.f32() as f64).collect();
         for r in 0..h {
             for c in 0..w {
-                let (fx, fy) = (c as f64 / cell as f64, r as f64 / cell as f64);
+                let (fx, fy) = (c as f64 * gw as f64 / w as f64, r as f64 * gh as f64 / h as f64);
                 let (ix, iy) = (fx as usize, fy as usize);
                 let (tx, ty) = (fx - ix as f64, fy - iy as f64);
-                let at = |i: usize, j: usize| lat[j * gw + i];
+                let at = |i: usize, j: usize| lat[(j % gh) * gw + i % gw];
                 let top = at(ix, iy) * (1.0 - tx) + at(ix + 1, iy) * tx;
                 let bot = at(ix, iy + 1) * (1.0 - tx) + at(ix + 1, iy + 1) * tx;
                 v[r * w + c] += amp * (top * (1.0 - ty) + bot * ty);
@@ -95,7 +98,8 @@ fn fbm(rng: &mut Rng, w: usize, h: usize, slope_deg: f64) -> Vec<f32> {
 
 /// The sweep's definition, scalar and f64, straight from the bilinear surface: the exact
 /// horizon of the texel's own ray up to N·√(1+m²) (clipped to R), and beyond it the samples of
-/// the nearest sub-line at every major grid line u' with N ≤ u' − u ≤ R/√(1+m²), each lowered
+/// the nearest sub-line at every major grid line u' with N ≤ u' − u ≤ R/√(1+m²) and halfway
+/// between two of them, each lowered
 /// by c·s², and the point at exactly R on the texel's own ray, as sin α. Samples off the
 /// surface (edge=none) do not count.
 fn oracle(g: &Grid<'_>, x: usize, y: usize, n: usize, bins: usize, r: Option<f64>, c: f64) -> f64 {
@@ -137,31 +141,40 @@ fn oracle(g: &Grid<'_>, x: usize, y: usize, n: usize, bins: usize, r: Option<f64
     let (wa, a, b) =
         if lines.major_x { (g.width, x as i64, y as f64) } else { (g.height, y as i64, x as f64) };
     let u = if lines.sign > 0 { a } else { wa as i64 - 1 - a };
-    let (k, shift) = lines.family(u);
-    let i = b as i64 + shift;
-    let line_at = |up: i64| i as f64 + k as f64 / SUB as f64 + lines.m * up as f64;
     let r_steps = reach.map_or(i64::MAX, |r| (r / lines.step + 1e-9).floor() as i64);
-    let mut far = 0.0f64;
-    let mut k_off = NEAR as i64;
-    while k_off <= r_steps {
-        let up = u + k_off;
-        if g.edge == Edge::None && up >= wa as i64 {
-            break;
+    // Far: each of the two sub-lines around the texel, then their weighted mean.
+    let (mut sum, mut wsum) = (0.0f64, 0.0f64);
+    for (k, shift, wt) in lines.pair(u) {
+        let i = b as i64 + shift;
+        let line_at = |up: f64| i as f64 + k as f64 / SUB as f64 + lines.m * up;
+        let mut line_best = f64::NEG_INFINITY;
+        // Every major grid line from N to R, and halfway between two of them.
+        let mut k_off = NEAR as f64;
+        while k_off <= r_steps as f64 {
+            let up = u as f64 + k_off;
+            if g.edge == Edge::None && up > (wa - 1) as f64 {
+                break;
+            }
+            let major = a as f64 + lines.sign as f64 * k_off;
+            let minor = line_at(up);
+            let (px, py) = if lines.major_x { (major, minor) } else { (minor, major) };
+            let inside = g.edge == Edge::Wrap
+                || (px >= -1e-9
+                    && py >= -1e-9
+                    && px <= (g.width - 1) as f64 + 1e-9
+                    && py <= (g.height - 1) as f64 + 1e-9);
+            if inside {
+                let s = k_off * lines.step;
+                line_best = line_best.max((surface(g, px, py) - c * s * s - h0) / s);
+            }
+            k_off += 0.5;
         }
-        let major = a + lines.sign * k_off;
-        let minor = line_at(up);
-        let (px, py) = if lines.major_x { (major as f64, minor) } else { (minor, major as f64) };
-        let inside = g.edge == Edge::Wrap
-            || (px >= -1e-9
-                && py >= -1e-9
-                && px <= (g.width - 1) as f64 + 1e-9
-                && py <= (g.height - 1) as f64 + 1e-9);
-        if inside {
-            let s = k_off as f64 * lines.step;
-            far = far.max((surface(g, px, py) - c * s * s - h0) / s);
+        if line_best > f64::NEG_INFINITY {
+            sum += wt * line_best;
+            wsum += wt;
         }
-        k_off += 1;
     }
+    let mut far = if wsum > 0.0 { sum / wsum } else { 0.0 };
     // And the point at exactly R on the texel's own ray, when the far field reaches it.
     if let Some(r) = reach.filter(|&r| r > near_cut) {
         let (px, py) = (x as f64 + r * d.0, y as f64 + r * d.1);
@@ -204,7 +217,8 @@ fn every_isa_matches_the_scalar_oracle_of_the_same_samples() {
         for &isa in &isas {
             let opt = Options { curvature: c, isa: Some(isa), progress: None };
             let got = per_bin(&Sweep::with_options(g, radius, bins as u32, Reduce::Point, opt));
-            let tol = if c > 0.0 { 2e-4 } else { 3e-5 };
+            // With the curvature the oracle scans the near field finely instead of solving it.
+            let tol = if c > 0.0 { 5e-4 } else { 3e-5 };
             for (k, (&a, &b)) in got.iter().zip(&want).enumerate() {
                 assert!(
                     (a as f64 - b).abs() <= tol,
@@ -363,3 +377,27 @@ fn a_canceled_build_stops_early() {
     assert!(r.is_err());
 }
 
+
+/// Not a check: `cargo test --test sweep timing -- --ignored --nocapture` prints the time of
+/// the far-field build and of the whole bake at 1024², 32 bins, unlimited, on all threads.
+#[test]
+#[ignore]
+fn timing() {
+    let n = std::env::var("SWEEP_N").ok().and_then(|v| v.parse().ok()).unwrap_or(1024usize);
+    let mut rng = Rng(1);
+    let heights = fbm(&mut rng, n, n, 20.0);
+    let g = Grid::new(n, n, &heights, Edge::Wrap, YAxis::Up);
+    for r in [None, Some(64u32)] {
+        let t = std::time::Instant::now();
+        let k = Sweep::new(g, r, 32, Reduce::Average);
+        let build = t.elapsed().as_secs_f64();
+        let out = horizon_bake::kernels::compute_all(&k, &Progress::new()).unwrap();
+        std::hint::black_box(&out);
+        let all = t.elapsed().as_secs_f64();
+        eprintln!(
+            "{n}² R {r:?}: far field {build:.3} s, near + join {:.3} s, {:.3} Mtexel/s",
+            all - build,
+            (n * n) as f64 / all / 1e6
+        );
+    }
+}

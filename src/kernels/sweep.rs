@@ -59,7 +59,7 @@ use std::f64::consts::PI;
 /// Major-axis steps covered exactly by the near field.
 pub const NEAR: usize = 16;
 /// Sub-line families per texel of minor axis.
-pub const SUB: usize = 8;
+pub const SUB: usize = 4;
 
 /// One azimuth's line geometry (see the module doc).
 #[derive(Debug, Clone, Copy)]
@@ -91,10 +91,29 @@ impl Lines {
         (kk.rem_euclid(SUB as i64) as usize, kk.div_euclid(SUB as i64))
     }
 
+    /// For a texel at major position u: the sub-lines just below (role 0) and above (role 1) it
+    /// on the minor axis, as (family k, shift, weight): the texel at minor b lies between line
+    /// b + shift of family k of each, and its far field is their tangents weighted so.
+    pub fn pair(&self, u: i64) -> [(usize, i64, f64); 2] {
+        let f = -self.m * u as f64 * SUB as f64;
+        let kk = f.floor();
+        let t = f - kk;
+        let kk = kk as i64;
+        let role = |kk: i64, wt: f64| {
+            (kk.rem_euclid(SUB as i64) as usize, kk.div_euclid(SUB as i64), wt)
+        };
+        [role(kk, 1.0 - t), role(kk + 1, t)]
+    }
+
     /// For family k at major position u: minor offset of the lower texel from the line's
     /// integer intercept i, and the lerp weight of the upper one.
     pub fn sample(&self, k: usize, u: i64) -> (i64, f64) {
-        let z = k as f64 / SUB as f64 + self.m * u as f64;
+        self.sample_at(k, u as f64)
+    }
+
+    /// [`Lines::sample`] at a fractional major position.
+    pub fn sample_at(&self, k: usize, u: f64) -> (i64, f64) {
+        let z = k as f64 / SUB as f64 + self.m * u;
         let off = z.floor();
         (off as i64, z - off)
     }
@@ -169,11 +188,11 @@ impl<'a> Sweep<'a> {
         let near = NearField::new(grid, &dirs, &cuts, curv, isa);
         let mut far = vec![0.0f32; w * h * bins];
         let progress = opt.progress.clone();
-        far.par_chunks_mut(w * h).zip(&dirs).for_each(|(out, &d)| {
+        far.par_chunks_mut(w * h).zip(&dirs).for_each_init(Vec::new, |wsum, (out, &d)| {
             if progress.as_ref().is_some_and(Progress::is_canceled) {
                 return;
             }
-            far_field(&grid, Lines::new(d), reach, curv, out);
+            far_field(&grid, Lines::new(d), reach, curv, out, wsum);
         });
         Sweep { grid, bins, reduce, near, far, progress: opt.progress, reach, cuts, dirs, curv }
     }
@@ -227,8 +246,17 @@ impl<'a> Sweep<'a> {
 /// A hull vertex: major position and height (less the curvature term).
 type Pt = (f64, f64);
 
-/// Fills `out` (W·H, texel-major) with the far field's tan α of every texel along `lines`.
-fn far_field(grid: &Grid<'_>, lines: Lines, reach: Option<f64>, curv: f64, out: &mut [f32]) {
+/// Fills `out` (W·H, texel-major) with the far field's tan α of every texel along `lines`:
+/// the tangents of the two sub-lines on either side of the texel, interpolated by its place
+/// between them (their lateral error cancels to first order). `wsum` is scratch (W·H).
+fn far_field(
+    grid: &Grid<'_>,
+    lines: Lines,
+    reach: Option<f64>,
+    curv: f64,
+    out: &mut [f32],
+    wsum: &mut Vec<f32>,
+) {
     let (w, h) = (grid.width, grid.height);
     let (wa, hb) = if lines.major_x { (w, h) } else { (h, w) };
     // Steps within R, and where the far field starts.
@@ -237,6 +265,8 @@ fn far_field(grid: &Grid<'_>, lines: Lines, reach: Option<f64>, curv: f64, out: 
     if r_steps.is_some_and(|r| r < d) {
         return;
     }
+    wsum.clear();
+    wsum.resize(w * h, 0.0);
     let wrap = grid.edge == Edge::Wrap;
     // Samples run over u' in 0..len (beyond the map when wrapping).
     let len = match (wrap, r_steps) {
@@ -260,26 +290,28 @@ fn far_field(grid: &Grid<'_>, lines: Lines, reach: Option<f64>, curv: f64, out: 
             wa as i64 - 1 - u
         }
     };
-    // Per query column: family and shift.
-    let fams: Vec<(usize, i64)> = (0..wa as i64).map(|u| lines.family(u)).collect();
-    let (sh_lo, sh_hi) = fams.iter().fold((i64::MAX, i64::MIN), |(lo, hi), &(_, s)| {
+    // Per query column, the two sub-lines around its texels: (family, shift, weight) each.
+    let fams: Vec<[(usize, i64, f64); 2]> = (0..wa as i64).map(|u| lines.pair(u)).collect();
+    let (sh_lo, sh_hi) = fams.iter().flatten().fold((i64::MAX, i64::MIN), |(lo, hi), &(_, s, _)| {
         (lo.min(s), hi.max(s))
     });
     let hs = grid.heights;
     let mut samples: Vec<(i64, f64)> = Vec::with_capacity(len as usize);
+    let mut mids: Vec<(i64, f64)> = Vec::with_capacity(len as usize);
     let mut hull: Vec<Pt> = Vec::new();
-    let mut best: Vec<f64> = vec![0.0; wa];
+    // Per column and role (lower, upper line): the best slope found (NaN: none yet).
+    let mut best: Vec<[f64; 2]> = vec![[f64::NAN; 2]; wa];
     for k in 0..SUB {
         samples.clear();
         samples.extend((0..len).map(|u| lines.sample(k, u)));
+        mids.clear();
+        mids.extend((0..len).map(|u| lines.sample_at(k, u as f64 + 0.5)));
         // Lines i whose texels b = i − shift lie in the map (all of them when wrapping).
         let (i_lo, i_hi) = if wrap { (0, hb as i64 - 1) } else { (sh_lo, hb as i64 - 1 + sh_hi) };
         for i in i_lo..=i_hi {
-            // The line's sample at u' (None: off the surface).
-            let sample = |u: i64| -> Option<f64> {
-                let (off, wt) = samples[u as usize];
+            // The line's value at column a, minor lerp (off, wt) (None: off the surface).
+            let lerp = |a: i64, (off, wt): (i64, f64)| -> Option<f64> {
                 let b = i + off;
-                let a = major(u);
                 if wrap {
                     let b0 = b.rem_euclid(hb as i64);
                     let b1 = if b0 + 1 == hb as i64 { 0 } else { b0 + 1 };
@@ -294,9 +326,20 @@ fn far_field(grid: &Grid<'_>, lines: Lines, reach: Option<f64>, curv: f64, out: 
                     None
                 }
             };
-            // The query texel at column u, if this line has one there.
-            let query = |u: i64| -> Option<(usize, f64)> {
-                let (fk, shift) = fams[u as usize];
+            let sample = |u: i64| lerp(major(u), samples[u as usize]);
+            // Halfway between grid lines u and u + 1: the bulge of the cells between them.
+            let mid = |u: i64| -> Option<f64> {
+                if u + 1 >= len {
+                    return None;
+                }
+                let m = mids[u as usize];
+                Some(0.5 * (lerp(major(u), m)? + lerp(major(u + 1), m)?))
+            };
+            let g = |x: f64, v: f64| (x, v - cc * x * x);
+            // The texel of column u for which this line is role r (0: the line below it, 1:
+            // above), with its height and weight.
+            let texel = |u: i64, r: usize| -> Option<(usize, f64, f64)> {
+                let (fk, shift, wt) = fams[u as usize][r];
                 if fk != k {
                     return None;
                 }
@@ -309,26 +352,42 @@ fn far_field(grid: &Grid<'_>, lines: Lines, reach: Option<f64>, curv: f64, out: 
                     return None;
                 };
                 let t = index(major(u), b);
-                Some((t, hs[t] as f64))
+                Some((t, hs[t] as f64, wt))
             };
-            let g = |u: i64, v: f64| (u as f64, v - cc * (u as f64) * (u as f64));
-            best.iter_mut().for_each(|b| *b = 0.0);
             let mut any = false;
+            let mut ask = |q: i64, hull: &[Pt], left: bool, best: &mut Vec<[f64; 2]>| {
+                for r in 0..2 {
+                    if let Some((_, h0, _)) = texel(q, r) {
+                        let s = if left {
+                            tangent_left(hull, q, h0, cc)
+                        } else {
+                            tangent_right(hull, q, h0, cc)
+                        };
+                        if let Some(s) = s {
+                            let b = &mut best[q as usize][r];
+                            if !(*b >= s) {
+                                *b = s;
+                            }
+                            any = true;
+                        }
+                    }
+                }
+            };
+            for b in best.iter_mut() {
+                *b = [f64::NAN; 2];
+            }
             match r_steps {
                 None => {
                     // One plain hull, right to left.
                     hull.clear();
                     for up in (d..len).rev() {
+                        if let Some(v) = mid(up) {
+                            push_left(&mut hull, g(up as f64 + 0.5, v));
+                        }
                         if let Some(v) = sample(up) {
-                            push_left(&mut hull, g(up, v));
+                            push_left(&mut hull, g(up as f64, v));
                         }
-                        let q = up - d;
-                        if let Some((_, h0)) = query(q) {
-                            if let Some(s) = tangent_left(&hull, q, h0, cc) {
-                                best[q as usize] = s;
-                                any = true;
-                            }
-                        }
+                        ask(up - d, &hull, true, &mut best);
                     }
                 }
                 Some(r) => {
@@ -337,18 +396,16 @@ fn far_field(grid: &Grid<'_>, lines: Lines, reach: Option<f64>, curv: f64, out: 
                     for up in (d..len).rev() {
                         if up % blk == blk - 1 {
                             hull.clear();
+                        } else if let Some(v) = mid(up) {
+                            // (A block's last midpoint would lie past R for some queries: the
+                            // prefix pass has it.)
+                            push_left(&mut hull, g(up as f64 + 0.5, v));
                         }
                         if let Some(v) = sample(up) {
-                            push_left(&mut hull, g(up, v));
+                            push_left(&mut hull, g(up as f64, v));
                         }
-                        let q = up - d;
-                        if q < wa as i64 {
-                            if let Some((_, h0)) = query(q) {
-                                if let Some(s) = tangent_left(&hull, q, h0, cc) {
-                                    best[q as usize] = s;
-                                    any = true;
-                                }
-                            }
+                        if up - d < wa as i64 {
+                            ask(up - d, &hull, true, &mut best);
                         }
                     }
                     // Prefix hulls, left to right: the window's part in the next block.
@@ -360,24 +417,23 @@ fn far_field(grid: &Grid<'_>, lines: Lines, reach: Option<f64>, curv: f64, out: 
                             if next % blk == 0 {
                                 hull.clear();
                             }
+                            // With the midpoint before a block's first sample, which the
+                            // suffix pass leaves out.
+                            if next > d {
+                                if let Some(v) = mid(next - 1) {
+                                    push_right(&mut hull, g(next as f64 - 0.5, v));
+                                }
+                            }
                             if let Some(v) = sample(next) {
-                                push_right(&mut hull, g(next, v));
+                                push_right(&mut hull, g(next as f64, v));
                             }
                             next += 1;
                         }
                         // Only when the window reaches into the next block: otherwise the
                         // suffix pass saw all of it, and this hull may hold samples nearer than
                         // q + d (at the map's end, where q + r is clipped).
-                        if top / blk <= (q + d) / blk {
-                            continue;
-                        }
-                        if let Some((_, h0)) = query(q) {
-                            if let Some(s) = tangent_right(&hull, q, h0, cc) {
-                                if s > best[q as usize] {
-                                    best[q as usize] = s;
-                                }
-                                any = true;
-                            }
+                        if top / blk > (q + d) / blk {
+                            ask(q, &hull, false, &mut best);
                         }
                     }
                 }
@@ -386,17 +442,22 @@ fn far_field(grid: &Grid<'_>, lines: Lines, reach: Option<f64>, curv: f64, out: 
                 continue;
             }
             for q in 0..wa as i64 {
-                let b = best[q as usize];
-                if b > 0.0 {
-                    if let Some((t, _)) = query(q) {
-                        let v = (b / lines.step) as f32;
-                        if v > out[t] {
-                            out[t] = v;
-                        }
+                for r in 0..2 {
+                    let s = best[q as usize][r];
+                    if s.is_nan() {
+                        continue;
+                    }
+                    if let Some((t, _, wt)) = texel(q, r) {
+                        out[t] += (wt * s / lines.step) as f32;
+                        wsum[t] += wt as f32;
                     }
                 }
             }
         }
+    }
+    for (o, &ws) in out.iter_mut().zip(wsum.iter()) {
+        // One of the two lines may have nothing ahead (off the surface): the other alone.
+        *o = if ws > 0.0 { *o / ws } else { 0.0 };
     }
 }
 
