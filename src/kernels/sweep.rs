@@ -274,14 +274,6 @@ fn far_field(
         _ => wa as i64,
     };
     let cc = curv * lines.step * lines.step;
-    // Image index of (major a, minor b), both inside the map.
-    let index = |a: i64, b: i64| -> usize {
-        if lines.major_x {
-            b as usize * w + a as usize
-        } else {
-            a as usize * w + b as usize
-        }
-    };
     let major = |u: i64| -> i64 {
         let u = if wrap { u.rem_euclid(wa as i64) } else { u };
         if lines.sign > 0 {
@@ -290,12 +282,31 @@ fn far_field(
             wa as i64 - 1 - u
         }
     };
+    // Tables so the sweeps do no division: each column's image offset of minor 0, the step
+    // of one minor texel.
+    let abase: Vec<usize> = (0..len)
+        .map(|u| {
+            let a = major(u) as usize;
+            if lines.major_x {
+                a
+            } else {
+                a * w
+            }
+        })
+        .collect();
+    let mstep = if lines.major_x { w } else { 1 };
+    let hbi = hb as i64;
     // Per query column, the two sub-lines around its texels: (family, shift, weight) each.
     let fams: Vec<[(usize, i64, f64); 2]> = (0..wa as i64).map(|u| lines.pair(u)).collect();
     let (sh_lo, sh_hi) = fams.iter().flatten().fold((i64::MAX, i64::MIN), |(lo, hi), &(_, s, _)| {
         (lo.min(s), hi.max(s))
     });
     let hs = grid.heights;
+    let fams: Vec<[(usize, i64, f64); 2]> = if wrap {
+        fams.iter().map(|p| p.map(|(k, sh, wt)| (k, sh.rem_euclid(hbi), wt))).collect()
+    } else {
+        fams
+    };
     let mut samples: Vec<(i64, f64)> = Vec::with_capacity(len as usize);
     let mut mids: Vec<(i64, f64)> = Vec::with_capacity(len as usize);
     let mut hull: Vec<Pt> = Vec::new();
@@ -303,37 +314,44 @@ fn far_field(
     let mut best: Vec<[f64; 2]> = vec![[f64::NAN; 2]; wa];
     for k in 0..SUB {
         samples.clear();
-        samples.extend((0..len).map(|u| lines.sample(k, u)));
+        // Minor offsets reduced modulo the map when wrapping (the line index adds < hb).
+        let reduce = |(off, wt): (i64, f64)| (if wrap { off.rem_euclid(hbi) } else { off }, wt);
+        samples.extend((0..len).map(|u| reduce(lines.sample(k, u))));
         mids.clear();
-        mids.extend((0..len).map(|u| lines.sample_at(k, u as f64 + 0.5)));
+        mids.extend((0..len).map(|u| reduce(lines.sample_at(k, u as f64 + 0.5))));
         // Lines i whose texels b = i − shift lie in the map (all of them when wrapping).
         let (i_lo, i_hi) = if wrap { (0, hb as i64 - 1) } else { (sh_lo, hb as i64 - 1 + sh_hi) };
         for i in i_lo..=i_hi {
             // The line's value at column a, minor lerp (off, wt) (None: off the surface).
-            let lerp = |a: i64, (off, wt): (i64, f64)| -> Option<f64> {
+            // The line's value at column u, minor lerp (off, wt) (None: off the surface).
+            let lerp = |u: i64, (off, wt): (i64, f64)| -> Option<f64> {
+                let base = abase[u as usize];
                 let b = i + off;
                 if wrap {
-                    let b0 = b.rem_euclid(hb as i64);
-                    let b1 = if b0 + 1 == hb as i64 { 0 } else { b0 + 1 };
-                    let (h0, h1) = (hs[index(a, b0)] as f64, hs[index(a, b1)] as f64);
+                    // 0 ≤ i < hb and 0 ≤ off < hb.
+                    let b0 = if b >= hbi { b - hbi } else { b };
+                    let b1 = if b0 + 1 == hbi { 0 } else { b0 + 1 };
+                    let h0 = hs[base + b0 as usize * mstep] as f64;
+                    let h1 = hs[base + b1 as usize * mstep] as f64;
                     Some(h0 + (h1 - h0) * wt)
-                } else if b >= 0 && b + 1 < hb as i64 {
-                    let (h0, h1) = (hs[index(a, b)] as f64, hs[index(a, b + 1)] as f64);
+                } else if b >= 0 && b + 1 < hbi {
+                    let h0 = hs[base + b as usize * mstep] as f64;
+                    let h1 = hs[base + (b + 1) as usize * mstep] as f64;
                     Some(h0 + (h1 - h0) * wt)
-                } else if b == hb as i64 - 1 && wt == 0.0 {
-                    Some(hs[index(a, b)] as f64)
+                } else if b == hbi - 1 && wt == 0.0 {
+                    Some(hs[base + b as usize * mstep] as f64)
                 } else {
                     None
                 }
             };
-            let sample = |u: i64| lerp(major(u), samples[u as usize]);
+            let sample = |u: i64| lerp(u, samples[u as usize]);
             // Halfway between grid lines u and u + 1: the bulge of the cells between them.
             let mid = |u: i64| -> Option<f64> {
                 if u + 1 >= len {
                     return None;
                 }
                 let m = mids[u as usize];
-                Some(0.5 * (lerp(major(u), m)? + lerp(major(u + 1), m)?))
+                Some(0.5 * (lerp(u, m)? + lerp(u + 1, m)?))
             };
             let g = |x: f64, v: f64| (x, v - cc * x * x);
             // The texel of column u for which this line is role r (0: the line below it, 1:
@@ -345,13 +363,18 @@ fn far_field(
                 }
                 let b = i - shift;
                 let b = if wrap {
-                    b.rem_euclid(hb as i64)
-                } else if (0..hb as i64).contains(&b) {
+                    // Shifts are stored modulo hb when wrapping (see `fams`).
+                    if b < 0 {
+                        b + hbi
+                    } else {
+                        b
+                    }
+                } else if (0..hbi).contains(&b) {
                     b
                 } else {
                     return None;
                 };
-                let t = index(major(u), b);
+                let t = abase[u as usize] + b as usize * mstep;
                 Some((t, hs[t] as f64, wt))
             };
             let mut any = false;
@@ -499,22 +522,40 @@ fn origin(q: i64, h0: f64, cc: f64) -> (f64, f64, f64) {
     (x, h0 - cc * x * x, 2.0 * cc * x)
 }
 
-/// The largest slope from (q, h0) to a vertex of `hull` (nearest vertex last), per major step.
+/// The largest slope from (q, h0) to a vertex of `hull` (nearest vertex last), per major step:
+/// the slopes are unimodal along the hull, so a galloping search from the nearest vertex finds
+/// the tangent in O(log d) steps for a tangent d vertices away (a far horizon on a long concave
+/// hull would make a plain walk O(d)).
 #[inline]
 fn tangent_left(hull: &[Pt], q: i64, h0: f64, cc: f64) -> Option<f64> {
-    let (x, y, corr) = origin(q, h0, cc);
-    let mut j = hull.len().checked_sub(1)?;
-    let slope = |p: Pt| (p.1 - y) / (p.0 - x);
-    let mut best = slope(hull[j]);
-    while j > 0 {
-        let s = slope(hull[j - 1]);
-        if s < best {
-            break;
-        }
-        best = s;
-        j -= 1;
+    let n = hull.len();
+    if n == 0 {
+        return None;
     }
-    Some(best + corr)
+    let (x, y, corr) = origin(q, h0, cc);
+    let f = |j: usize| {
+        let p = hull[n - 1 - j];
+        (p.1 - y) / (p.0 - x)
+    };
+    // Rising at j: the next vertex (farther) has the larger slope.
+    let rising = |j: usize| j + 1 < n && f(j + 1) > f(j);
+    let (mut lo, mut hi) = (0usize, 1usize);
+    while hi < n && rising(hi) {
+        lo = hi + 1;
+        hi *= 2;
+    }
+    let mut hi = hi.min(n - 1);
+    lo = lo.min(hi);
+    // The first j in lo..=hi that is not rising.
+    while lo < hi {
+        let mid = (lo + hi) / 2;
+        if rising(mid) {
+            lo = mid + 1;
+        } else {
+            hi = mid;
+        }
+    }
+    Some(f(lo) + corr)
 }
 
 /// The largest slope from (q, h0) to a vertex of `hull` (farthest vertex last): binary search
