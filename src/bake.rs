@@ -131,13 +131,7 @@ pub fn make_kernel_for<'a>(
                 isa: None,
                 progress: Some(progress.clone()),
             };
-            Box::new(kernels::sweep::Sweep::with_options(
-                grid,
-                r,
-                params.bins,
-                params.reduce,
-                opt,
-            ))
+            Box::new(kernels::sweep::Sweep::with_options(grid, r, params.bins, params.reduce, opt))
         }
         // `unlimited` is max(W, H) texels here, as for Lengyel: a march's cost grows with R.
         Method::March => Box::new(

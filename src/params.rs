@@ -57,13 +57,12 @@ pub enum Method {
 }
 
 /// Every `method` by name, in the order a user is offered them.
-pub const METHODS: &[(&str, Method)] =
-    &[
-        ("lengyel", Method::Lengyel),
-        ("exact", Method::Exact),
-        ("march", Method::March),
-        ("sweep", Method::Sweep),
-    ];
+pub const METHODS: &[(&str, Method)] = &[
+    ("lengyel", Method::Lengyel),
+    ("exact", Method::Exact),
+    ("march", Method::March),
+    ("sweep", Method::Sweep),
+];
 
 /// How far occluders are searched.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]

@@ -128,7 +128,7 @@ fn quick_eval_ranks_models_sensibly() {
         let exact = get("exact Runlimited average", map).horizon_error_deg;
         assert!((sweep - exact).abs() <= 0.05, "{map}: sweep {sweep}° vs exact {exact}°");
     }
-        // Auto resolved a finite radius from the height range (bump: 6.4 / tan 10° → 37 → capped
+    // Auto resolved a finite radius from the height range (bump: 6.4 / tan 10° → 37 → capped
     // at 32), and reports it.
     let auto = res.rows.iter().find(|r| r.family == "auto" && r.map == "bump").unwrap();
     let dh = corpus::bump(32).heights.iter().copied().fold(0.0f32, f32::max) as f64;

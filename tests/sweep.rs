@@ -209,9 +209,7 @@ fn every_isa_matches_the_scalar_oracle_of_the_same_samples() {
         let g = Grid::new(w, h, &heights, edge, YAxis::Up);
         let bins = 16usize;
         let want: Vec<f64> = (0..w * h)
-            .flat_map(|t| {
-                (0..bins).map(move |n| (t, n)).collect::<Vec<_>>()
-            })
+            .flat_map(|t| (0..bins).map(move |n| (t, n)).collect::<Vec<_>>())
             .map(|(t, n)| oracle(&g, t % w, t / w, n, bins, radius.map(f64::from), c))
             .collect();
         for &isa in &isas {
@@ -267,9 +265,8 @@ fn states_its_worst_case_on_white_noise_and_spike_fields() {
     let mut rng = Rng(7);
     let (w, h) = (45usize, 38usize);
     let noise: Vec<f32> = (0..w * h).map(|_| rng.f32() * 12.0).collect();
-    let spikes: Vec<f32> = (0..w * h)
-        .map(|_| if rng.f32() < 0.01 { 4.0 + 20.0 * rng.f32() } else { 0.0 })
-        .collect();
+    let spikes: Vec<f32> =
+        (0..w * h).map(|_| if rng.f32() < 0.01 { 4.0 + 20.0 * rng.f32() } else { 0.0 }).collect();
     for edge in [Edge::Wrap, Edge::None] {
         for radius in [Some(30u32), None] {
             check("white noise", Grid::new(w, h, &noise, edge, YAxis::Up), radius, WORST_NOISE);
@@ -376,7 +373,6 @@ fn a_canceled_build_stops_early() {
     let r = horizon_bake::kernels::compute_all(&k, &p);
     assert!(r.is_err());
 }
-
 
 /// Not a check: `cargo test --test sweep timing -- --ignored --nocapture` prints the time of
 /// the far-field build and of the whole bake at 1024², 32 bins, unlimited, on all threads.

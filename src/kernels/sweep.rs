@@ -99,9 +99,8 @@ impl Lines {
         let kk = f.floor();
         let t = f - kk;
         let kk = kk as i64;
-        let role = |kk: i64, wt: f64| {
-            (kk.rem_euclid(SUB as i64) as usize, kk.div_euclid(SUB as i64), wt)
-        };
+        let role =
+            |kk: i64, wt: f64| (kk.rem_euclid(SUB as i64) as usize, kk.div_euclid(SUB as i64), wt);
         [role(kk, 1.0 - t), role(kk + 1, t)]
     }
 
@@ -176,7 +175,8 @@ impl<'a> Sweep<'a> {
         let dirs: Vec<(f64, f64)> = (0..bins)
             .map(|n| exact::direction(n as f64 * 2.0 * PI / bins as f64, row_step))
             .collect();
-        let curv = if opt.curvature.is_finite() && opt.curvature > 0.0 { opt.curvature } else { 0.0 };
+        let curv =
+            if opt.curvature.is_finite() && opt.curvature > 0.0 { opt.curvature } else { 0.0 };
         let cuts: Vec<f64> = dirs
             .iter()
             .map(|&d| {
@@ -298,9 +298,10 @@ fn far_field(
     let hbi = hb as i64;
     // Per query column, the two sub-lines around its texels: (family, shift, weight) each.
     let fams: Vec<[(usize, i64, f64); 2]> = (0..wa as i64).map(|u| lines.pair(u)).collect();
-    let (sh_lo, sh_hi) = fams.iter().flatten().fold((i64::MAX, i64::MIN), |(lo, hi), &(_, s, _)| {
-        (lo.min(s), hi.max(s))
-    });
+    let (sh_lo, sh_hi) = fams
+        .iter()
+        .flatten()
+        .fold((i64::MAX, i64::MIN), |(lo, hi), &(_, s, _)| (lo.min(s), hi.max(s)));
     let hs = grid.heights;
     let fams: Vec<[(usize, i64, f64); 2]> = if wrap {
         fams.iter().map(|p| p.map(|(k, sh, wt)| (k, sh.rem_euclid(hbi), wt))).collect()
@@ -595,11 +596,8 @@ impl HorizonRows for Sweep<'_> {
         let mut strip = vec![0.0f32; NEAR_LANES * nb];
         let mut best = [0.0f32; NEAR_LANES];
         // `reduce=point` reads one bin per channel: the others are not computed unless asked.
-        let step = if self.reduce == Reduce::Point && bins_out.is_none() && nb >= 8 {
-            nb / 8
-        } else {
-            1
-        };
+        let step =
+            if self.reduce == Reduce::Point && bins_out.is_none() && nb >= 8 { nb / 8 } else { 1 };
         for r in 0..n_rows {
             let y = y0 + r;
             for x in (0..w).step_by(NEAR_LANES) {
