@@ -167,7 +167,7 @@ fn oracle(g: &Grid<'_>, x: usize, y: usize, n: usize, bins: usize, r: Option<f64
                 let s = k_off * lines.step;
                 line_best = line_best.max((surface(g, px, py) - c * s * s - h0) / s);
             }
-            k_off += 0.5;
+            k_off += if horizon_bake::kernels::sweep::MIDS { 0.5 } else { 1.0 };
         }
         if line_best > f64::NEG_INFINITY {
             sum += wt * line_best;

@@ -60,6 +60,10 @@ use std::f64::consts::PI;
 pub const NEAR: usize = 16;
 /// Sub-line families per texel of minor axis.
 pub const SUB: usize = 4;
+/// Whether the far field also samples halfway between major grid lines (the bulge of the cells
+/// between them). Measured: it halves the terrain p99 (0.17° → 0.10° on fBm 45°) for twice the
+/// hull pushes; the tolerance is met without, so it is off.
+pub const MIDS: bool = false;
 
 /// One azimuth's line geometry (see the module doc).
 #[derive(Debug, Clone, Copy)]
@@ -348,7 +352,7 @@ fn far_field(
             let sample = |u: i64| lerp(u, samples[u as usize]);
             // Halfway between grid lines u and u + 1: the bulge of the cells between them.
             let mid = |u: i64| -> Option<f64> {
-                if u + 1 >= len {
+                if !MIDS || u + 1 >= len {
                     return None;
                 }
                 let m = mids[u as usize];
