@@ -393,7 +393,7 @@ fn far_field(
             };
             let mut any = false;
             let mut ask = |q: i64, hull: &[Pt], left: bool, best: &mut Vec<[f64; 2]>| {
-                for r in 0..2 {
+                for (r, b) in best[q as usize].iter_mut().enumerate() {
                     if let Some((_, h0, _)) = texel(q, r) {
                         let s = if left {
                             tangent_left(hull, q, h0, cc)
@@ -401,8 +401,8 @@ fn far_field(
                             tangent_right(hull, q, h0, cc)
                         };
                         if let Some(s) = s {
-                            let b = &mut best[q as usize][r];
-                            if !(*b >= s) {
+                            // NaN (nothing yet) or smaller: take s.
+                            if b.is_nan() || *b < s {
                                 *b = s;
                             }
                             any = true;
@@ -478,13 +478,12 @@ fn far_field(
             if !any {
                 continue;
             }
-            for q in 0..wa as i64 {
-                for r in 0..2 {
-                    let s = best[q as usize][r];
+            for (q, pair) in best.iter().enumerate() {
+                for (r, &s) in pair.iter().enumerate() {
                     if s.is_nan() {
                         continue;
                     }
-                    if let Some((t, _, wt)) = texel(q, r) {
+                    if let Some((t, _, wt)) = texel(q as i64, r) {
                         out[t] += (wt * s / lines.step) as f32;
                         wsum[t] += wt as f32;
                     }
