@@ -397,3 +397,30 @@ fn timing() {
         );
     }
 }
+
+/// The CLI offers `--method sweep` at `--radius unlimited`: its 8-bit layers are within a couple
+/// of LSB of `--method exact`'s on the golden bump (read back with the `image` crate).
+#[test]
+fn cli_bakes_with_method_sweep_close_to_exact() {
+    let tmp = tempfile::tempdir().unwrap();
+    let input = common::golden_dir().join("inputs/bump64.png");
+    let bake = |method: &str| {
+        let out = tmp.path().join(method);
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
+            .args(["bake", input.to_str().unwrap(), "-o", out.to_str().unwrap()])
+            .args(["--method", method, "--radius", "unlimited", "--height-scale", "16"])
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{method}: {}", String::from_utf8_lossy(&o.stderr));
+        let img = image::open(out.join("horizon_0.png")).unwrap().to_rgba8().into_raw();
+        let report = std::fs::read_to_string(out.join("bake.json")).unwrap();
+        assert!(report.contains(&format!("\"{method}\"")), "{report}");
+        img
+    };
+    let (s, e) = (bake("sweep"), bake("exact"));
+    assert_eq!(s.len(), e.len());
+    let worst = s.iter().zip(&e).map(|(&a, &b)| (a as i32 - b as i32).abs()).max().unwrap();
+    let lit = e.iter().filter(|&&v| v > 10).count();
+    assert!(lit > e.len() / 10, "the bump casts horizons: {lit} of {}", e.len());
+    assert!(worst <= 2, "sweep vs exact: {worst} LSB");
+}
