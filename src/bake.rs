@@ -124,6 +124,28 @@ pub fn make_kernel_for<'a>(
                     .with_holes(holes),
             )
         }
+        // Holes: the sweep's lines do not skip hole cells yet, so `exact` bakes such maps.
+        Method::Sweep if holes.is_some() => {
+            let r = (params.radius != Radius::Unlimited || params.max_distance.is_some())
+                .then_some(radius);
+            Box::new(
+                kernels::exact::ExactHorizon::new(grid, r, params.bins, params.reduce)
+                    .with_cancel(progress)
+                    .with_curvature(curvature(params))
+                    .with_holes(holes),
+            )
+        }
+        // Cost independent of R: `unlimited` is the kernel's own (to the edge with edge=none).
+        Method::Sweep => {
+            let r = (params.radius != Radius::Unlimited || params.max_distance.is_some())
+                .then_some(radius);
+            let opt = kernels::sweep::Options {
+                curvature: curvature(params),
+                isa: None,
+                progress: Some(progress.clone()),
+            };
+            Box::new(kernels::sweep::Sweep::with_options(grid, r, params.bins, params.reduce, opt))
+        }
         // `unlimited` is max(W, H) texels here, as for Lengyel: a march's cost grows with R.
         Method::March => Box::new(
             kernels::march::March::new(grid, radius, params.bins, params.reduce)

@@ -206,6 +206,19 @@ pub fn models(quick: bool) -> Vec<ModelSpec> {
             params(Method::March, Radius::Texels(r), 32, Reduce::Average),
         ));
     }
+    // The radius-independent approximation (SPEC §3.2a), at several radii and unlimited.
+    let sweep_radii: &[Radius] = if quick {
+        &[Radius::Unlimited]
+    } else {
+        &[Radius::Texels(16), Radius::Texels(64), Radius::Unlimited]
+    };
+    for &r in sweep_radii {
+        out.push(ModelSpec::new(
+            format!("sweep R{r} average"),
+            "sweep",
+            params(Method::Sweep, r, 32, Reduce::Average),
+        ));
+    }
     let thetas: &[f64] = if quick { &[10.0] } else { &[5.0, 10.0, 20.0, 30.0] };
     for &t in thetas {
         let mut p = params(Method::Exact, Radius::Auto, 32, Reduce::Average);

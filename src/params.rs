@@ -51,11 +51,18 @@ pub enum Method {
     Exact,
     /// The §3.2 horizon sampled at grid-line crossings, vectorised (SPEC §3.2a).
     March,
+    /// Exact near field plus convex-hull line sweeps, any radius at a cost independent of it
+    /// (SPEC §3.2a).
+    Sweep,
 }
 
 /// Every `method` by name, in the order a user is offered them.
-pub const METHODS: &[(&str, Method)] =
-    &[("lengyel", Method::Lengyel), ("exact", Method::Exact), ("march", Method::March)];
+pub const METHODS: &[(&str, Method)] = &[
+    ("lengyel", Method::Lengyel),
+    ("exact", Method::Exact),
+    ("march", Method::March),
+    ("sweep", Method::Sweep),
+];
 
 /// How far occluders are searched.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -684,7 +691,7 @@ impl BakeParams {
     /// [`Error::Param`] naming the field to change.
     pub fn check(&self) -> Result<()> {
         let b = self.bins;
-        let ray = matches!(self.method, Method::Exact | Method::March);
+        let ray = matches!(self.method, Method::Exact | Method::March | Method::Sweep);
         let layers = self.outputs.horizon || self.outputs.fourier;
         if (layers || !ray) && (b < 16 || !b.is_multiple_of(16) || b > MAX_BINS) {
             let why =
@@ -693,7 +700,7 @@ impl BakeParams {
                 "bins",
                 format!(
                     "must be a multiple of 16 between 16 and {MAX_BINS} {why}, got {b} \
-                     (any 1..{MAX_TERRAIN_BINS} for outputs=angles,svf with method=exact or march)"
+                     (any 1..{MAX_TERRAIN_BINS} for outputs=angles,svf with method=exact, march or sweep)"
                 ),
             ));
         }
@@ -713,7 +720,7 @@ impl BakeParams {
         if self.method == Method::Lengyel && self.reduce == Reduce::Point {
             return Err(Error::param(
                 "reduce",
-                "`point` applies to the ray methods (exact, march); method=lengyel always \
+                "`point` applies to the ray methods (exact, march, sweep); method=lengyel always \
                  averages its bins (SPEC §3.1): drop `reduce` or pick another method",
             ));
         }

@@ -121,6 +121,13 @@ fn quick_eval_ranks_models_sensibly() {
         let u16 = get("lengyel R16 B32 u16", map).horizon_error_deg;
         assert!(u16 <= u8 + 1e-3, "{map}: u16 {u16} vs u8 {u8}");
     }
+    // The sweep at unlimited radius is within its tolerance of exact at unlimited radius: the
+    // same horizon error against the ground truth to a few hundredths of a degree.
+    for map in ["bump", "fractal"] {
+        let sweep = get("sweep Runlimited average", map).horizon_error_deg;
+        let exact = get("exact Runlimited average", map).horizon_error_deg;
+        assert!((sweep - exact).abs() <= 0.05, "{map}: sweep {sweep}° vs exact {exact}°");
+    }
     // Auto resolved a finite radius from the height range (bump: 6.4 / tan 10° → 37 → capped
     // at 32), and reports it.
     let auto = res.rows.iter().find(|r| r.family == "auto" && r.map == "bump").unwrap();

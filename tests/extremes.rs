@@ -16,7 +16,7 @@ use horizon_bake::params::{BakeParams, Channel, Edge, Method, YAxis};
 use horizon_bake::progress::Progress;
 use std::f64::consts::PI;
 
-const METHODS: [Method; 3] = [Method::Lengyel, Method::Exact, Method::March];
+const METHODS: [Method; 4] = [Method::Lengyel, Method::Exact, Method::March, Method::Sweep];
 
 fn params(method: Method, radius: &str, edge: Edge) -> BakeParams {
     let mut p = BakeParams { method, edge, ..BakeParams::default() };

@@ -137,14 +137,14 @@ pub struct ParamFlags {
     /// up (default, OpenGL) or down (DirectX).
     #[arg(long)]
     pub y_axis: Option<String>,
-    /// lengyel (default), exact or march.
+    /// lengyel (default), exact, march or sweep.
     #[arg(long)]
     pub method: Option<String>,
     /// Search radius in texels (default 16), `unlimited` or `auto`.
     #[arg(long, allow_hyphen_values = true)]
     pub radius: Option<String>,
     /// Azimuth bins, a multiple of 16 (default 32); 1..720 for --outputs angles,svf alone with
-    /// method exact or march.
+    /// method exact, march or sweep.
     #[arg(long, allow_hyphen_values = true)]
     pub bins: Option<String>,
     /// average (default) or point (method=exact).

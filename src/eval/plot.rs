@@ -24,10 +24,11 @@ const GRID: Rgb = [225, 225, 225];
 const FRONT: Rgb = [40, 40, 40];
 
 /// Colour of each family, also used for the legend.
-pub const FAMILIES: [(&str, Rgb); 7] = [
+pub const FAMILIES: [(&str, Rgb); 8] = [
     ("lengyel", [31, 119, 180]),
     ("exact", [214, 39, 40]),
     ("march", [23, 190, 207]),
+    ("sweep", [188, 189, 34]),
     ("auto", [255, 127, 14]),
     ("storage", [44, 160, 44]),
     ("cubemap", [148, 103, 189]),

@@ -245,7 +245,10 @@ impl Georef {
 pub fn apply_dem_defaults(params: &mut BakeParams, georef: Option<&Georef>) -> Result<()> {
     let ex = params.explicit;
     // The methods that cast rays, and so can lower far points (lengyel has no ray).
-    let rays = matches!(params.method, crate::params::Method::Exact | crate::params::Method::March);
+    let rays = matches!(
+        params.method,
+        crate::params::Method::Exact | crate::params::Method::March | crate::params::Method::Sweep
+    );
     let dem = georef.filter(|g| g.is_dem());
     if let Some(g) = dem {
         let cell = match params.cell_size {
@@ -270,7 +273,7 @@ pub fn apply_dem_defaults(params: &mut BakeParams, georef: Option<&Georef>) -> R
     if params.earth_curvature == EarthCurvature::On && !rays {
         return Err(Error::param(
             "earth_curvature",
-            "is modelled by the ray methods (exact, march) only; use one of them or \
+            "is modelled by the ray methods (exact, march, sweep) only; use one of them or \
              earth_curvature=off",
         ));
     }

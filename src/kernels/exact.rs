@@ -82,25 +82,6 @@ pub fn direction(phi: f64, row_step: i64) -> (f64, f64) {
     (c / n, s / n * row_step as f64)
 }
 
-/// Exact tan α of texel (`x`, `y`) along image direction `d` over `from < s ≤ to` only, and no
-/// further than the surface reaches (`edge=none`): max(0, sup (h̃ − h0)/s) over that stretch,
-/// by the same closed-form cell analysis as the rest of this module. The sweep kernel re-reads
-/// a short stretch of a texel's own ray with it.
-pub(crate) fn tan_between(
-    grid: &Grid<'_>,
-    x: usize,
-    y: usize,
-    d: (f64, f64),
-    from: f64,
-    to: f64,
-) -> f64 {
-    let ray = Ray::new(grid, x, y, d.0, d.1, Some(to));
-    if from >= ray.s_end {
-        return 0.0;
-    }
-    walk(grid, &ray, None, (0.0, 0.0), from, |cx, cy| corners(grid, cx, cy)).0
-}
-
 /// Image-space directions of the `bins` azimuths φ_n = n·2π/bins.
 fn bin_directions(bins: usize, row_step: i64) -> Vec<(f64, f64)> {
     (0..bins).map(|n| direction(n as f64 * 2.0 * PI / bins as f64, row_step)).collect()
@@ -523,6 +504,9 @@ struct Near {
     blocks: PadPyramid,
     avx2: bool,
     avx512: bool,
+    /// Earth-curvature drop per texel² in the pieces' closed form (0 for `exact`, whose
+    /// curved rays take the scalar walk).
+    curv: f32,
 }
 
 /// Where a span of pieces can start: nearer, a span's bound (M − h0)/s_start is too loose to
@@ -680,6 +664,12 @@ impl PadPyramid {
 
 impl Near {
     fn new(grid: &Grid<'_>, dirs: &[(f64, f64)], s_cut: f64) -> Near {
+        Self::with_cuts(grid, dirs, &vec![s_cut; dirs.len()])
+    }
+
+    /// [`Near::new`] with its own cut per direction (`s_cut` is then the largest).
+    fn with_cuts(grid: &Grid<'_>, dirs: &[(f64, f64)], cuts: &[f64]) -> Near {
+        let s_cut = cuts.iter().copied().fold(0.0f64, f64::max);
         let (w, h) = (grid.width, grid.height);
         let pad = s_cut.ceil() as usize + 2;
         let pw = w + 2 * pad + LANES + 1;
@@ -699,7 +689,7 @@ impl Near {
             }
         }
         let segs: Vec<Vec<Seg>> =
-            dirs.iter().map(|&(dx, dy)| Self::pieces(dx, dy, s_cut)).collect();
+            dirs.iter().zip(cuts).map(|(&(dx, dy), &cut)| Self::pieces(dx, dy, cut)).collect();
         // Levels up to blocks of 4^5 = 1024: a span's box is at most about s_cut / 2 on a side.
         let top = (1..=5).take_while(|&k| (1usize << (2 * (k - 1))) < pad).count();
         let blocks = PadPyramid::new(&padded, pw, ph, top);
@@ -713,7 +703,7 @@ impl Near {
         let avx512 = std::arch::is_x86_feature_detected!("avx512f");
         #[cfg(not(target_arch = "x86_64"))]
         let avx512 = false;
-        Near { segs, s_cut, pad, pw, padded, reference, spans, blocks, avx2, avx512 }
+        Near { segs, s_cut, pad, pw, padded, reference, spans, blocks, avx2, avx512, curv: 0.0 }
     }
 
     /// How many pieces of direction `n` end at or before `s_end` (a lane's own end with
@@ -836,7 +826,16 @@ impl Near {
         let base_c = (x + self.pad) as i64;
         let base_r = (y + self.pad) as i64;
         *best = [0.0; LANES];
-        let cx = Strip { n, d: (d.0 as f32, d.1 as f32), base_c, base_r, h0, count, hmax };
+        let cx = Strip {
+            n,
+            d: (d.0 as f32, d.1 as f32),
+            base_c,
+            base_r,
+            h0,
+            count,
+            hmax,
+            curv: self.curv,
+        };
         let spans = &self.spans[n];
         if !self.run(&cx, 0, spans.head, best) {
             return;
@@ -917,9 +916,11 @@ impl Near {
             let inv_sb = (1.0 / s_b) as f32;
             let valid = |i: usize| (k as u32) < count[i];
             if seg.s_a == 0.0 {
-                piece::<true>(row0, row1, (fx, fy, dx, dy), s_a, len, inv_sb, h0, valid, best);
+                let g = (fx, fy, dx, dy, cx.curv);
+                piece::<true>(row0, row1, g, s_a, len, inv_sb, h0, valid, best);
             } else {
-                piece::<false>(row0, row1, (fx, fy, dx, dy), s_a, len, inv_sb, h0, valid, best);
+                let g = (fx, fy, dx, dy, cx.curv);
+                piece::<false>(row0, row1, g, s_a, len, inv_sb, h0, valid, best);
             }
         }
         true
@@ -935,6 +936,8 @@ struct Strip<'a> {
     h0: &'a [f32; LANES],
     count: &'a [u32; LANES],
     hmax: f32,
+    /// Earth-curvature drop per texel² (0: flat; only the sweep's near field sets it).
+    curv: f32,
 }
 
 /// All lanes done: nothing left at s ≥ `s_a` can beat any of them.
@@ -965,7 +968,7 @@ fn fmax(a: f32, b: f32) -> f32 {
 fn piece<const FIRST: bool>(
     row0: &[f32],
     row1: &[f32],
-    (fx, fy, dx, dy): (f32, f32, f32, f32),
+    (fx, fy, dx, dy, curv): (f32, f32, f32, f32, f32),
     s_a: f32,
     len: f32,
     inv_sb: f32,
@@ -990,9 +993,10 @@ fn piece<const FIRST: bool>(
             let (k0, k1, k2, k3) = (row0[i], row0[i + 1], row1[i], row1[i + 1]);
             let (bx, by, bxy) = (k1 - k0, k2 - k0, k3 - k1 - k2 + k0);
             let d0 = k0 + bx * fx + by * fy + bxy * fx * fy;
-            let d1 = bx * dx + by * dy + bxy * (fx * dy + fy * dx);
-            let d2 = bxy * dx * dy;
-            let a = d0 - h0[i];
+            // The curvature drop c·(s_a + t)² moves the coefficients (as in `cell_max`).
+            let d1 = bx * dx + by * dy + bxy * (fx * dy + fy * dx) - 2.0 * curv * s_a;
+            let d2 = bxy * dx * dy - curv;
+            let a = d0 - h0[i] - curv * s_a2;
             let v = (a + (d1 + d2 * len) * len) * inv_sb;
             let v = if valid(i) { v } else { f32::NEG_INFINITY };
             out[i] = fmax(v, out[i]);
@@ -1015,14 +1019,14 @@ fn piece<const FIRST: bool>(
         let bx = k1 - k0;
         let by = k2 - k0;
         let bxy = k3 - k1 - k2 + k0;
-        let d1 = bx * dx + by * dy + bxy * (fx * dy + fy * dx);
-        let d2 = bxy * dx * dy;
+        let d1 = bx * dx + by * dy + bxy * (fx * dy + fy * dx) - 2.0 * curv * s_a;
+        let d2 = bxy * dx * dy - curv;
         let mut v;
         if FIRST {
             v = fmax((d1 + d2 * len) * len * inv_sb, d1);
         } else {
             let d0 = k0 + bx * fx + by * fy + bxy * fx * fy;
-            let a = d0 - h0[i];
+            let a = d0 - h0[i] - curv * s_a2;
             v = (a + (d1 + d2 * len) * len) * inv_sb;
             // Interior critical point; d2 = 0 gives q = ±inf or NaN and fails `ok`.
             let q = s_a2 - (d1 * s_a - a) / d2;
@@ -1341,6 +1345,67 @@ impl HorizonRows for ExactHorizon<'_> {
                     }
                 }
             }
+        }
+    }
+}
+
+/// Texels per strip of [`NearField::strip`].
+pub(crate) const NEAR_LANES: usize = LANES;
+
+/// The vectorised exact near field on its own, for kernels that join it to another far field
+/// (`method=sweep`): tan α of §3.2 over 0 < s ≤ `cuts[n]` on each texel's own ray, with the
+/// curvature drop as a term of the per-cell quadratic, exact up to f32 rounding.
+#[derive(Debug, Clone)]
+pub(crate) struct NearField<'a> {
+    grid: Grid<'a>,
+    near: Near,
+    dirs: Vec<(f64, f64)>,
+    cuts: Vec<f64>,
+    /// Highest height of the map relative to `near.reference`.
+    hmax: f32,
+}
+
+impl<'a> NearField<'a> {
+    /// The near field of `grid` along image directions `dirs`, each to its own cut (texels of
+    /// arc length), with curvature drop `curv` per texel², run with `isa`'s instructions.
+    pub(crate) fn new(
+        grid: Grid<'a>,
+        dirs: &[(f64, f64)],
+        cuts: &[f64],
+        curv: f64,
+        isa: super::lengyel_fast::Isa,
+    ) -> Self {
+        use super::lengyel_fast::Isa;
+        let mut near = Near::with_cuts(&grid, dirs, cuts);
+        near.curv = if curv.is_finite() && curv > 0.0 { curv as f32 } else { 0.0 };
+        near.avx512 = near.avx512 && isa == Isa::Avx512;
+        near.avx2 = near.avx2 && matches!(isa, Isa::Avx512 | Isa::Avx2);
+        let hmax = (f64::from(grid.range().1) - near.reference) as f32;
+        NearField { grid, near, dirs: dirs.to_vec(), cuts: cuts.to_vec(), hmax }
+    }
+
+    /// tan α (≥ 0) over 0 < s ≤ the cut of direction `n` (and the surface's end with
+    /// `edge=none`) for texels `x .. x + NEAR_LANES` of row `y`, into `best`; lanes past the
+    /// row's end are unspecified.
+    pub(crate) fn strip(&self, n: usize, x: usize, y: usize, best: &mut [f32; LANES]) {
+        let w = self.grid.width;
+        let lanes = LANES.min(w - x);
+        let reference = self.near.reference;
+        let mut h0 = [f32::INFINITY; LANES];
+        for (i, v) in h0.iter_mut().enumerate().take(lanes) {
+            *v = (f64::from(self.grid.heights[y * w + x + i]) - reference) as f32;
+        }
+        let (dx, dy) = self.dirs[n];
+        let mut count = [self.near.segs[n].len() as u32; LANES];
+        if self.grid.edge == Edge::None {
+            for (i, c) in count.iter_mut().enumerate().take(lanes) {
+                let ray = Ray::new(&self.grid, x + i, y, dx, dy, Some(self.cuts[n]));
+                *c = self.near.count(n, ray.s_end);
+            }
+        }
+        self.near.strip(n, (dx, dy), x, y, &h0, &count, self.hmax, best);
+        for b in best.iter_mut() {
+            *b = b.max(0.0);
         }
     }
 }

@@ -1,540 +1,595 @@
-//! `method=sweep` (SPEC §3.2a), first version: the line-of-sight horizon of §3.2 at any radius,
-//! `unlimited` included, with the far field found by a sweep whose cost does not grow with R.
+//! `method=sweep` (SPEC §3.2a): the line-of-sight horizon of §3.2 at any radius, `unlimited`
+//! included, at a cost per texel that does not grow with R.
 //!
-//! # Why three parts
-//! A sweep is radius-independent because many texels share one line: walking the line once
-//! from its far end, the upper convex hull of the samples passed answers every texel on it
-//! (the horizon from a point is the tangent to the hull of what lies ahead). Lines shared by
-//! texel centres must run along lattice vectors (q, p), and a texel costs about |q| + |p|
-//! samples per azimuth, so the vector must be short, and the 32 bin azimuths are not lattice
-//! directions: the line answers at an azimuth up to 0.7° off (|q| + |p| ≤ [`LATTICE`]). On its
-//! own that misses SPEC's tolerance badly on thin occluders (`cargo bench --bench sweep_bound`:
-//! p99 0.6–12° on the corpus spikes and random spike fields). So the sweep is used only to
-//! *find* the far occluder, never to measure it:
-//! 1. **near field**: the exact kernel ([`ExactHorizon`], vectorised) on the texel's own ray up to
-//!    [`NEAR`] texels, where the azimuth error would be worth the most;
-//! 2. **far field, located**: per bin, a sweep along the nearest lattice direction gives, for
-//!    every texel, the distance s* of the sample that maximises (h − h0)/s beyond [`NEAR`]
-//!    (and within R: a finite window is two hull queries, on the suffix of one block of length
-//!    R − NEAR and the prefix of the next, so an occluder beyond R is never found);
-//! 3. **far field, measured**: the exact closed form on the texel's *own* ray, over
-//!    s* ± [`WINDOW`] texels only (clipped to R).
+//! # Two fields joined by max
+//! - **Near field**, 0 < s ≤ [`NEAR`] major-axis steps (N·√(1 + m²) texels of arc, clipped to
+//!   R): exact, on the texel's own ray, by the exact kernel's vectorised cell walk
+//!   ([`NearField`]: 16 texels of a row in lockstep, the per-cell quadratic maximum, the
+//!   curvature drop as a term of that quadratic). Near the texel the azimuth of a sample matters
+//!   most; sampling only grid-line crossings there would miss the bilinear saddle inside a cell.
+//! - **Far field**, beyond: per azimuth, lines parallel to it. The major axis (the one the
+//!   azimuth moves along faster) steps one texel; the minor coordinate moves by the slope
+//!   m ∈ [−1, 1]. [`SUB`] families of lines sit at minor intercepts k/SUB; a sample of a line at
+//!   a major grid line is the bilinear surface there, a lerp of two texels of that grid line
+//!   whose weight is the same for every line of a family in a column. Each line is swept from
+//!   its far end against the look direction keeping the upper convex hull of its samples at
+//!   least N steps ahead of the current position (pushed with a delay of N; amortised O(1) push
+//!   and pop), and each texel asks the hulls of the two lines on either side of it (each at
+//!   most 1/SUB of a texel away across) for the tangent from its own height, and interpolates
+//!   the two by its place between them: the lateral error cancels to first order (measured on
+//!   fBm 45°: p99 0.31° with the nearest line alone, 0.10° interpolated, both with [`MIDS`]).
 //!
-//! The result is the larger of 1 and 3: always a value of the true ray within R, so the kernel
-//! never overshoots §3.2. It undershoots only when the lattice line's best far occluder is not
-//! the true ray's, which the constants keep rare: with |q| + |p| ≤ 8 (azimuths up to 0.7° off)
-//! a simulation of this scheme still gave p99 0.7° on the corpus spikes; at 24 the worst snap
-//! is 0.12° (22.5° → (12, 5)) and `tests/sweep.rs` measures, against `exact` at the same
-//! radius (R = 16, 40, unlimited; 5, 12, 50 on the random maps): eval corpus and terrain mean
-//! ≤ 0.001°, p99 ≤ 0.012° (worst: the spikes map, wrapped, unlimited); random white noise,
-//! waves and 1 % spike fields mean ≤ 0.009°, p99 ≤ 0.055°, against 0.05° / 0.25° allowed.
+//! The result is max(near, far, the point at exactly R on the texel's own ray) as tan α,
+//! stored as sin α. The near field is exact; the far field measures points up to 1/SUB of a
+//! texel beside the ray and only at grid lines, which on terrain moves the horizon by
+//! hundredths of a degree (`tests/sweep.rs`), and on fields of single-texel spikes by degrees
+//! (a spike's flank of slope 24 is 3 texels high an eighth of a texel aside): the stated worst
+//! case in the README. The interpolation may also put a value slightly above `exact`.
 //!
-//! Along a lattice line the samples are every grid-line crossing (a knee of the surface along
-//! the line), the middle of every piece between crossings (inside a cell the surface along the
-//! line is a parabola: a diagonal line crosses no grid line between texels yet passes the tent
-//! of a spike beside it), every texel, and the point at exactly R from each texel (a ray cut
-//! at R on a rising flank has its maximum there).
+//! # Radius
+//! `unlimited` with `edge=none` is one plain hull per line. A finite R (and `unlimited` with
+//! `edge=wrap`, which §3.2 makes max(W, H)) must drop occluders beyond it, which a hull cannot
+//! do; blocked hulls honour it exactly: the samples of a line are cut into blocks of
+//! B = R' − N + 1 steps (R' = the steps within R), so the window [u + N, u + R'] of a query at
+//! u is a suffix of one block and a prefix of the next. A right-to-left pass resets its hull at
+//! every block boundary (the suffix), a left-to-right pass builds prefix hulls (queried by
+//! binary search); the tangent is the larger of the two. So an occluder beyond R never counts.
 //!
-//! # Cost and what is left
-//! Per texel and bin the sweep inserts about |q| + |p| crossings and as many midpoints into two
-//! hulls (one pass each way) and makes two binary-search queries; the re-reading walks a few
-//! cells. All of it is scalar f64 and runs for the whole map when the kernel is built (keeping
-//! one u16 distance per texel and bin: 2·bins bytes per texel), so a cancel is seen only once
-//! the bands start. Measured (`cargo bench --bench frontier`): about 0.1 Mtexel/s whatever the
-//! radius, against SPEC's aim of 5; so it is not yet offered as `method=sweep`. What it
-//! settles is the accuracy: the lattice sweep finds the occluder and the texel's own ray
-//! measures it. Speed has to come from running many lines in SIMD lanes, as the other kernels
-//! run texels. The re-reading is about 45 % of the time at 512² (`perf`), the hull pushes most
-//! of the rest.
+//! # Earth curvature
+//! A point s texels away is lowered by c·s². Along a line with origin-free coordinate x (major
+//! steps, c' = c·L² per step², L = √(1 + m²)), the drop from the query at x to x' is
+//! c'(x' − x)², and (h(x') − c'(x' − x)² − h0)/(x' − x) = (g(x') − (h0 − c'x²))/(x' − x) + 2c'x
+//! with g(x') = h(x') − c'x'²: a tangent query on the fixed hull of g, in f64.
 //!
-//! # Tried: lines at the bin's own azimuth
-//! Lines parallel to the bin (one column per step, v = c + m·k) need only 2–3 samples per
-//! step instead of about 2(|q| + |p|), but a texel is up to half a texel off its line, and
-//! that loses thin occluders: spikes p99 1.1–4° at SUB = 1 sub-line per texel row, still
-//! 0.4–2.6° at 4 or 8. Taking, at each column, the highest point within ±0.5 of the line
-//! finds the grazed spikes but then picks the wrong occluder on rough maps (white noise p99
-//! 1.6°); only both (a plain and a bounding hull, both re-read, 5 sub-lines) met the tolerance
-//! everywhere (worst p99 0.03°), and that is 5 × 2 hulls per texel: 55–84 s at 2048² against
-//! this design's 43–53 s (`cargo bench --bench frontier`), so it was not kept.
+//! # Holes
+//! Maps with nodata holes are baked by `exact` instead (see `bake::make_kernel_for`): the
+//! sweep's lines would need their samples touching a hole skipped, and so far they are not.
+//!
+//! # Memory, order and speed
+//! The far field is computed when the kernel is built, per azimuth in parallel (a cancel is
+//! seen between azimuths), into one f32 per texel and bin (4·bins bytes per texel: 0.5 GB at
+//! 2048², 32 bins); the bands then run the near field and join the two. So the memory grows
+//! with the map × bins, not with a band: an 8192² bake needs ~9 GB (not bounded yet), and the
+//! bake's progress only moves once the bands start. The sweeps are scalar f64 with no division
+//! in the loop; with `edge=wrap` the lines run R past the map and a finite R takes two passes
+//! (suffix and prefix hulls), so `unlimited` with `edge=none` is the cheapest case. This is
+//! well short of SPEC's 1 Mtexel/s aim (README, `cargo bench --bench frontier`): the next
+//! steps are SIMD across the lines of a family (their samples are contiguous along the minor
+//! axis, the weights shared) and f32 hulls when there is no curvature.
 
-use super::exact::{self, ExactHorizon};
+use super::exact::{self, NearField, NEAR_LANES};
+use super::lengyel_fast::Isa;
 use super::{reduce_into, Grid, HorizonRows};
 use crate::params::{Edge, Reduce};
+use crate::progress::Progress;
 use rayon::prelude::*;
 use std::f64::consts::PI;
 
-/// Largest |q| + |p| of a line's lattice direction.
-pub const LATTICE: i64 = 24;
-/// Radius of the near field, measured exactly on each texel's own ray.
-pub const NEAR: u32 = 8;
-/// Half-length of the stretch of the texel's own ray re-read around the located occluder.
-pub const WINDOW: f64 = 2.0;
+/// Major-axis steps covered exactly by the near field.
+pub const NEAR: usize = 16;
+/// Sub-line families per texel of minor axis.
+pub const SUB: usize = 4;
+/// Whether the far field also samples halfway between major grid lines (the bulge of the cells
+/// between them). Measured: it halves the terrain p99 (0.17° → 0.10° on fBm 45°) for twice the
+/// hull pushes; the tolerance is met without, so it is off.
+pub const MIDS: bool = false;
 
-/// The sweep kernel prepared for one grid (see the module doc).
+/// One azimuth's line geometry (see the module doc).
+#[derive(Debug, Clone, Copy)]
+pub struct Lines {
+    /// The major axis is x (image columns) rather than y.
+    pub major_x: bool,
+    /// +1 if the look direction increases the major image coordinate, −1 otherwise.
+    pub sign: i64,
+    /// Minor-axis image coordinate change per major step.
+    pub m: f64,
+    /// Arc length per major step, √(1 + m²).
+    pub step: f64,
+}
+
+impl Lines {
+    /// The lines of image direction `d` (unit vector).
+    pub fn new(d: (f64, f64)) -> Lines {
+        let (dx, dy) = d;
+        let major_x = dx.abs() >= dy.abs();
+        let (a, b) = if major_x { (dx, dy) } else { (dy, dx) };
+        let m = b / a.abs();
+        Lines { major_x, sign: if a < 0.0 { -1 } else { 1 }, m, step: (1.0 + m * m).sqrt() }
+    }
+
+    /// For a texel at major position u (in look order), the family k and shift so that the
+    /// texel at minor coordinate b lies nearest line i = b + shift of family k.
+    pub fn family(&self, u: i64) -> (usize, i64) {
+        let kk = (-self.m * u as f64 * SUB as f64).round() as i64;
+        (kk.rem_euclid(SUB as i64) as usize, kk.div_euclid(SUB as i64))
+    }
+
+    /// For a texel at major position u: the sub-lines just below (role 0) and above (role 1) it
+    /// on the minor axis, as (family k, shift, weight): the texel at minor b lies between line
+    /// b + shift of family k of each, and its far field is their tangents weighted so.
+    pub fn pair(&self, u: i64) -> [(usize, i64, f64); 2] {
+        let f = -self.m * u as f64 * SUB as f64;
+        let kk = f.floor();
+        let t = f - kk;
+        let kk = kk as i64;
+        let role =
+            |kk: i64, wt: f64| (kk.rem_euclid(SUB as i64) as usize, kk.div_euclid(SUB as i64), wt);
+        [role(kk, 1.0 - t), role(kk + 1, t)]
+    }
+
+    /// For family k at major position u: minor offset of the lower texel from the line's
+    /// integer intercept i, and the lerp weight of the upper one.
+    pub fn sample(&self, k: usize, u: i64) -> (i64, f64) {
+        self.sample_at(k, u as f64)
+    }
+
+    /// [`Lines::sample`] at a fractional major position.
+    pub fn sample_at(&self, k: usize, u: f64) -> (i64, f64) {
+        let z = k as f64 / SUB as f64 + self.m * u;
+        let off = z.floor();
+        (off as i64, z - off)
+    }
+}
+
+/// The sweep kernel prepared for one grid.
 pub struct Sweep<'a> {
     grid: Grid<'a>,
-    /// Where every ray is clipped: R, max(W, H) for `unlimited` with `edge=wrap`, or infinity
-    /// (`unlimited`, `edge=none`: the surface's edge ends it).
-    reach: f64,
     bins: usize,
     reduce: Reduce,
-    /// True image direction of each bin.
+    near: NearField<'a>,
+    /// `far[n · W·H + texel]`: the far field's tan α (0 when nothing beyond rises).
+    far: Vec<f32>,
+    progress: Option<Progress>,
+    /// Where rays end (`None`: the map's edge), each direction's near-field cut, the image
+    /// directions and the curvature: for the point at exactly R (see [`Sweep::end_point`]).
+    reach: Option<f64>,
+    cuts: Vec<f64>,
     dirs: Vec<(f64, f64)>,
-    near: ExactHorizon<'a>,
-    /// `far[n · W·H + texel]`: distance of the located far occluder in units of `unit`, 0 for
-    /// none (nothing beyond the near field rises above the texel along the lattice line).
-    far: Vec<u16>,
-    unit: f64,
+    curv: f64,
+}
+
+/// How the kernel is built beyond the grid, radius, bins and reduction.
+#[derive(Debug, Clone, Default)]
+pub struct Options {
+    /// Earth-curvature drop per texel² (0: off).
+    pub curvature: f64,
+    /// Instruction set of the near field (`None`: the best the CPU has).
+    pub isa: Option<Isa>,
+    /// Checked between azimuths and strips: a canceled build stops early (its output is then
+    /// unspecified and must be discarded, as [`super::run_bands`] does).
+    pub progress: Option<Progress>,
 }
 
 impl<'a> Sweep<'a> {
-    /// Prepares the kernel: runs the sweeps for every bin (in parallel on the current pool).
-    /// `radius`: `None` = unlimited.
+    /// Prepares the kernel with default [`Options`]. `radius`: `None` = unlimited.
     pub fn new(grid: Grid<'a>, radius: Option<u32>, bins: u32, reduce: Reduce) -> Self {
+        Self::with_options(grid, radius, bins, reduce, Options::default())
+    }
+
+    /// Prepares the kernel: runs the far-field sweeps of every azimuth (in parallel on the
+    /// current pool).
+    pub fn with_options(
+        grid: Grid<'a>,
+        radius: Option<u32>,
+        bins: u32,
+        reduce: Reduce,
+        opt: Options,
+    ) -> Self {
         let (w, h) = (grid.width, grid.height);
-        let bins = bins.max(8) as usize;
-        // Bounded as the exact kernel bounds it: the unrolled lines grow with R when wrapping.
+        let bins = bins.max(1) as usize;
         let cap = crate::params::MAX_RADIUS.max(w.max(h) as u32);
-        let radius = radius.map(|r| r.clamp(1, cap));
+        // Where every ray ends: R, max(W, H) for `unlimited` when wrapping, or the map's edge.
         let reach = match (radius, grid.edge) {
-            (Some(r), _) => f64::from(r),
-            (None, Edge::Wrap) => w.max(h) as f64,
-            (None, Edge::None) => f64::INFINITY,
+            (Some(r), _) => Some(f64::from(r.clamp(1, cap))),
+            (None, Edge::Wrap) => Some(w.max(h) as f64),
+            (None, Edge::None) => None,
         };
-        // Never past R: a wrapped map smaller than the near field has `unlimited` = max(W, H).
-        let near_r = if reach.is_finite() { (reach as u32).clamp(1, NEAR) } else { NEAR };
-        let near = ExactHorizon::new(grid, Some(near_r), bins as u32, reduce);
         let row_step = grid.row_step();
-        let phis: Vec<f64> = (0..bins).map(|n| n as f64 * 2.0 * PI / bins as f64).collect();
-        let dirs = phis.iter().map(|&p| exact::direction(p, row_step)).collect();
-        // The longest distance stored: the whole reach (a wrapped ray can be longer than the
-        // map), or the map's diagonal (`edge=none`: the surface ends there).
-        // A wrapped line repeats within lcm(W, H) steps of at most LATTICE texels, and nothing
-        // is located past one period beyond the near field (see `locate`), so that bounds it
-        // too: the same map then quantises alike at any R past it.
-        let longest = match grid.edge {
-            Edge::Wrap => {
-                let period = (w / gcd(w as i64, h as i64) as usize * h) as f64 * LATTICE as f64;
-                reach.min(period + f64::from(NEAR) + 1.0)
+        let dirs: Vec<(f64, f64)> = (0..bins)
+            .map(|n| exact::direction(n as f64 * 2.0 * PI / bins as f64, row_step))
+            .collect();
+        let curv =
+            if opt.curvature.is_finite() && opt.curvature > 0.0 { opt.curvature } else { 0.0 };
+        let cuts: Vec<f64> = dirs
+            .iter()
+            .map(|&d| {
+                let near = NEAR as f64 * Lines::new(d).step;
+                reach.map_or(near, |r| near.min(r))
+            })
+            .collect();
+        let isa = opt.isa.filter(|i| i.supported()).unwrap_or_else(Isa::detect);
+        let near = NearField::new(grid, &dirs, &cuts, curv, isa);
+        let mut far = vec![0.0f32; w * h * bins];
+        let progress = opt.progress.clone();
+        far.par_chunks_mut(w * h).zip(&dirs).for_each_init(Vec::new, |wsum, (out, &d)| {
+            if progress.as_ref().is_some_and(Progress::is_canceled) {
+                return;
             }
-            Edge::None => reach.min(((w * w + h * h) as f64).sqrt() + 2.0),
-        }
-        .max(1.0);
-        let unit = longest / 65535.0;
-        let texels = w * h;
-        let mut far = vec![0u16; bins * texels];
-        if reach > f64::from(NEAR) {
-            let padded = Padded::new(&grid);
-            far.par_chunks_mut(texels.max(1)).zip(&phis).for_each(|(out, &phi)| {
-                let (q, p) = lattice(phi);
-                let step = (q, p * row_step);
-                locate(&grid, &padded, step, f64::from(NEAR), reach, unit, out);
-            });
-        }
-        Sweep { grid, reach, bins, reduce, dirs, near, far, unit }
-    }
-}
-
-/// The lattice vector (q, p) (tangent space, gcd 1, |q| + |p| ≤ [`LATTICE`]) nearest in
-/// azimuth to `phi`.
-fn lattice(phi: f64) -> (i64, i64) {
-    let mut best = (f64::MAX, (1, 0));
-    for q in -LATTICE..=LATTICE {
-        let room = LATTICE - q.abs();
-        for p in -room..=room {
-            if gcd(q.abs(), p.abs()) != 1 {
-                continue;
-            }
-            let a = (p as f64).atan2(q as f64);
-            let d = ((a - phi + PI).rem_euclid(2.0 * PI) - PI).abs();
-            if d < best.0 {
-                best = (d, (q, p));
-            }
-        }
-    }
-    best.1
-}
-
-fn gcd(a: i64, b: i64) -> i64 {
-    if b == 0 {
-        a
-    } else {
-        gcd(b, a % b)
-    }
-}
-
-/// A sample of a line between two consecutive texels T and T + step, at fraction `t` ∈ (0, 1]:
-/// the bilinear surface at T + `c` + (`fx`, `fy`) (cell corner `c`, fractions in [0, 1)).
-#[derive(Debug, Clone, Copy)]
-struct Tap {
-    t: f64,
-    c: (i64, i64),
-    fx: f64,
-    fy: f64,
-}
-
-/// The samples of one step along image vector `step`, in order of t: every grid-line crossing
-/// (where the surface along the line has a knee), the middle of every piece between them
-/// (inside a cell the surface along the line is a parabola whose top can lie there: a diagonal
-/// line crosses no grid line between texels, yet passes the tent of a spike beside it), and
-/// the next texel.
-fn taps(step: (i64, i64)) -> Vec<Tap> {
-    let (sx, sy) = (step.0 as f64, step.1 as f64);
-    let mut ts: Vec<f64> = vec![0.0, 1.0];
-    ts.extend((1..step.0.abs()).map(|i| i as f64 / step.0.abs() as f64));
-    ts.extend((1..step.1.abs()).map(|j| j as f64 / step.1.abs() as f64));
-    ts.sort_by(f64::total_cmp);
-    ts.dedup_by(|a, b| (*a - *b).abs() < 1e-12);
-    let mids: Vec<f64> = ts.windows(2).map(|p| 0.5 * (p[0] + p[1])).collect();
-    ts.extend(mids);
-    ts.sort_by(f64::total_cmp);
-    ts.into_iter()
-        .filter(|&t| t > 0.0)
-        .map(|t| {
-            // Snap to the grid line a crossing lies on, so its cell and fraction are exact.
-            let snap = |v: f64| if (v - v.round()).abs() < 1e-9 { v.round() } else { v };
-            let (x, y) = (snap(t * sx), snap(t * sy));
-            let (x0, y0) = (x.floor(), y.floor());
-            Tap { t, c: (x0 as i64, y0 as i64), fx: x - x0, fy: y - y0 }
-        })
-        .collect()
-}
-
-/// The heights with a margin of [`PAD`] texels on every side (wrapped, or the border repeated
-/// for `edge=none`, where a repeated value is only ever read with weight 0 or from off the
-/// surface, which is checked first), so a sample's four corners are read without wrapping.
-struct Padded {
-    v: Vec<f32>,
-    /// Row length.
-    pw: usize,
-}
-
-/// Margin of [`Padded`]: a sample lies within |q|, |p| ≤ [`LATTICE`] of its step's texel.
-const PAD: i64 = LATTICE + 2;
-
-impl Padded {
-    fn new(grid: &Grid<'_>) -> Padded {
-        let (w, h) = (grid.width as i64, grid.height as i64);
-        let pw = (w + 2 * PAD) as usize;
-        let mut v = Vec::with_capacity(pw * (h + 2 * PAD) as usize);
-        for r in -PAD..h + PAD {
-            for c in -PAD..w + PAD {
-                let (c, r) = match grid.edge {
-                    Edge::Wrap => (c.rem_euclid(w), r.rem_euclid(h)),
-                    Edge::None => (c.clamp(0, w - 1), r.clamp(0, h - 1)),
-                };
-                v.push(grid.heights[(r * w + c) as usize]);
-            }
-        }
-        Padded { v, pw }
+            far_field(&grid, Lines::new(d), reach, curv, out, wsum);
+        });
+        Sweep { grid, bins, reduce, near, far, progress: opt.progress, reach, cuts, dirs, curv }
     }
 
-    /// Index of map texel (x, y) (0 ≤ x < W, 0 ≤ y < H).
+    /// tan of the point at exactly s = R on the texel's own ray, when R ends the far field
+    /// between two grid lines (a ray rising to R has its maximum there); 0 if it is off the
+    /// surface or R is within the near field.
     #[inline]
-    fn at(&self, x: i64, y: i64) -> usize {
-        (y + PAD) as usize * self.pw + (x + PAD) as usize
-    }
-
-    /// The bilinear surface at image point (x, y): wrapped, or `NaN` off the texel centres'
-    /// hull (`edge=none`).
-    fn bilinear(&self, grid: &Grid<'_>, x: f64, y: f64) -> f64 {
-        let (w, h) = (grid.width as i64, grid.height as i64);
-        let eps = 1e-9;
-        if grid.edge == Edge::None
-            && (x < -eps || y < -eps || x > (w - 1) as f64 + eps || y > (h - 1) as f64 + eps)
-        {
-            return f64::NAN;
+    fn end_point(&self, n: usize, x: usize, y: usize) -> f32 {
+        let Some(r) = self.reach else { return 0.0 };
+        if r <= self.cuts[n] {
+            return 0.0;
         }
-        let (x0, y0) = (x.floor(), y.floor());
-        let (fx, fy) = (x - x0, y - y0);
-        // One wrap (or clamp) for the cell; its other corners are in the margin.
-        let (c, r) = match grid.edge {
-            Edge::Wrap => ((x0 as i64).rem_euclid(w), (y0 as i64).rem_euclid(h)),
-            Edge::None => ((x0 as i64).clamp(0, w - 1), (y0 as i64).clamp(0, h - 1)),
+        let (dx, dy) = self.dirs[n];
+        let g = &self.grid;
+        let (px, py) = (x as f64 + r * dx, y as f64 + r * dy);
+        let (w, h) = (g.width as i64, g.height as i64);
+        let (cx, cy) = (px.floor() as i64, py.floor() as i64);
+        let (fx, fy) = (px - cx as f64, py - cy as f64);
+        let at = |c: i64, rr: i64| -> Option<f64> {
+            let (c, rr) = match g.edge {
+                Edge::Wrap => (c.rem_euclid(w), rr.rem_euclid(h)),
+                Edge::None => {
+                    if c < 0 || rr < 0 || c >= w || rr >= h {
+                        return None;
+                    }
+                    (c, rr)
+                }
+            };
+            Some(f64::from(g.heights[(rr * w + c) as usize]))
         };
-        let (v, pw, i) = (&self.v, self.pw, self.at(c, r));
-        let (h00, h10) = (f64::from(v[i]), f64::from(v[i + 1]));
-        let (h01, h11) = (f64::from(v[i + pw]), f64::from(v[i + pw + 1]));
-        let top = h00 + (h10 - h00) * fx;
-        let bottom = h01 + (h11 - h01) * fx;
-        top + (bottom - top) * fy
+        // Corners with weight 0 may lie off the map (edge=none, on the last row or column).
+        let pick = |c: i64, rr: i64, wt: f64| if wt == 0.0 { Some(0.0) } else { at(c, rr) };
+        let v = (|| {
+            let k00 = pick(cx, cy, (1.0 - fx) * (1.0 - fy))?;
+            let k10 = pick(cx + 1, cy, fx * (1.0 - fy))?;
+            let k01 = pick(cx, cy + 1, (1.0 - fx) * fy)?;
+            let k11 = pick(cx + 1, cy + 1, fx * fy)?;
+            Some(
+                k00 * (1.0 - fx) * (1.0 - fy)
+                    + k10 * fx * (1.0 - fy)
+                    + k01 * (1.0 - fx) * fy
+                    + k11 * fx * fy,
+            )
+        })();
+        let h0 = f64::from(g.heights[y * g.width + x]);
+        v.map_or(0.0, |v| ((v - self.curv * r * r - h0) / r) as f32)
     }
 }
 
-/// For every texel, along lattice vector `step`: the distance (in `unit`s, 0 for none) of the
-/// sample of its line, at near < s ≤ reach, that maximises (h − h0)/s, if that ratio is > 0.
-#[allow(clippy::too_many_arguments)]
-fn locate(
+/// A hull vertex: major position and height (less the curvature term).
+type Pt = (f64, f64);
+
+/// Fills `out` (W·H, texel-major) with the far field's tan α of every texel along `lines`:
+/// the tangents of the two sub-lines on either side of the texel, interpolated by its place
+/// between them (their lateral error cancels to first order). `wsum` is scratch (W·H).
+fn far_field(
     grid: &Grid<'_>,
-    padded: &Padded,
-    step: (i64, i64),
-    near: f64,
-    reach: f64,
-    unit: f64,
-    out: &mut [u16],
+    lines: Lines,
+    reach: Option<f64>,
+    curv: f64,
+    out: &mut [f32],
+    wsum: &mut Vec<f32>,
 ) {
-    let (w, h) = (grid.width as i64, grid.height as i64);
-    let len = ((step.0 * step.0 + step.1 * step.1) as f64).sqrt();
-    let taps = taps(step);
-    let inside = |x: i64, y: i64| (0..w).contains(&x) && (0..h).contains(&y);
-    let pv = &padded.v[..];
-    let pw = padded.pw;
-    // Each tap's cell corner as an offset into the padded heights.
-    let offs: Vec<usize> =
-        taps.iter().map(|t| ((t.c.1 + PAD) * pw as i64 + t.c.0 + PAD) as usize).collect();
-    let mut line = Line::default();
-    let mut hull = Vec::new();
-    let mut visited = vec![false; (w * h) as usize];
-    // How far a line of `n` texels (a whole cycle when wrapping) needs looking. A wrapped line
-    // repeats every n·len: a sample a period further on has the same height at a larger
-    // distance, so its ratio is lower wherever it is positive, and nothing beyond one period
-    // past the near field can be the best. Capping there keeps the cost per texel bounded
-    // when R is many times the map (the result is the same).
-    let ray_reach = |n: i64| match grid.edge {
-        Edge::Wrap => reach.min(n as f64 * len + near),
-        Edge::None => reach,
+    let (w, h) = (grid.width, grid.height);
+    let (wa, hb) = if lines.major_x { (w, h) } else { (h, w) };
+    // Steps within R, and where the far field starts.
+    let r_steps = reach.map(|r| (r / lines.step + 1e-9).floor() as i64);
+    let d = NEAR as i64;
+    if r_steps.is_some_and(|r| r < d) {
+        return;
+    }
+    wsum.clear();
+    wsum.resize(w * h, 0.0);
+    let wrap = grid.edge == Edge::Wrap;
+    // Samples run over u' in 0..len (beyond the map when wrapping).
+    let len = match (wrap, r_steps) {
+        (true, Some(r)) => wa as i64 + r,
+        _ => wa as i64,
     };
-    let full = reach;
-    for y0 in 0..h {
-        for x0 in 0..w {
-            // Each line once: from its first texel (edge=none), or from any texel of its cycle.
-            let first = match grid.edge {
-                Edge::None => !inside(x0 - step.0, y0 - step.1),
-                Edge::Wrap => !visited[(y0 * w + x0) as usize],
+    let cc = curv * lines.step * lines.step;
+    let major = |u: i64| -> i64 {
+        let u = if wrap { u.rem_euclid(wa as i64) } else { u };
+        if lines.sign > 0 {
+            u
+        } else {
+            wa as i64 - 1 - u
+        }
+    };
+    // Tables so the sweeps do no division: each column's image offset of minor 0, the step
+    // of one minor texel.
+    let abase: Vec<usize> = (0..len)
+        .map(|u| {
+            let a = major(u) as usize;
+            if lines.major_x {
+                a
+            } else {
+                a * w
+            }
+        })
+        .collect();
+    let mstep = if lines.major_x { w } else { 1 };
+    let hbi = hb as i64;
+    // Per query column, the two sub-lines around its texels: (family, shift, weight) each.
+    let fams: Vec<[(usize, i64, f64); 2]> = (0..wa as i64).map(|u| lines.pair(u)).collect();
+    let (sh_lo, sh_hi) = fams
+        .iter()
+        .flatten()
+        .fold((i64::MAX, i64::MIN), |(lo, hi), &(_, s, _)| (lo.min(s), hi.max(s)));
+    let hs = grid.heights;
+    let fams: Vec<[(usize, i64, f64); 2]> = if wrap {
+        fams.iter().map(|p| p.map(|(k, sh, wt)| (k, sh.rem_euclid(hbi), wt))).collect()
+    } else {
+        fams
+    };
+    let mut samples: Vec<(i64, f64)> = Vec::with_capacity(len as usize);
+    let mut mids: Vec<(i64, f64)> = Vec::with_capacity(len as usize);
+    let mut hull: Vec<Pt> = Vec::new();
+    // Per column and role (lower, upper line): the best slope found (NaN: none yet).
+    let mut best: Vec<[f64; 2]> = vec![[f64::NAN; 2]; wa];
+    for k in 0..SUB {
+        samples.clear();
+        // Minor offsets reduced modulo the map when wrapping (the line index adds < hb).
+        let reduce = |(off, wt): (i64, f64)| (if wrap { off.rem_euclid(hbi) } else { off }, wt);
+        samples.extend((0..len).map(|u| reduce(lines.sample(k, u))));
+        mids.clear();
+        mids.extend((0..len).map(|u| reduce(lines.sample_at(k, u as f64 + 0.5))));
+        // Lines i whose texels b = i − shift lie in the map (all of them when wrapping).
+        let (i_lo, i_hi) = if wrap { (0, hb as i64 - 1) } else { (sh_lo, hb as i64 - 1 + sh_hi) };
+        for i in i_lo..=i_hi {
+            // The line's value at column a, minor lerp (off, wt) (None: off the surface).
+            // The line's value at column u, minor lerp (off, wt) (None: off the surface).
+            let lerp = |u: i64, (off, wt): (i64, f64)| -> Option<f64> {
+                let base = abase[u as usize];
+                let b = i + off;
+                if wrap {
+                    // 0 ≤ i < hb and 0 ≤ off < hb.
+                    let b0 = if b >= hbi { b - hbi } else { b };
+                    let b1 = if b0 + 1 == hbi { 0 } else { b0 + 1 };
+                    let h0 = hs[base + b0 as usize * mstep] as f64;
+                    let h1 = hs[base + b1 as usize * mstep] as f64;
+                    Some(h0 + (h1 - h0) * wt)
+                } else if b >= 0 && b + 1 < hbi {
+                    let h0 = hs[base + b as usize * mstep] as f64;
+                    let h1 = hs[base + (b + 1) as usize * mstep] as f64;
+                    Some(h0 + (h1 - h0) * wt)
+                } else if b == hbi - 1 && wt == 0.0 {
+                    Some(hs[base + b as usize * mstep] as f64)
+                } else {
+                    None
+                }
             };
-            if !first {
+            let sample = |u: i64| lerp(u, samples[u as usize]);
+            // Halfway between grid lines u and u + 1: the bulge of the cells between them.
+            let mid = |u: i64| -> Option<f64> {
+                if !MIDS || u + 1 >= len {
+                    return None;
+                }
+                let m = mids[u as usize];
+                Some(0.5 * (lerp(u, m)? + lerp(u + 1, m)?))
+            };
+            let g = |x: f64, v: f64| (x, v - cc * x * x);
+            // The texel of column u for which this line is role r (0: the line below it, 1:
+            // above), with its height and weight.
+            let texel = |u: i64, r: usize| -> Option<(usize, f64, f64)> {
+                let (fk, shift, wt) = fams[u as usize][r];
+                if fk != k {
+                    return None;
+                }
+                let b = i - shift;
+                let b = if wrap {
+                    // Shifts are stored modulo hb when wrapping (see `fams`).
+                    if b < 0 {
+                        b + hbi
+                    } else {
+                        b
+                    }
+                } else if (0..hbi).contains(&b) {
+                    b
+                } else {
+                    return None;
+                };
+                let t = abase[u as usize] + b as usize * mstep;
+                Some((t, hs[t] as f64, wt))
+            };
+            let mut any = false;
+            let mut ask = |q: i64, hull: &[Pt], left: bool, best: &mut Vec<[f64; 2]>| {
+                for (r, b) in best[q as usize].iter_mut().enumerate() {
+                    if let Some((_, h0, _)) = texel(q, r) {
+                        let s = if left {
+                            tangent_left(hull, q, h0, cc)
+                        } else {
+                            tangent_right(hull, q, h0, cc)
+                        };
+                        if let Some(s) = s {
+                            // NaN (nothing yet) or smaller: take s.
+                            if b.is_nan() || *b < s {
+                                *b = s;
+                            }
+                            any = true;
+                        }
+                    }
+                }
+            };
+            for b in best.iter_mut() {
+                *b = [f64::NAN; 2];
+            }
+            match r_steps {
+                None => {
+                    // One plain hull, right to left.
+                    hull.clear();
+                    for up in (d..len).rev() {
+                        if let Some(v) = mid(up) {
+                            push_left(&mut hull, g(up as f64 + 0.5, v));
+                        }
+                        if let Some(v) = sample(up) {
+                            push_left(&mut hull, g(up as f64, v));
+                        }
+                        ask(up - d, &hull, true, &mut best);
+                    }
+                }
+                Some(r) => {
+                    let blk = r - d + 1;
+                    hull.clear();
+                    for up in (d..len).rev() {
+                        if up % blk == blk - 1 {
+                            hull.clear();
+                        } else if let Some(v) = mid(up) {
+                            // (A block's last midpoint would lie past R for some queries: the
+                            // prefix pass has it.)
+                            push_left(&mut hull, g(up as f64 + 0.5, v));
+                        }
+                        if let Some(v) = sample(up) {
+                            push_left(&mut hull, g(up as f64, v));
+                        }
+                        if up - d < wa as i64 {
+                            ask(up - d, &hull, true, &mut best);
+                        }
+                    }
+                    // Prefix hulls, left to right: the window's part in the next block.
+                    hull.clear();
+                    let mut next = d; // next sample to push
+                    for q in 0..wa as i64 {
+                        let top = (q + r).min(len - 1);
+                        while next <= top {
+                            if next % blk == 0 {
+                                hull.clear();
+                            }
+                            // With the midpoint before a block's first sample, which the
+                            // suffix pass leaves out.
+                            if next > d {
+                                if let Some(v) = mid(next - 1) {
+                                    push_right(&mut hull, g(next as f64 - 0.5, v));
+                                }
+                            }
+                            if let Some(v) = sample(next) {
+                                push_right(&mut hull, g(next as f64, v));
+                            }
+                            next += 1;
+                        }
+                        // Only when the window reaches into the next block: otherwise the
+                        // suffix pass saw all of it, and this hull may hold samples nearer than
+                        // q + d (at the map's end, where q + r is clipped).
+                        if top / blk > (q + d) / blk {
+                            ask(q, &hull, false, &mut best);
+                        }
+                    }
+                }
+            }
+            if !any {
                 continue;
             }
-            line.clear();
-            // The texels of the line, and how many steps its samples run on.
-            let mut k = 0i64;
-            let (count, steps) = match grid.edge {
-                Edge::None => {
-                    let mut n = 0;
-                    while inside(x0 + n * step.0, y0 + n * step.1) {
-                        n += 1;
+            for (q, pair) in best.iter().enumerate() {
+                for (r, &s) in pair.iter().enumerate() {
+                    if s.is_nan() {
+                        continue;
                     }
-                    (n, n)
-                }
-                Edge::Wrap => {
-                    let mut n = 0;
-                    loop {
-                        let (x, y) =
-                            ((x0 + n * step.0).rem_euclid(w), (y0 + n * step.1).rem_euclid(h));
-                        if n > 0 && (x, y) == (x0, y0) {
-                            break;
-                        }
-                        visited[(y * w + x) as usize] = true;
-                        n += 1;
+                    if let Some((t, _, wt)) = texel(q as i64, r) {
+                        out[t] += (wt * s / lines.step) as f32;
+                        wsum[t] += wt as f32;
                     }
-                    // Enough turns of the cycle that every texel of the first sees `ray`.
-                    (n, n + (ray_reach(n) / len).ceil() as i64 + 1)
-                }
-            };
-            let reach = ray_reach(count);
-            while k < steps {
-                let (x, y) = (x0 + k * step.0, y0 + k * step.1);
-                // The step's texel, wrapped into the map: the taps read around it.
-                let (xw, yw) = match grid.edge {
-                    Edge::Wrap => (x.rem_euclid(w), y.rem_euclid(h)),
-                    Edge::None => (x, y),
-                };
-                let here = padded.at(xw, yw);
-                if k < count {
-                    // Only where the ray is really cut at R (a capped line's cut is dominated,
-                    // see `ray_reach`).
-                    let h_end = if reach.is_finite() && reach == full {
-                        let f = reach / len;
-                        let (ex, ey) =
-                            (xw as f64 + f * step.0 as f64, yw as f64 + f * step.1 as f64);
-                        padded.bilinear(grid, ex, ey)
-                    } else {
-                        f64::NAN
-                    };
-                    let i = (yw * w + xw) as usize;
-                    line.texels.push((k as f64 * len, f64::from(pv[here]), i, h_end));
-                }
-                // The tap origin: PAD rows and columns up and left of the texel.
-                let base = here - PAD as usize * pw - PAD as usize;
-                let on_surface = |t: f64| {
-                    // Past the last texel the line still crosses the surface until it leaves
-                    // the hull of the texel centres (`edge=none`).
-                    let eps = 1e-9;
-                    let (px, py) = (x as f64 + t * step.0 as f64, y as f64 + t * step.1 as f64);
-                    grid.edge == Edge::Wrap
-                        || (px >= -eps
-                            && py >= -eps
-                            && px <= (w - 1) as f64 + eps
-                            && py <= (h - 1) as f64 + eps)
-                };
-                let value = |tap: &Tap, o: usize| {
-                    let i = base + o;
-                    let (h00, h10) = (f64::from(pv[i]), f64::from(pv[i + 1]));
-                    let (h01, h11) = (f64::from(pv[i + pw]), f64::from(pv[i + pw + 1]));
-                    let top = h00 + (h10 - h00) * tap.fx;
-                    let bottom = h01 + (h11 - h01) * tap.fx;
-                    top + (bottom - top) * tap.fy
-                };
-                // Every sample of the step, in order (on the surface only, with edge=none).
-                let mut gone = false;
-                for (tap, &o) in taps.iter().zip(&offs) {
-                    if !on_surface(tap.t) {
-                        gone = true;
-                        break;
-                    }
-                    line.samples.push(((k as f64 + tap.t) * len, value(tap, o)));
-                }
-                if gone {
-                    break;
-                }
-                k += 1;
-            }
-            answer(&line, near, reach, &mut hull, |i, d| {
-                out[i] =
-                    if d > 0.0 { ((d / unit).round() as u64).clamp(1, 65535) as u16 } else { 0 };
-            });
-        }
-    }
-}
-
-/// One line: its samples (s, h) in order of s, and its texels (s, h0, index, h_end), where
-/// h_end is the surface at s + reach on the line (NaN when the line does not get there): with
-/// a finite radius the ray is cut at R, where a rising flank has its highest point, which no
-/// crossing need hit.
-#[derive(Debug, Default)]
-struct Line {
-    samples: Vec<(f64, f64)>,
-    texels: Vec<(f64, f64, usize, f64)>,
-}
-
-impl Line {
-    fn clear(&mut self) {
-        self.samples.clear();
-        self.texels.clear();
-    }
-}
-
-/// For each texel of `line`, the sample at s0 + near < s ≤ s0 + reach maximising
-/// (h − h0)/(s − s0): `found(index, s − s0)`, with 0 when no such sample has a positive ratio.
-///
-/// A window of fixed length W = reach − near over the line: blocks (kW, (k+1)W] of the line's
-/// arc length split every window into the suffix of one block and the prefix of the next. A
-/// backward pass keeps the upper hull of the current block's samples beyond each window's
-/// start, a forward pass the hull of the next block's samples up to each window's end; the
-/// tangent from the texel to each hull is a binary search (the ratio is unimodal along an upper
-/// hull seen from its left). Unlimited reach (`edge=none`) is one block.
-fn answer(
-    line: &Line,
-    near: f64,
-    reach: f64,
-    hull: &mut Vec<(f64, f64)>,
-    mut found: impl FnMut(usize, f64),
-) {
-    let span = reach - near;
-    let pts = &line.samples;
-    let mut best = vec![(0.0f64, 0.0f64); line.texels.len()];
-    // The current block is (lo_b, lo_b + span]; it changes rarely (once per `span` of arc), so
-    // the division that finds a sample's block runs only then.
-    let lower = |s: f64| {
-        if span.is_finite() {
-            ((s / span).ceil() - 1.0) * span
-        } else {
-            f64::NEG_INFINITY
-        }
-    };
-    let holds = |lo_b: f64, s: f64| s > lo_b && (span.is_infinite() || s <= lo_b + span);
-    let starts_in = |lo_b: f64, lo: f64| span.is_infinite() || (lo >= lo_b && lo < lo_b + span);
-    // Backward: texels from the far end, samples inserted while beyond the window's start.
-    hull.clear();
-    let mut lo_b = f64::NAN;
-    let mut j = pts.len();
-    for (k, &(s0, h0, ..)) in line.texels.iter().enumerate().rev() {
-        let lo = s0 + near;
-        while j > 0 && pts[j - 1].0 > lo {
-            let p = pts[j - 1];
-            if !holds(lo_b, p.0) {
-                hull.clear();
-                lo_b = lower(p.0);
-            }
-            push(hull, p);
-            j -= 1;
-        }
-        // The window starts in this block (lo in [lo_b, lo_b + span)): the hull is its suffix.
-        if !hull.is_empty() && starts_in(lo_b, lo) {
-            best[k] = tangent(hull, s0, h0);
-        }
-    }
-    if span.is_finite() {
-        // Forward: texels from the near end, samples inserted up to the window's end.
-        hull.clear();
-        lo_b = f64::NAN;
-        j = 0;
-        for (k, &(s0, h0, ..)) in line.texels.iter().enumerate() {
-            let (lo, hi) = (s0 + near, s0 + reach);
-            while j < pts.len() && pts[j].0 <= hi {
-                let p = pts[j];
-                if !holds(lo_b, p.0) {
-                    hull.clear();
-                    lo_b = lower(p.0);
-                }
-                push(hull, p);
-                j += 1;
-            }
-            // The window started in the block before this one: the hull is its prefix.
-            if !hull.is_empty() && lo >= lo_b - span && lo < lo_b {
-                let t = tangent(hull, s0, h0);
-                if t.0 > best[k].0 {
-                    best[k] = t;
                 }
             }
         }
     }
-    for (&(s0, h0, i, h_end), &(ratio, s)) in line.texels.iter().zip(&best) {
-        let end = (h_end - h0) / reach;
-        if end > ratio && end > 0.0 {
-            found(i, reach);
-        } else {
-            found(i, if ratio > 0.0 { s - s0 } else { 0.0 });
-        }
+    for (o, &ws) in out.iter_mut().zip(wsum.iter()) {
+        // One of the two lines may have nothing ahead (off the surface): the other alone.
+        *o = if ws > 0.0 { *o / ws } else { 0.0 };
     }
 }
 
-/// Adds `c` at one end of an upper hull kept in order of insertion (always further along the
-/// same direction of s), dropping the points it hides.
-fn push(hull: &mut Vec<(f64, f64)>, c: (f64, f64)) {
+/// Pushes `p` (left of every vertex) onto the upper hull `hull` (nearest vertex last).
+#[inline]
+fn push_left(hull: &mut Vec<Pt>, p: Pt) {
     while hull.len() >= 2 {
-        let (a, b) = (hull[hull.len() - 2], hull[hull.len() - 1]);
-        // b is hidden when it lies on or below the segment a–c; the cross product's sign
-        // flips with the direction of insertion.
-        let cross = (b.1 - a.1) * (c.0 - a.0) - (c.1 - a.1) * (b.0 - a.0);
-        if cross * (c.0 - a.0).signum() <= 0.0 {
-            hull.pop();
-        } else {
+        let t1 = hull[hull.len() - 1];
+        let t2 = hull[hull.len() - 2];
+        // Keep t1 only if the slope p→t1 is above t1→t2.
+        if (t1.1 - p.1) * (t2.0 - t1.0) > (t2.1 - t1.1) * (t1.0 - p.0) {
             break;
         }
+        hull.pop();
     }
-    hull.push(c);
+    hull.push(p);
 }
 
-/// The largest (h − h0)/(s − s0) over an upper hull all of whose points lie beyond s0, and the
-/// s where it is reached (a binary search: the ratio rises then falls along the hull).
-fn tangent(hull: &[(f64, f64)], s0: f64, h0: f64) -> (f64, f64) {
-    // ratio(m) < ratio(m + 1), cross-multiplied (both distances are positive): no division
-    // in the search.
-    let rises = |m: usize| {
-        let (a, b) = (hull[m], hull[m + 1]);
-        (a.1 - h0) * (b.0 - s0) < (b.1 - h0) * (a.0 - s0)
+/// Pushes `p` (right of every vertex) onto the upper hull `hull` (farthest vertex last).
+#[inline]
+fn push_right(hull: &mut Vec<Pt>, p: Pt) {
+    while hull.len() >= 2 {
+        let t1 = hull[hull.len() - 1];
+        let t2 = hull[hull.len() - 2];
+        // Keep t1 only if the slope t2→t1 is above t1→p.
+        if (t1.1 - t2.1) * (p.0 - t1.0) > (p.1 - t1.1) * (t1.0 - t2.0) {
+            break;
+        }
+        hull.pop();
+    }
+    hull.push(p);
+}
+
+/// The query point of major position `q`, height `h0`, on the hulls of g = h − cc·u², and the
+/// slope correction (see the module doc): slope to the hull + 2·cc·q.
+#[inline]
+fn origin(q: i64, h0: f64, cc: f64) -> (f64, f64, f64) {
+    let x = q as f64;
+    (x, h0 - cc * x * x, 2.0 * cc * x)
+}
+
+/// The largest slope from (q, h0) to a vertex of `hull` (nearest vertex last), per major step:
+/// the slopes are unimodal along the hull, so a galloping search from the nearest vertex finds
+/// the tangent in O(log d) steps for a tangent d vertices away (a far horizon on a long concave
+/// hull would make a plain walk O(d)).
+#[inline]
+fn tangent_left(hull: &[Pt], q: i64, h0: f64, cc: f64) -> Option<f64> {
+    let n = hull.len();
+    if n == 0 {
+        return None;
+    }
+    let (x, y, corr) = origin(q, h0, cc);
+    let f = |j: usize| {
+        let p = hull[n - 1 - j];
+        (p.1 - y) / (p.0 - x)
     };
-    let (mut lo, mut hi) = (0, hull.len() - 1);
+    // Rising at j: the next vertex (farther) has the larger slope.
+    let rising = |j: usize| j + 1 < n && f(j + 1) > f(j);
+    let (mut lo, mut hi) = (0usize, 1usize);
+    while hi < n && rising(hi) {
+        lo = hi + 1;
+        hi *= 2;
+    }
+    let mut hi = hi.min(n - 1);
+    lo = lo.min(hi);
+    // The first j in lo..=hi that is not rising.
     while lo < hi {
-        let m = (lo + hi) / 2;
-        if rises(m) {
-            lo = m + 1;
+        let mid = (lo + hi) / 2;
+        if rising(mid) {
+            lo = mid + 1;
         } else {
-            hi = m;
+            hi = mid;
         }
     }
-    ((hull[lo].1 - h0) / (hull[lo].0 - s0), hull[lo].0)
+    Some(f(lo) + corr)
+}
+
+/// The largest slope from (q, h0) to a vertex of `hull` (farthest vertex last): binary search
+/// of the unimodal slopes.
+#[inline]
+fn tangent_right(hull: &[Pt], q: i64, h0: f64, cc: f64) -> Option<f64> {
+    if hull.is_empty() {
+        return None;
+    }
+    let (x, y, corr) = origin(q, h0, cc);
+    let slope = |p: Pt| (p.1 - y) / (p.0 - x);
+    let (mut lo, mut hi) = (0usize, hull.len() - 1);
+    while lo < hi {
+        let mid = (lo + hi) / 2;
+        if slope(hull[mid + 1]) > slope(hull[mid]) {
+            lo = mid + 1;
+        } else {
+            hi = mid;
+        }
+    }
+    Some(slope(hull[lo]) + corr)
 }
 
 impl HorizonRows for Sweep<'_> {
@@ -548,32 +603,35 @@ impl HorizonRows for Sweep<'_> {
         self.bins
     }
     fn rows(&self, y0: usize, channels: &mut [f32], mut bins_out: Option<&mut [f32]>) {
-        let (w, nb) = (self.grid.width, self.bins);
-        let texels = w * self.grid.height;
+        let (w, h, nb) = (self.grid.width, self.grid.height, self.bins);
         let n_rows = channels.len() / (w * 8);
-        let mut near_ch = vec![0f32; n_rows * w * 8];
-        let mut near = vec![0f32; n_rows * w * nb];
-        self.near.rows(y0, &mut near_ch, Some(&mut near));
-        let mut s = vec![0f32; nb];
+        let mut strip = vec![0.0f32; NEAR_LANES * nb];
+        let mut best = [0.0f32; NEAR_LANES];
+        // `reduce=point` reads one bin per channel: the others are not computed unless asked.
+        let step =
+            if self.reduce == Reduce::Point && bins_out.is_none() && nb >= 8 { nb / 8 } else { 1 };
         for r in 0..n_rows {
             let y = y0 + r;
-            for x in 0..w {
-                let o = r * w + x;
-                for (n, v) in s.iter_mut().enumerate() {
-                    let mut best = f64::from(near[o * nb + n]);
-                    let d = self.far[n * texels + y * w + x];
-                    if d > 0 {
-                        let d = f64::from(d) * self.unit;
-                        let from = (d - WINDOW).max(0.0);
-                        let to = (d + WINDOW).min(self.reach);
-                        let t = exact::tan_between(&self.grid, x, y, self.dirs[n], from, to);
-                        best = best.max(exact::sin_of_tan(t));
-                    }
-                    *v = best as f32;
+            for x in (0..w).step_by(NEAR_LANES) {
+                if self.progress.as_ref().is_some_and(Progress::is_canceled) {
+                    return;
                 }
-                reduce_into(self.reduce, &s, &mut channels[o * 8..o * 8 + 8]);
-                if let Some(b) = bins_out.as_deref_mut() {
-                    b[o * nb..(o + 1) * nb].copy_from_slice(&s);
+                let lanes = NEAR_LANES.min(w - x);
+                for n in (0..nb).step_by(step) {
+                    self.near.strip(n, x, y, &mut best);
+                    let far = &self.far[n * w * h + y * w + x..][..lanes];
+                    for i in 0..lanes {
+                        let t = f64::from(best[i].max(far[i]).max(self.end_point(n, x + i, y)));
+                        strip[i * nb + n] = exact::sin_of_tan(t) as f32;
+                    }
+                }
+                for i in 0..lanes {
+                    let k = r * w + x + i;
+                    let s = &strip[i * nb..(i + 1) * nb];
+                    reduce_into(self.reduce, s, &mut channels[k * 8..k * 8 + 8]);
+                    if let Some(bo) = bins_out.as_deref_mut() {
+                        bo[k * nb..(k + 1) * nb].copy_from_slice(s);
+                    }
                 }
             }
         }
@@ -584,57 +642,54 @@ impl HorizonRows for Sweep<'_> {
 mod tests {
     use super::*;
 
-    /// `answer` against the plain definition: every sample in the window, every texel.
+    /// The hull tangents against brute force over the same points.
     #[test]
-    fn windowed_hull_queries_match_brute_force() {
-        let mut seed = 11u64;
-        let mut unit = || {
+    fn hull_tangents_match_brute_force() {
+        let mut seed = 12345u64;
+        let mut rnd = || {
             seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            (seed >> 11) as f64 / (1u64 << 53) as f64
+            ((seed >> 33) as f64 / (1u64 << 31) as f64) * 10.0 - 5.0
         };
-        let mut hull = Vec::new();
-        for case in 0..300 {
-            let mut line = Line::default();
-            let n = 5 + (unit() * 80.0) as usize;
-            let step = 0.5 + unit() * 3.0;
-            let mut s = 0.0;
-            for i in 0..n {
-                let h = if unit() < 0.1 { 10.0 * unit() } else { unit() };
-                line.samples.push((s, h));
-                if unit() < 0.5 || i == 0 {
-                    line.texels.push((s, h, line.texels.len(), f64::NAN));
+        for &cc in &[0.0, 0.01] {
+            let pts: Vec<Pt> = (0..200).map(|u| (u as f64, rnd() - cc * (u * u) as f64)).collect();
+            let raw = |u: usize| pts[u].1 + cc * (u * u) as f64;
+            for q in 0..150i64 {
+                let h0 = rnd();
+                let from = (q + 3) as usize;
+                let mut left = Vec::new();
+                for u in (from..200).rev() {
+                    push_left(&mut left, pts[u]);
                 }
-                s += step * (0.2 + unit());
+                let mut right = Vec::new();
+                for p in &pts[from..200] {
+                    push_right(&mut right, *p);
+                }
+                let want = (from..200)
+                    .map(|u| {
+                        let s = (u as i64 - q) as f64;
+                        (raw(u) - cc * s * s - h0) / s
+                    })
+                    .fold(f64::NEG_INFINITY, f64::max);
+                let a = tangent_left(&left, q, h0, cc).unwrap();
+                let b = tangent_right(&right, q, h0, cc).unwrap();
+                assert!((a - want).abs() < 1e-9, "{a} {want}");
+                assert!((b - want).abs() < 1e-9, "{b} {want}");
             }
-            let near = unit() * 4.0;
-            let reach = if case % 3 == 0 { f64::INFINITY } else { near + 0.5 + unit() * 30.0 };
-            let mut got = vec![f64::NAN; line.texels.len()];
-            answer(&line, near, reach, &mut hull, |i, d| got[i] = d);
-            for (i, &(s0, h0, ..)) in line.texels.iter().enumerate() {
-                let mut best = (0.0f64, 0.0f64);
-                for &(s, h) in &line.samples {
-                    if s > s0 + near && s <= s0 + reach {
-                        let r = (h - h0) / (s - s0);
-                        if r > best.0 {
-                            best = (r, s - s0);
-                        }
-                    }
+        }
+    }
+
+    #[test]
+    fn every_texel_has_one_line_at_most_half_a_sub_step_away() {
+        for n in 0..64 {
+            let d = exact::direction(n as f64 * 2.0 * PI / 64.0, -1);
+            let l = Lines::new(d);
+            for u in 0..300i64 {
+                let (k, shift) = l.family(u);
+                for b in -3..3i64 {
+                    // Line i = b + shift of family k passes at minor i + k/SUB + m·u.
+                    let v = (b + shift) as f64 + k as f64 / SUB as f64 + l.m * u as f64;
+                    assert!((v - b as f64).abs() <= 0.5 / SUB as f64 + 1e-9, "{n} {u} {b} {v}");
                 }
-                // Ties between equal ratios may pick either sample: compare ratios.
-                let ratio_of = |d: f64| {
-                    line.samples
-                        .iter()
-                        .find(|p| ((p.0 - s0) - d).abs() < 1e-9)
-                        .map_or(0.0, |p| (p.1 - h0) / d)
-                };
-                let r_got = if got[i] > 0.0 { ratio_of(got[i]) } else { 0.0 };
-                assert!(
-                    (r_got - best.0).abs() <= 1e-12 * (1.0 + best.0.abs()),
-                    "case {case} texel {i}: got d {} (ratio {r_got}), want d {} (ratio {}); near {near} reach {reach}",
-                    got[i],
-                    best.1,
-                    best.0
-                );
             }
         }
     }

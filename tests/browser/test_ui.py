@@ -717,6 +717,7 @@ def test_opening_a_bake_loads_its_parameters(browser, srv):
         methods = p.page.eval_on_selector_all("#p-method option", "os => os.map(o => o.value)")
         assert methods == p.page.evaluate("() => window.__horizon.config.methods"), methods
         assert "march" in methods, methods
+        assert "sweep" in methods, methods
         want = {"#p-method": "exact", "#p-radius-mode": "texels", "#p-radius": "5", "#p-bins": "48",
                 "#p-reduce": "point", "#p-height_scale": "12.5", "#p-edge": "none",
                 "#p-y_axis": "down", "#p-encoding": "sqrt", "#p-fourier_terms": "7",
