@@ -424,3 +424,29 @@ fn cli_bakes_with_method_sweep_close_to_exact() {
     assert!(lit > e.len() / 10, "the bump casts horizons: {lit} of {}", e.len());
     assert!(worst <= 2, "sweep vs exact: {worst} LSB");
 }
+
+/// The far-field table is one f32 per texel and bin of the whole map: a map where it would pass
+/// `MAX_TABLE_BYTES` is refused before the bake (a 422 naming `method`, exit 2 in the CLI), not
+/// left to take the process down. 700² at 720 bins would be 1.3 GiB; 700² at 32 bins is fine.
+#[test]
+fn a_map_whose_far_field_table_would_not_fit_is_refused() {
+    use horizon_bake::encode::png::{encode8, PngColor};
+    use horizon_bake::heightmap::{decode_for, Limits};
+    let png = encode8(700, 700, PngColor::Gray, &vec![0u8; 700 * 700]).unwrap();
+    let parse = |q: &str| {
+        BakeParams::from_pairs(q.split('&').map(|kv| kv.split_once('=').unwrap())).unwrap()
+    };
+    let mut p = parse("method=sweep&bins=720&outputs=angles&reduce=point");
+    match decode_for(&png, &mut p, &Limits::default()) {
+        Err(horizon_bake::Error::Param { field, message }) => {
+            assert_eq!(field, "method");
+            assert!(message.contains("MiB") && message.contains("march"), "{message}");
+        }
+        other => panic!("not refused: {:?}", other.map(|_| ())),
+    }
+    let mut p = parse("method=sweep&bins=32");
+    assert!(decode_for(&png, &mut p, &Limits::default()).is_ok());
+    // Other methods keep no such table.
+    let mut p = parse("method=march&radius=8&bins=720&outputs=angles&reduce=point");
+    assert!(decode_for(&png, &mut p, &Limits::default()).is_ok());
+}

@@ -116,6 +116,11 @@ fn what_tiles_cannot_do_is_refused_with_the_parameter_named() {
     assert!(m.contains("auto") && m.contains("max_distance") && m.contains("whole map"), "{m}");
     // The same map below --tile-above is not tiled: unlimited is fine.
     assert!(field("radius=unlimited", &png8, 64, 64).is_none());
+    // sweep's far field spans the whole map: refused on a tiled map, fine below.
+    let (f, m) = field("method=sweep&radius=8", &png8, 100, 100).unwrap();
+    assert_eq!(f, "method");
+    assert!(m.contains("march") && m.contains("tile"), "{m}");
+    assert!(field("method=sweep&radius=8", &png8, 64, 64).is_none());
     assert_eq!(field("radius=40", &png8, 100, 100).unwrap().0, "tile_size");
     let s2 = TileSettings { tile_above: 64 * 64, tile_size: 200 };
     let halo = tiled::check(&params("radius=120"), &png8, 100, 100, &s2).unwrap_err();
@@ -199,6 +204,7 @@ async fn the_embedded_service_tiles_a_map_with_the_same_bytes() {
         ("radius=unlimited", "radius"),
         ("radius=40", "tile_size"),
         ("radius=8&formats=exr", "formats"),
+        ("radius=8&method=sweep", "method"),
     ] {
         let r = c
             .post(srv.url(&format!("/v1/bakes?{q}")))
@@ -237,7 +243,12 @@ async fn delete_stops_every_tile_of_an_embedded_tiled_bake() {
     let t = Instant::now();
     loop {
         let v: Value = c.get(srv.url(&loc)).send().await.unwrap().json().await.unwrap();
-        if v["status"] == "running" && v["tiles"]["total"].as_u64().is_some() {
+        // Once a tile has finished, the pool's two slots hold the next tiles: the DELETE then
+        // lands with tiles in flight (right after the tiles were inserted none may have been
+        // claimed yet, and no tile would be canceled: the test failed that way under load).
+        let m = c.get(srv.url("/metrics")).send().await.unwrap().text().await.unwrap();
+        let done = metric(&m, "horizon_tiles_total{status=\"succeeded\"}");
+        if v["status"] == "running" && v["tiles"]["total"].as_u64().is_some() && done >= 1.0 {
             break;
         }
         assert!(t.elapsed() < Duration::from_secs(30), "never running in tiles: {v}");

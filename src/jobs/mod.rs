@@ -1000,7 +1000,18 @@ impl Jobs {
                 "tile outcome refused: the claim is stale");
         }
         if let Some(hook) = self.tiling().and_then(|t| t.on_tile.clone()) {
-            hook(if recorded { label } else { "lost" });
+            // A DELETE cancels the bake's tiles in the repository, which makes the running
+            // ones' claims stale too: those were stopped, not taken over by another worker.
+            let label = if recorded {
+                label
+            } else {
+                match self.0.repo.get(&claim.bake_id).await {
+                    Ok(None) => "canceled",
+                    Ok(Some(rec)) if rec.status == Status::Canceled => "canceled",
+                    _ => "lost",
+                }
+            };
+            hook(label);
         }
         self.local().remove(&key);
         let _ = self.0.changes.send(claim.bake_id.clone());

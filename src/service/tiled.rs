@@ -66,6 +66,18 @@ pub fn check(
     if !s.tiles(width, height) {
         return Ok(());
     }
+    if params.method == crate::params::Method::Sweep {
+        // Its far field spans the whole map (and is not yet proven crop-invariant).
+        return Err(Error::param(
+            "method",
+            format!(
+                "method=sweep bakes a whole map at once, and this {width}×{height} map is above \
+                 --tile-above ({} texels), so it is baked in tiles; use method=march or exact \
+                 with a finite radius, radius=auto or max_distance",
+                s.tile_above
+            ),
+        ));
+    }
     let by_distance = params.max_distance.is_some() && params.cell_size.is_some();
     if params.radius == Radius::Unlimited && !by_distance {
         return Err(Error::param(
