@@ -504,8 +504,7 @@ struct Near {
     blocks: PadPyramid,
     avx2: bool,
     avx512: bool,
-    /// Earth-curvature drop per texel² in the pieces' closed form (0 for `exact`, whose
-    /// curved rays take the scalar walk).
+    /// Earth-curvature drop per texel² in the pieces' closed form (0: flat).
     curv: f32,
 }
 
@@ -936,7 +935,7 @@ struct Strip<'a> {
     h0: &'a [f32; LANES],
     count: &'a [u32; LANES],
     hmax: f32,
-    /// Earth-curvature drop per texel² (0: flat; only the sweep's near field sets it).
+    /// Earth-curvature drop per texel² (0: flat).
     curv: f32,
 }
 
@@ -1185,10 +1184,14 @@ impl<'a> ExactHorizon<'a> {
 
     /// Lowers a point at arc length s by `curv`·s² texels (the earth's curvature, SPEC §3.7:
     /// `curv` = cell_size² · height_scale / (2 R_e)). The drop only lowers the surface, so the
-    /// pyramid's skips stay conservative; rays then take the scalar cell walk from the start
-    /// (the vectorised near field has no curvature term), still exact.
+    /// pyramid's and the near field's skips stay conservative. The vectorised near field takes
+    /// the drop as a term of its per-cell quadratic (as the sweep's does) and the walk beyond
+    /// it the same drop in f64: a DEM's default (`earth_curvature=on`) used to send every ray
+    /// down the scalar walk from s = 0, 5.6× the CPU of the flat kernel on a 1024² DEM
+    /// (docs/peers.md), level with GRASS `r.horizon`.
     pub fn with_curvature(mut self, curv: f64) -> Self {
         self.curv = if curv.is_finite() && curv > 0.0 { curv } else { 0.0 };
+        self.near.curv = self.curv as f32;
         self
     }
 
@@ -1263,8 +1266,8 @@ impl HorizonRows for ExactHorizon<'_> {
     fn rows(&self, y0: usize, channels: &mut [f32], mut bins_out: Option<&mut [f32]>) {
         let (w, nb) = (self.grid.width, self.dirs.len());
         let n_rows = channels.len() / (w * 8);
-        if self.curv > 0.0 || self.holes.is_some() {
-            // With the curvature drop or holes: the scalar exact walk for every ray.
+        if self.holes.is_some() {
+            // With holes: the scalar exact walk for every ray.
             let mut s = vec![0.0f32; nb];
             for (k, out) in channels.chunks_exact_mut(8).enumerate() {
                 if k % w == 0 && self.progress.as_ref().is_some_and(Progress::is_canceled) {
@@ -1324,7 +1327,7 @@ impl HorizonRows for ExactHorizon<'_> {
                             // still beat it: continue with the scalar walk, seeded.
                             let rise = self.hmax - reference - f64::from(h0[i]);
                             if s_end[i] > near.s_cut && rise > t * near.s_cut {
-                                let ray = Ray::new(&self.grid, x + i, y, dx, dy, self.radius);
+                                let ray = self.ray(x + i, y, dx, dy);
                                 best[i] = self.walk(&ray, near.s_cut, t).0 as f32;
                             }
                         }
