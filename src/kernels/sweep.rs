@@ -638,6 +638,35 @@ impl HorizonRows for Sweep<'_> {
     }
 }
 
+/// Most bytes the far-field table ([`Sweep`] keeps one f32 per texel and bin for the whole map,
+/// built before the bands run) may take: 1 GiB, a 2048² map at 64 bins or a 4096² one at 16.
+pub const MAX_TABLE_BYTES: u64 = 1 << 30;
+
+/// Refuses a `width` × `height` map at `bins` azimuths whose far-field table would exceed
+/// [`MAX_TABLE_BYTES`], before anything is decoded or queued: an 8192² map at 32 bins would
+/// need 8 GiB and could take the whole process down with it.
+///
+/// # Errors
+/// [`Error::Param`] naming `method`, with the size and what to use instead.
+pub fn check_memory(width: u32, height: u32, bins: u32) -> crate::error::Result<()> {
+    let bytes = u64::from(width) * u64::from(height) * u64::from(bins.max(8)) * 4;
+    if bytes > MAX_TABLE_BYTES {
+        return Err(crate::error::Error::param(
+            "method",
+            format!(
+                "method=sweep keeps its far field for the whole map, width × height × bins × 4 \
+                 bytes = {} MiB for this {width}×{height} map at {} bins, over the {} MiB it may \
+                 use; use fewer bins, or method=march with a finite radius or max_distance, or \
+                 method=exact",
+                bytes >> 20,
+                bins.max(8),
+                MAX_TABLE_BYTES >> 20
+            ),
+        ));
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -693,33 +722,4 @@ mod tests {
             }
         }
     }
-}
-
-/// Most bytes the far-field table ([`Sweep`] keeps one f32 per texel and bin for the whole map,
-/// built before the bands run) may take: 1 GiB, a 2048² map at 64 bins or a 4096² one at 16.
-pub const MAX_TABLE_BYTES: u64 = 1 << 30;
-
-/// Refuses a `width` × `height` map at `bins` azimuths whose far-field table would exceed
-/// [`MAX_TABLE_BYTES`], before anything is decoded or queued: an 8192² map at 32 bins would
-/// need 8 GiB and could take the whole process down with it.
-///
-/// # Errors
-/// [`Error::Param`] naming `method`, with the size and what to use instead.
-pub fn check_memory(width: u32, height: u32, bins: u32) -> crate::error::Result<()> {
-    let bytes = u64::from(width) * u64::from(height) * u64::from(bins.max(8)) * 4;
-    if bytes > MAX_TABLE_BYTES {
-        return Err(crate::error::Error::param(
-            "method",
-            format!(
-                "method=sweep keeps its far field for the whole map, width × height × bins × 4 \
-                 bytes = {} MiB for this {width}×{height} map at {} bins, over the {} MiB it may \
-                 use; use fewer bins, or method=march with a finite radius or max_distance, or \
-                 method=exact",
-                bytes >> 20,
-                bins.max(8),
-                MAX_TABLE_BYTES >> 20
-            ),
-        ));
-    }
-    Ok(())
 }
