@@ -455,3 +455,34 @@ fn holes_occlude_nothing_and_the_march_never_overshoots_exact() {
         }
     }
 }
+
+/// Only the strips within R + 1 of a hole take the exact walk: far from the holes a march with
+/// holes gives the same f32 values as the march of the same heights without them, so a DEM
+/// whose nodata is a border keeps the march's speed inside.
+#[test]
+fn far_from_holes_the_march_is_unchanged() {
+    let mut rng = Rng(0x401F);
+    let (w, h, radius) = (97usize, 61usize, 6u32);
+    let heights = waves(&mut rng, w, h, 3, 6.0);
+    let mut holes = vec![false; w * h];
+    holes[2 * w + 3] = true;
+    let g = Grid::new(w, h, &heights, Edge::None, YAxis::Up);
+    let plain = per_bin(&March::new(g, radius, 32, Reduce::Average));
+    let holed = per_bin(&March::new(g, radius, 32, Reduce::Average).with_holes(Some(&holes)));
+    let exact =
+        per_bin(&ExactHorizon::new(g, Some(radius), 32, Reduce::Average).with_holes(Some(&holes)));
+    let (mut same, mut near) = (0, 0);
+    for t in 0..w * h {
+        let (x, y) = (t % w, t / w);
+        let (a, b, e) = (&plain[t * 32..][..32], &holed[t * 32..][..32], &exact[t * 32..][..32]);
+        // Strips are at most 64 texels wide: beyond them and R + 1 rows, nothing changes.
+        if y > 2 + radius as usize + 1 || x > 64 + 3 + radius as usize {
+            assert_eq!(a, b, "texel ({x}, {y}) far from the hole changed");
+            same += 1;
+        } else if y <= 2 + radius as usize + 1 && x <= 3 + radius as usize + 1 && !holes[t] {
+            assert_eq!(b, e, "texel ({x}, {y}) near the hole is not exact's");
+            near += 1;
+        }
+    }
+    assert!(same > w * h / 2 && near > 20, "{same} far, {near} near");
+}
