@@ -374,30 +374,6 @@ fn a_canceled_build_stops_early() {
     assert!(r.is_err());
 }
 
-/// Not a check: `cargo test --test sweep timing -- --ignored --nocapture` prints the time of
-/// the far-field build and of the whole bake at 1024², 32 bins, unlimited, on all threads.
-#[test]
-#[ignore]
-fn timing() {
-    let n = std::env::var("SWEEP_N").ok().and_then(|v| v.parse().ok()).unwrap_or(1024usize);
-    let mut rng = Rng(1);
-    let heights = fbm(&mut rng, n, n, 20.0);
-    let g = Grid::new(n, n, &heights, Edge::Wrap, YAxis::Up);
-    for r in [None, Some(64u32)] {
-        let t = std::time::Instant::now();
-        let k = Sweep::new(g, r, 32, Reduce::Average);
-        let build = t.elapsed().as_secs_f64();
-        let out = horizon_bake::kernels::compute_all(&k, &Progress::new()).unwrap();
-        std::hint::black_box(&out);
-        let all = t.elapsed().as_secs_f64();
-        eprintln!(
-            "{n}² R {r:?}: far field {build:.3} s, near + join {:.3} s, {:.3} Mtexel/s",
-            all - build,
-            (n * n) as f64 / all / 1e6
-        );
-    }
-}
-
 /// The CLI offers `--method sweep` at `--radius unlimited`: its 8-bit layers are within a couple
 /// of LSB of `--method exact`'s on the golden bump (read back with the `image` crate).
 #[test]
