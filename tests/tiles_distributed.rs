@@ -1,8 +1,9 @@
 //! Tiled bakes (SPEC §7.1) across real processes on the real engines (PostgreSQL and an S3
 //! server started by `scripts/engines.sh`, as tests/distributed.rs does): one API node and two
 //! workers bake the tiles of one map; a killed worker's tiles are taken over; DELETE stops every
-//! tile; a stalled worker cannot overwrite a tile another wrote; the results are the CLI's
-//! untiled bytes. Without the engines these tests say so and pass, except under `CI=true`.
+//! tile; a stalled worker cannot overwrite a tile another wrote; a stalled coordinator gives the
+//! bake back; the results are the CLI's untiled bytes. Without the engines these tests say so
+//! and pass, except under `CI=true`.
 
 mod service_common;
 
@@ -405,9 +406,8 @@ async fn a_stalled_worker_cannot_overwrite_a_tile_another_wrote() {
     let id = v["id"].as_str().unwrap().to_owned();
     let db = cl.db().await;
     let t = Instant::now();
-    // The stalled worker must not be the bake's coordinator (the record's `worker`): a stalled
-    // coordinator is a different failure (see the README's tiled-bake section), and w1 or w2
-    // may win the bake's claim.
+    // The stalled worker must not be the bake's coordinator (the record's `worker`; w1 or w2
+    // may win the bake's claim): a stalled coordinator is the next test's case.
     let (victim, stalled) = loop {
         let rows = tile_rows(&db, &id).await;
         let (_, v) = get_json(&c, &cl.url_of(api, &id)).await;
@@ -488,4 +488,160 @@ async fn the_embedded_mode_tiles_the_2048_map_with_the_same_bytes() {
     let ours = layers(&c, &url).await;
     let cli = cli_layers(cl.tmp.path(), &png, &["--radius", "40", "--edge", "wrap"]);
     assert!(ours == cli, "embedded tiled layers differ from the CLI's");
+}
+
+/// The database session (`pg_stat_activity.pid`) of a node named `worker` that sits in an open
+/// transaction holding what the others need: rows of `bakes` or `tiles` locked or written, or
+/// the reaper's advisory lock (`postgres::REAPER_LOCK`, split into its two 32-bit halves).
+async fn frozen_holder(db: &sqlx::PgPool, worker: &str) -> Option<i32> {
+    sqlx::query_scalar(
+        "SELECT a.pid FROM pg_stat_activity a \
+         WHERE a.application_name = $1 AND a.state LIKE 'idle in transaction%' \
+         AND ((a.backend_xid IS NOT NULL AND EXISTS (SELECT 1 FROM pg_locks l \
+                 WHERE l.pid = a.pid AND l.locktype = 'relation' \
+                 AND l.relation IN ('bakes'::regclass, 'tiles'::regclass) \
+                 AND l.mode IN ('RowShareLock', 'RowExclusiveLock'))) \
+              OR EXISTS (SELECT 1 FROM pg_locks l WHERE l.pid = a.pid \
+                 AND l.locktype = 'advisory' AND l.classid = 1752134249::oid \
+                 AND l.objid = 2054121986::oid)) \
+         LIMIT 1",
+    )
+    .bind(horizon_bake::jobs::postgres::application_name(worker))
+    .fetch_optional(db)
+    .await
+    .unwrap()
+}
+
+/// The bake's coordinator (the worker that claimed it and waits for its tiles) stopped
+/// (SIGSTOP) past its lease while inside a database transaction that holds a lock the others
+/// need (its heartbeat's row lock on the bake, a tile's, the reaper's lock): the server ends
+/// that session, the reaper gives the bake back, the other worker coordinates it (reusing the
+/// tiles already done) and finishes it with the CLI's bytes; the old coordinator, resumed,
+/// changes nothing. Before the sessions had a server-side `idle_in_transaction_session_timeout`
+/// the bake stayed `running` at attempt 1 for ever (SPEC §7).
+#[tokio::test(flavor = "multi_thread")]
+async fn a_stalled_coordinator_gives_the_bake_back() {
+    let _serial = SERIAL.lock().await;
+    let Some(mut cl) = Cluster::new("tilescoord").await else { return };
+    let api = cl.start("api", "api-a", &tiling("256"));
+    let w1 = cl.start("worker", "w1", &tiling("256"));
+    let w2 = cl.start("worker", "w2", &tiling("256"));
+    let c = client();
+    let png = terrain_png16(2048, 2048, 35);
+    let q = "radius=40&method=march&edge=none";
+    let (s, v) = submit(&c, cl.base(api), &png, q).await;
+    assert_eq!(s, 202, "{v}");
+    let id = v["id"].as_str().unwrap().to_owned();
+    let url = cl.url_of(api, &id);
+    let db = cl.db().await;
+    // Wait for the split (the tiles exist) and the first tiles done.
+    let t = Instant::now();
+    let coordinator = loop {
+        let rows = tile_rows(&db, &id).await;
+        let (_, v) = get_json(&c, &url).await;
+        let done = rows.iter().filter(|r| r.1 == "succeeded").count();
+        if let (true, Some(w)) = (done >= 1, v["worker"].as_str()) {
+            break w.to_owned();
+        }
+        assert!(t.elapsed() < Duration::from_secs(60), "no tile done: {v} {rows:?}");
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    };
+    let (stalled, other) = if coordinator == "w1" { (w1, w2) } else { (w2, w1) };
+    let other_id = if coordinator == "w1" { "w2" } else { "w1" };
+    // Stop it, until it is caught inside such a transaction (heartbeats every 200 ms, the
+    // reaper every second: a few percent of the time).
+    let t = Instant::now();
+    let mut tries = 0u64;
+    let session = loop {
+        signal(cl.pid(stalled), "STOP");
+        tokio::time::sleep(Duration::from_millis(40)).await;
+        if let Some(pid) = frozen_holder(&db, &coordinator).await {
+            break pid;
+        }
+        signal(cl.pid(stalled), "CONT");
+        tries += 1;
+        assert!(
+            t.elapsed() < Duration::from_secs(120),
+            "{coordinator} never stopped inside a transaction in {tries} tries"
+        );
+        tokio::time::sleep(Duration::from_millis(tries * 7 % 29)).await;
+    };
+    let (_, v) = get_json(&c, &url).await;
+    assert_eq!(v["status"], "running", "the bake ended before its coordinator stalled: {v}");
+    let done_before: BTreeMap<i32, i32> = tile_rows(&db, &id)
+        .await
+        .into_iter()
+        .filter(|r| r.1 == "succeeded")
+        .map(|r| (r.0, r.3))
+        .collect();
+    assert!(!done_before.is_empty());
+    // The other worker takes the bake over (attempt 2), reuses the tiles already done, and
+    // finishes it while the coordinator is still stopped.
+    let t = Instant::now();
+    let mut rows_seen: BTreeMap<i32, (String, i32)> = BTreeMap::new();
+    let before = loop {
+        for r in tile_rows(&db, &id).await {
+            rows_seen.insert(r.0, (r.1, r.3));
+        }
+        let (_, v) = get_json(&c, &url).await;
+        if v["status"] == "succeeded" {
+            break v;
+        }
+        assert!(v["status"] != "failed" && v["status"] != "canceled", "{v}");
+        if t.elapsed() > Duration::from_secs(120) {
+            let sessions: Vec<(i32, Option<String>, String, Option<String>)> = sqlx::query_as(
+                "SELECT pid, state, query, backend_xid::text FROM pg_stat_activity \
+                 WHERE application_name = $1",
+            )
+            .bind(horizon_bake::jobs::postgres::application_name(&coordinator))
+            .fetch_all(&db)
+            .await
+            .unwrap();
+            panic!(
+                "not finished with its coordinator stopped: {v}\ntiles {:?}\n{coordinator}'s \
+                 sessions (pid, state, last query, xid): {sessions:?}",
+                tile_rows(&db, &id).await
+            );
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    assert_eq!(before["worker"], other_id, "{before}");
+    assert!(before["attempts"].as_u64().unwrap() >= 2, "{before}");
+    for (idx, attempt) in &done_before {
+        assert_eq!(rows_seen[idx], ("succeeded".to_owned(), *attempt), "tile {idx} was redone");
+    }
+    let alive: bool =
+        sqlx::query_scalar("SELECT EXISTS (SELECT 1 FROM pg_stat_activity WHERE pid = $1)")
+            .bind(session)
+            .fetch_one(&db)
+            .await
+            .unwrap();
+    assert!(!alive, "the stopped coordinator's session {session} is still open");
+    // Resumed, the old coordinator learns it lost the bake and writes nothing.
+    let row = |db: sqlx::PgPool, id: String| async move {
+        let r: (String, i32, Option<String>, serde_json::Value) =
+            sqlx::query_as("SELECT status, attempt, worker, record FROM bakes WHERE id = $1")
+                .bind(id)
+                .fetch_one(&db)
+                .await
+                .unwrap();
+        r
+    };
+    let row_before = row(db.clone(), id.clone()).await;
+    signal(cl.pid(stalled), "CONT");
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let after = get_json(&c, &url).await.1;
+    for k in ["status", "attempts", "worker", "finished_at", "formats", "tiles"] {
+        assert_eq!(after[k], before[k], "{k} changed after the old coordinator resumed");
+    }
+    assert_eq!(row(db.clone(), id.clone()).await, row_before);
+    assert!(
+        cl.log(stalled).contains("lease lost") || cl.log(stalled).contains("claim is stale"),
+        "the old coordinator never learned it lost the bake:\n{}",
+        cl.log(stalled)
+    );
+    let ours = layers(&c, &url).await;
+    let cli =
+        cli_layers(cl.tmp.path(), &png, &["--radius", "40", "--method", "march", "--edge", "none"]);
+    assert!(ours == cli, "the result differs from the CLI's");
 }

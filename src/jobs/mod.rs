@@ -837,6 +837,15 @@ impl Jobs {
                     continue;
                 }
             };
+            if tiles.is_empty() {
+                // Another claim of this bake finished it and removed its tiles while this one
+                // stalled: the completion below is refused as stale (if not, something removed
+                // the tiles of a running bake, and it fails rather than assembles nothing).
+                return Ended::Done(Err(Error::Internal(format!(
+                    "the tiles of bake {} are gone",
+                    claim.id
+                ))));
+            }
             let total = tiles.len() as u64;
             let done = tiles.iter().filter(|t| t.status == Status::Succeeded).count() as u64;
             if !started {
@@ -886,6 +895,15 @@ impl Jobs {
                 _ = tokio::time::sleep(Duration::from_millis(250)) => {}
             }
         };
+        // A claim that stalled while it waited (SIGSTOP, a frozen VM) may have been taken over
+        // and its bake finished by another worker: it learns so here, before it spends an
+        // assembly on results nobody would record.
+        if let Ok(Beat::Lost) = self.0.repo.heartbeat(claim, run.live(), self.0.cfg.lease).await {
+            tracing::warn!(bake = %claim.id, attempt = claim.attempt,
+                "lease lost before the assembly: the bake belongs to another worker now");
+            lost.store(true, Ordering::SeqCst);
+            return Ended::Done(Err(Error::Canceled));
+        }
         // The assembly takes no slot either: an idle work loop holds one while it waits for
         // work, and the assembly is the last step of work already claimed.
         let count = tiles::TileCount { done: tiles.len() as u32, total: tiles.len() as u32 };
