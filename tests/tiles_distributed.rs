@@ -606,6 +606,7 @@ async fn a_stalled_coordinator_gives_the_bake_back() {
         tokio::time::sleep(Duration::from_millis(50)).await;
     };
     assert_eq!(before["worker"], other_id, "{before}");
+    assert!(metric(&c, cl.base(other), SUCCEEDED).await >= 1.0, "{}", cl.log(other));
     assert!(before["attempts"].as_u64().unwrap() >= 2, "{before}");
     for (idx, attempt) in &done_before {
         assert_eq!(rows_seen[idx], ("succeeded".to_owned(), *attempt), "tile {idx} was redone");
