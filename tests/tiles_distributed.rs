@@ -646,3 +646,104 @@ async fn a_stalled_coordinator_gives_the_bake_back() {
         cli_layers(cl.tmp.path(), &png, &["--radius", "40", "--method", "march", "--edge", "none"]);
     assert!(ours == cli, "the result differs from the CLI's");
 }
+
+/// The terrain products of a tiled bake (`outputs=horizon,angles,svf`, a nodata hole across a
+/// tile seam, edge wrap), on one API and two workers: `angles.tif` and `svf.tif`, assembled tile
+/// by tile, are the CLI's untiled files byte for byte (and the layers its PNGs); GDAL
+/// (rasterio) reads them with the bands, nodata and holes of the map; the svf's PNG rendering,
+/// which would read the whole file, is a 422.
+#[tokio::test(flavor = "multi_thread")]
+async fn tiled_terrain_geotiffs_are_the_cli_s_bytes() {
+    let _serial = SERIAL.lock().await;
+    let Some(mut cl) = Cluster::new("tilestif").await else { return };
+    let api = cl.start("api", "api-a", &tiling("256"));
+    cl.start("worker", "w1", &tiling("256"));
+    cl.start("worker", "w2", &tiling("256"));
+    let c = client();
+    let (w, h) = (1024, 1024);
+    let mut heights = terrain16(w, h, 36);
+    // A hole (nodata 0) across the seam of four tiles.
+    for y in 230..290 {
+        heights[y * w + 200..y * w + 300].fill(0);
+    }
+    let png = horizon_bake::encode::png::encode16(
+        w,
+        h,
+        horizon_bake::encode::png::PngColor::Gray,
+        &heights,
+    )
+    .unwrap();
+    let q = "radius=24&method=march&edge=wrap&bins=16&outputs=horizon,angles,svf&nodata=0";
+    let (s, v) = submit(&c, cl.base(api), &png, q).await;
+    assert_eq!(s, 202, "{v}");
+    let id = v["id"].as_str().unwrap().to_owned();
+    let url = cl.url_of(api, &id);
+    let done = wait_done(&c, &url, Duration::from_secs(300)).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    assert_eq!(done["tiles"]["total"], 16, "{done}");
+    let get = |what: &'static str| {
+        let (c, url) = (c.clone(), url.clone());
+        async move {
+            let r = c.get(format!("{url}/{what}")).send().await.unwrap();
+            assert_eq!(r.status(), 200, "{what}");
+            r.bytes().await.unwrap().to_vec()
+        }
+    };
+    let (angles, svf) = (get("angles").await, get("svf").await);
+    let ours = layers(&c, &url).await;
+    let r = c.get(format!("{url}/svf?format=png")).send().await.unwrap();
+    assert_eq!(r.status(), 422);
+    let p: Value = r.json().await.unwrap();
+    assert_eq!(p["field"], "format", "{p}");
+
+    let input = cl.tmp.path().join("holed.png");
+    let out = cl.tmp.path().join("cli-terrain");
+    std::fs::write(&input, &png).unwrap();
+    let st = Command::new(BIN)
+        .args(["bake", input.to_str().unwrap(), "-o", out.to_str().unwrap()])
+        .args(["--format", "png8,geotiff", "--outputs", "horizon,angles,svf", "--bins", "16"])
+        .args(["--radius", "24", "--method", "march", "--edge", "wrap", "--nodata", "0"])
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let file = |n: &str| std::fs::read(out.join(n)).unwrap();
+    assert!(angles == file("angles.tif"), "angles.tif differs from the CLI's");
+    assert!(svf == file("svf.tif"), "svf.tif differs from the CLI's");
+    assert!(ours == [file("horizon_0.png"), file("horizon_1.png")], "layers differ");
+
+    let ci = std::env::var("CI").is_ok_and(|v| v == "true");
+    let has = Command::new("python3")
+        .args(["-c", "import rasterio, numpy"])
+        .status()
+        .is_ok_and(|s| s.success());
+    if !has {
+        assert!(!ci, "CI=true: python3 with rasterio and numpy is required (pip install rasterio)");
+        eprintln!("skipped the GDAL read-back: python3 with rasterio is missing");
+        return;
+    }
+    let (a, s) = (cl.tmp.path().join("angles.tif"), cl.tmp.path().join("svf.tif"));
+    std::fs::write(&a, &angles).unwrap();
+    std::fs::write(&s, &svf).unwrap();
+    let script = format!(
+        "import rasterio, numpy as np\n\
+         with rasterio.open({a:?}) as d:\n\
+         \x20   x = d.read()\n\
+         \x20   assert (d.count, d.width, d.height) == (16, {w}, {h}), (d.count, d.width, d.height)\n\
+         \x20   assert d.block_shapes[0] == (512, 512), d.block_shapes\n\
+         \x20   assert d.nodata == 0.0, d.nodata\n\
+         \x20   assert d.descriptions[4].startswith('horizon degrees at azimuth 90'), d.descriptions\n\
+         \x20   hole = x[:, 230:290, 200:300]\n\
+         \x20   assert (hole == 0).all()\n\
+         \x20   live = np.delete(x, np.s_[230:290], axis=1)\n\
+         \x20   assert np.isfinite(live).all() and (live > -90).all() and (live < 90).all()\n\
+         with rasterio.open({s:?}) as d:\n\
+         \x20   v = d.read(1)\n\
+         \x20   assert (d.count, d.width, d.height) == (1, {w}, {h})\n\
+         \x20   assert (v[230:290, 200:300] == 0).all()\n\
+         \x20   assert ((v[:200] > 0) & (v[:200] <= 1)).mean() > 0.99, v[:200].min()\n\
+         print('ok', x.shape, v.shape)\n"
+    );
+    let out = Command::new("python3").args(["-c", &script]).output().unwrap();
+    eprintln!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "rasterio could not read the tiled bake's GeoTIFFs");
+}
