@@ -119,8 +119,9 @@ fn fixture() -> Fixture {
 impl Fixture {
     fn rows(&self) -> TileRows {
         let store = self.store.clone();
-        let read: assemble::ReadRange =
-            Box::new(move |hash, start, len| blobs::read_range(&*store, hash, start, len));
+        let read: assemble::ReadRange = std::sync::Arc::new(move |hash, start, len| {
+            blobs::read_range(&*store, hash, start, len)
+        });
         TileRows::new(read, self.pieces.clone(), self.w, self.h).unwrap()
     }
 }

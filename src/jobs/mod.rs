@@ -180,6 +180,8 @@ struct Inner {
     pool: rayon::ThreadPool,
     local: Mutex<HashMap<String, LocalRun>>,
     slots: Arc<Semaphore>,
+    /// Tiles this node runs beyond its bake slots ([`TILE_AHEAD`]).
+    tiles_ahead: Arc<Semaphore>,
     /// Stops claiming.
     stop: CancellationToken,
     /// Ends background loops and watchers.
@@ -284,6 +286,11 @@ fn failure_of(id: &str, e: &Error) -> BakeFailure {
     BakeFailure { code: e.code().to_owned(), message }
 }
 
+/// Tiles a worker runs beyond its bake slots: while one tile reads its window from the store
+/// or writes its result (the bake pool waits on the network), another's kernel keeps the pool
+/// busy, so a worker's cores are not idle between tiles.
+pub const TILE_AHEAD: usize = 1;
+
 /// Attempts after which a bake whose store kept failing under it (`store_unavailable`) fails
 /// instead of going back to the queue once more.
 const UNAVAILABLE_ATTEMPTS: u32 = 5;
@@ -326,6 +333,7 @@ impl Jobs {
         let (changes, _) = broadcast::channel(1024);
         Ok(Jobs(Arc::new(Inner {
             slots: Arc::new(Semaphore::new(cfg.concurrency.max(1))),
+            tiles_ahead: Arc::new(Semaphore::new(TILE_AHEAD)),
             repo,
             blobs,
             cfg,
@@ -409,6 +417,10 @@ impl Jobs {
         if self.0.cfg.concurrency > 0 {
             let w = self.clone();
             tokio::spawn(async move { w.work_loop().await });
+            if self.tiling().is_some() {
+                let t = self.clone();
+                tokio::spawn(async move { t.tile_loop().await });
+            }
         }
         let r = self.clone();
         tokio::spawn(async move { r.reap_loop().await });
@@ -626,6 +638,40 @@ impl Jobs {
                 Ok(_) => {}
                 Err(e) => tracing::warn!(error = %e, "reaper failed"),
             }
+        }
+    }
+
+    /// Claims tiles beyond the bake slots ([`TILE_AHEAD`] at a time), until [`Jobs::drain`].
+    async fn tile_loop(&self) {
+        let mut wake = self.0.repo.subscribe();
+        loop {
+            let permit = tokio::select! {
+                p = self.0.tiles_ahead.clone().acquire_owned() => match p {
+                    Ok(p) => p,
+                    Err(_) => return,
+                },
+                _ = self.0.stop.cancelled() => return,
+            };
+            let tile = loop {
+                if self.0.stop.is_cancelled() {
+                    return;
+                }
+                match self.0.repo.claim_tile(&self.0.cfg.worker_id, self.0.cfg.lease).await {
+                    Ok(Some(t)) => break t,
+                    Ok(None) => {}
+                    Err(e) => tracing::warn!(error = %e, "cannot claim a tile; retrying"),
+                }
+                tokio::select! {
+                    _ = self.0.stop.cancelled() => return,
+                    _ = wake.recv() => {}
+                    _ = tokio::time::sleep(self.0.cfg.poll) => {}
+                }
+            };
+            let me = self.clone();
+            self.0.tracker.spawn(async move {
+                me.run_tile(tile).await;
+                drop(permit);
+            });
         }
     }
 

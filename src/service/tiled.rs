@@ -268,7 +268,7 @@ impl Tiler for ServiceTiler {
             .collect::<Result<_>>()?;
         let read = || -> assemble::ReadRange {
             let store = self.store.clone();
-            Box::new(move |hash: &str, start, len| read_range(store.as_ref(), hash, start, len))
+            Arc::new(move |hash: &str, start, len| read_range(store.as_ref(), hash, start, len))
         };
         let params = params_of(rec)?;
         let mut done = rec.clone();
@@ -608,7 +608,7 @@ pub fn bake_tiled_in_memory(
     let results = Arc::new(results);
     let read = || -> assemble::ReadRange {
         let results = results.clone();
-        Box::new(move |k: &str, start, len| {
+        Arc::new(move |k: &str, start, len| {
             let b = results.get(k).ok_or_else(|| Error::Internal(k.to_owned()))?;
             let s = start as usize;
             Ok(b.get(s..s + len).ok_or_else(|| Error::Internal(k.to_owned()))?.to_vec())
