@@ -195,13 +195,30 @@ impl Tiler for ServiceTiler {
         let plan = TilePlan::new(w, h, self.settings.tile_size, halo, params.edge)?;
         let windows: Vec<Window> = plan.tiles().map(|g| window_of(&g)).collect();
         let mut hashes = vec![String::new(); windows.len()];
-        let stats = decode(&windows, &mut |i, blob| {
-            if progress.is_canceled() {
-                return Err(Error::Canceled);
-            }
-            hashes[i] = blobs.put(&blob)?;
-            Ok(())
-        })?;
+        // The windows are stored on their own thread while the decode goes on (a put is a
+        // network transfer: the decoder need not wait for it); two wait their turn at most.
+        let (stats, stored) = std::thread::scope(|scope| {
+            let (tx, rx) = std::sync::mpsc::sync_channel::<(usize, Vec<u8>)>(2);
+            let putter = scope.spawn(move || -> Result<Vec<(usize, String)>> {
+                rx.into_iter().map(|(i, blob)| Ok((i, blobs.put(&blob)?))).collect()
+            });
+            let stats = decode(&windows, &mut |i, blob| {
+                if progress.is_canceled() {
+                    return Err(Error::Canceled);
+                }
+                // A closed channel means the putter failed: its error is the one reported.
+                tx.send((i, blob)).map_err(|_| Error::Internal("the tile store stopped".into()))
+            });
+            drop(tx);
+            let stored = putter
+                .join()
+                .unwrap_or_else(|_| Err(Error::Internal("storing a tile panicked".into())));
+            (stats, stored)
+        });
+        for (i, hash) in stored? {
+            hashes[i] = hash;
+        }
+        let stats = stats?;
         let range = stats.scaled_range(params.height_scale);
         bake::check_scaled(&[range.0, range.1])?;
         let ctx = TileContext {
