@@ -415,11 +415,11 @@ impl Jobs {
         let fwd = self.clone();
         tokio::spawn(async move { fwd.forward_changes().await });
         if self.0.cfg.concurrency > 0 {
-            let w = self.clone();
-            tokio::spawn(async move { w.work_loop().await });
+            let (w, slots) = (self.clone(), self.0.slots.clone());
+            tokio::spawn(async move { w.claim_loop(slots, true).await });
             if self.tiling().is_some() {
-                let t = self.clone();
-                tokio::spawn(async move { t.tile_loop().await });
+                let (t, ahead) = (self.clone(), self.0.tiles_ahead.clone());
+                tokio::spawn(async move { t.claim_loop(ahead, false).await });
             }
         }
         let r = self.clone();
@@ -641,53 +641,20 @@ impl Jobs {
         }
     }
 
-    /// Claims tiles beyond the bake slots ([`TILE_AHEAD`] at a time), until [`Jobs::drain`].
-    async fn tile_loop(&self) {
+    /// Claims work while `slots` has a permit free, until [`Jobs::drain`]: tiles of running
+    /// bakes first (they finish started work), then, with `bakes`, new bakes. The bake slots
+    /// run one such loop, the tiles beyond them ([`TILE_AHEAD`]) another, tiles only.
+    async fn claim_loop(&self, slots: Arc<Semaphore>, bakes: bool) {
         let mut wake = self.0.repo.subscribe();
         loop {
             let permit = tokio::select! {
-                p = self.0.tiles_ahead.clone().acquire_owned() => match p {
-                    Ok(p) => p,
-                    Err(_) => return,
-                },
-                _ = self.0.stop.cancelled() => return,
-            };
-            let tile = loop {
-                if self.0.stop.is_cancelled() {
-                    return;
-                }
-                match self.0.repo.claim_tile(&self.0.cfg.worker_id, self.0.cfg.lease).await {
-                    Ok(Some(t)) => break t,
-                    Ok(None) => {}
-                    Err(e) => tracing::warn!(error = %e, "cannot claim a tile; retrying"),
-                }
-                tokio::select! {
-                    _ = self.0.stop.cancelled() => return,
-                    _ = wake.recv() => {}
-                    _ = tokio::time::sleep(self.0.cfg.poll) => {}
-                }
-            };
-            let me = self.clone();
-            self.0.tracker.spawn(async move {
-                me.run_tile(tile).await;
-                drop(permit);
-            });
-        }
-    }
-
-    /// Claims bakes while slots are free, until [`Jobs::drain`].
-    async fn work_loop(&self) {
-        let mut wake = self.0.repo.subscribe();
-        loop {
-            let permit = tokio::select! {
-                p = self.0.slots.clone().acquire_owned() => match p { Ok(p) => p, Err(_) => return },
+                p = slots.clone().acquire_owned() => match p { Ok(p) => p, Err(_) => return },
                 _ = self.0.stop.cancelled() => return,
             };
             let work = loop {
                 if self.0.stop.is_cancelled() {
                     return;
                 }
-                // Tiles of bakes already running first: they finish started work.
                 if self.tiling().is_some() {
                     match self.0.repo.claim_tile(&self.0.cfg.worker_id, self.0.cfg.lease).await {
                         Ok(Some(t)) => break Work::Tile(Box::new(t)),
@@ -695,10 +662,12 @@ impl Jobs {
                         Err(e) => tracing::warn!(error = %e, "cannot claim a tile; retrying"),
                     }
                 }
-                match self.0.repo.claim(&self.0.cfg.worker_id, self.0.cfg.lease).await {
-                    Ok(Some(c)) => break Work::Bake(Box::new(c)),
-                    Ok(None) => {}
-                    Err(e) => tracing::warn!(error = %e, "cannot claim a bake; retrying"),
+                if bakes {
+                    match self.0.repo.claim(&self.0.cfg.worker_id, self.0.cfg.lease).await {
+                        Ok(Some(c)) => break Work::Bake(Box::new(c)),
+                        Ok(None) => {}
+                        Err(e) => tracing::warn!(error = %e, "cannot claim a bake; retrying"),
+                    }
                 }
                 tokio::select! {
                     _ = self.0.stop.cancelled() => return,
