@@ -11,6 +11,9 @@
 //! HTTP upload and downloads at the API). The tiled layers are checked byte-identical to the
 //! untiled ones.
 //!
+//! `TILES_BENCH_WORKERS=1` runs only the tiled case with one worker (default `1,2`); each
+//! run's phases (split, tiles, assembly: the bake's `timings_ms`) go to stderr.
+//!
 //! Run: `scripts/engines.sh start /tmp/eng && . /tmp/eng/env && cargo test --release --bench tiles`
 //! (or `cargo test --bench tiles`, the optimised test profile).
 
@@ -109,8 +112,15 @@ async fn main() {
     );
     drop(emb);
 
+    eprintln!("untiled timings_ms: {}", v["timings_ms"]);
     let pool = sqlx::PgPool::connect(&admin).await.expect("admin connection");
-    for workers in [1usize, 2] {
+    // `TILES_BENCH_WORKERS` (default `1,2`): the tiled runs, by number of workers.
+    let runs: Vec<usize> = var("TILES_BENCH_WORKERS")
+        .unwrap_or_else(|| "1,2".into())
+        .split(',')
+        .filter_map(|k| k.trim().parse().ok())
+        .collect();
+    for workers in runs {
         let tag = format!("tbench_{}_{workers}", std::process::id());
         sqlx::query(&format!("CREATE DATABASE {tag}")).execute(&pool).await.expect("create db");
         let db_url = format!("{}/{tag}", admin.rsplit_once('/').expect("url").0);
@@ -172,6 +182,8 @@ async fn main() {
             rss.join(", "),
             moved.join(", ")
         );
+        // The phases: split (decode), tiles (bake), assembly (encode).
+        eprintln!("{workers} worker(s) timings_ms: {}", v["timings_ms"]);
         drop(nodes);
         let _ = sqlx::query(&format!("DROP DATABASE {tag} WITH (FORCE)")).execute(&pool).await;
     }

@@ -676,7 +676,6 @@ pub fn bake_terrain(
     params: &BakeParams,
     progress: &Progress,
 ) -> Result<(TerrainProducts, ResolvedRadius)> {
-    use crate::terrain::{angles, svf};
     let (w, h) = (map.width, map.height);
     let nb = params.bins as usize;
     if params.outputs.angles && (w * h) as u64 * nb as u64 > MAX_ANGLE_VALUES {
@@ -704,18 +703,40 @@ pub fn bake_terrain(
     }
     let holes = map.terrain.holes.as_deref();
     let nodata = map.terrain.nodata.map_or(f32::NAN, |v| v as f32);
+    let (ang, sv) = terrain_planes(kernel.as_ref(), params, holes, nodata, progress)?;
+    Ok((TerrainProducts { width: w, height: h, angles: ang, bins: nb, svf: sv, nodata }, radius))
+}
+
+/// `angles` (band-major) and `svf` planes, each when asked.
+type TerrainPlanes = (Option<Vec<f32>>, Option<Vec<f32>>);
+
+/// The terrain planes (`angles`, `svf`, as `params.outputs` asks) of every row of `kernel`,
+/// band-major f32 planes of its width × height; `holes` (one per texel of those rows) get
+/// `nodata`. What [`bake_terrain`] and [`bake_terrain_window`] share.
+///
+/// # Errors
+/// [`crate::Error::Canceled`].
+fn terrain_planes(
+    kernel: &dyn HorizonRows,
+    params: &BakeParams,
+    holes: Option<&[bool]>,
+    nodata: f32,
+    progress: &Progress,
+) -> Result<TerrainPlanes> {
+    use crate::terrain::{angles, svf};
+    let (w, h, nb) = (kernel.width(), kernel.height(), params.bins as usize);
     let order = angles::band_bins(nb, params.azimuth_from, params.y_axis);
     let plane = w * h;
     let mut ang = params.outputs.angles.then(|| vec![0f32; plane * nb]);
     let mut sv = params.outputs.svf.then(|| vec![0f32; plane]);
-    let band = kernels::band_rows_for(kernel.as_ref());
+    let band = kernels::band_rows_for(kernel);
     progress.start(Stage::Bake, h as u64);
     {
         // Planes are written band by band: each kernel band owns the same rows of every plane.
         let ang_rows: Option<Vec<Vec<Mutex<&mut [f32]>>>> =
             ang.as_mut().map(|a| a.chunks_mut(plane).map(|p| split(p, band * w)).collect());
         let sv_rows = sv.as_mut().map(|s| split(s, band * w));
-        kernels::run_bands(kernel.as_ref(), band, true, progress, |bi, b: Band<'_>| {
+        kernels::run_bands(kernel, band, true, progress, |bi, b: Band<'_>| {
             let Some(bins) = b.bins else { return };
             let mut planes: Vec<_> = match &ang_rows {
                 Some(a) => a.iter().filter_map(|p| p[bi].lock().ok()).collect(),
@@ -739,7 +760,65 @@ pub fn bake_terrain(
             }
         })?;
     }
-    Ok((TerrainProducts { width: w, height: h, angles: ang, bins: nb, svf: sv, nodata }, radius))
+    Ok((ang, sv))
+}
+
+/// The terrain products (`angles`, `svf`) of the interior of one tile of a tiled bake (SPEC
+/// §7.1), as [`bake_window`] bakes its horizon layers: `window` is the tile's window of the map
+/// (unscaled values, holes, the map's nodata), `interior` = (column, row, width, height) inside
+/// it, `range` the whole map's scaled height range and `radius` the radius resolved on the whole
+/// map. Per texel the same values as [`bake_terrain`] of the whole map.
+///
+/// # Errors
+/// [`crate::Error::Canceled`]; [`crate::Error::Param`] when the method cannot give the bins
+/// asked.
+pub fn bake_terrain_window(
+    window: HeightMap,
+    params: &BakeParams,
+    interior: (usize, usize, usize, usize),
+    range: (f32, f32),
+    radius: u32,
+    progress: &Progress,
+) -> Result<TerrainProducts> {
+    let (ww, wh) = (window.width, window.height);
+    let (ox, oy, iw, ih) = interior;
+    assert!(ox + iw <= ww && oy + ih <= wh, "interior outside its window");
+    let nb = params.bins as usize;
+    let mut window = window;
+    let holes = window.terrain.holes.take();
+    let nodata = window.terrain.nodata.map_or(f32::NAN, |v| v as f32);
+    let heights = window.into_scaled(params.height_scale);
+    let grid = Grid::new(ww, wh, &heights, params.edge, params.y_axis).with_range(range.0, range.1);
+    let kernel = make_kernel_for(params, grid, radius, progress, holes.as_deref());
+    if kernel.bins() != nb {
+        return Err(crate::Error::param(
+            "bins",
+            format!("method={:?} computes at least {} bins", params.method, kernel.bins())
+                .to_lowercase(),
+        ));
+    }
+    let rows = RowWindow { inner: kernel, oy, rows: ih };
+    let row_holes = holes.as_deref().map(|m| &m[oy * ww..(oy + ih) * ww]);
+    let (ang, sv) = terrain_planes(&rows, params, row_holes, nodata, progress)?;
+    // Keep the interior's columns, plane by plane, in place (each row moves to the left).
+    let cut = |mut v: Vec<f32>| {
+        let planes = v.len() / (ww * ih);
+        for k in 0..planes * ih {
+            let from = k * ww + ox;
+            v.copy_within(from..from + iw, k * iw);
+        }
+        v.truncate(planes * ih * iw);
+        v.shrink_to_fit();
+        v
+    };
+    Ok(TerrainProducts {
+        width: iw,
+        height: ih,
+        angles: ang.map(cut),
+        bins: nb,
+        svf: sv.map(cut),
+        nodata,
+    })
 }
 
 /// The exact horizon profile (SPEC §3.7) of texel (`x`, `y`): (azimuth, elevation) in degrees

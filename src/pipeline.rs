@@ -358,7 +358,6 @@ pub fn terrain_files(
     progress: &Progress,
 ) -> Result<(Vec<OutFile>, ResolvedRadius, serde_json::Value)> {
     use crate::encode::geotiff;
-    use crate::params::{AngleUnit, AzimuthFrom};
     let (p, radius) = bake::bake_terrain(map, params, progress)?;
     progress.start(Stage::Encode, 1);
     let georef = map.terrain.georef.as_ref();
@@ -367,24 +366,13 @@ pub fn terrain_files(
     let mut info = serde_json::Map::new();
     let nodata = serde_json::json!(geotiff::nodata_text(p.nodata));
     if let Some(a) = &p.angles {
-        let from = match params.azimuth_from {
-            AzimuthFrom::EastCcw => "east_ccw",
-            AzimuthFrom::NorthCw => "north_cw",
-        };
-        let unit = match params.angle_unit {
-            AngleUnit::Degrees => "degrees",
-            AngleUnit::Radians => "radians",
-            AngleUnit::Sin => "sin",
-        };
+        let (from, unit) = (azimuth_from_name(params), angle_unit_name(params));
         let azimuths: Vec<f64> =
             (0..p.bins).map(|n| crate::terrain::angles::band_azimuth_deg(n, p.bins)).collect();
         let bands: Vec<geotiff::Band<'_>> = a
             .chunks_exact(plane)
-            .zip(&azimuths)
-            .map(|(plane, az)| geotiff::Band {
-                plane,
-                description: format!("horizon {unit} at azimuth {az}° ({from})"),
-            })
+            .zip(angle_descriptions(params, p.bins))
+            .map(|(plane, description)| geotiff::Band { plane, description })
             .collect();
         if progress.is_canceled() {
             return Err(Error::Canceled);
@@ -403,11 +391,8 @@ pub fn terrain_files(
         );
     }
     if let Some(v) = &p.svf {
-        let model = match params.svf_model {
-            crate::params::SvfModel::Radiative => "radiative",
-            crate::params::SvfModel::Visual => "visual",
-        };
-        let description = format!("sky-view factor ({model}, {} azimuths)", p.bins);
+        let model = svf_model_name(params);
+        let description = svf_description(params, p.bins);
         let bands = [geotiff::Band { plane: v, description: description.clone() }];
         let bytes = geotiff::encode(p.width, p.height, &bands, georef, p.nodata)?;
         files.push(OutFile { name: "svf.tif", bytes });
@@ -422,6 +407,44 @@ pub fn terrain_files(
         );
     }
     Ok((files, radius, serde_json::Value::Object(info)))
+}
+
+fn azimuth_from_name(params: &BakeParams) -> &'static str {
+    match params.azimuth_from {
+        crate::params::AzimuthFrom::EastCcw => "east_ccw",
+        crate::params::AzimuthFrom::NorthCw => "north_cw",
+    }
+}
+
+fn angle_unit_name(params: &BakeParams) -> &'static str {
+    match params.angle_unit {
+        crate::params::AngleUnit::Degrees => "degrees",
+        crate::params::AngleUnit::Radians => "radians",
+        crate::params::AngleUnit::Sin => "sin",
+    }
+}
+
+fn svf_model_name(params: &BakeParams) -> &'static str {
+    match params.svf_model {
+        crate::params::SvfModel::Radiative => "radiative",
+        crate::params::SvfModel::Visual => "visual",
+    }
+}
+
+/// The band descriptions of `angles.tif` at `bins` azimuths (as [`terrain_files`] writes them).
+pub fn angle_descriptions(params: &BakeParams, bins: usize) -> Vec<String> {
+    let (from, unit) = (azimuth_from_name(params), angle_unit_name(params));
+    (0..bins)
+        .map(|n| {
+            let az = crate::terrain::angles::band_azimuth_deg(n, bins);
+            format!("horizon {unit} at azimuth {az}° ({from})")
+        })
+        .collect()
+}
+
+/// The band description of `svf.tif` (as [`terrain_files`] writes it).
+pub fn svf_description(params: &BakeParams, bins: usize) -> String {
+    format!("sky-view factor ({}, {bins} azimuths)", svf_model_name(params))
 }
 
 /// The sun shadow (SPEC §3.7) of `map` as `shadow.tif`: uint8, 1 lit, 0 shadowed, 255 at holes

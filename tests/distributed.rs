@@ -7,213 +7,23 @@
 //! engine is a failure. Each test gets its own database and bucket prefix; they run one at a
 //! time (a global lock), since one of them restarts PostgreSQL.
 
+#[path = "common/cluster.rs"]
+mod cluster;
 mod service_common;
 
+use cluster::*;
 use serde_json::Value;
 use service_common::*;
 use std::collections::{BTreeMap, BTreeSet, HashSet};
-use std::path::PathBuf;
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 static SERIAL: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
-
-const BIN: &str = env!("CARGO_BIN_EXE_horizon-bake");
 
 /// A bake slow enough to observe mid-way (a second or more on a 2-core machine). Its cost is
 /// set by the bins, not by the terrain: with 64 bins the exact kernel's span culling baked the
 /// smooth test terrain at 160² in 0.1 s, and a DELETE arrived after the bake had finished.
 const SLOW: &str = "method=exact&radius=unlimited&bins=256";
-
-struct Engines {
-    admin_url: String,
-    s3_endpoint: String,
-    bucket: String,
-    dir: PathBuf,
-}
-
-fn engines() -> Option<Engines> {
-    let var = |k: &str| std::env::var(k).ok().filter(|v| !v.is_empty());
-    match (
-        var("HORIZON_TEST_DATABASE_URL"),
-        var("HORIZON_TEST_S3_ENDPOINT"),
-        var("HORIZON_TEST_S3_BUCKET"),
-        var("HORIZON_TEST_ENGINES"),
-    ) {
-        (Some(admin_url), Some(s3_endpoint), Some(bucket), Some(dir)) => {
-            Some(Engines { admin_url, s3_endpoint, bucket, dir: PathBuf::from(dir) })
-        }
-        _ => {
-            assert!(
-                std::env::var("CI").as_deref() != Ok("true"),
-                "CI=true but PostgreSQL/S3 are not running: start them with \
-                 `scripts/engines.sh start DIR` and source DIR/env"
-            );
-            eprintln!("distributed tests skipped: run `scripts/engines.sh start DIR; . DIR/env`");
-            None
-        }
-    }
-}
-
-/// One deployment: a fresh database and bucket prefix, and the nodes started on it.
-struct Cluster {
-    eng: Engines,
-    db_url: String,
-    prefix: String,
-    tmp: tempfile::TempDir,
-    nodes: Vec<Node>,
-}
-
-struct Node {
-    child: Child,
-    base: String,
-    worker_id: String,
-}
-
-impl Drop for Cluster {
-    fn drop(&mut self) {
-        for n in &mut self.nodes {
-            let _ = n.child.kill();
-            let _ = n.child.wait();
-        }
-    }
-}
-
-fn signal(pid: u32, sig: &str) {
-    let ok = Command::new("kill").args([&format!("-{sig}"), &pid.to_string()]).status().unwrap();
-    assert!(ok.success(), "kill -{sig} {pid} failed");
-}
-
-impl Cluster {
-    async fn new(name: &str) -> Option<Cluster> {
-        let eng = engines()?;
-        let tag = format!("{name}_{}", std::process::id());
-        let admin = sqlx::PgPool::connect(&eng.admin_url).await.unwrap();
-        sqlx::query(&format!("DROP DATABASE IF EXISTS {tag}")).execute(&admin).await.unwrap();
-        sqlx::query(&format!("CREATE DATABASE {tag}")).execute(&admin).await.unwrap();
-        admin.close().await;
-        let db_url = match eng.admin_url.rsplit_once('/') {
-            Some((base, _)) => format!("{base}/{tag}"),
-            None => unreachable!(),
-        };
-        Some(Cluster { eng, db_url, prefix: tag, tmp: tempfile::tempdir().unwrap(), nodes: vec![] })
-    }
-
-    /// Starts `serve --role role` with the shared stores; returns its index.
-    fn start(&mut self, role: &str, worker_id: &str, extra: &[&str]) -> usize {
-        let i = self.nodes.len();
-        let dir = self.tmp.path().join(format!("node{i}"));
-        std::fs::create_dir_all(&dir).unwrap();
-        let addr_file = dir.join("addr");
-        let log = std::fs::File::create(dir.join("log")).unwrap();
-        let mut args: Vec<String> = [
-            "serve",
-            "--role",
-            role,
-            "--addr",
-            "127.0.0.1:0",
-            "--worker-id",
-            worker_id,
-            "--database-url",
-            &self.db_url,
-            "--s3-endpoint",
-            &self.eng.s3_endpoint,
-            "--s3-bucket",
-            &self.eng.bucket,
-            "--s3-prefix",
-            &self.prefix,
-            "--lease-secs",
-            "2",
-            "--heartbeat-ms",
-            "200",
-            "--bake-threads",
-            "2",
-        ]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
-        args.push("--addr-file".into());
-        args.push(addr_file.display().to_string());
-        args.push("--data-dir".into());
-        args.push(dir.join("data").display().to_string());
-        args.extend(extra.iter().map(|s| s.to_string()));
-        let child = Command::new(BIN)
-            .args(&args)
-            .env("RUST_LOG", "info")
-            .stdout(Stdio::null())
-            .stderr(log)
-            .spawn()
-            .unwrap();
-        let t = Instant::now();
-        while !addr_file.exists() || std::fs::read_to_string(&addr_file).unwrap().is_empty() {
-            assert!(
-                t.elapsed() < Duration::from_secs(60),
-                "node {i} did not start: {}",
-                std::fs::read_to_string(dir.join("log")).unwrap_or_default()
-            );
-            std::thread::sleep(Duration::from_millis(50));
-        }
-        let addr = std::fs::read_to_string(&addr_file).unwrap();
-        self.nodes.push(Node {
-            child,
-            base: format!("http://{}", addr.trim()),
-            worker_id: worker_id.to_owned(),
-        });
-        i
-    }
-
-    fn base(&self, i: usize) -> &str {
-        &self.nodes[i].base
-    }
-
-    fn pid(&self, i: usize) -> u32 {
-        self.nodes[i].child.id()
-    }
-
-    fn log(&self, i: usize) -> String {
-        std::fs::read_to_string(self.tmp.path().join(format!("node{i}/log"))).unwrap_or_default()
-    }
-
-    async fn db(&self) -> sqlx::PgPool {
-        sqlx::PgPool::connect(&self.db_url).await.unwrap()
-    }
-
-    /// Every blob object under this cluster's prefix.
-    async fn bucket_blobs(&self) -> BTreeSet<String> {
-        use futures_util::StreamExt;
-        use object_store::ObjectStore;
-        let s3 = object_store::aws::AmazonS3Builder::new()
-            .with_endpoint(&self.eng.s3_endpoint)
-            .with_bucket_name(&self.eng.bucket)
-            .with_region("us-east-1")
-            .with_allow_http(true)
-            .with_access_key_id(std::env::var("AWS_ACCESS_KEY_ID").unwrap())
-            .with_secret_access_key(std::env::var("AWS_SECRET_ACCESS_KEY").unwrap())
-            .build()
-            .unwrap();
-        let root = object_store::path::Path::from(format!("{}/blobs", self.prefix));
-        let metas: Vec<_> = s3.list(Some(&root)).collect().await;
-        metas.into_iter().map(|m| m.unwrap().location.filename().unwrap().to_owned()).collect()
-    }
-}
-
-async fn submit(c: &reqwest::Client, base: &str, png: &[u8], query: &str) -> (u16, Value) {
-    let r = c
-        .post(format!("{base}/v1/bakes?{query}"))
-        .header("content-type", "image/png")
-        .body(png.to_vec())
-        .send()
-        .await
-        .unwrap();
-    let s = r.status().as_u16();
-    (s, r.json().await.unwrap())
-}
-
-async fn get_json(c: &reqwest::Client, url: &str) -> (u16, Value) {
-    let r = c.get(url).send().await.unwrap();
-    let s = r.status().as_u16();
-    (s, r.json().await.unwrap_or(Value::Null))
-}
 
 /// Polls until the bake is `running` (and returns the resource).
 async fn wait_running(c: &reqwest::Client, url: &str) -> Value {
@@ -290,12 +100,6 @@ async fn results_are_byte_identical_to_the_embedded_mode_and_the_cli() {
         ("fourier_1.png", "fourier_1.png"),
     ] {
         assert_eq!(shared[ours], std::fs::read(out.join(cli)).unwrap(), "{ours} vs the CLI");
-    }
-}
-
-impl Cluster {
-    fn url_of(&self, i: usize, id: &str) -> String {
-        format!("{}/v1/bakes/{id}", self.base(i))
     }
 }
 

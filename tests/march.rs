@@ -486,3 +486,41 @@ fn far_from_holes_the_march_is_unchanged() {
     }
     assert!(same > w * h / 2 && near > 20, "{same} far, {near} near");
 }
+
+/// The walk near holes is chosen texel by texel, not per strip of SIMD lanes: a texel within
+/// R + 1 of a hole has exact's values, every other texel the plain march's, bit for bit,
+/// wherever the strips start (a tiled bake's windows start at any column, and the strip width
+/// is the CPU's), so a tiled bake near holes is the untiled one's bytes.
+#[test]
+fn the_walk_near_holes_is_chosen_texel_by_texel() {
+    let mut rng = Rng(0x4020);
+    let (w, h, radius) = (101usize, 23usize, 5u32);
+    let heights = waves(&mut rng, w, h, 3, 6.0);
+    let mut holes = vec![false; w * h];
+    // Columns 40..43, so strips of 8, 16 or 32 lanes hold texels on both sides of R + 1.
+    for y in 9..12 {
+        holes[y * w + 40..y * w + 43].fill(true);
+    }
+    let g = Grid::new(w, h, &heights, Edge::None, YAxis::Up);
+    let plain = per_bin(&March::new(g, radius, 32, Reduce::Average));
+    let holed = per_bin(&March::new(g, radius, 32, Reduce::Average).with_holes(Some(&holes)));
+    let exact =
+        per_bin(&ExactHorizon::new(g, Some(radius), 32, Reduce::Average).with_holes(Some(&holes)));
+    let reach = radius as usize + 1;
+    let (mut far, mut near) = (0, 0);
+    for t in 0..w * h {
+        let (x, y) = (t % w, t / w);
+        let is_near = (x.saturating_sub(reach)..(x + reach + 1).min(w)).any(|hx| {
+            (y.saturating_sub(reach)..(y + reach + 1).min(h)).any(|hy| holes[hy * w + hx])
+        });
+        let got = &holed[t * 32..][..32];
+        if is_near {
+            assert_eq!(got, &exact[t * 32..][..32], "texel ({x}, {y}) near the hole");
+            near += 1;
+        } else {
+            assert_eq!(got, &plain[t * 32..][..32], "texel ({x}, {y}) beyond R + 1 of the hole");
+            far += 1;
+        }
+    }
+    assert!(far > w * h / 2 && near > 100, "{far} far, {near} near");
+}

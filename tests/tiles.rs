@@ -63,6 +63,34 @@ fn tiled_layers_are_byte_identical_to_the_untiled_bake() {
     assert_eq!(checked, 12);
 }
 
+/// Nodata holes across tile seams (march and exact, both edges): each window gets the hole
+/// mask and fill of the whole map's decode, and a texel near a hole takes the exact walk with
+/// the holes wherever its window starts (`tests/march.rs` checks the march's choice texel by
+/// texel in f32), so the tiled layers are the untiled bake's.
+#[test]
+fn holes_across_tile_seams_give_the_untiled_bytes() {
+    let (w, h) = (67, 53);
+    let mut v = terrain16(w, h, 11);
+    for y in 14..22 {
+        v[y * w + 12..y * w + 21].fill(0);
+    }
+    let png =
+        horizon_bake::encode::png::encode16(w, h, horizon_bake::encode::png::PngColor::Gray, &v)
+            .unwrap();
+    // 16 bits: the two walks differ by less than 8 bits show.
+    let png16 = Formats::parse("png16", TexturePrecision::Unorm8).unwrap();
+    for method in ["march", "exact"] {
+        for edge in ["wrap", "none"] {
+            let mut p =
+                params(&format!("method={method}&edge={edge}&radius=6&height_scale=24&nodata=0"));
+            let (map, _) = heightmap::decode_for(&png, &mut p, &Limits::default()).unwrap();
+            assert!(map.terrain.holes.as_ref().is_some_and(|m| m.iter().any(|&x| x)));
+            let tiled = tiled::bake_tiled_in_memory(&map, &p, &png16, 16).unwrap();
+            assert!(tiled == untiled(&map, &p, true), "{method} edge={edge}: holes");
+        }
+    }
+}
+
 /// `radius=auto` resolves on the whole map's height range, and the kernels that work relative
 /// to the middle of the range (march, exact) see the whole map's: tiles whose own range differs
 /// a lot from the map's give the same bytes.
@@ -136,6 +164,13 @@ fn what_tiles_cannot_do_is_refused_with_the_parameter_named() {
     let ktx2 = Formats::parse("ktx2,dds", TexturePrecision::Unorm8).unwrap();
     assert!(field("radius=8", &ktx2, 100, 100).is_none());
     assert_eq!(field("radius=8&outputs=horizon,fourier", &png8, 100, 100).unwrap().0, "outputs");
+    // The terrain products are assembled tile by tile, within the untiled limit per file.
+    assert!(field("radius=8&outputs=horizon,angles,svf", &png8, 100, 100).is_none());
+    let (f, m) = field("radius=8&outputs=angles&bins=32", &png8, 4000, 4000).unwrap();
+    assert_eq!(f, "bins", "{m}");
+    assert!(field("radius=8&outputs=angles&bins=16", &png8, 4000, 4000).is_none());
+    assert_eq!(field("radius=8&outputs=svf", &png8, 20000, 20000).unwrap().0, "outputs");
+    assert!(field("radius=8&outputs=svf", &png8, 16384, 16384).is_none());
     assert!(field("radius=8", &png8, 100, 100).is_none());
 }
 

@@ -1,210 +1,23 @@
 //! Tiled bakes (SPEC §7.1) across real processes on the real engines (PostgreSQL and an S3
 //! server started by `scripts/engines.sh`, as tests/distributed.rs does): one API node and two
 //! workers bake the tiles of one map; a killed worker's tiles are taken over; DELETE stops every
-//! tile; a stalled worker cannot overwrite a tile another wrote; the results are the CLI's
-//! untiled bytes. Without the engines these tests say so and pass, except under `CI=true`.
+//! tile; a stalled worker cannot overwrite a tile another wrote; a stalled coordinator gives the
+//! bake back; the results are the CLI's untiled bytes. Without the engines these tests say so
+//! and pass, except under `CI=true`.
 
+#[path = "common/cluster.rs"]
+mod cluster;
+mod common;
 mod service_common;
 
+use cluster::*;
 use serde_json::Value;
 use service_common::*;
 use std::collections::{BTreeMap, BTreeSet};
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 static SERIAL: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
-
-const BIN: &str = env!("CARGO_BIN_EXE_horizon-bake");
-
-struct Engines {
-    admin_url: String,
-    s3_endpoint: String,
-    bucket: String,
-}
-
-fn engines() -> Option<Engines> {
-    let var = |k: &str| std::env::var(k).ok().filter(|v| !v.is_empty());
-    match (
-        var("HORIZON_TEST_DATABASE_URL"),
-        var("HORIZON_TEST_S3_ENDPOINT"),
-        var("HORIZON_TEST_S3_BUCKET"),
-        var("HORIZON_TEST_ENGINES"),
-    ) {
-        (Some(admin_url), Some(s3_endpoint), Some(bucket), Some(_)) => {
-            Some(Engines { admin_url, s3_endpoint, bucket })
-        }
-        _ => {
-            assert!(
-                std::env::var("CI").as_deref() != Ok("true"),
-                "CI=true but PostgreSQL/S3 are not running: start them with \
-                 `scripts/engines.sh start DIR` and source DIR/env"
-            );
-            eprintln!("distributed tests skipped: run `scripts/engines.sh start DIR; . DIR/env`");
-            None
-        }
-    }
-}
-
-/// One deployment: a fresh database and bucket prefix, and the nodes started on it.
-struct Cluster {
-    eng: Engines,
-    db_url: String,
-    prefix: String,
-    tmp: tempfile::TempDir,
-    nodes: Vec<Node>,
-}
-
-struct Node {
-    child: Child,
-    base: String,
-}
-
-impl Drop for Cluster {
-    fn drop(&mut self) {
-        for n in &mut self.nodes {
-            let _ = n.child.kill();
-            let _ = n.child.wait();
-        }
-    }
-}
-
-fn signal(pid: u32, sig: &str) {
-    let ok = Command::new("kill").args([&format!("-{sig}"), &pid.to_string()]).status().unwrap();
-    assert!(ok.success(), "kill -{sig} {pid} failed");
-}
-
-impl Cluster {
-    async fn new(name: &str) -> Option<Cluster> {
-        let eng = engines()?;
-        let tag = format!("{name}_{}", std::process::id());
-        let admin = sqlx::PgPool::connect(&eng.admin_url).await.unwrap();
-        sqlx::query(&format!("DROP DATABASE IF EXISTS {tag}")).execute(&admin).await.unwrap();
-        sqlx::query(&format!("CREATE DATABASE {tag}")).execute(&admin).await.unwrap();
-        admin.close().await;
-        let db_url = match eng.admin_url.rsplit_once('/') {
-            Some((base, _)) => format!("{base}/{tag}"),
-            None => unreachable!(),
-        };
-        Some(Cluster { eng, db_url, prefix: tag, tmp: tempfile::tempdir().unwrap(), nodes: vec![] })
-    }
-
-    /// Starts `serve --role role` with the shared stores; returns its index.
-    fn start(&mut self, role: &str, worker_id: &str, extra: &[&str]) -> usize {
-        let i = self.nodes.len();
-        let dir = self.tmp.path().join(format!("node{i}"));
-        std::fs::create_dir_all(&dir).unwrap();
-        let addr_file = dir.join("addr");
-        let log = std::fs::File::create(dir.join("log")).unwrap();
-        let mut args: Vec<String> = [
-            "serve",
-            "--role",
-            role,
-            "--addr",
-            "127.0.0.1:0",
-            "--worker-id",
-            worker_id,
-            "--database-url",
-            &self.db_url,
-            "--s3-endpoint",
-            &self.eng.s3_endpoint,
-            "--s3-bucket",
-            &self.eng.bucket,
-            "--s3-prefix",
-            &self.prefix,
-            "--lease-secs",
-            "2",
-            "--heartbeat-ms",
-            "200",
-            "--bake-threads",
-            "2",
-        ]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
-        args.push("--addr-file".into());
-        args.push(addr_file.display().to_string());
-        args.push("--data-dir".into());
-        args.push(dir.join("data").display().to_string());
-        args.extend(extra.iter().map(|s| s.to_string()));
-        let child = Command::new(BIN)
-            .args(&args)
-            .env("RUST_LOG", "info")
-            .stdout(Stdio::null())
-            .stderr(log)
-            .spawn()
-            .unwrap();
-        let t = Instant::now();
-        while !addr_file.exists() || std::fs::read_to_string(&addr_file).unwrap().is_empty() {
-            assert!(
-                t.elapsed() < Duration::from_secs(60),
-                "node {i} did not start: {}",
-                std::fs::read_to_string(dir.join("log")).unwrap_or_default()
-            );
-            std::thread::sleep(Duration::from_millis(50));
-        }
-        let addr = std::fs::read_to_string(&addr_file).unwrap();
-        self.nodes.push(Node { child, base: format!("http://{}", addr.trim()) });
-        i
-    }
-
-    fn base(&self, i: usize) -> &str {
-        &self.nodes[i].base
-    }
-
-    fn pid(&self, i: usize) -> u32 {
-        self.nodes[i].child.id()
-    }
-
-    fn log(&self, i: usize) -> String {
-        std::fs::read_to_string(self.tmp.path().join(format!("node{i}/log"))).unwrap_or_default()
-    }
-
-    async fn db(&self) -> sqlx::PgPool {
-        sqlx::PgPool::connect(&self.db_url).await.unwrap()
-    }
-
-    /// Every blob object under this cluster's prefix.
-    async fn bucket_blobs(&self) -> BTreeSet<String> {
-        use futures_util::StreamExt;
-        use object_store::ObjectStore;
-        let s3 = object_store::aws::AmazonS3Builder::new()
-            .with_endpoint(&self.eng.s3_endpoint)
-            .with_bucket_name(&self.eng.bucket)
-            .with_region("us-east-1")
-            .with_allow_http(true)
-            .with_access_key_id(std::env::var("AWS_ACCESS_KEY_ID").unwrap())
-            .with_secret_access_key(std::env::var("AWS_SECRET_ACCESS_KEY").unwrap())
-            .build()
-            .unwrap();
-        let root = object_store::path::Path::from(format!("{}/blobs", self.prefix));
-        let metas: Vec<_> = s3.list(Some(&root)).collect().await;
-        metas.into_iter().map(|m| m.unwrap().location.filename().unwrap().to_owned()).collect()
-    }
-}
-
-async fn submit(c: &reqwest::Client, base: &str, png: &[u8], query: &str) -> (u16, Value) {
-    let r = c
-        .post(format!("{base}/v1/bakes?{query}"))
-        .header("content-type", "image/png")
-        .body(png.to_vec())
-        .send()
-        .await
-        .unwrap();
-    let s = r.status().as_u16();
-    (s, r.json().await.unwrap())
-}
-
-async fn get_json(c: &reqwest::Client, url: &str) -> (u16, Value) {
-    let r = c.get(url).send().await.unwrap();
-    let s = r.status().as_u16();
-    (s, r.json().await.unwrap_or(Value::Null))
-}
-
-impl Cluster {
-    fn url_of(&self, i: usize, id: &str) -> String {
-        format!("{}/v1/bakes/{id}", self.base(i))
-    }
-}
 
 /// Tiling flags for every node: maps above 512² are tiled.
 fn tiling(tile: &str) -> Vec<&str> {
@@ -405,9 +218,8 @@ async fn a_stalled_worker_cannot_overwrite_a_tile_another_wrote() {
     let id = v["id"].as_str().unwrap().to_owned();
     let db = cl.db().await;
     let t = Instant::now();
-    // The stalled worker must not be the bake's coordinator (the record's `worker`): a stalled
-    // coordinator is a different failure (see the README's tiled-bake section), and w1 or w2
-    // may win the bake's claim.
+    // The stalled worker must not be the bake's coordinator (the record's `worker`; w1 or w2
+    // may win the bake's claim): a stalled coordinator is the next test's case.
     let (victim, stalled) = loop {
         let rows = tile_rows(&db, &id).await;
         let (_, v) = get_json(&c, &cl.url_of(api, &id)).await;
@@ -488,4 +300,255 @@ async fn the_embedded_mode_tiles_the_2048_map_with_the_same_bytes() {
     let ours = layers(&c, &url).await;
     let cli = cli_layers(cl.tmp.path(), &png, &["--radius", "40", "--edge", "wrap"]);
     assert!(ours == cli, "embedded tiled layers differ from the CLI's");
+}
+
+/// The database session (`pg_stat_activity.pid`) of a node named `worker` that sits in an open
+/// transaction holding what the others need: rows of `bakes` or `tiles` locked or written, or
+/// the reaper's advisory lock (`postgres::REAPER_LOCK`, split into its two 32-bit halves).
+async fn frozen_holder(db: &sqlx::PgPool, worker: &str) -> Option<i32> {
+    sqlx::query_scalar(
+        "SELECT a.pid FROM pg_stat_activity a \
+         WHERE a.application_name = $1 AND a.state LIKE 'idle in transaction%' \
+         AND ((a.backend_xid IS NOT NULL AND EXISTS (SELECT 1 FROM pg_locks l \
+                 WHERE l.pid = a.pid AND l.locktype = 'relation' \
+                 AND l.relation IN ('bakes'::regclass, 'tiles'::regclass) \
+                 AND l.mode IN ('RowShareLock', 'RowExclusiveLock'))) \
+              OR EXISTS (SELECT 1 FROM pg_locks l WHERE l.pid = a.pid \
+                 AND l.locktype = 'advisory' AND l.classid = 1752134249::oid \
+                 AND l.objid = 2054121986::oid)) \
+         LIMIT 1",
+    )
+    .bind(horizon_bake::jobs::postgres::application_name(worker))
+    .fetch_optional(db)
+    .await
+    .unwrap()
+}
+
+/// The bake's coordinator (the worker that claimed it and waits for its tiles) stopped
+/// (SIGSTOP) past its lease while inside a database transaction that holds a lock the others
+/// need (its heartbeat's row lock on the bake, a tile's, the reaper's lock): the server ends
+/// that session, the reaper gives the bake back, the other worker coordinates it (reusing the
+/// tiles already done) and finishes it with the CLI's bytes; the old coordinator, resumed,
+/// changes nothing. Before the sessions had a server-side `idle_in_transaction_session_timeout`
+/// the bake stayed `running` at attempt 1 for ever (SPEC §7).
+#[tokio::test(flavor = "multi_thread")]
+async fn a_stalled_coordinator_gives_the_bake_back() {
+    let _serial = SERIAL.lock().await;
+    let Some(mut cl) = Cluster::new("tilescoord").await else { return };
+    let api = cl.start("api", "api-a", &tiling("256"));
+    let w1 = cl.start("worker", "w1", &tiling("256"));
+    let w2 = cl.start("worker", "w2", &tiling("256"));
+    let c = client();
+    let png = terrain_png16(2048, 2048, 35);
+    let q = "radius=40&method=march&edge=none";
+    let (s, v) = submit(&c, cl.base(api), &png, q).await;
+    assert_eq!(s, 202, "{v}");
+    let id = v["id"].as_str().unwrap().to_owned();
+    let url = cl.url_of(api, &id);
+    let db = cl.db().await;
+    // Wait for the split (the tiles exist) and the first tiles done.
+    let t = Instant::now();
+    let coordinator = loop {
+        let rows = tile_rows(&db, &id).await;
+        let (_, v) = get_json(&c, &url).await;
+        let done = rows.iter().filter(|r| r.1 == "succeeded").count();
+        if let (true, Some(w)) = (done >= 1, v["worker"].as_str()) {
+            break w.to_owned();
+        }
+        assert!(t.elapsed() < Duration::from_secs(60), "no tile done: {v} {rows:?}");
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    };
+    let (stalled, other) = if coordinator == "w1" { (w1, w2) } else { (w2, w1) };
+    let other_id = if coordinator == "w1" { "w2" } else { "w1" };
+    // Stop it, until it is caught inside such a transaction (heartbeats every 200 ms, the
+    // reaper every second: a few percent of the time).
+    let t = Instant::now();
+    let mut tries = 0u64;
+    let session = loop {
+        signal(cl.pid(stalled), "STOP");
+        tokio::time::sleep(Duration::from_millis(40)).await;
+        if let Some(pid) = frozen_holder(&db, &coordinator).await {
+            break pid;
+        }
+        signal(cl.pid(stalled), "CONT");
+        tries += 1;
+        assert!(
+            t.elapsed() < Duration::from_secs(120),
+            "{coordinator} never stopped inside a transaction in {tries} tries"
+        );
+        tokio::time::sleep(Duration::from_millis(tries * 7 % 29)).await;
+    };
+    let (_, v) = get_json(&c, &url).await;
+    assert_eq!(v["status"], "running", "the bake ended before its coordinator stalled: {v}");
+    let done_before: BTreeMap<i32, i32> = tile_rows(&db, &id)
+        .await
+        .into_iter()
+        .filter(|r| r.1 == "succeeded")
+        .map(|r| (r.0, r.3))
+        .collect();
+    assert!(!done_before.is_empty());
+    // The other worker takes the bake over (attempt 2), reuses the tiles already done, and
+    // finishes it while the coordinator is still stopped.
+    let t = Instant::now();
+    let mut rows_seen: BTreeMap<i32, (String, i32)> = BTreeMap::new();
+    let before = loop {
+        for r in tile_rows(&db, &id).await {
+            rows_seen.insert(r.0, (r.1, r.3));
+        }
+        let (_, v) = get_json(&c, &url).await;
+        if v["status"] == "succeeded" {
+            break v;
+        }
+        assert!(v["status"] != "failed" && v["status"] != "canceled", "{v}");
+        if t.elapsed() > Duration::from_secs(120) {
+            let sessions: Vec<(i32, Option<String>, String, Option<String>)> = sqlx::query_as(
+                "SELECT pid, state, query, backend_xid::text FROM pg_stat_activity \
+                 WHERE application_name = $1",
+            )
+            .bind(horizon_bake::jobs::postgres::application_name(&coordinator))
+            .fetch_all(&db)
+            .await
+            .unwrap();
+            panic!(
+                "not finished with its coordinator stopped: {v}\ntiles {:?}\n{coordinator}'s \
+                 sessions (pid, state, last query, xid): {sessions:?}",
+                tile_rows(&db, &id).await
+            );
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    assert_eq!(before["worker"], other_id, "{before}");
+    assert!(metric(&c, cl.base(other), SUCCEEDED).await >= 1.0, "{}", cl.log(other));
+    assert!(before["attempts"].as_u64().unwrap() >= 2, "{before}");
+    for (idx, attempt) in &done_before {
+        assert_eq!(rows_seen[idx], ("succeeded".to_owned(), *attempt), "tile {idx} was redone");
+    }
+    let alive: bool =
+        sqlx::query_scalar("SELECT EXISTS (SELECT 1 FROM pg_stat_activity WHERE pid = $1)")
+            .bind(session)
+            .fetch_one(&db)
+            .await
+            .unwrap();
+    assert!(!alive, "the stopped coordinator's session {session} is still open");
+    // Resumed, the old coordinator learns it lost the bake and writes nothing.
+    let row = |db: sqlx::PgPool, id: String| async move {
+        let r: (String, i32, Option<String>, serde_json::Value) =
+            sqlx::query_as("SELECT status, attempt, worker, record FROM bakes WHERE id = $1")
+                .bind(id)
+                .fetch_one(&db)
+                .await
+                .unwrap();
+        r
+    };
+    let row_before = row(db.clone(), id.clone()).await;
+    signal(cl.pid(stalled), "CONT");
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let after = get_json(&c, &url).await.1;
+    for k in ["status", "attempts", "worker", "finished_at", "formats", "tiles"] {
+        assert_eq!(after[k], before[k], "{k} changed after the old coordinator resumed");
+    }
+    assert_eq!(row(db.clone(), id.clone()).await, row_before);
+    assert!(
+        cl.log(stalled).contains("lease lost") || cl.log(stalled).contains("claim is stale"),
+        "the old coordinator never learned it lost the bake:\n{}",
+        cl.log(stalled)
+    );
+    let ours = layers(&c, &url).await;
+    let cli =
+        cli_layers(cl.tmp.path(), &png, &["--radius", "40", "--method", "march", "--edge", "none"]);
+    assert!(ours == cli, "the result differs from the CLI's");
+}
+
+/// The terrain products of a tiled bake (`outputs=horizon,angles,svf`, a nodata hole across a
+/// tile seam, edge wrap), on one API and two workers: `angles.tif` and `svf.tif`, assembled tile
+/// by tile, are the CLI's untiled files byte for byte (and the layers its PNGs); GDAL
+/// (rasterio) reads them with the bands, nodata and holes of the map; the svf's PNG rendering,
+/// which would read the whole file, is a 422.
+#[tokio::test(flavor = "multi_thread")]
+async fn tiled_terrain_geotiffs_are_the_cli_s_bytes() {
+    let _serial = SERIAL.lock().await;
+    let Some(mut cl) = Cluster::new("tilestif").await else { return };
+    let api = cl.start("api", "api-a", &tiling("256"));
+    cl.start("worker", "w1", &tiling("256"));
+    cl.start("worker", "w2", &tiling("256"));
+    let c = client();
+    let (w, h) = (1024, 1024);
+    let mut heights = terrain16(w, h, 36);
+    // A hole (nodata 0) across the seam of four tiles.
+    for y in 230..290 {
+        heights[y * w + 200..y * w + 300].fill(0);
+    }
+    let png = horizon_bake::encode::png::encode16(
+        w,
+        h,
+        horizon_bake::encode::png::PngColor::Gray,
+        &heights,
+    )
+    .unwrap();
+    let q = "radius=24&method=march&edge=wrap&bins=16&outputs=horizon,angles,svf&nodata=0";
+    let (s, v) = submit(&c, cl.base(api), &png, q).await;
+    assert_eq!(s, 202, "{v}");
+    let id = v["id"].as_str().unwrap().to_owned();
+    let url = cl.url_of(api, &id);
+    let done = wait_done(&c, &url, Duration::from_secs(300)).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    assert_eq!(done["tiles"]["total"], 16, "{done}");
+    let get = |what: &'static str| {
+        let (c, url) = (c.clone(), url.clone());
+        async move {
+            let r = c.get(format!("{url}/{what}")).send().await.unwrap();
+            assert_eq!(r.status(), 200, "{what}");
+            r.bytes().await.unwrap().to_vec()
+        }
+    };
+    let (angles, svf) = (get("angles").await, get("svf").await);
+    let ours = layers(&c, &url).await;
+    let r = c.get(format!("{url}/svf?format=png")).send().await.unwrap();
+    assert_eq!(r.status(), 422);
+    let p: Value = r.json().await.unwrap();
+    assert_eq!(p["field"], "format", "{p}");
+
+    let input = cl.tmp.path().join("holed.png");
+    let out = cl.tmp.path().join("cli-terrain");
+    std::fs::write(&input, &png).unwrap();
+    let st = Command::new(BIN)
+        .args(["bake", input.to_str().unwrap(), "-o", out.to_str().unwrap()])
+        .args(["--format", "png8,geotiff", "--outputs", "horizon,angles,svf", "--bins", "16"])
+        .args(["--radius", "24", "--method", "march", "--edge", "wrap", "--nodata", "0"])
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let file = |n: &str| std::fs::read(out.join(n)).unwrap();
+    assert!(angles == file("angles.tif"), "angles.tif differs from the CLI's");
+    assert!(svf == file("svf.tif"), "svf.tif differs from the CLI's");
+    assert!(ours == [file("horizon_0.png"), file("horizon_1.png")], "layers differ");
+
+    if !common::has_rasterio() {
+        return;
+    }
+    let (a, s) = (cl.tmp.path().join("angles.tif"), cl.tmp.path().join("svf.tif"));
+    std::fs::write(&a, &angles).unwrap();
+    std::fs::write(&s, &svf).unwrap();
+    let script = format!(
+        "import rasterio, numpy as np\n\
+         with rasterio.open({a:?}) as d:\n\
+         \x20   x = d.read()\n\
+         \x20   assert (d.count, d.width, d.height) == (16, {w}, {h}), (d.count, d.width, d.height)\n\
+         \x20   assert d.block_shapes[0] == (512, 512), d.block_shapes\n\
+         \x20   assert d.nodata == 0.0, d.nodata\n\
+         \x20   assert d.descriptions[4].startswith('horizon degrees at azimuth 90'), d.descriptions\n\
+         \x20   hole = x[:, 230:290, 200:300]\n\
+         \x20   assert (hole == 0).all()\n\
+         \x20   live = np.delete(x, np.s_[230:290], axis=1)\n\
+         \x20   assert np.isfinite(live).all() and (live > -90).all() and (live < 90).all()\n\
+         with rasterio.open({s:?}) as d:\n\
+         \x20   v = d.read(1)\n\
+         \x20   assert (d.count, d.width, d.height) == (1, {w}, {h})\n\
+         \x20   assert (v[230:290, 200:300] == 0).all()\n\
+         \x20   assert ((v[:200] > 0) & (v[:200] <= 1)).mean() > 0.99, v[:200].min()\n\
+         print('ok', x.shape, v.shape)\n"
+    );
+    let out = Command::new("python3").args(["-c", &script]).output().unwrap();
+    eprintln!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "rasterio could not read the tiled bake's GeoTIFFs");
 }

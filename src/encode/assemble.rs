@@ -236,8 +236,9 @@ impl ResultIndex {
 }
 
 /// Reads `len` bytes from byte `start` of the blob named `hash` (over a blob store:
-/// `jobs::store::read_range`; encode does not import the jobs core).
-pub type ReadRange = Box<dyn FnMut(&str, u64, usize) -> Result<Vec<u8>> + Send>;
+/// `jobs::store::read_range`; encode does not import the jobs core). Called from several
+/// threads at once: the tiles a band crosses are read side by side.
+pub type ReadRange = std::sync::Arc<dyn Fn(&str, u64, usize) -> Result<Vec<u8>> + Send + Sync>;
 
 /// Rows of the whole map read from tile result blobs: for each band, one ranged read per tile
 /// that the band crosses, so memory is the band and the reads.
@@ -247,7 +248,6 @@ pub struct TileRows {
     index: Vec<Option<ResultIndex>>,
     width: usize,
     height: usize,
-    buf: Vec<u8>,
 }
 
 impl TileRows {
@@ -274,15 +274,11 @@ impl TileRows {
             return Err(Error::Internal("the tile pieces do not cover the map once".into()));
         }
         let index = vec![None; pieces.len()];
-        Ok(TileRows { read, pieces, index, width, height, buf: Vec::new() })
+        Ok(TileRows { read, pieces, index, width, height })
     }
 
     fn read_range(&mut self, hash: &str, start: u64, len: usize) -> Result<Vec<u8>> {
-        let out = (self.read)(hash, start, len)?;
-        if out.len() != len {
-            return Err(Error::Internal(format!("tile result blob {hash} is short")));
-        }
-        Ok(out)
+        checked_read(&self.read, hash, start, len)
     }
 
     fn index_of(&mut self, i: usize) -> Result<ResultIndex> {
@@ -318,6 +314,8 @@ impl TileRows {
     ) -> Result<()> {
         let w = self.width;
         let mut channels = 0;
+        // Where each crossed tile's rows lie: (piece, first row, rows, byte start, row bytes).
+        let mut wanted = Vec::new();
         for i in 0..self.pieces.len() {
             let (py0, ph) = (self.pieces[i].y0 as usize, self.pieces[i].height as usize);
             let ix = self.index_of(i)?;
@@ -342,14 +340,33 @@ impl TileRows {
             if a >= b {
                 continue;
             }
-            let p = &self.pieces[i];
-            let (px0, pw) = (p.x0 as usize, p.width as usize);
-            let row_bytes = pw * ch * T::BYTES;
+            let row_bytes = self.pieces[i].width as usize * ch * T::BYTES;
             let plane_bytes = (ph * row_bytes) as u64;
             let start = s.start + plane as u64 * plane_bytes + ((a - py0) * row_bytes) as u64;
-            let hash = p.hash.clone();
-            self.buf = self.read_range(&hash, start, (b - a) * row_bytes)?;
-            for (r, src) in self.buf.chunks_exact(row_bytes).enumerate() {
+            wanted.push((i, a, b - a, start, row_bytes));
+        }
+        // The ranges side by side (each a network round trip on a remote store), then copied
+        // into place in tile order.
+        let read = &self.read;
+        let pieces = &self.pieces;
+        let got: Vec<Result<Vec<u8>>> = std::thread::scope(|scope| {
+            let jobs: Vec<_> = wanted
+                .iter()
+                .map(|&(i, _, rows, start, row_bytes)| {
+                    let hash = pieces[i].hash.as_str();
+                    scope.spawn(move || checked_read(read, hash, start, rows * row_bytes))
+                })
+                .collect();
+            jobs.into_iter()
+                .map(|j| {
+                    j.join().unwrap_or_else(|_| Err(Error::Internal("a tile read panicked".into())))
+                })
+                .collect()
+        });
+        for (&(i, a, _, _, row_bytes), bytes) in wanted.iter().zip(got) {
+            let bytes = bytes?;
+            let (px0, pw, ch) = (pieces[i].x0 as usize, pieces[i].width as usize, channels);
+            for (r, src) in bytes.chunks_exact(row_bytes).enumerate() {
                 let at = ((a - y0 + r) * w + px0) * ch;
                 for (o, c) in out[at..at + pw * ch].iter_mut().zip(src.chunks_exact(T::BYTES)) {
                     *o = T::from_le(c);
@@ -363,6 +380,14 @@ impl TileRows {
     }
 }
 
+fn checked_read(read: &ReadRange, hash: &str, start: u64, len: usize) -> Result<Vec<u8>> {
+    let out = read(hash, start, len)?;
+    if out.len() != len {
+        return Err(Error::Internal(format!("tile result blob {hash} is short")));
+    }
+    Ok(out)
+}
+
 /// A source of rows: `(plane, y0, out)` fills `out` with whole rows from `y0` of `plane`.
 pub type RowSource<'a, T> = dyn FnMut(usize, usize, &mut [T]) -> Result<()> + 'a;
 
@@ -372,7 +397,7 @@ pub type RowSource<'a, T> = dyn FnMut(usize, usize, &mut [T]) -> Result<()> + 'a
 ///
 /// # Errors
 /// The row source's, the encoder's and `out`'s errors.
-pub fn write_png<T: PngSample + LeSample, W: Write>(
+pub fn write_png<T: PngSample + LeSample, W: Write + Send>(
     out: W,
     width: usize,
     height: usize,
@@ -385,16 +410,39 @@ pub fn write_png<T: PngSample + LeSample, W: Write>(
         PngColor::GrayAlpha => 2,
         PngColor::Rgba => 4,
     };
-    let mut w = PngRowWriter::<W, T>::new(out, width, height, color)?;
+    let w = PngRowWriter::<W, T>::new(out, width, height, color)?;
     let band = band_rows(width * ch * T::BYTES);
-    let mut buf = vec![T::default(); band * width * ch];
-    for y0 in (0..height).step_by(band) {
-        let n = band.min(height - y0);
-        let b = &mut buf[..n * width * ch];
-        rows(plane, y0, b)?;
-        w.write_rows(b)?;
-    }
-    w.finish()
+    // The encoder on its own thread, a band behind the reads: while one band is filtered and
+    // deflated the next is read (from a remote store, mostly waiting on the network). Bands
+    // go over a channel of one and come back to be refilled: at most three are alive.
+    std::thread::scope(|scope| {
+        let (full, bands) = std::sync::mpsc::sync_channel::<Vec<T>>(1);
+        let (empty, spare) = std::sync::mpsc::channel::<Vec<T>>();
+        let encoder = scope.spawn(move || -> Result<W> {
+            let mut w = w;
+            for b in bands {
+                w.write_rows(&b)?;
+                let _ = empty.send(b);
+            }
+            w.finish()
+        });
+        let mut read = Ok(());
+        for y0 in (0..height).step_by(band) {
+            let n = band.min(height - y0);
+            let mut b = spare.try_recv().unwrap_or_default();
+            b.resize(n * width * ch, T::default());
+            read = rows(plane, y0, &mut b);
+            if read.is_err() || full.send(b).is_err() {
+                break;
+            }
+        }
+        drop(full);
+        let written = encoder
+            .join()
+            .unwrap_or_else(|_| Err(Error::Internal("the PNG encoder panicked".into())));
+        read?;
+        written
+    })
 }
 
 /// Refuses the texture options a tiled bake cannot stream: `mips=full`, `bc7`/`bc5`,

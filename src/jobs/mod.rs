@@ -180,6 +180,8 @@ struct Inner {
     pool: rayon::ThreadPool,
     local: Mutex<HashMap<String, LocalRun>>,
     slots: Arc<Semaphore>,
+    /// Tiles this node runs beyond its bake slots ([`TILE_AHEAD`]).
+    tiles_ahead: Arc<Semaphore>,
     /// Stops claiming.
     stop: CancellationToken,
     /// Ends background loops and watchers.
@@ -284,6 +286,11 @@ fn failure_of(id: &str, e: &Error) -> BakeFailure {
     BakeFailure { code: e.code().to_owned(), message }
 }
 
+/// Tiles a worker runs beyond its bake slots: while one tile reads its window from the store
+/// or writes its result (the bake pool waits on the network), another's kernel keeps the pool
+/// busy, so a worker's cores are not idle between tiles.
+pub const TILE_AHEAD: usize = 1;
+
 /// Attempts after which a bake whose store kept failing under it (`store_unavailable`) fails
 /// instead of going back to the queue once more.
 const UNAVAILABLE_ATTEMPTS: u32 = 5;
@@ -326,6 +333,7 @@ impl Jobs {
         let (changes, _) = broadcast::channel(1024);
         Ok(Jobs(Arc::new(Inner {
             slots: Arc::new(Semaphore::new(cfg.concurrency.max(1))),
+            tiles_ahead: Arc::new(Semaphore::new(TILE_AHEAD)),
             repo,
             blobs,
             cfg,
@@ -407,8 +415,12 @@ impl Jobs {
         let fwd = self.clone();
         tokio::spawn(async move { fwd.forward_changes().await });
         if self.0.cfg.concurrency > 0 {
-            let w = self.clone();
-            tokio::spawn(async move { w.work_loop().await });
+            let (w, slots) = (self.clone(), self.0.slots.clone());
+            tokio::spawn(async move { w.claim_loop(slots, true).await });
+            if self.tiling().is_some() {
+                let (t, ahead) = (self.clone(), self.0.tiles_ahead.clone());
+                tokio::spawn(async move { t.claim_loop(ahead, false).await });
+            }
         }
         let r = self.clone();
         tokio::spawn(async move { r.reap_loop().await });
@@ -629,19 +641,20 @@ impl Jobs {
         }
     }
 
-    /// Claims bakes while slots are free, until [`Jobs::drain`].
-    async fn work_loop(&self) {
+    /// Claims work while `slots` has a permit free, until [`Jobs::drain`]: tiles of running
+    /// bakes first (they finish started work), then, with `bakes`, new bakes. The bake slots
+    /// run one such loop, the tiles beyond them ([`TILE_AHEAD`]) another, tiles only.
+    async fn claim_loop(&self, slots: Arc<Semaphore>, bakes: bool) {
         let mut wake = self.0.repo.subscribe();
         loop {
             let permit = tokio::select! {
-                p = self.0.slots.clone().acquire_owned() => match p { Ok(p) => p, Err(_) => return },
+                p = slots.clone().acquire_owned() => match p { Ok(p) => p, Err(_) => return },
                 _ = self.0.stop.cancelled() => return,
             };
             let work = loop {
                 if self.0.stop.is_cancelled() {
                     return;
                 }
-                // Tiles of bakes already running first: they finish started work.
                 if self.tiling().is_some() {
                     match self.0.repo.claim_tile(&self.0.cfg.worker_id, self.0.cfg.lease).await {
                         Ok(Some(t)) => break Work::Tile(Box::new(t)),
@@ -649,10 +662,12 @@ impl Jobs {
                         Err(e) => tracing::warn!(error = %e, "cannot claim a tile; retrying"),
                     }
                 }
-                match self.0.repo.claim(&self.0.cfg.worker_id, self.0.cfg.lease).await {
-                    Ok(Some(c)) => break Work::Bake(Box::new(c)),
-                    Ok(None) => {}
-                    Err(e) => tracing::warn!(error = %e, "cannot claim a bake; retrying"),
+                if bakes {
+                    match self.0.repo.claim(&self.0.cfg.worker_id, self.0.cfg.lease).await {
+                        Ok(Some(c)) => break Work::Bake(Box::new(c)),
+                        Ok(None) => {}
+                        Err(e) => tracing::warn!(error = %e, "cannot claim a bake; retrying"),
+                    }
                 }
                 tokio::select! {
                     _ = self.0.stop.cancelled() => return,
@@ -837,6 +852,15 @@ impl Jobs {
                     continue;
                 }
             };
+            if tiles.is_empty() {
+                // Another claim of this bake finished it and removed its tiles while this one
+                // stalled: the completion below is refused as stale (if not, something removed
+                // the tiles of a running bake, and it fails rather than assembles nothing).
+                return Ended::Done(Err(Error::Internal(format!(
+                    "the tiles of bake {} are gone",
+                    claim.id
+                ))));
+            }
             let total = tiles.len() as u64;
             let done = tiles.iter().filter(|t| t.status == Status::Succeeded).count() as u64;
             if !started {
@@ -886,6 +910,15 @@ impl Jobs {
                 _ = tokio::time::sleep(Duration::from_millis(250)) => {}
             }
         };
+        // A claim that stalled while it waited (SIGSTOP, a frozen VM) may have been taken over
+        // and its bake finished by another worker: it learns so here, before it spends an
+        // assembly on results nobody would record.
+        if let Ok(Beat::Lost) = self.0.repo.heartbeat(claim, run.live(), self.0.cfg.lease).await {
+            tracing::warn!(bake = %claim.id, attempt = claim.attempt,
+                "lease lost before the assembly: the bake belongs to another worker now");
+            lost.store(true, Ordering::SeqCst);
+            return Ended::Done(Err(Error::Canceled));
+        }
         // The assembly takes no slot either: an idle work loop holds one while it waits for
         // work, and the assembly is the last step of work already claimed.
         let count = tiles::TileCount { done: tiles.len() as u32, total: tiles.len() as u32 };

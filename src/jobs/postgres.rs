@@ -19,6 +19,11 @@
 //!   (`blob_pins`) before publishing it. Pinning and deleting take the same advisory lock per
 //!   hash, and a delete re-checks pins and references under it, so a blob a writer is about to
 //!   reference is never deleted.
+//! - **A stalled node holds no lock for long**: every session has a server-side
+//!   `idle_in_transaction_session_timeout` of half the lease ([`idle_in_transaction_ms`]), so a
+//!   process frozen inside a transaction (its heartbeat's row lock, the reaper's lock) has its
+//!   session ended and its locks freed before its lease runs out, and the reaper can give its
+//!   work back (SPEC §7).
 //! - **Migrations** run at start under a session advisory lock, numbered in `horizon_schema`.
 
 use crate::error::{Error, Result};
@@ -91,9 +96,13 @@ CREATE INDEX tiles_leases ON tiles (lease_until) WHERE status = 'running';
 fn pg_err(e: sqlx::Error) -> Error {
     match e {
         // SQLSTATE classes 08 (connection), 53 (resources), 57 (operator intervention: a
-        // shutdown or restart terminating sessions): the database is away, not our bug.
+        // shutdown or restart terminating sessions), and 25P03 (this session sat in a
+        // transaction past `idle_in_transaction_session_timeout`, so the server ended it): the
+        // database is away, or we stalled, not our bug.
         sqlx::Error::Database(d)
-            if d.code().is_some_and(|c| ["08", "53", "57"].iter().any(|k| c.starts_with(k))) =>
+            if d.code().is_some_and(|c| {
+                c == "25P03" || ["08", "53", "57"].iter().any(|k| c.starts_with(k))
+            }) =>
         {
             Error::Unavailable(format!("database: {d}"))
         }
@@ -160,6 +169,31 @@ async fn cancel_tiles_tx(tx: &mut Transaction<'_, Postgres>, id: &str) -> Result
     .await
     .map_err(pg_err)?;
     Ok(())
+}
+
+/// The server-side `idle_in_transaction_session_timeout` of every session, in milliseconds: half
+/// the lease (at least a second).
+///
+/// A process that stalls (SIGSTOP, a frozen VM, a long pause) inside one of its transactions
+/// would otherwise hold that transaction's locks for as long as it stalls: its heartbeat's row
+/// lock on the bake (the reaper's `FOR UPDATE SKIP LOCKED` skips it for ever, so the bake stays
+/// `running`), a tile's row lock, the reaper's advisory lock. The server ends such a session
+/// (rolling its transaction back) once it has been idle that long, which a frozen client cannot
+/// prevent, so its locks are free before its lease runs out. Every transaction here runs its
+/// statements back to back (a blob deletion waits for one object store call inside its own),
+/// so a live node never comes near it; if one does, its statement fails as
+/// [`Error::Unavailable`] and is retried like a database outage.
+pub fn idle_in_transaction_ms(lease: Duration) -> u128 {
+    (lease / 2).max(Duration::from_secs(1)).as_millis()
+}
+
+/// The `application_name` of node `name`'s sessions (PostgreSQL keeps 63 bytes of it).
+pub fn application_name(name: &str) -> String {
+    let mut s = format!("horizon-bake {name}");
+    while s.len() > 63 {
+        s.pop();
+    }
+    s
 }
 
 /// [`JobRepo`] on PostgreSQL.
@@ -248,9 +282,13 @@ impl PgRepo {
     ///
     /// # Errors
     /// When the database cannot be reached within `wait` or a migration fails.
-    pub async fn connect(url: &str, wait: Duration) -> Result<Self> {
+    pub async fn connect(url: &str, wait: Duration, name: &str, lease: Duration) -> Result<Self> {
         let opts: sqlx::postgres::PgConnectOptions =
             url.parse().map_err(|e| Error::param("database_url", format!("{e}")))?;
+        // Operators (and the tests) find a node's sessions in `pg_stat_activity` by it.
+        let opts = opts
+            .application_name(&application_name(name))
+            .options([("idle_in_transaction_session_timeout", idle_in_transaction_ms(lease))]);
         let pool = PgPoolOptions::new()
             .max_connections(16)
             .acquire_timeout(Duration::from_secs(3))

@@ -257,9 +257,9 @@ impl<'a> March<'a> {
     /// the samples that lerp a hole corner low, but not the rest of such a cell: its twist is
     /// enormous, so the interior points of a piece through it rise far above the surface, and
     /// an edge between two such cells is no surface either. The march measured 25° p99 over
-    /// `exact` near 6 % random holes (`tests/march.rs`). So a strip of texels with a hole
-    /// within R + 1 (the farthest corner its rays can read) takes [`ExactHorizon`]'s walk with
-    /// the holes instead, texel by texel; the rest of the map keeps the vectorised march. A DEM
+    /// `exact` near 6 % random holes (`tests/march.rs`). So a texel with a hole within R + 1
+    /// (the farthest corner its rays can read) takes [`ExactHorizon`]'s walk with the holes
+    /// instead; the rest of the map keeps the vectorised march. A DEM
     /// whose nodata is a border pays the exact kernel's price only within R of it.
     pub fn with_holes(mut self, holes: Option<&'a [bool]>) -> Self {
         let (w, h) = (self.grid.width, self.grid.height);
@@ -753,20 +753,26 @@ impl HorizonRows for March<'_> {
                     if self.progress.as_ref().is_some_and(Progress::is_canceled) {
                         return;
                     }
-                    let near_hole = self.holes.as_ref().filter(|(_, near)| {
-                        let row = (y0 + r) * w;
-                        near[row + x0..row + (x0 + lanes).min(w)].iter().any(|&n| n)
-                    });
-                    if let Some((exact, _)) = near_hole {
-                        for l in 0..lanes.min(w - x0) {
+                    // Texel by texel, not strip by strip: which walk a texel takes must not
+                    // depend on where the strips start (a tile's window starts anywhere in the
+                    // map, and the strip width is the CPU's), so a tiled bake is the untiled
+                    // one's bytes. The march's lanes are independent of each other.
+                    let row = (y0 + r) * w;
+                    let span = row + x0..row + (x0 + lanes).min(w);
+                    let near_hole =
+                        self.holes.as_ref().filter(|(_, near)| near[span.clone()].contains(&true));
+                    let all_near = near_hole.is_some_and(|(_, near)| !near[span].contains(&false));
+                    if !all_near {
+                        let base = (r + self.pad) * self.stride + self.pad + x0;
+                        self.strip(tiles, base, cast, &mut sbuf);
+                    }
+                    if let Some((exact, near)) = near_hole {
+                        for l in (0..lanes.min(w - x0)).filter(|&l| near[row + x0 + l]) {
                             exact.texel_bins(x0 + l, y0 + r, &mut hbuf);
                             for (n, &v) in hbuf.iter().enumerate() {
                                 sbuf[n * lanes + l] = v;
                             }
                         }
-                    } else {
-                        let base = (r + self.pad) * self.stride + self.pad + x0;
-                        self.strip(tiles, base, cast, &mut sbuf);
                     }
                     // The reduction across the strip's lanes at once, bins in the same order
                     // as one texel at a time (so the same f32 sums).

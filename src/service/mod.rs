@@ -131,9 +131,13 @@ impl AppState {
         match config.backend.clone() {
             Backend::Embedded => Self::open(config),
             Backend::Shared { database_url, s3 } => {
-                let repo =
-                    crate::jobs::postgres::PgRepo::connect(&database_url, Duration::from_secs(30))
-                        .await?;
+                let repo = crate::jobs::postgres::PgRepo::connect(
+                    &database_url,
+                    Duration::from_secs(30),
+                    &config.worker_id,
+                    config.lease,
+                )
+                .await?;
                 let spool = config.data_dir.join("spool");
                 let blobs = crate::jobs::s3::S3BlobStore::connect(&s3, &spool).await?;
                 Self::with_stores(config, Arc::new(repo), Arc::new(blobs))

@@ -91,11 +91,36 @@ pub fn check(
             ),
         ));
     }
-    if params.outputs.fourier || params.outputs.terrain() {
+    if params.outputs.fourier {
         return Err(Error::param(
             "outputs",
-            "a tiled bake (map above --tile-above) produces the horizon layers only; ask for \
-             outputs=horizon",
+            "a tiled bake (map above --tile-above) produces the horizon layers and the terrain \
+             products (angles, svf); not fourier",
+        ));
+    }
+    // Each terrain product is one classic GeoTIFF, assembled tile by tile: the untiled bake's
+    // limit on its values holds (the file's 4 GiB offsets), not on memory.
+    let texels = width as u64 * height as u64;
+    let nb = params.bins as u64;
+    if params.outputs.angles && texels * nb > bake::MAX_ANGLE_VALUES {
+        return Err(Error::param(
+            "bins",
+            format!(
+                "angles of a {width}×{height} map at {nb} bins are {} values, above the limit \
+                 of {}; use fewer bins or a smaller map",
+                texels * nb,
+                bake::MAX_ANGLE_VALUES
+            ),
+        ));
+    }
+    if params.outputs.svf && texels > bake::MAX_ANGLE_VALUES {
+        return Err(Error::param(
+            "outputs",
+            format!(
+                "svf of a {width}×{height} map is {texels} values, above the limit of {} for \
+                 one GeoTIFF; ask for outputs=horizon or use a smaller map",
+                bake::MAX_ANGLE_VALUES
+            ),
         ));
     }
     if formats.exr {
@@ -170,13 +195,30 @@ impl Tiler for ServiceTiler {
         let plan = TilePlan::new(w, h, self.settings.tile_size, halo, params.edge)?;
         let windows: Vec<Window> = plan.tiles().map(|g| window_of(&g)).collect();
         let mut hashes = vec![String::new(); windows.len()];
-        let stats = decode(&windows, &mut |i, blob| {
-            if progress.is_canceled() {
-                return Err(Error::Canceled);
-            }
-            hashes[i] = blobs.put(&blob)?;
-            Ok(())
-        })?;
+        // The windows are stored on their own thread while the decode goes on (a put is a
+        // network transfer: the decoder need not wait for it); two wait their turn at most.
+        let (stats, stored) = std::thread::scope(|scope| {
+            let (tx, rx) = std::sync::mpsc::sync_channel::<(usize, Vec<u8>)>(2);
+            let putter = scope.spawn(move || -> Result<Vec<(usize, String)>> {
+                rx.into_iter().map(|(i, blob)| Ok((i, blobs.put(&blob)?))).collect()
+            });
+            let stats = decode(&windows, &mut |i, blob| {
+                if progress.is_canceled() {
+                    return Err(Error::Canceled);
+                }
+                // A closed channel means the putter failed: its error is the one reported.
+                tx.send((i, blob)).map_err(|_| Error::Internal("the tile store stopped".into()))
+            });
+            drop(tx);
+            let stored = putter
+                .join()
+                .unwrap_or_else(|_| Err(Error::Internal("storing a tile panicked".into())));
+            (stats, stored)
+        });
+        for (i, hash) in stored? {
+            hashes[i] = hash;
+        }
+        let stats = stats?;
         let range = stats.scaled_range(params.height_scale);
         bake::check_scaled(&[range.0, range.1])?;
         let ctx = TileContext {
@@ -243,11 +285,57 @@ impl Tiler for ServiceTiler {
             .collect::<Result<_>>()?;
         let read = || -> assemble::ReadRange {
             let store = self.store.clone();
-            Box::new(move |hash: &str, start, len| read_range(store.as_ref(), hash, start, len))
+            Arc::new(move |hash: &str, start, len| read_range(store.as_ref(), hash, start, len))
         };
+        let params = params_of(rec)?;
         let mut done = rec.clone();
-        let textures = formats.ktx2 || formats.dds;
-        if formats.png8 || formats.png16 || !textures {
+        let (w, h) = (ctx.plan.width as usize, ctx.plan.height as usize);
+        if params.outputs.terrain() {
+            // As the untiled bake: its georeferencing and nodata, its band descriptions.
+            let stats = match &ctx.stats {
+                serde_json::Value::Null => None,
+                j => Some(MapStats::from_json(j)?),
+            };
+            let georef = stats.as_ref().and_then(|s| s.georef.clone());
+            let nodata = stats.as_ref().and_then(|s| s.nodata).map_or(f32::NAN, |v| v as f32);
+            let nb = params.bins as usize;
+            let files = [
+                (params.outputs.angles, "angles.tif", assemble::tag::ANGLES),
+                (params.outputs.svf, "svf.tif", assemble::tag::SVF),
+            ];
+            progress.start(Stage::Encode, files.iter().filter(|f| f.0).count() as u64);
+            for (wanted, name, tag) in files {
+                if !wanted {
+                    continue;
+                }
+                let names = if tag == assemble::tag::ANGLES {
+                    crate::pipeline::angle_descriptions(&params, nb)
+                } else {
+                    vec![crate::pipeline::svf_description(&params, nb)]
+                };
+                let mut rows = TileRows::new(read(), pieces_of(&pieces), w, h)?;
+                let mut src = |b: usize, y: usize, out: &mut [f32]| {
+                    if progress.is_canceled() {
+                        return Err(Error::Canceled);
+                    }
+                    rows.read(tag, b, y, out)
+                };
+                let out = assemble::write_geotiff(
+                    blobs.writer()?,
+                    w,
+                    h,
+                    &names,
+                    georef.as_ref(),
+                    nodata,
+                    None,
+                    &mut src,
+                )?;
+                done.results.insert(name.to_owned(), out.commit()?);
+                progress.advance(1);
+            }
+        }
+        let textures = params.outputs.horizon && (formats.ktx2 || formats.dds);
+        if params.outputs.horizon && (formats.png8 || formats.png16 || !textures) {
             let outs = [blobs.writer()?, blobs.writer()?];
             let [a, b] = if formats.png16 {
                 assemble_pngs::<u16, _>(&ctx.plan, &pieces, &read, progress, outs)?
@@ -264,7 +352,6 @@ impl Tiler for ServiceTiler {
             done.results.insert(n1.to_owned(), h1);
         }
         if textures {
-            let (w, h) = (ctx.plan.width as usize, ctx.plan.height as usize);
             let mut rows = TileRows::new(read(), pieces_of(&pieces), w, h)?;
             let mut kept = Vec::new();
             assemble::write_textures(
@@ -397,14 +484,38 @@ pub fn bake_tile_into<W: Write>(
     }
     let (ox, oy) = g.interior_offset();
     let interior = (ox as usize, oy as usize, g.interior.w as usize, g.interior.h as usize);
+    // The terrain products first (as the untiled bake does): the horizon bake consumes the window.
+    let (range, radius) = (ctx.range, ctx.radius);
+    let mut window = Some(window);
+    let terrain = if params.outputs.terrain() {
+        let w = if params.outputs.horizon { window.clone() } else { window.take() };
+        let w = w.ok_or_else(|| Error::Internal("no window".into()))?;
+        Some(bake::bake_terrain_window(w, params, interior, range, radius, progress)?)
+    } else {
+        None
+    };
     let mut precisions = formats.precisions();
     if !(precisions.u8 || precisions.u16 || precisions.f32) {
         precisions.u8 = true;
     }
-    let layers =
-        bake::bake_window(window, params, interior, ctx.range, ctx.radius, precisions, progress)?;
-    // One section per precision the formats need (PNGs and textures read their own).
+    let layers = match window {
+        Some(w) => bake::bake_window(w, params, interior, range, radius, precisions, progress)?,
+        None => crate::layers::HorizonLayers::default(),
+    };
+    // One section per precision the formats need (PNGs and textures read their own), one per
+    // terrain product (GeoTIFFs read theirs).
     let mut sections = Vec::new();
+    if let Some(t) = &terrain {
+        let plane = t.width * t.height;
+        if let Some(a) = &t.angles {
+            let planes = a.chunks_exact(plane).map(Plane::F32).collect();
+            sections.push(Section { tag: assemble::tag::ANGLES, channels: 1, planes });
+        }
+        if let Some(v) = &t.svf {
+            let planes = vec![Plane::F32(v)];
+            sections.push(Section { tag: assemble::tag::SVF, channels: 1, planes });
+        }
+    }
     if let Some([l0, l1]) = &layers.u8 {
         let planes = vec![Plane::U8(l0), Plane::U8(l1)];
         sections.push(Section { tag: assemble::tag::HORIZON_U8, channels: 4, planes });
@@ -514,7 +625,7 @@ pub fn bake_tiled_in_memory(
     let results = Arc::new(results);
     let read = || -> assemble::ReadRange {
         let results = results.clone();
-        Box::new(move |k: &str, start, len| {
+        Arc::new(move |k: &str, start, len| {
             let b = results.get(k).ok_or_else(|| Error::Internal(k.to_owned()))?;
             let s = start as usize;
             Ok(b.get(s..s + len).ok_or_else(|| Error::Internal(k.to_owned()))?.to_vec())

@@ -20,6 +20,22 @@ pub fn golden_dir() -> PathBuf {
     d
 }
 
+/// Whether python3 with rasterio and numpy (GDAL, for reading our GeoTIFFs back) is here; when
+/// it is not, says so (the caller skips its read-back), except under `CI=true`, where that is
+/// a failure.
+pub fn has_rasterio() -> bool {
+    let ci = std::env::var("CI").is_ok_and(|v| v == "true");
+    let has = std::process::Command::new("python3")
+        .args(["-c", "import rasterio, numpy"])
+        .status()
+        .is_ok_and(|s| s.success());
+    if !has {
+        assert!(!ci, "CI=true: python3 with rasterio and numpy is required (pip install rasterio)");
+        eprintln!("skipped the GDAL read-back: python3 with rasterio is missing");
+    }
+    has
+}
+
 /// Little-endian f32 file.
 pub fn read_f32(path: &std::path::Path) -> Vec<f32> {
     let b = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));

@@ -26,6 +26,11 @@ impl Rng {
 
 /// A 16-bit gray PNG of smooth random terrain (a few summed waves plus noise).
 pub fn terrain_png16(w: usize, h: usize, seed: u64) -> Vec<u8> {
+    encode16(w, h, PngColor::Gray, &terrain16(w, h, seed)).unwrap()
+}
+
+/// The samples of [`terrain_png16`], row-major.
+pub fn terrain16(w: usize, h: usize, seed: u64) -> Vec<u16> {
     let mut rng = Rng(seed);
     let waves: Vec<(f64, f64, f64)> = (0..4)
         .map(|_| {
@@ -48,7 +53,7 @@ pub fn terrain_png16(w: usize, h: usize, seed: u64) -> Vec<u8> {
             data.push((val * 65535.0) as u16);
         }
     }
-    encode16(w, h, PngColor::Gray, &data).unwrap()
+    data
 }
 
 /// An 8-bit gray PNG of white noise (cheap to make at 4096²).

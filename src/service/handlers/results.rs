@@ -457,6 +457,15 @@ pub async fn svf(
     let Some(hash) = rec.results.get("svf.tif").cloned() else {
         return Err(not_produced(&id, "svf"));
     };
+    if rec.tiles.is_some() {
+        // Rendering reads the whole file into memory, which a tiled bake never does.
+        return Err(crate::Error::param(
+            "format",
+            "this bake was baked in tiles (its map is above --tile-above): its svf is served as \
+             the GeoTIFF only (format=geotiff), never rendered whole",
+        )
+        .into());
+    }
     let etag = derived_etag(&["svf.png", &hash]);
     if etag_matches(&headers, &etag) {
         let mut res = StatusCode::NOT_MODIFIED.into_response();
