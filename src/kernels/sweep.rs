@@ -650,7 +650,9 @@ struct Scratch {
     /// Hull links: the next vertex away from the sweep's current position (`nx[u·16 + lane]`,
     /// a column, −1: none), and in the prefix pass the next one to the right (`fw`).
     nx: Vec<i32>,
+    ny: Vec<f32>,
     fw: Vec<i32>,
+    fwy: Vec<f32>,
     /// The suffix pass's tangents, `sb[q·16 + lane]` (−∞: none).
     sb: Vec<f32>,
 }
@@ -734,8 +736,10 @@ fn far_field_fast(
     sc.wsum.resize(w * h, 0.0);
     sc.ys.resize(len as usize * FL, 0.0);
     sc.nx.resize(len as usize * FL, -1);
+    sc.ny.resize(len as usize * FL, 0.0);
     if r_steps.is_some() {
         sc.fw.resize(len as usize * FL, -1);
+        sc.fwy.resize(len as usize * FL, 0.0);
         sc.sb.resize(wa * FL, f32::NEG_INFINITY);
     }
     let mut cols = Vec::with_capacity(len as usize);
@@ -801,6 +805,11 @@ fn lane_range(b0: i64, lim: i64, nl: u32) -> u16 {
 /// One group of up to 16 lines i0 .. i0 + nl of a family: the suffix (or whole-line) pass right
 /// to left, then with a finite window the prefix pass left to right, and the weighted
 /// tangents into `out` and `sc.wsum`.
+///
+/// Each lane's hull is a linked list through the columns: `nx[u]`/`ny[u]` hold the column and
+/// height of the vertex after u. The three vertices nearest the sweep's position stay in
+/// registers (t1, t2, t3 and their heights), so a pop or a query step of one or two vertices
+/// waits for no gather; the gather that refills t3 is needed only a pop later.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, out: &mut [f32], sc: &mut Scratch) {
@@ -809,27 +818,46 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, out: &mut [f32], sc: &m
     let lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
     let none = _mm512_set1_epi32(-1);
     let zero_i = _mm512_setzero_si512();
+    let ninf = _mm512_set1_ps(f32::NEG_INFINITY);
     let ys = sc.ys.as_mut_ptr();
     let nx = sc.nx.as_mut_ptr();
+    let ny = sc.ny.as_mut_ptr();
     let fw = sc.fw.as_mut_ptr();
+    let fwy = sc.fwy.as_mut_ptr();
     let data = f.data.as_ptr();
     macro_rules! idx {
         ($t:expr) => {
             _mm512_add_epi32(_mm512_slli_epi32::<4>($t), lane)
         };
     }
-    // Lanes whose sample at column u is on the surface, and lane 0's minor there.
-    let valid = |u: i64| -> (u16, i64) {
-        let c = f.cols[u as usize];
-        if f.wrap {
+    macro_rules! load_h0 {
+        ($q:expr, $b0:expr) => {
+            _mm512_loadu_ps(data.offset((f.cols[$q as usize].base as i64 + $b0) as isize))
+        };
+    }
+    // Lanes whose sample at column u is on the surface, and their samples.
+    macro_rules! sample {
+        ($u:expr) => {{
+            let c = f.cols[$u as usize];
             let s = c.start + i0;
-            (all, if s >= f.hb { s - f.hb } else { s })
-        } else {
-            let s = c.start + i0;
-            let lim = f.hb - 1 + i64::from(c.wt0);
-            (lane_range(s, lim, nl), s)
-        }
-    };
+            let (vm, s) = if f.wrap {
+                (all, if s >= f.hb { s - f.hb } else { s })
+            } else {
+                (lane_range(s, f.hb - 1 + i64::from(c.wt0), nl), s)
+            };
+            let v = if vm != 0 {
+                let p = data.offset((c.base as i64 + s) as isize);
+                let a = _mm512_loadu_ps(p);
+                let b = _mm512_loadu_ps(p.add(1));
+                let v = _mm512_add_ps(a, _mm512_mul_ps(_mm512_sub_ps(b, a), _mm512_set1_ps(c.wt)));
+                _mm512_storeu_ps(ys.add($u as usize * FL), v);
+                v
+            } else {
+                ninf
+            };
+            (vm, v)
+        }};
+    }
     // Lanes whose texel at query column q is in the map, and lane 0's minor there.
     let texels = |q: i64| -> (u16, i64) {
         let b0 = i0 - f.qs[q as usize].shift;
@@ -839,34 +867,54 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, out: &mut [f32], sc: &m
             (lane_range(b0, f.hb, nl), b0)
         }
     };
-    macro_rules! load_h0 {
-        ($q:expr, $b0:expr) => {
-            _mm512_loadu_ps(data.offset((f.cols[$q as usize].base as i64 + $b0) as isize))
-        };
+    // Pops the lanes of `pm` (t1 ← t2 ← t3 ← the vertex after t3).
+    macro_rules! pop {
+        ($pm:expr, $t1:ident, $y1:ident, $t2:ident, $y2:ident, $t3:ident, $y3:ident) => {{
+            let pm = $pm;
+            $t1 = _mm512_mask_mov_epi32($t1, pm, $t2);
+            $y1 = _mm512_mask_mov_ps($y1, pm, $y2);
+            $t2 = _mm512_mask_mov_epi32($t2, pm, $t3);
+            $y2 = _mm512_mask_mov_ps($y2, pm, $y3);
+            let gm = _mm512_mask_cmpge_epi32_mask(pm, $t2, zero_i);
+            let i = idx!($t2);
+            let gt = _mm512_mask_i32gather_epi32::<4>(none, gm, i, nx as *const i32);
+            let gy = _mm512_mask_i32gather_ps::<4>(ninf, gm, i, ny as *const f32);
+            $t3 = _mm512_mask_mov_epi32($t3, pm, gt);
+            $y3 = _mm512_mask_mov_ps($y3, pm, gy);
+        }};
+    }
+    // Pushes column u (value v) for the lanes of vm.
+    macro_rules! push {
+        ($vm:expr, $u:expr, $v:expr, $t1:ident, $y1:ident, $t2:ident, $y2:ident, $t3:ident, $y3:ident) => {{
+            let vm = $vm;
+            _mm512_storeu_epi32(nx.add($u as usize * FL), $t1);
+            _mm512_storeu_ps(ny.add($u as usize * FL), $y1);
+            $t3 = _mm512_mask_mov_epi32($t3, vm, $t2);
+            $y3 = _mm512_mask_mov_ps($y3, vm, $y2);
+            $t2 = _mm512_mask_mov_epi32($t2, vm, $t1);
+            $y2 = _mm512_mask_mov_ps($y2, vm, $y1);
+            $t1 = _mm512_mask_mov_epi32($t1, vm, _mm512_set1_epi32($u as i32));
+            $y1 = _mm512_mask_mov_ps($y1, vm, $v);
+        }};
     }
     let blocked = f.r_steps.is_some();
     let blk = f.r_steps.map_or(i64::MAX, |(_, b)| b);
+    // The suffix pass needs the samples up to the end of the block of the last query.
+    let last = if blocked { ((f.wa - 1 + f.d) / blk + 1) * blk - 1 } else { f.len - 1 };
     if blocked {
         // Query columns the suffix pass does not reach (within N of the line's end).
         let from = (f.len - f.d).clamp(0, f.wa) as usize * FL;
         sc.sb[from..f.wa as usize * FL].fill(f32::NEG_INFINITY);
     }
     // Suffix (or whole-line) pass, right to left.
-    let (mut t1, mut t2) = (none, none);
-    let (mut y1, mut y2) = (_mm512_setzero_ps(), _mm512_setzero_ps());
-    for up in (f.d..f.len).rev() {
+    let (mut t1, mut t2, mut t3) = (none, none, none);
+    let (mut y1, mut y2, mut y3) = (ninf, ninf, ninf);
+    for up in (f.d..=last.min(f.len - 1)).rev() {
         if blocked && up % blk == blk - 1 {
-            t1 = none;
-            t2 = none;
+            (t1, t2, t3) = (none, none, none);
         }
-        let (vm, s) = valid(up);
+        let (vm, v) = sample!(up);
         if vm != 0 {
-            let c = f.cols[up as usize];
-            let p = data.offset((c.base as i64 + s) as isize);
-            let a = _mm512_loadu_ps(p);
-            let b = _mm512_loadu_ps(p.add(1));
-            let v = _mm512_add_ps(a, _mm512_mul_ps(_mm512_sub_ps(b, a), _mm512_set1_ps(c.wt)));
-            _mm512_storeu_ps(ys.add(up as usize * FL), v);
             let xp = _mm512_set1_ps(up as f32);
             loop {
                 let has2 = _mm512_mask_cmpge_epi32_mask(vm, t2, zero_i);
@@ -882,17 +930,9 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, out: &mut [f32], sc: &m
                 if pm == 0 {
                     break;
                 }
-                t1 = _mm512_mask_mov_epi32(t1, pm, t2);
-                y1 = _mm512_mask_mov_ps(y1, pm, y2);
-                t2 = _mm512_mask_i32gather_epi32::<4>(t2, pm, idx!(t1), nx as *const i32);
-                let pm2 = _mm512_mask_cmpge_epi32_mask(pm, t2, zero_i);
-                y2 = _mm512_mask_i32gather_ps::<4>(y2, pm2, idx!(t2), ys as *const f32);
+                pop!(pm, t1, y1, t2, y2, t3, y3);
             }
-            _mm512_storeu_epi32(nx.add(up as usize * FL), t1);
-            t2 = _mm512_mask_mov_epi32(t2, vm, t1);
-            y2 = _mm512_mask_mov_ps(y2, vm, y1);
-            t1 = _mm512_mask_mov_epi32(t1, vm, _mm512_set1_epi32(up as i32));
-            y1 = _mm512_mask_mov_ps(y1, vm, v);
+            push!(vm, up, v, t1, y1, t2, y2, t3, y3);
         }
         let q = up - f.d;
         if q >= f.wa || !f.qs[q as usize].on {
@@ -900,13 +940,15 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, out: &mut [f32], sc: &m
         }
         let (tm, b0) = texels(q);
         let qm = tm & _mm512_cmpge_epi32_mask(t1, zero_i);
-        let mut res = _mm512_set1_ps(f32::NEG_INFINITY);
+        let mut res = ninf;
         if qm != 0 {
             let hq = load_h0!(q, b0);
             let xq = _mm512_set1_ps(q as f32);
             let (mut cur_y, mut cur_x) = (y1, _mm512_cvtepi32_ps(t1));
-            let (mut nt, mut ny) = (t2, y2);
+            let mut cur_t = t1;
+            let (mut nt, mut nyv) = (t2, y2);
             let mut m = qm;
+            let mut step = 0;
             loop {
                 let am = _mm512_mask_cmpge_epi32_mask(m, nt, zero_i);
                 if am == 0 {
@@ -914,18 +956,23 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, out: &mut [f32], sc: &m
                 }
                 let nxf = _mm512_cvtepi32_ps(nt);
                 // Rising: the next vertex (farther) has the larger slope.
-                let lhs = _mm512_mul_ps(_mm512_sub_ps(ny, hq), _mm512_sub_ps(cur_x, xq));
+                let lhs = _mm512_mul_ps(_mm512_sub_ps(nyv, hq), _mm512_sub_ps(cur_x, xq));
                 let rhs = _mm512_mul_ps(_mm512_sub_ps(cur_y, hq), _mm512_sub_ps(nxf, xq));
                 let rising = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(am, lhs, rhs);
                 if rising == 0 {
                     break;
                 }
-                let cur_t = nt;
+                cur_t = _mm512_mask_mov_epi32(cur_t, rising, nt);
                 cur_x = _mm512_mask_mov_ps(cur_x, rising, nxf);
-                cur_y = _mm512_mask_mov_ps(cur_y, rising, ny);
-                nt = _mm512_mask_i32gather_epi32::<4>(nt, rising, idx!(cur_t), nx as *const i32);
-                let r2 = _mm512_mask_cmpge_epi32_mask(rising, nt, zero_i);
-                ny = _mm512_mask_i32gather_ps::<4>(ny, r2, idx!(nt), ys as *const f32);
+                cur_y = _mm512_mask_mov_ps(cur_y, rising, nyv);
+                step += 1;
+                if step == 1 {
+                    (nt, nyv) = (t3, y3);
+                } else {
+                    let i = idx!(cur_t);
+                    nt = _mm512_mask_i32gather_epi32::<4>(none, rising, i, nx as *const i32);
+                    nyv = _mm512_mask_i32gather_ps::<4>(ninf, rising, i, ny as *const f32);
+                }
                 m = rising;
             }
             let slope = _mm512_div_ps(_mm512_sub_ps(cur_y, hq), _mm512_sub_ps(cur_x, xq));
@@ -938,24 +985,20 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, out: &mut [f32], sc: &m
         }
     }
     let Some((r, _)) = f.r_steps else { return };
-    // Prefix pass, left to right: the window's part in the next block. `first` is each lane's
-    // leftmost hull vertex (never popped), `fw` links a vertex to its right neighbour (stale
-    // only at the top, t1).
-    let (mut t1, mut t2, mut first) = (none, none, none);
-    let (mut y1, mut y2) = (_mm512_setzero_ps(), _mm512_setzero_ps());
-    let mut yfirst = _mm512_setzero_ps();
-    let mut next = f.d;
+    // Prefix pass, left to right: the window's part in the next block, so only blocks from
+    // the second on. `first` is each lane's leftmost hull vertex (never popped); `fw`/`fwy`
+    // link a vertex to its right neighbour (stale only at the top, t1).
+    let (mut t1, mut t2, mut t3, mut first) = (none, none, none, none);
+    let (mut y1, mut y2, mut y3, mut yfirst) = (ninf, ninf, ninf, ninf);
+    let mut next = f.d.max(blk);
     for q in 0..f.wa {
         let top = (q + r).min(f.len - 1);
         while next <= top {
             if next % blk == 0 {
-                t1 = none;
-                t2 = none;
-                first = none;
+                (t1, t2, t3, first) = (none, none, none, none);
             }
-            let (vm, _) = valid(next);
+            let (vm, v) = sample!(next);
             if vm != 0 {
-                let v = _mm512_loadu_ps(ys.add(next as usize * FL));
                 let xp = _mm512_set1_ps(next as f32);
                 loop {
                     let has2 = _mm512_mask_cmpge_epi32_mask(vm, t2, zero_i);
@@ -971,23 +1014,16 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, out: &mut [f32], sc: &m
                     if pm == 0 {
                         break;
                     }
-                    t1 = _mm512_mask_mov_epi32(t1, pm, t2);
-                    y1 = _mm512_mask_mov_ps(y1, pm, y2);
-                    t2 = _mm512_mask_i32gather_epi32::<4>(t2, pm, idx!(t1), nx as *const i32);
-                    let pm2 = _mm512_mask_cmpge_epi32_mask(pm, t2, zero_i);
-                    y2 = _mm512_mask_i32gather_ps::<4>(y2, pm2, idx!(t2), ys as *const f32);
+                    pop!(pm, t1, y1, t2, y2, t3, y3);
                 }
                 let here = _mm512_set1_epi32(next as i32);
-                _mm512_storeu_epi32(nx.add(next as usize * FL), t1);
                 let linked = _mm512_mask_cmpge_epi32_mask(vm, t1, zero_i);
                 _mm512_mask_i32scatter_epi32::<4>(fw, linked, idx!(t1), here);
+                _mm512_mask_i32scatter_ps::<4>(fwy, linked, idx!(t1), v);
                 let empty = vm & !linked;
                 first = _mm512_mask_mov_epi32(first, empty, here);
                 yfirst = _mm512_mask_mov_ps(yfirst, empty, v);
-                t2 = _mm512_mask_mov_epi32(t2, vm, t1);
-                y2 = _mm512_mask_mov_ps(y2, vm, y1);
-                t1 = _mm512_mask_mov_epi32(t1, vm, here);
-                y1 = _mm512_mask_mov_ps(y1, vm, v);
+                push!(vm, next, v, t1, y1, t2, y2, t3, y3);
             }
             next += 1;
         }
@@ -1010,10 +1046,11 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, out: &mut [f32], sc: &m
                     if am == 0 {
                         break;
                     }
-                    let nt = _mm512_mask_i32gather_epi32::<4>(none, am, idx!(cur_t), fw as *const i32);
-                    let ny = _mm512_mask_i32gather_ps::<4>(cur_y, am, idx!(nt), ys as *const f32);
+                    let i = idx!(cur_t);
+                    let nt = _mm512_mask_i32gather_epi32::<4>(none, am, i, fw as *const i32);
+                    let nyv = _mm512_mask_i32gather_ps::<4>(ninf, am, i, fwy as *const f32);
                     let nxf = _mm512_cvtepi32_ps(nt);
-                    let lhs = _mm512_mul_ps(_mm512_sub_ps(ny, hq), _mm512_sub_ps(cur_x, xq));
+                    let lhs = _mm512_mul_ps(_mm512_sub_ps(nyv, hq), _mm512_sub_ps(cur_x, xq));
                     let rhs = _mm512_mul_ps(_mm512_sub_ps(cur_y, hq), _mm512_sub_ps(nxf, xq));
                     let rising = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(am, lhs, rhs);
                     if rising == 0 {
@@ -1021,14 +1058,14 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, out: &mut [f32], sc: &m
                     }
                     cur_t = _mm512_mask_mov_epi32(cur_t, rising, nt);
                     cur_x = _mm512_mask_mov_ps(cur_x, rising, nxf);
-                    cur_y = _mm512_mask_mov_ps(cur_y, rising, ny);
+                    cur_y = _mm512_mask_mov_ps(cur_y, rising, nyv);
                     m = rising;
                 }
                 let slope = _mm512_div_ps(_mm512_sub_ps(cur_y, hq), _mm512_sub_ps(cur_x, xq));
                 res = _mm512_mask_max_ps(res, qm, res, slope);
             }
         }
-        let got = tm & _mm512_cmp_ps_mask::<_CMP_GT_OQ>(res, _mm512_set1_ps(f32::NEG_INFINITY));
+        let got = tm & _mm512_cmp_ps_mask::<_CMP_GT_OQ>(res, ninf);
         if got != 0 {
             accumulate(f, q, b0, got, res, out, &mut sc.wsum);
         }
