@@ -655,11 +655,17 @@ struct Scratch {
     fwy: Vec<f32>,
     /// The suffix pass's tangents, `sb[q·16 + lane]` (−∞: none).
     sb: Vec<f32>,
+    /// Sums in major-line layout when that is not the image's, and per-azimuth tables.
+    acc: Vec<f32>,
+    fams: Vec<[(usize, i64, f64); 2]>,
+    abase: Vec<usize>,
+    cols: Vec<Col>,
+    qs: Vec<QCol>,
 }
 
 /// A column of one family: where lane 0's lower texel lies (minor, reduced modulo the map with
 /// `edge=wrap`), the lerp weight, and the padded major line's offset of minor 0.
-#[derive(Clone, Copy)]
+#[derive(Clone, Copy, Default)]
 struct Col {
     start: i64,
     wt: f32,
@@ -670,7 +676,7 @@ struct Col {
 
 /// A query column of one family: whether the family holds one of the two sub-lines of the
 /// column's texels, the shift from line to texel, and the weight.
-#[derive(Clone, Copy)]
+#[derive(Clone, Copy, Default)]
 struct QCol {
     on: bool,
     shift: i64,
@@ -681,9 +687,8 @@ struct QCol {
 struct Family<'s> {
     cols: &'s [Col],
     qs: &'s [QCol],
-    /// Image offset of minor 0 of query column q, and of one minor step.
+    /// Offset of minor 0 of query column q in the sums (major-line layout).
     abase: &'s [usize],
-    mstep: usize,
     data: &'s [f32],
     hb: i64,
     wa: i64,
@@ -724,16 +729,22 @@ fn far_field_fast(
         let u = if wrap { u.rem_euclid(wa as i64) } else { u };
         (if lines.sign > 0 { u } else { wa as i64 - 1 - u }) as usize
     };
-    let abase: Vec<usize> =
-        (0..wa as i64).map(|u| if lines.major_x { major(u) } else { major(u) * w }).collect();
-    let mstep = if lines.major_x { w } else { 1 };
-    let fams: Vec<[(usize, i64, f64); 2]> = (0..wa as i64).map(|u| lines.pair(u)).collect();
+    // Sums are kept in major-line layout (`major · hb + minor`), so the 16 texels of a query
+    // are contiguous; that is the image layout when the major axis is y.
+    let mut fams = std::mem::take(&mut sc.fams);
+    fams.clear();
+    fams.extend((0..wa as i64).map(|u| lines.pair(u)));
     let (sh_lo, sh_hi) = fams
         .iter()
         .flatten()
         .fold((i64::MAX, i64::MIN), |(lo, hi), &(_, s, _)| (lo.min(s), hi.max(s)));
     sc.wsum.clear();
     sc.wsum.resize(w * h, 0.0);
+    let mut acc = std::mem::take(&mut sc.acc);
+    if lines.major_x {
+        acc.clear();
+        acc.resize(w * h, 0.0);
+    }
     sc.ys.resize(len as usize * FL, 0.0);
     sc.nx.resize(len as usize * FL, -1);
     sc.ny.resize(len as usize * FL, 0.0);
@@ -742,8 +753,12 @@ fn far_field_fast(
         sc.fwy.resize(len as usize * FL, 0.0);
         sc.sb.resize(wa * FL, f32::NEG_INFINITY);
     }
-    let mut cols = Vec::with_capacity(len as usize);
-    let mut qs = Vec::with_capacity(wa);
+    let mut abase = std::mem::take(&mut sc.abase);
+    abase.clear();
+    abase.extend((0..wa as i64).map(|u| major(u) * hb));
+    let mut cols = std::mem::take(&mut sc.cols);
+    let mut qs = std::mem::take(&mut sc.qs);
+    let sums: &mut [f32] = if lines.major_x { &mut acc } else { out };
     for k in 0..SUB {
         cols.clear();
         cols.extend((0..len).map(|u| {
@@ -763,7 +778,6 @@ fn far_field_fast(
             cols: &cols,
             qs: &qs,
             abase: &abase,
-            mstep,
             data: &ml.data,
             hb: hbi,
             wa: wa as i64,
@@ -780,14 +794,34 @@ fn far_field_fast(
             #[cfg(target_arch = "x86_64")]
             // SAFETY: only called when the CPU has AVX-512F (see `Sweep::with_options`).
             unsafe {
-                group_avx512(&fam, i0, nl, out, sc)
+                group_avx512(&fam, i0, nl, sums, sc)
             };
             i0 += FL as i64;
         }
     }
-    for (o, &ws) in out.iter_mut().zip(sc.wsum.iter()) {
-        *o = if ws > 0.0 { *o / ws } else { 0.0 };
+    if lines.major_x {
+        // Transposed back to the image layout while normalising, in tiles.
+        const T: usize = 32;
+        for x0 in (0..w).step_by(T) {
+            for y0 in (0..h).step_by(T) {
+                for x in x0..(x0 + T).min(w) {
+                    for y in y0..(y0 + T).min(h) {
+                        let (a, ws) = (acc[x * h + y], sc.wsum[x * h + y]);
+                        out[y * w + x] = if ws > 0.0 { a / ws } else { 0.0 };
+                    }
+                }
+            }
+        }
+    } else {
+        for (o, &ws) in out.iter_mut().zip(sc.wsum.iter()) {
+            *o = if ws > 0.0 { *o / ws } else { 0.0 };
+        }
     }
+    sc.fams = fams;
+    sc.acc = acc;
+    sc.abase = abase;
+    sc.cols = cols;
+    sc.qs = qs;
 }
 
 /// The lanes (bit l: lane l) whose minor b0 + l lies in 0..lim, of the first `nl`.
@@ -804,7 +838,7 @@ fn lane_range(b0: i64, lim: i64, nl: u32) -> u16 {
 
 /// One group of up to 16 lines i0 .. i0 + nl of a family: the suffix (or whole-line) pass right
 /// to left, then with a finite window the prefix pass left to right, and the weighted
-/// tangents into `out` and `sc.wsum`.
+/// tangents into `sums` and `sc.wsum` (major-line layout).
 ///
 /// Each lane's hull is a linked list through the columns: `nx[u]`/`ny[u]` hold the column and
 /// height of the vertex after u. The three vertices nearest the sweep's position stay in
@@ -812,7 +846,7 @@ fn lane_range(b0: i64, lim: i64, nl: u32) -> u16 {
 /// waits for no gather; the gather that refills t3 is needed only a pop later.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
-unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, out: &mut [f32], sc: &mut Scratch) {
+unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &mut Scratch) {
     use std::arch::x86_64::*;
     let all: u16 = if nl >= 16 { 0xffff } else { ((1u32 << nl) - 1) as u16 };
     let lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
@@ -981,7 +1015,7 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, out: &mut [f32], sc: &m
         if blocked {
             _mm512_storeu_ps(sc.sb.as_mut_ptr().add(q as usize * FL), res);
         } else if qm != 0 {
-            accumulate(f, q, b0, qm, res, out, &mut sc.wsum);
+            accumulate(f, q, b0, qm, res, sums, &mut sc.wsum);
         }
     }
     let Some((r, _)) = f.r_steps else { return };
@@ -1067,13 +1101,14 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, out: &mut [f32], sc: &m
         }
         let got = tm & _mm512_cmp_ps_mask::<_CMP_GT_OQ>(res, ninf);
         if got != 0 {
-            accumulate(f, q, b0, got, res, out, &mut sc.wsum);
+            accumulate(f, q, b0, got, res, sums, &mut sc.wsum);
         }
     }
 }
 
 /// Adds the tangents `res` of the lanes in `m` (texels b0 + lane of query column q, weighted
-/// by the family's role) to `out` and their weights to `wsum`.
+/// by the family's role) to `sums` and their weights to `wsum` (major-line layout; with
+/// `edge=wrap` the lanes past the minor end wrap to its start).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 unsafe fn accumulate(
@@ -1082,24 +1117,29 @@ unsafe fn accumulate(
     b0: i64,
     m: u16,
     res: std::arch::x86_64::__m512,
-    out: &mut [f32],
+    sums: &mut [f32],
     wsum: &mut [f32],
 ) {
-    let mut v = [0.0f32; FL];
-    std::arch::x86_64::_mm512_storeu_ps(v.as_mut_ptr(), res);
+    use std::arch::x86_64::*;
     let qc = f.qs[q as usize];
-    let base = f.abase[q as usize];
-    let wt = qc.wt;
-    let k = wt * f.inv_step;
-    let mut bits = m;
-    while bits != 0 {
-        let l = bits.trailing_zeros() as i64;
-        bits &= bits - 1;
-        let b = b0 + l;
-        let b = if b >= f.hb { b - f.hb } else { b };
-        let t = base + b as usize * f.mstep;
-        out[t] += k * v[l as usize];
-        wsum[t] += wt;
+    let base = f.abase[q as usize] as isize;
+    let k = _mm512_set1_ps(qc.wt * f.inv_step);
+    let wt = _mm512_set1_ps(qc.wt);
+    // Lanes b0 + l ≥ hb (only with `edge=wrap`) belong hb earlier.
+    let hi = if b0 + 16 > f.hb { lane_range(b0 - f.hb, f.hb, 16) } else { 0 };
+    for (mm, off) in [(m & !hi, b0), (m & hi, b0 - f.hb)] {
+        if mm == 0 {
+            continue;
+        }
+        // Masked lanes are neither read nor written, so the pointer may point before the
+        // slice for lanes that are masked off.
+        let o = base + off as isize;
+        let ps = sums.as_mut_ptr().wrapping_offset(o);
+        let pw = wsum.as_mut_ptr().wrapping_offset(o);
+        let sv = _mm512_maskz_loadu_ps(mm, ps);
+        let wv = _mm512_maskz_loadu_ps(mm, pw);
+        _mm512_mask_storeu_ps(ps, mm, _mm512_add_ps(sv, _mm512_mul_ps(k, res)));
+        _mm512_mask_storeu_ps(pw, mm, _mm512_add_ps(wv, wt));
     }
 }
 
