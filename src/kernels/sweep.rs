@@ -141,7 +141,7 @@ pub struct Sweep<'a> {
     far: Vec<f32>,
     progress: Option<Progress>,
     /// Where rays end (`None`: the map's edge), each direction's near-field cut, the image
-    /// directions and the curvature: for the point at exactly R (see [`Sweep::end_point`]).
+    /// directions and the curvature: for the point at exactly R (see [`Sweep::end_points`]).
     reach: Option<f64>,
     cuts: Vec<f64>,
     dirs: Vec<(f64, f64)>,
@@ -223,47 +223,59 @@ impl<'a> Sweep<'a> {
 
     /// tan of the point at exactly s = R on the texel's own ray, when R ends the far field
     /// between two grid lines (a ray rising to R has its maximum there); 0 if it is off the
-    /// surface or R is within the near field.
+    /// surface or R is within the near field. For `lanes` texels x.. of row y, into `ep`.
     #[inline]
-    fn end_point(&self, n: usize, x: usize, y: usize) -> f32 {
-        let Some(r) = self.reach else { return 0.0 };
+    fn end_points(&self, n: usize, x: usize, y: usize, lanes: usize, ep: &mut [f32; NEAR_LANES]) {
+        *ep = [0.0; NEAR_LANES];
+        let Some(r) = self.reach else { return };
         if r <= self.cuts[n] {
-            return 0.0;
+            return;
         }
         let (dx, dy) = self.dirs[n];
         let g = &self.grid;
-        let (px, py) = (x as f64 + r * dx, y as f64 + r * dy);
         let (w, h) = (g.width as i64, g.height as i64);
-        let (cx, cy) = (px.floor() as i64, py.floor() as i64);
-        let (fx, fy) = (px - cx as f64, py - cy as f64);
-        let at = |c: i64, rr: i64| -> Option<f64> {
-            let (c, rr) = match g.edge {
-                Edge::Wrap => (c.rem_euclid(w), rr.rem_euclid(h)),
-                Edge::None => {
-                    if c < 0 || rr < 0 || c >= w || rr >= h {
-                        return None;
-                    }
-                    (c, rr)
-                }
-            };
-            Some(f64::from(g.heights[(rr * w + c) as usize]))
+        // The point of texel x + i is (x + i + r·dx, y + r·dy): one row pair, one fraction.
+        let (ox, oy) = (r * dx, r * dy);
+        let (fx0, fy0) = (ox.floor(), (y as f64 + oy).floor());
+        let (fx, fy) = (ox - fx0, y as f64 + oy - fy0);
+        let (ox, cy) = (fx0 as i64, fy0 as i64);
+        let wrap = g.edge == Edge::Wrap;
+        let row = |rr: i64, wt: f64| -> Option<Option<&[f32]>> {
+            if wt == 0.0 {
+                return Some(None);
+            }
+            let rr = if wrap { rr.rem_euclid(h) } else { rr };
+            (0..h).contains(&rr).then(|| Some(&g.heights[(rr * w) as usize..][..w as usize]))
         };
-        // Corners with weight 0 may lie off the map (edge=none, on the last row or column).
-        let pick = |c: i64, rr: i64, wt: f64| if wt == 0.0 { Some(0.0) } else { at(c, rr) };
-        let v = (|| {
-            let k00 = pick(cx, cy, (1.0 - fx) * (1.0 - fy))?;
-            let k10 = pick(cx + 1, cy, fx * (1.0 - fy))?;
-            let k01 = pick(cx, cy + 1, (1.0 - fx) * fy)?;
-            let k11 = pick(cx + 1, cy + 1, fx * fy)?;
-            Some(
-                k00 * (1.0 - fx) * (1.0 - fy)
-                    + k10 * fx * (1.0 - fy)
-                    + k01 * (1.0 - fx) * fy
-                    + k11 * fx * fy,
-            )
-        })();
-        let h0 = f64::from(g.heights[y * g.width + x]);
-        v.map_or(0.0, |v| ((v - self.curv * r * r - h0) / r) as f32)
+        let (Some(r0), Some(r1)) = (row(cy, 1.0 - fy), row(cy + 1, fy)) else { return };
+        let drop = self.curv * r * r;
+        for (i, e) in ep.iter_mut().enumerate().take(lanes) {
+            let c = x as i64 + i as i64 + ox;
+            let (c0, c1) = if wrap {
+                (c.rem_euclid(w), (c + 1).rem_euclid(w))
+            } else {
+                (c, c + 1)
+            };
+            let mut v = 0.0;
+            let mut ok = true;
+            for (rw, wy) in [(r0, 1.0 - fy), (r1, fy)] {
+                let Some(rw) = rw else { continue };
+                for (cc, wx) in [(c0, 1.0 - fx), (c1, fx)] {
+                    if wx == 0.0 {
+                        continue;
+                    }
+                    if (0..w).contains(&cc) {
+                        v += f64::from(rw[cc as usize]) * wx * wy;
+                    } else {
+                        ok = false;
+                    }
+                }
+            }
+            if ok {
+                let h0 = f64::from(g.heights[y * g.width + x + i]);
+                *e = ((v - drop - h0) / r) as f32;
+            }
+        }
     }
 }
 
@@ -1158,6 +1170,8 @@ impl HorizonRows for Sweep<'_> {
         let n_rows = channels.len() / (w * 8);
         let mut strip = vec![0.0f32; NEAR_LANES * nb];
         let mut best = [0.0f32; NEAR_LANES];
+        let mut ep = [0.0f32; NEAR_LANES];
+        let mut sn = [0.0f32; NEAR_LANES];
         // `reduce=point` reads one bin per channel: the others are not computed unless asked.
         let step =
             if self.reduce == Reduce::Point && bins_out.is_none() && nb >= 8 { nb / 8 } else { 1 };
@@ -1170,10 +1184,15 @@ impl HorizonRows for Sweep<'_> {
                 let lanes = NEAR_LANES.min(w - x);
                 for n in (0..nb).step_by(step) {
                     self.near.strip(n, x, y, &mut best);
+                    self.end_points(n, x, y, lanes, &mut ep);
                     let far = &self.far[n * w * h + y * w + x..][..lanes];
                     for i in 0..lanes {
-                        let t = f64::from(best[i].max(far[i]).max(self.end_point(n, x + i, y)));
-                        strip[i * nb + n] = exact::sin_of_tan(t) as f32;
+                        // sin α in f32 (tan α ≥ 0; a vertical horizon, ∞, gives 1).
+                        let t = best[i].max(far[i]).max(ep[i]).min(1e15);
+                        sn[i] = t / (1.0 + t * t).sqrt();
+                    }
+                    for i in 0..lanes {
+                        strip[i * nb + n] = sn[i];
                     }
                 }
                 for i in 0..lanes {
