@@ -251,11 +251,7 @@ impl<'a> Sweep<'a> {
         let drop = self.curv * r * r;
         for (i, e) in ep.iter_mut().enumerate().take(lanes) {
             let c = x as i64 + i as i64 + ox;
-            let (c0, c1) = if wrap {
-                (c.rem_euclid(w), (c + 1).rem_euclid(w))
-            } else {
-                (c, c + 1)
-            };
+            let (c0, c1) = if wrap { (c.rem_euclid(w), (c + 1).rem_euclid(w)) } else { (c, c + 1) };
             let mut v = 0.0;
             let mut ok = true;
             for (rw, wy) in [(r0, 1.0 - fy), (r1, fy)] {
@@ -665,7 +661,7 @@ struct Scratch {
     ny: Vec<f32>,
     fw: Vec<i32>,
     fwy: Vec<f32>,
-    /// The suffix pass's tangents, `sb[q·16 + lane]` (−∞: none).
+    /// A group's tangents, `sb[q·16 + lane]` (−∞: none).
     sb: Vec<f32>,
     /// Sums in major-line layout when that is not the image's, and per-azimuth tables.
     acc: Vec<f32>,
@@ -760,10 +756,10 @@ fn far_field_fast(
     sc.ys.resize(len as usize * FL, 0.0);
     sc.nx.resize(len as usize * FL, -1);
     sc.ny.resize(len as usize * FL, 0.0);
+    sc.sb.resize(wa * FL, f32::NEG_INFINITY);
     if r_steps.is_some() {
         sc.fw.resize(len as usize * FL, -1);
         sc.fwy.resize(len as usize * FL, 0.0);
-        sc.sb.resize(wa * FL, f32::NEG_INFINITY);
     }
     let mut abase = std::mem::take(&mut sc.abase);
     abase.clear();
@@ -947,10 +943,99 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &
     let blk = f.r_steps.map_or(i64::MAX, |(_, b)| b);
     // The suffix pass needs the samples up to the end of the block of the last query.
     let last = if blocked { ((f.wa - 1 + f.d) / blk + 1) * blk - 1 } else { f.len - 1 };
-    if blocked {
-        // Query columns the suffix pass does not reach (within N of the line's end).
-        let from = (f.len - f.d).clamp(0, f.wa) as usize * FL;
-        sc.sb[from..f.wa as usize * FL].fill(f32::NEG_INFINITY);
+    // Query columns the suffix pass does not reach (within N of the line's end).
+    let from = (f.len - f.d).clamp(0, f.wa) as usize * FL;
+    sc.sb[from..f.wa as usize * FL].fill(f32::NEG_INFINITY);
+    macro_rules! prefix_pass {
+        ($r:expr) => {{
+            let r = $r;
+            // Prefix pass, left to right: the window's part in the next block, so only blocks from
+            // the second on. `first` is each lane's leftmost hull vertex (never popped); `fw`/`fwy`
+            // link a vertex to its right neighbour (stale only at the top, t1).
+            let (mut t1, mut t2, mut t3, mut first) = (none, none, none, none);
+            let (mut y1, mut y2, mut y3, mut yfirst) = (ninf, ninf, ninf, ninf);
+            let mut next = f.d.max(blk);
+            for q in 0..f.wa {
+                let top = (q + r).min(f.len - 1);
+                while next <= top {
+                    if next % blk == 0 {
+                        (t1, t2, t3, first) = (none, none, none, none);
+                    }
+                    let (vm, v) = sample!(next);
+                    if vm != 0 {
+                        let xp = _mm512_set1_ps(next as f32);
+                        loop {
+                            let has2 = _mm512_mask_cmpge_epi32_mask(vm, t2, zero_i);
+                            if has2 == 0 {
+                                break;
+                            }
+                            let x1 = _mm512_cvtepi32_ps(t1);
+                            let x2 = _mm512_cvtepi32_ps(t2);
+                            // Keep t1 where the slope t2→t1 is above t1→p.
+                            let lhs = _mm512_mul_ps(_mm512_sub_ps(y1, y2), _mm512_sub_ps(xp, x1));
+                            let rhs = _mm512_mul_ps(_mm512_sub_ps(v, y1), _mm512_sub_ps(x1, x2));
+                            let pm = has2 & !_mm512_cmp_ps_mask::<_CMP_GT_OQ>(lhs, rhs);
+                            if pm == 0 {
+                                break;
+                            }
+                            pop!(pm, t1, y1, t2, y2, t3, y3);
+                        }
+                        let here = _mm512_set1_epi32(next as i32);
+                        let linked = _mm512_mask_cmpge_epi32_mask(vm, t1, zero_i);
+                        _mm512_mask_i32scatter_epi32::<4>(fw, linked, idx!(t1), here);
+                        _mm512_mask_i32scatter_ps::<4>(fwy, linked, idx!(t1), v);
+                        let empty = vm & !linked;
+                        first = _mm512_mask_mov_epi32(first, empty, here);
+                        yfirst = _mm512_mask_mov_ps(yfirst, empty, v);
+                        push!(vm, next, v, t1, y1, t2, y2, t3, y3);
+                    }
+                    next += 1;
+                }
+                if !f.qs[q as usize].on {
+                    continue;
+                }
+                let (tm, b0) = texels(q);
+                let mut res = _mm512_loadu_ps(sc.sb.as_ptr().add(q as usize * FL));
+                // Only when the window reaches into the next block (see `far_field`).
+                if top / blk > (q + f.d) / blk {
+                    let qm = tm & _mm512_cmpge_epi32_mask(first, zero_i);
+                    if qm != 0 {
+                        let hq = load_h0!(q, b0);
+                        let xq = _mm512_set1_ps(q as f32);
+                        let mut cur_t = first;
+                        let (mut cur_y, mut cur_x) = (yfirst, _mm512_cvtepi32_ps(first));
+                        let mut m = qm;
+                        loop {
+                            let am = m & _mm512_cmpneq_epi32_mask(cur_t, t1);
+                            if am == 0 {
+                                break;
+                            }
+                            let i = idx!(cur_t);
+                            let nt =
+                                _mm512_mask_i32gather_epi32::<4>(none, am, i, fw as *const i32);
+                            let nyv = _mm512_mask_i32gather_ps::<4>(ninf, am, i, fwy as *const f32);
+                            let nxf = _mm512_cvtepi32_ps(nt);
+                            let lhs =
+                                _mm512_mul_ps(_mm512_sub_ps(nyv, hq), _mm512_sub_ps(cur_x, xq));
+                            let rhs =
+                                _mm512_mul_ps(_mm512_sub_ps(cur_y, hq), _mm512_sub_ps(nxf, xq));
+                            let rising = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(am, lhs, rhs);
+                            if rising == 0 {
+                                break;
+                            }
+                            cur_t = _mm512_mask_mov_epi32(cur_t, rising, nt);
+                            cur_x = _mm512_mask_mov_ps(cur_x, rising, nxf);
+                            cur_y = _mm512_mask_mov_ps(cur_y, rising, nyv);
+                            m = rising;
+                        }
+                        let slope =
+                            _mm512_div_ps(_mm512_sub_ps(cur_y, hq), _mm512_sub_ps(cur_x, xq));
+                        res = _mm512_mask_max_ps(res, qm, res, slope);
+                    }
+                }
+                _mm512_storeu_ps(sc.sb.as_mut_ptr().add(q as usize * FL), res);
+            }
+        }};
     }
     // Suffix (or whole-line) pass, right to left.
     let (mut t1, mut t2, mut t3) = (none, none, none);
@@ -1024,100 +1109,25 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &
             let slope = _mm512_div_ps(_mm512_sub_ps(cur_y, hq), _mm512_sub_ps(cur_x, xq));
             res = _mm512_mask_mov_ps(res, qm, slope);
         }
-        if blocked {
-            _mm512_storeu_ps(sc.sb.as_mut_ptr().add(q as usize * FL), res);
-        } else if qm != 0 {
-            accumulate(f, q, b0, qm, res, sums, &mut sc.wsum);
-        }
+        _mm512_storeu_ps(sc.sb.as_mut_ptr().add(q as usize * FL), res);
     }
-    let Some((r, _)) = f.r_steps else { return };
-    // Prefix pass, left to right: the window's part in the next block, so only blocks from
-    // the second on. `first` is each lane's leftmost hull vertex (never popped); `fw`/`fwy`
-    // link a vertex to its right neighbour (stale only at the top, t1).
-    let (mut t1, mut t2, mut t3, mut first) = (none, none, none, none);
-    let (mut y1, mut y2, mut y3, mut yfirst) = (ninf, ninf, ninf, ninf);
-    let mut next = f.d.max(blk);
+    if let Some((r, _)) = f.r_steps {
+        prefix_pass!(r);
+    }
+    // The tangents into the sums, in one pass of independent adds (interleaved with the hull
+    // work, every add waited for its cache misses).
     for q in 0..f.wa {
-        let top = (q + r).min(f.len - 1);
-        while next <= top {
-            if next % blk == 0 {
-                (t1, t2, t3, first) = (none, none, none, none);
-            }
-            let (vm, v) = sample!(next);
-            if vm != 0 {
-                let xp = _mm512_set1_ps(next as f32);
-                loop {
-                    let has2 = _mm512_mask_cmpge_epi32_mask(vm, t2, zero_i);
-                    if has2 == 0 {
-                        break;
-                    }
-                    let x1 = _mm512_cvtepi32_ps(t1);
-                    let x2 = _mm512_cvtepi32_ps(t2);
-                    // Keep t1 where the slope t2→t1 is above t1→p.
-                    let lhs = _mm512_mul_ps(_mm512_sub_ps(y1, y2), _mm512_sub_ps(xp, x1));
-                    let rhs = _mm512_mul_ps(_mm512_sub_ps(v, y1), _mm512_sub_ps(x1, x2));
-                    let pm = has2 & !_mm512_cmp_ps_mask::<_CMP_GT_OQ>(lhs, rhs);
-                    if pm == 0 {
-                        break;
-                    }
-                    pop!(pm, t1, y1, t2, y2, t3, y3);
-                }
-                let here = _mm512_set1_epi32(next as i32);
-                let linked = _mm512_mask_cmpge_epi32_mask(vm, t1, zero_i);
-                _mm512_mask_i32scatter_epi32::<4>(fw, linked, idx!(t1), here);
-                _mm512_mask_i32scatter_ps::<4>(fwy, linked, idx!(t1), v);
-                let empty = vm & !linked;
-                first = _mm512_mask_mov_epi32(first, empty, here);
-                yfirst = _mm512_mask_mov_ps(yfirst, empty, v);
-                push!(vm, next, v, t1, y1, t2, y2, t3, y3);
-            }
-            next += 1;
-        }
         if !f.qs[q as usize].on {
             continue;
         }
         let (tm, b0) = texels(q);
-        let mut res = _mm512_loadu_ps(sc.sb.as_ptr().add(q as usize * FL));
-        // Only when the window reaches into the next block (see `far_field`).
-        if top / blk > (q + f.d) / blk {
-            let qm = tm & _mm512_cmpge_epi32_mask(first, zero_i);
-            if qm != 0 {
-                let hq = load_h0!(q, b0);
-                let xq = _mm512_set1_ps(q as f32);
-                let mut cur_t = first;
-                let (mut cur_y, mut cur_x) = (yfirst, _mm512_cvtepi32_ps(first));
-                let mut m = qm;
-                loop {
-                    let am = m & _mm512_cmpneq_epi32_mask(cur_t, t1);
-                    if am == 0 {
-                        break;
-                    }
-                    let i = idx!(cur_t);
-                    let nt = _mm512_mask_i32gather_epi32::<4>(none, am, i, fw as *const i32);
-                    let nyv = _mm512_mask_i32gather_ps::<4>(ninf, am, i, fwy as *const f32);
-                    let nxf = _mm512_cvtepi32_ps(nt);
-                    let lhs = _mm512_mul_ps(_mm512_sub_ps(nyv, hq), _mm512_sub_ps(cur_x, xq));
-                    let rhs = _mm512_mul_ps(_mm512_sub_ps(cur_y, hq), _mm512_sub_ps(nxf, xq));
-                    let rising = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(am, lhs, rhs);
-                    if rising == 0 {
-                        break;
-                    }
-                    cur_t = _mm512_mask_mov_epi32(cur_t, rising, nt);
-                    cur_x = _mm512_mask_mov_ps(cur_x, rising, nxf);
-                    cur_y = _mm512_mask_mov_ps(cur_y, rising, nyv);
-                    m = rising;
-                }
-                let slope = _mm512_div_ps(_mm512_sub_ps(cur_y, hq), _mm512_sub_ps(cur_x, xq));
-                res = _mm512_mask_max_ps(res, qm, res, slope);
-            }
-        }
+        let res = _mm512_loadu_ps(sc.sb.as_ptr().add(q as usize * FL));
         let got = tm & _mm512_cmp_ps_mask::<_CMP_GT_OQ>(res, ninf);
         if got != 0 {
             accumulate(f, q, b0, got, res, sums, &mut sc.wsum);
         }
     }
 }
-
 /// Adds the tangents `res` of the lanes in `m` (texels b0 + lane of query column q, weighted
 /// by the family's role) to `sums` and their weights to `wsum` (major-line layout; with
 /// `edge=wrap` the lanes past the minor end wrap to its start).
