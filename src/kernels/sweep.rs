@@ -653,14 +653,9 @@ impl MajorLines {
 #[derive(Default)]
 struct Scratch {
     wsum: Vec<f32>,
-    /// A group's samples, `ys[u·16 + lane]`.
-    ys: Vec<f32>,
-    /// Hull links: the next vertex away from the sweep's current position (`nx[u·16 + lane]`,
-    /// a column, −1: none), and in the prefix pass the next one to the right (`fw`).
-    nx: Vec<i32>,
-    ny: Vec<f32>,
-    fw: Vec<i32>,
-    fwy: Vec<f32>,
+    /// The hull stacks below their three registers, `st_t`/`st_y[depth·16 + lane]`.
+    st_t: Vec<i32>,
+    st_y: Vec<f32>,
     /// A group's tangents, `sb[q·16 + lane]` (−∞: none).
     sb: Vec<f32>,
     /// Sums in major-line layout when that is not the image's, and per-azimuth tables.
@@ -753,14 +748,9 @@ fn far_field_fast(
         acc.clear();
         acc.resize(w * h, 0.0);
     }
-    sc.ys.resize(len as usize * FL, 0.0);
-    sc.nx.resize(len as usize * FL, -1);
-    sc.ny.resize(len as usize * FL, 0.0);
+    sc.st_t.resize(len as usize * FL, -1);
+    sc.st_y.resize(len as usize * FL, 0.0);
     sc.sb.resize(wa * FL, f32::NEG_INFINITY);
-    if r_steps.is_some() {
-        sc.fw.resize(len as usize * FL, -1);
-        sc.fwy.resize(len as usize * FL, 0.0);
-    }
     let mut abase = std::mem::take(&mut sc.abase);
     abase.clear();
     abase.extend((0..wa as i64).map(|u| major(u) * hb));
@@ -848,10 +838,11 @@ fn lane_range(b0: i64, lim: i64, nl: u32) -> u16 {
 /// to left, then with a finite window the prefix pass left to right, and the weighted
 /// tangents into `sums` and `sc.wsum` (major-line layout).
 ///
-/// Each lane's hull is a linked list through the columns: `nx[u]`/`ny[u]` hold the column and
-/// height of the vertex after u. The three vertices nearest the sweep's position stay in
-/// registers (t1, t2, t3 and their heights), so a pop or a query step of one or two vertices
-/// waits for no gather; the gather that refills t3 is needed only a pop later.
+/// Each lane's hull is a stack: the three vertices nearest the sweep's position in registers
+/// (t1, t2, t3: column and height), the rest in memory by depth (`st_t`/`st_y[depth·16 +
+/// lane]`), a few KiB that stay in L1. A push spills t3 (one masked scatter), a pop refills it
+/// (one masked gather, needed only a pop later), so short pops and query walks wait for
+/// nothing; the prefix pass's queries walk the stack from its bottom with plain loads.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &mut Scratch) {
@@ -860,12 +851,10 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &
     let lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
     let none = _mm512_set1_epi32(-1);
     let zero_i = _mm512_setzero_si512();
+    let one_i = _mm512_set1_epi32(1);
     let ninf = _mm512_set1_ps(f32::NEG_INFINITY);
-    let ys = sc.ys.as_mut_ptr();
-    let nx = sc.nx.as_mut_ptr();
-    let ny = sc.ny.as_mut_ptr();
-    let fw = sc.fw.as_mut_ptr();
-    let fwy = sc.fwy.as_mut_ptr();
+    let st_t = sc.st_t.as_mut_ptr();
+    let st_y = sc.st_y.as_mut_ptr();
     let data = f.data.as_ptr();
     macro_rules! idx {
         ($t:expr) => {
@@ -891,9 +880,7 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &
                 let p = data.offset((c.base as i64 + s) as isize);
                 let a = _mm512_loadu_ps(p);
                 let b = _mm512_loadu_ps(p.add(1));
-                let v = _mm512_add_ps(a, _mm512_mul_ps(_mm512_sub_ps(b, a), _mm512_set1_ps(c.wt)));
-                _mm512_storeu_ps(ys.add($u as usize * FL), v);
-                v
+                _mm512_add_ps(a, _mm512_mul_ps(_mm512_sub_ps(b, a), _mm512_set1_ps(c.wt)))
             } else {
                 ninf
             };
@@ -909,34 +896,58 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &
             (lane_range(b0, f.hb, nl), b0)
         }
     };
-    // Pops the lanes of `pm` (t1 ← t2 ← t3 ← the vertex after t3).
+    // Pops the lanes of `pm`: t1 ← t2 ← t3 ← the top of the memory stack (if any).
     macro_rules! pop {
-        ($pm:expr, $t1:ident, $y1:ident, $t2:ident, $y2:ident, $t3:ident, $y3:ident) => {{
+        ($pm:expr, $t1:ident, $y1:ident, $t2:ident, $y2:ident, $t3:ident, $y3:ident, $dep:ident) => {{
             let pm = $pm;
             $t1 = _mm512_mask_mov_epi32($t1, pm, $t2);
             $y1 = _mm512_mask_mov_ps($y1, pm, $y2);
             $t2 = _mm512_mask_mov_epi32($t2, pm, $t3);
             $y2 = _mm512_mask_mov_ps($y2, pm, $y3);
-            let gm = _mm512_mask_cmpge_epi32_mask(pm, $t2, zero_i);
-            let i = idx!($t2);
-            let gt = _mm512_mask_i32gather_epi32::<4>(none, gm, i, nx as *const i32);
-            let gy = _mm512_mask_i32gather_ps::<4>(ninf, gm, i, ny as *const f32);
+            let gm = _mm512_mask_cmpgt_epi32_mask(pm, $dep, zero_i);
+            $dep = _mm512_mask_sub_epi32($dep, gm, $dep, one_i);
+            let i = idx!($dep);
+            let gt = _mm512_mask_i32gather_epi32::<4>(none, gm, i, st_t as *const i32);
+            let gy = _mm512_mask_i32gather_ps::<4>(ninf, gm, i, st_y as *const f32);
             $t3 = _mm512_mask_mov_epi32($t3, pm, gt);
             $y3 = _mm512_mask_mov_ps($y3, pm, gy);
         }};
     }
-    // Pushes column u (value v) for the lanes of vm.
+    // Pushes column u (value v) for the lanes of vm, spilling t3.
     macro_rules! push {
-        ($vm:expr, $u:expr, $v:expr, $t1:ident, $y1:ident, $t2:ident, $y2:ident, $t3:ident, $y3:ident) => {{
+        ($vm:expr, $u:expr, $v:expr, $t1:ident, $y1:ident, $t2:ident, $y2:ident, $t3:ident, $y3:ident, $dep:ident) => {{
             let vm = $vm;
-            _mm512_storeu_epi32(nx.add($u as usize * FL), $t1);
-            _mm512_storeu_ps(ny.add($u as usize * FL), $y1);
+            let sm = _mm512_mask_cmpge_epi32_mask(vm, $t3, zero_i);
+            if sm != 0 {
+                let i = idx!($dep);
+                _mm512_mask_i32scatter_epi32::<4>(st_t, sm, i, $t3);
+                _mm512_mask_i32scatter_ps::<4>(st_y, sm, i, $y3);
+                $dep = _mm512_mask_add_epi32($dep, sm, $dep, one_i);
+            }
             $t3 = _mm512_mask_mov_epi32($t3, vm, $t2);
             $y3 = _mm512_mask_mov_ps($y3, vm, $y2);
             $t2 = _mm512_mask_mov_epi32($t2, vm, $t1);
             $y2 = _mm512_mask_mov_ps($y2, vm, $y1);
             $t1 = _mm512_mask_mov_epi32($t1, vm, _mm512_set1_epi32($u as i32));
             $y1 = _mm512_mask_mov_ps($y1, vm, $v);
+        }};
+    }
+    // Pops while t1 lies on or below the chord from p to t2 (`$keep`: the lanes keeping t1).
+    macro_rules! pops {
+        ($vm:expr, $keep:expr, $t1:ident, $y1:ident, $t2:ident, $y2:ident, $t3:ident, $y3:ident, $dep:ident) => {{
+            loop {
+                let has2 = _mm512_mask_cmpge_epi32_mask($vm, $t2, zero_i);
+                if has2 == 0 {
+                    break;
+                }
+                let x1 = _mm512_cvtepi32_ps($t1);
+                let x2 = _mm512_cvtepi32_ps($t2);
+                let pm = has2 & !$keep(x1, x2, $y1, $y2);
+                if pm == 0 {
+                    break;
+                }
+                pop!(pm, $t1, $y1, $t2, $y2, $t3, $y3, $dep);
+            }
         }};
     }
     let blocked = f.r_steps.is_some();
@@ -946,124 +957,24 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &
     // Query columns the suffix pass does not reach (within N of the line's end).
     let from = (f.len - f.d).clamp(0, f.wa) as usize * FL;
     sc.sb[from..f.wa as usize * FL].fill(f32::NEG_INFINITY);
-    macro_rules! prefix_pass {
-        ($r:expr) => {{
-            let r = $r;
-            // Prefix pass, left to right: the window's part in the next block, so only blocks from
-            // the second on. `first` is each lane's leftmost hull vertex (never popped); `fw`/`fwy`
-            // link a vertex to its right neighbour (stale only at the top, t1).
-            let (mut t1, mut t2, mut t3, mut first) = (none, none, none, none);
-            let (mut y1, mut y2, mut y3, mut yfirst) = (ninf, ninf, ninf, ninf);
-            let mut next = f.d.max(blk);
-            for q in 0..f.wa {
-                let top = (q + r).min(f.len - 1);
-                while next <= top {
-                    if next % blk == 0 {
-                        (t1, t2, t3, first) = (none, none, none, none);
-                    }
-                    let (vm, v) = sample!(next);
-                    if vm != 0 {
-                        let xp = _mm512_set1_ps(next as f32);
-                        loop {
-                            let has2 = _mm512_mask_cmpge_epi32_mask(vm, t2, zero_i);
-                            if has2 == 0 {
-                                break;
-                            }
-                            let x1 = _mm512_cvtepi32_ps(t1);
-                            let x2 = _mm512_cvtepi32_ps(t2);
-                            // Keep t1 where the slope t2→t1 is above t1→p.
-                            let lhs = _mm512_mul_ps(_mm512_sub_ps(y1, y2), _mm512_sub_ps(xp, x1));
-                            let rhs = _mm512_mul_ps(_mm512_sub_ps(v, y1), _mm512_sub_ps(x1, x2));
-                            let pm = has2 & !_mm512_cmp_ps_mask::<_CMP_GT_OQ>(lhs, rhs);
-                            if pm == 0 {
-                                break;
-                            }
-                            pop!(pm, t1, y1, t2, y2, t3, y3);
-                        }
-                        let here = _mm512_set1_epi32(next as i32);
-                        let linked = _mm512_mask_cmpge_epi32_mask(vm, t1, zero_i);
-                        _mm512_mask_i32scatter_epi32::<4>(fw, linked, idx!(t1), here);
-                        _mm512_mask_i32scatter_ps::<4>(fwy, linked, idx!(t1), v);
-                        let empty = vm & !linked;
-                        first = _mm512_mask_mov_epi32(first, empty, here);
-                        yfirst = _mm512_mask_mov_ps(yfirst, empty, v);
-                        push!(vm, next, v, t1, y1, t2, y2, t3, y3);
-                    }
-                    next += 1;
-                }
-                if !f.qs[q as usize].on {
-                    continue;
-                }
-                let (tm, b0) = texels(q);
-                let mut res = _mm512_loadu_ps(sc.sb.as_ptr().add(q as usize * FL));
-                // Only when the window reaches into the next block (see `far_field`).
-                if top / blk > (q + f.d) / blk {
-                    let qm = tm & _mm512_cmpge_epi32_mask(first, zero_i);
-                    if qm != 0 {
-                        let hq = load_h0!(q, b0);
-                        let xq = _mm512_set1_ps(q as f32);
-                        let mut cur_t = first;
-                        let (mut cur_y, mut cur_x) = (yfirst, _mm512_cvtepi32_ps(first));
-                        let mut m = qm;
-                        loop {
-                            let am = m & _mm512_cmpneq_epi32_mask(cur_t, t1);
-                            if am == 0 {
-                                break;
-                            }
-                            let i = idx!(cur_t);
-                            let nt =
-                                _mm512_mask_i32gather_epi32::<4>(none, am, i, fw as *const i32);
-                            let nyv = _mm512_mask_i32gather_ps::<4>(ninf, am, i, fwy as *const f32);
-                            let nxf = _mm512_cvtepi32_ps(nt);
-                            let lhs =
-                                _mm512_mul_ps(_mm512_sub_ps(nyv, hq), _mm512_sub_ps(cur_x, xq));
-                            let rhs =
-                                _mm512_mul_ps(_mm512_sub_ps(cur_y, hq), _mm512_sub_ps(nxf, xq));
-                            let rising = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(am, lhs, rhs);
-                            if rising == 0 {
-                                break;
-                            }
-                            cur_t = _mm512_mask_mov_epi32(cur_t, rising, nt);
-                            cur_x = _mm512_mask_mov_ps(cur_x, rising, nxf);
-                            cur_y = _mm512_mask_mov_ps(cur_y, rising, nyv);
-                            m = rising;
-                        }
-                        let slope =
-                            _mm512_div_ps(_mm512_sub_ps(cur_y, hq), _mm512_sub_ps(cur_x, xq));
-                        res = _mm512_mask_max_ps(res, qm, res, slope);
-                    }
-                }
-                _mm512_storeu_ps(sc.sb.as_mut_ptr().add(q as usize * FL), res);
-            }
-        }};
-    }
     // Suffix (or whole-line) pass, right to left.
-    let (mut t1, mut t2, mut t3) = (none, none, none);
+    let (mut t1, mut t2, mut t3, mut dep) = (none, none, none, zero_i);
     let (mut y1, mut y2, mut y3) = (ninf, ninf, ninf);
     for up in (f.d..=last.min(f.len - 1)).rev() {
         if blocked && up % blk == blk - 1 {
-            (t1, t2, t3) = (none, none, none);
+            (t1, t2, t3, dep) = (none, none, none, zero_i);
         }
         let (vm, v) = sample!(up);
         if vm != 0 {
             let xp = _mm512_set1_ps(up as f32);
-            loop {
-                let has2 = _mm512_mask_cmpge_epi32_mask(vm, t2, zero_i);
-                if has2 == 0 {
-                    break;
-                }
-                let x1 = _mm512_cvtepi32_ps(t1);
-                let x2 = _mm512_cvtepi32_ps(t2);
-                // Keep t1 where the slope p→t1 is above t1→t2.
+            // Keep t1 where the slope p→t1 is above t1→t2.
+            let keep = |x1: __m512, x2: __m512, y1: __m512, y2: __m512| {
                 let lhs = _mm512_mul_ps(_mm512_sub_ps(y1, v), _mm512_sub_ps(x2, x1));
                 let rhs = _mm512_mul_ps(_mm512_sub_ps(y2, y1), _mm512_sub_ps(x1, xp));
-                let pm = has2 & !_mm512_cmp_ps_mask::<_CMP_GT_OQ>(lhs, rhs);
-                if pm == 0 {
-                    break;
-                }
-                pop!(pm, t1, y1, t2, y2, t3, y3);
-            }
-            push!(vm, up, v, t1, y1, t2, y2, t3, y3);
+                _mm512_cmp_ps_mask::<_CMP_GT_OQ>(lhs, rhs)
+            };
+            pops!(vm, keep, t1, y1, t2, y2, t3, y3, dep);
+            push!(vm, up, v, t1, y1, t2, y2, t3, y3, dep);
         }
         let q = up - f.d;
         if q >= f.wa || !f.qs[q as usize].on {
@@ -1076,9 +987,10 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &
             let hq = load_h0!(q, b0);
             let xq = _mm512_set1_ps(q as f32);
             let (mut cur_y, mut cur_x) = (y1, _mm512_cvtepi32_ps(t1));
-            let mut cur_t = t1;
             let (mut nt, mut nyv) = (t2, y2);
             let mut m = qm;
+            // The memory stack's depth of the vertex after the next (from the third step on).
+            let mut below = dep;
             let mut step = 0;
             loop {
                 let am = _mm512_mask_cmpge_epi32_mask(m, nt, zero_i);
@@ -1093,16 +1005,17 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &
                 if rising == 0 {
                     break;
                 }
-                cur_t = _mm512_mask_mov_epi32(cur_t, rising, nt);
                 cur_x = _mm512_mask_mov_ps(cur_x, rising, nxf);
                 cur_y = _mm512_mask_mov_ps(cur_y, rising, nyv);
                 step += 1;
                 if step == 1 {
                     (nt, nyv) = (t3, y3);
                 } else {
-                    let i = idx!(cur_t);
-                    nt = _mm512_mask_i32gather_epi32::<4>(none, rising, i, nx as *const i32);
-                    nyv = _mm512_mask_i32gather_ps::<4>(ninf, rising, i, ny as *const f32);
+                    let gm = _mm512_mask_cmpgt_epi32_mask(rising, below, zero_i);
+                    below = _mm512_mask_sub_epi32(below, gm, below, one_i);
+                    let i = idx!(below);
+                    nt = _mm512_mask_i32gather_epi32::<4>(none, gm, i, st_t as *const i32);
+                    nyv = _mm512_mask_i32gather_ps::<4>(ninf, gm, i, st_y as *const f32);
                 }
                 m = rising;
             }
@@ -1112,7 +1025,102 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &
         _mm512_storeu_ps(sc.sb.as_mut_ptr().add(q as usize * FL), res);
     }
     if let Some((r, _)) = f.r_steps {
-        prefix_pass!(r);
+        // Prefix pass, left to right: the window's part in the next block, so only blocks
+        // from the second on. The queries walk each lane's hull from its bottom (the block's
+        // first sample, never popped): memory rows 0 .. dep, then the registers.
+        let (mut t1, mut t2, mut t3, mut dep) = (none, none, none, zero_i);
+        let (mut y1, mut y2, mut y3) = (ninf, ninf, ninf);
+        let mut next = f.d.max(blk);
+        for q in 0..f.wa {
+            let top = (q + r).min(f.len - 1);
+            while next <= top {
+                if next % blk == 0 {
+                    (t1, t2, t3, dep) = (none, none, none, zero_i);
+                }
+                let (vm, v) = sample!(next);
+                if vm != 0 {
+                    let xp = _mm512_set1_ps(next as f32);
+                    // Keep t1 where the slope t2→t1 is above t1→p.
+                    let keep = |x1: __m512, x2: __m512, y1: __m512, y2: __m512| {
+                        let lhs = _mm512_mul_ps(_mm512_sub_ps(y1, y2), _mm512_sub_ps(xp, x1));
+                        let rhs = _mm512_mul_ps(_mm512_sub_ps(v, y1), _mm512_sub_ps(x1, x2));
+                        _mm512_cmp_ps_mask::<_CMP_GT_OQ>(lhs, rhs)
+                    };
+                    pops!(vm, keep, t1, y1, t2, y2, t3, y3, dep);
+                    push!(vm, next, v, t1, y1, t2, y2, t3, y3, dep);
+                }
+                next += 1;
+            }
+            if !f.qs[q as usize].on {
+                continue;
+            }
+            // Only when the window reaches into the next block (see `far_field`).
+            if top / blk <= (q + f.d) / blk {
+                continue;
+            }
+            let (tm, b0) = texels(q);
+            let qm = tm & _mm512_cmpge_epi32_mask(t1, zero_i);
+            if qm == 0 {
+                continue;
+            }
+            let hq = load_h0!(q, b0);
+            let xq = _mm512_set1_ps(q as f32);
+            // The registers' vertices bottom up: [t3, t2, t1] without the empty ones.
+            let has3 = _mm512_cmpge_epi32_mask(t3, zero_i);
+            let has2 = _mm512_cmpge_epi32_mask(t2, zero_i);
+            let (r0t, r0y) = (
+                _mm512_mask_mov_epi32(_mm512_mask_mov_epi32(t1, has2, t2), has3, t3),
+                _mm512_mask_mov_ps(_mm512_mask_mov_ps(y1, has2, y2), has3, y3),
+            );
+            let (r1t, r1y) =
+                (_mm512_mask_mov_epi32(t1, has3, t2), _mm512_mask_mov_ps(y1, has3, y2));
+            // Vertex j of a lane's hull from the bottom (j ≤ its last).
+            let at = |j: i32| -> (__m512i, __m512) {
+                let jv = _mm512_set1_epi32(j);
+                let k = _mm512_sub_epi32(jv, dep);
+                let (mut t, mut y) = (t1, y1);
+                let k1 = _mm512_cmpeq_epi32_mask(k, one_i);
+                t = _mm512_mask_mov_epi32(t, k1, r1t);
+                y = _mm512_mask_mov_ps(y, k1, r1y);
+                let k0 = _mm512_cmpeq_epi32_mask(k, zero_i);
+                t = _mm512_mask_mov_epi32(t, k0, r0t);
+                y = _mm512_mask_mov_ps(y, k0, r0y);
+                let mm = _mm512_cmpgt_epi32_mask(dep, jv);
+                if mm != 0 {
+                    let row = (j as usize) * FL;
+                    t = _mm512_mask_loadu_epi32(t, mm, st_t.add(row));
+                    y = _mm512_mask_loadu_ps(y, mm, st_y.add(row));
+                }
+                (t, y)
+            };
+            let (cur_t, cur_y0) = at(0);
+            let (mut cur_t, mut cur_y, mut cur_x) = (cur_t, cur_y0, _mm512_cvtepi32_ps(cur_t));
+            let mut m = qm;
+            let mut j = 0;
+            loop {
+                let am = m & _mm512_cmpneq_epi32_mask(cur_t, t1);
+                if am == 0 {
+                    break;
+                }
+                j += 1;
+                let (nt, nyv) = at(j);
+                let nxf = _mm512_cvtepi32_ps(nt);
+                let lhs = _mm512_mul_ps(_mm512_sub_ps(nyv, hq), _mm512_sub_ps(cur_x, xq));
+                let rhs = _mm512_mul_ps(_mm512_sub_ps(cur_y, hq), _mm512_sub_ps(nxf, xq));
+                let rising = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(am, lhs, rhs);
+                if rising == 0 {
+                    break;
+                }
+                cur_t = _mm512_mask_mov_epi32(cur_t, rising, nt);
+                cur_x = _mm512_mask_mov_ps(cur_x, rising, nxf);
+                cur_y = _mm512_mask_mov_ps(cur_y, rising, nyv);
+                m = rising;
+            }
+            let slope = _mm512_div_ps(_mm512_sub_ps(cur_y, hq), _mm512_sub_ps(cur_x, xq));
+            let p = sc.sb.as_mut_ptr().add(q as usize * FL);
+            let res = _mm512_loadu_ps(p);
+            _mm512_storeu_ps(p, _mm512_mask_max_ps(res, qm, res, slope));
+        }
     }
     // The tangents into the sums, in one pass of independent adds (interleaved with the hull
     // work, every add waited for its cache misses).
@@ -1128,6 +1136,7 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &
         }
     }
 }
+
 /// Adds the tangents `res` of the lanes in `m` (texels b0 + lane of query column q, weighted
 /// by the family's role) to `sums` and their weights to `wsum` (major-line layout; with
 /// `edge=wrap` the lanes past the minor end wrap to its start).
