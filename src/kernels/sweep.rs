@@ -49,13 +49,22 @@
 //! The far field is computed when the kernel is built, per azimuth in parallel (a cancel is
 //! seen between azimuths), into one f32 per texel and bin (4·bins bytes per texel: 0.5 GB at
 //! 2048², 32 bins); the bands then run the near field and join the two. So the memory grows
-//! with the map × bins, not with a band: an 8192² bake needs ~9 GB (not bounded yet), and the
-//! bake's progress only moves once the bands start. The sweeps are scalar f64 with no division
-//! in the loop; with `edge=wrap` the lines run R past the map and a finite R takes two passes
-//! (suffix and prefix hulls), so `unlimited` with `edge=none` is the cheapest case. This is
-//! well short of SPEC's 1 Mtexel/s aim (README, `cargo bench --bench frontier`): the next
-//! steps are SIMD across the lines of a family (their samples are contiguous along the minor
-//! axis, the weights shared) and f32 hulls when there is no curvature.
+//! with the map × bins, not with a band: an 8192² bake needs ~9 GB (not bounded yet, and
+//! refused by [`check_memory`]), and the bake's progress only moves once the bands start.
+//!
+//! Without curvature, on a CPU with AVX-512, the sweeps run 16 lines of a family in lockstep
+//! ([`far_field_fast`], f32): the 16 samples of a column are one contiguous lerp of a padded
+//! copy of the map's major lines ([`MajorLines`]); each lane's hull is a stack whose three
+//! nearest vertices live in registers (so most pops and tangent steps touch no memory) and
+//! whose rest sits by depth in a few KiB (a push spills one vertex with a masked scatter, a
+//! pop refills one with a masked gather); slopes are compared by cross-multiplication, with
+//! one division per query; a group's tangents are added to the sums after its sweeps. It is
+//! tested against the scalar f64 [`far_field`] (the same samples), which remains the path
+//! with curvature and on other CPUs. The lanes of a group pop as often as their busiest lane,
+//! ≈2.4 vector pops per push on fBm against ≈1 pop per line: the gathers of those pops are
+//! now the largest cost. With `edge=wrap` the lines run R past the map and a finite R takes
+//! two passes (suffix and prefix hulls, ≈3 pushes per sample), so `unlimited` with
+//! `edge=none` is the cheapest case.
 
 use super::exact::{self, NearField, NEAR_LANES};
 use super::lengyel_fast::Isa;
@@ -887,6 +896,21 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &
             (vm, v)
         }};
     }
+    // Prefetches the heights a column PF steps ahead will read (its row of the major lines is
+    // one cache line of 16 lanes; the sweep visits a new row every step).
+    const PF: i64 = 12;
+    macro_rules! prefetch {
+        ($u:expr) => {{
+            let u = $u;
+            if (0..f.len).contains(&u) {
+                let c = f.cols[u as usize];
+                let s = (c.start + i0).clamp(-(PADM as i64), f.hb + 1);
+                let p = data.wrapping_offset((c.base as i64 + s) as isize);
+                _mm_prefetch::<_MM_HINT_T0>(p as *const i8);
+                _mm_prefetch::<_MM_HINT_T0>(p.wrapping_add(16) as *const i8);
+            }
+        }};
+    }
     // Lanes whose texel at query column q is in the map, and lane 0's minor there.
     let texels = |q: i64| -> (u16, i64) {
         let b0 = i0 - f.qs[q as usize].shift;
@@ -964,6 +988,8 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &
         if blocked && up % blk == blk - 1 {
             (t1, t2, t3, dep) = (none, none, none, zero_i);
         }
+        // The query's heights (the first to touch a row; the samples read it N steps later).
+        prefetch!(up - f.d - PF);
         let (vm, v) = sample!(up);
         if vm != 0 {
             let xp = _mm512_set1_ps(up as f32);
@@ -1032,11 +1058,13 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &
         let (mut y1, mut y2, mut y3) = (ninf, ninf, ninf);
         let mut next = f.d.max(blk);
         for q in 0..f.wa {
+            prefetch!(q + PF);
             let top = (q + r).min(f.len - 1);
             while next <= top {
                 if next % blk == 0 {
                     (t1, t2, t3, dep) = (none, none, none, zero_i);
                 }
+                prefetch!(next + PF);
                 let (vm, v) = sample!(next);
                 if vm != 0 {
                     let xp = _mm512_set1_ps(next as f32);
