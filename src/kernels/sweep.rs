@@ -920,24 +920,28 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &
             (lane_range(b0, f.hb, nl), b0)
         }
     };
-    // Pops the lanes of `pm`: t1 ← t2 ← t3 ← the top of the memory stack (if any).
+    // Pops the lanes of `pm`: t1 ← t2 ← t3, which leaves a hole in t3 (−1 with vertices left
+    // in memory); only a lane that had a hole already refills t2 from memory (a gather). So a
+    // pop after a push, or a push after a pop, moves nothing between registers and memory.
     macro_rules! pop {
         ($pm:expr, $t1:ident, $y1:ident, $t2:ident, $y2:ident, $t3:ident, $y3:ident, $dep:ident) => {{
             let pm = $pm;
+            let gm =
+                pm & _mm512_cmplt_epi32_mask($t3, zero_i) & _mm512_cmpgt_epi32_mask($dep, zero_i);
             $t1 = _mm512_mask_mov_epi32($t1, pm, $t2);
             $y1 = _mm512_mask_mov_ps($y1, pm, $y2);
             $t2 = _mm512_mask_mov_epi32($t2, pm, $t3);
             $y2 = _mm512_mask_mov_ps($y2, pm, $y3);
-            let gm = _mm512_mask_cmpgt_epi32_mask(pm, $dep, zero_i);
-            $dep = _mm512_mask_sub_epi32($dep, gm, $dep, one_i);
-            let i = idx!($dep);
-            let gt = _mm512_mask_i32gather_epi32::<4>(none, gm, i, st_t as *const i32);
-            let gy = _mm512_mask_i32gather_ps::<4>(ninf, gm, i, st_y as *const f32);
-            $t3 = _mm512_mask_mov_epi32($t3, pm, gt);
-            $y3 = _mm512_mask_mov_ps($y3, pm, gy);
+            $t3 = _mm512_mask_mov_epi32($t3, pm, none);
+            if gm != 0 {
+                $dep = _mm512_mask_sub_epi32($dep, gm, $dep, one_i);
+                let i = idx!($dep);
+                $t2 = _mm512_mask_i32gather_epi32::<4>($t2, gm, i, st_t as *const i32);
+                $y2 = _mm512_mask_i32gather_ps::<4>($y2, gm, i, st_y as *const f32);
+            }
         }};
     }
-    // Pushes column u (value v) for the lanes of vm, spilling t3.
+    // Pushes column u (value v) for the lanes of vm, spilling t3 where it is not a hole.
     macro_rules! push {
         ($vm:expr, $u:expr, $v:expr, $t1:ident, $y1:ident, $t2:ident, $y2:ident, $t3:ident, $y3:ident, $dep:ident) => {{
             let vm = $vm;
@@ -1034,14 +1038,19 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &
                 cur_x = _mm512_mask_mov_ps(cur_x, rising, nxf);
                 cur_y = _mm512_mask_mov_ps(cur_y, rising, nyv);
                 step += 1;
-                if step == 1 {
-                    (nt, nyv) = (t3, y3);
-                } else {
-                    let gm = _mm512_mask_cmpgt_epi32_mask(rising, below, zero_i);
+                // From t2 on to t3, or past a hole in t3 straight to memory.
+                let reg =
+                    if step == 1 { _mm512_mask_cmpge_epi32_mask(rising, t3, zero_i) } else { 0 };
+                (nt, nyv) = (t3, y3);
+                let mem = rising & !reg;
+                if mem != 0 {
+                    let gm = _mm512_mask_cmpgt_epi32_mask(mem, below, zero_i);
                     below = _mm512_mask_sub_epi32(below, gm, below, one_i);
                     let i = idx!(below);
-                    nt = _mm512_mask_i32gather_epi32::<4>(none, gm, i, st_t as *const i32);
-                    nyv = _mm512_mask_i32gather_ps::<4>(ninf, gm, i, st_y as *const f32);
+                    nt = _mm512_mask_mov_epi32(nt, mem, none);
+                    nyv = _mm512_mask_mov_ps(nyv, mem, ninf);
+                    nt = _mm512_mask_i32gather_epi32::<4>(nt, gm, i, st_t as *const i32);
+                    nyv = _mm512_mask_i32gather_ps::<4>(nyv, gm, i, st_y as *const f32);
                 }
                 m = rising;
             }
