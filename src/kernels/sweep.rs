@@ -258,6 +258,23 @@ impl<'a> Sweep<'a> {
         };
         let (Some(r0), Some(r1)) = (row(cy, 1.0 - fy), row(cy + 1, fy)) else { return };
         let drop = self.curv * r * r;
+        if wrap {
+            // Every corner is on the surface: one f32 lerp per lane.
+            let r0 = r0.unwrap_or(&g.heights[..w as usize]);
+            let r1 = r1.unwrap_or(r0);
+            let (fx, fy) = (fx as f32, fy as f32);
+            let (inv_r, drop) = ((1.0 / r) as f32, drop as f32);
+            let h0 = &g.heights[y * g.width + x..][..lanes];
+            let mut c0 = (x as i64 + ox).rem_euclid(w) as usize;
+            for (e, &h0) in ep.iter_mut().zip(h0) {
+                let c1 = if c0 + 1 == w as usize { 0 } else { c0 + 1 };
+                let a = r0[c0] + (r0[c1] - r0[c0]) * fx;
+                let b = r1[c0] + (r1[c1] - r1[c0]) * fx;
+                *e = (a + (b - a) * fy - drop - h0) * inv_r;
+                c0 = c1;
+            }
+            return;
+        }
         for (i, e) in ep.iter_mut().enumerate().take(lanes) {
             let c = x as i64 + i as i64 + ox;
             let (c0, c1) = if wrap { (c.rem_euclid(w), (c + 1).rem_euclid(w)) } else { (c, c + 1) };
@@ -1162,6 +1179,14 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &
     // The tangents into the sums, in one pass of independent adds (interleaved with the hull
     // work, every add waited for its cache misses).
     for q in 0..f.wa {
+        // Each query column's sums are a new row: fetch a few ahead.
+        let qa = q + PF;
+        if qa < f.wa {
+            let o = f.abase[qa as usize] as isize + (i0 - f.qs[qa as usize].shift) as isize;
+            let o = o.clamp(0, sums.len() as isize - 1);
+            _mm_prefetch::<_MM_HINT_T0>(sums.as_ptr().offset(o) as *const i8);
+            _mm_prefetch::<_MM_HINT_T0>(sc.wsum.as_ptr().offset(o) as *const i8);
+        }
         if !f.qs[q as usize].on {
             continue;
         }
