@@ -224,7 +224,7 @@ impl<'a> Sweep<'a> {
             let lines = Lines::new(d);
             match &majors[usize::from(lines.major_x)] {
                 Some(ml) => far_field_fast(&grid, ml, lines, reach, out, sc),
-                None => far_field(&grid, lines, reach, curv, out, &mut sc.wsum),
+                None => far_field(&grid, lines, reach, curv, out, &mut sc.miss),
             }
         });
         Sweep { grid, bins, reduce, near, far, progress: opt.progress, reach, cuts, dirs, curv }
@@ -678,7 +678,9 @@ impl MajorLines {
 /// Per-thread scratch of [`far_field_fast`].
 #[derive(Default)]
 struct Scratch {
-    wsum: Vec<f32>,
+    /// Per texel (major-line layout), when one of its roles found nothing ahead, the other's
+    /// weight (0: none missed, so the weights sum to 1).
+    miss: Vec<f32>,
     /// The hull stacks below their three registers, `st_t`/`st_y[depth·16 + lane]`.
     st_t: Vec<i32>,
     st_y: Vec<f32>,
@@ -710,6 +712,8 @@ struct QCol {
     on: bool,
     shift: i64,
     wt: f32,
+    /// The other role's weight.
+    other: f32,
 }
 
 /// Everything a group of lines shares within one family and azimuth.
@@ -767,8 +771,8 @@ fn far_field_fast(
         .iter()
         .flatten()
         .fold((i64::MAX, i64::MIN), |(lo, hi), &(_, s, _)| (lo.min(s), hi.max(s)));
-    sc.wsum.clear();
-    sc.wsum.resize(w * h, 0.0);
+    sc.miss.clear();
+    sc.miss.resize(w * h, 0.0);
     let mut acc = std::mem::take(&mut sc.acc);
     if lines.major_x {
         acc.clear();
@@ -792,11 +796,13 @@ fn far_field_fast(
         }));
         qs.clear();
         qs.extend(fams.iter().map(|p| {
-            p.iter().find(|r| r.0 == k).map_or(QCol { on: false, shift: 0, wt: 0.0 }, |r| QCol {
+            let role = |r: usize| QCol {
                 on: true,
-                shift: if wrap { r.1.rem_euclid(hbi) } else { r.1 },
-                wt: r.2 as f32,
-            })
+                shift: if wrap { p[r].1.rem_euclid(hbi) } else { p[r].1 },
+                wt: p[r].2 as f32,
+                other: p[1 - r].2 as f32,
+            };
+            (0..2).find(|&r| p[r].0 == k).map_or(QCol::default(), role)
         }));
         let fam = Family {
             cols: &cols,
@@ -830,15 +836,17 @@ fn far_field_fast(
             for y0 in (0..h).step_by(T) {
                 for x in x0..(x0 + T).min(w) {
                     for y in y0..(y0 + T).min(h) {
-                        let (a, ws) = (acc[x * h + y], sc.wsum[x * h + y]);
-                        out[y * w + x] = if ws > 0.0 { a / ws } else { 0.0 };
+                        let (a, ws) = (acc[x * h + y], sc.miss[x * h + y]);
+                        out[y * w + x] = if ws > 0.0 { a / ws } else { a };
                     }
                 }
             }
         }
     } else {
-        for (o, &ws) in out.iter_mut().zip(sc.wsum.iter()) {
-            *o = if ws > 0.0 { *o / ws } else { 0.0 };
+        for (o, &ws) in out.iter_mut().zip(sc.miss.iter()) {
+            if ws > 0.0 {
+                *o /= ws;
+            }
         }
     }
     sc.fams = fams;
@@ -862,7 +870,7 @@ fn lane_range(b0: i64, lim: i64, nl: u32) -> u16 {
 
 /// One group of up to 16 lines i0 .. i0 + nl of a family: the suffix (or whole-line) pass right
 /// to left, then with a finite window the prefix pass left to right, and the weighted
-/// tangents into `sums` and `sc.wsum` (major-line layout).
+/// tangents into `sums` (and the missing weights into `sc.miss`; major-line layout).
 ///
 /// Each lane's hull is a stack: the three vertices nearest the sweep's position in registers
 /// (t1, t2, t3: column and height), the rest in memory by depth (`st_t`/`st_y[depth·16 +
@@ -1177,47 +1185,49 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &
         }
     }
     // The tangents into the sums, in one pass of independent adds (interleaved with the hull
-    // work, every add waited for its cache misses).
+    // work, every add waited for its cache misses). A texel's two roles weigh 1 in all, so
+    // only when a role finds nothing ahead (rare) is the other's weight, then the texel's
+    // whole valid weight, kept (`sc.miss`; both missing sum to 1 over a sum of 0).
+    const PFS: i64 = 24;
     for q in 0..f.wa {
         // Each query column's sums are a new row: fetch a few ahead.
-        let qa = q + PF;
+        let qa = q + PFS;
         if qa < f.wa {
             let o = f.abase[qa as usize] as isize + (i0 - f.qs[qa as usize].shift) as isize;
             let o = o.clamp(0, sums.len() as isize - 1);
             _mm_prefetch::<_MM_HINT_T0>(sums.as_ptr().offset(o) as *const i8);
-            _mm_prefetch::<_MM_HINT_T0>(sc.wsum.as_ptr().offset(o) as *const i8);
         }
-        if !f.qs[q as usize].on {
+        let qc = f.qs[q as usize];
+        if !qc.on {
             continue;
         }
         let (tm, b0) = texels(q);
         let res = _mm512_loadu_ps(sc.sb.as_ptr().add(q as usize * FL));
         let got = tm & _mm512_cmp_ps_mask::<_CMP_GT_OQ>(res, ninf);
         if got != 0 {
-            accumulate(f, q, b0, got, res, sums, &mut sc.wsum);
+            let v = _mm512_mul_ps(_mm512_set1_ps(qc.wt * f.inv_step), res);
+            add_lanes(f, q, b0, got, v, sums);
+        }
+        if tm & !got != 0 {
+            add_lanes(f, q, b0, tm & !got, _mm512_set1_ps(qc.other), &mut sc.miss);
         }
     }
 }
 
-/// Adds the tangents `res` of the lanes in `m` (texels b0 + lane of query column q, weighted
-/// by the family's role) to `sums` and their weights to `wsum` (major-line layout; with
-/// `edge=wrap` the lanes past the minor end wrap to its start).
+/// Adds `v` in the lanes of `m` (texels b0 + lane of query column q) to `dst` (major-line
+/// layout; with `edge=wrap` the lanes past the minor end wrap to its start).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
-unsafe fn accumulate(
+unsafe fn add_lanes(
     f: &Family<'_>,
     q: i64,
     b0: i64,
     m: u16,
-    res: std::arch::x86_64::__m512,
-    sums: &mut [f32],
-    wsum: &mut [f32],
+    v: std::arch::x86_64::__m512,
+    dst: &mut [f32],
 ) {
     use std::arch::x86_64::*;
-    let qc = f.qs[q as usize];
     let base = f.abase[q as usize] as isize;
-    let k = _mm512_set1_ps(qc.wt * f.inv_step);
-    let wt = _mm512_set1_ps(qc.wt);
     // Lanes b0 + l ≥ hb (only with `edge=wrap`) belong hb earlier.
     let hi = if b0 + 16 > f.hb { lane_range(b0 - f.hb, f.hb, 16) } else { 0 };
     for (mm, off) in [(m & !hi, b0), (m & hi, b0 - f.hb)] {
@@ -1226,13 +1236,9 @@ unsafe fn accumulate(
         }
         // Masked lanes are neither read nor written, so the pointer may point before the
         // slice for lanes that are masked off.
-        let o = base + off as isize;
-        let ps = sums.as_mut_ptr().wrapping_offset(o);
-        let pw = wsum.as_mut_ptr().wrapping_offset(o);
-        let sv = _mm512_maskz_loadu_ps(mm, ps);
-        let wv = _mm512_maskz_loadu_ps(mm, pw);
-        _mm512_mask_storeu_ps(ps, mm, _mm512_add_ps(sv, _mm512_mul_ps(k, res)));
-        _mm512_mask_storeu_ps(pw, mm, _mm512_add_ps(wv, wt));
+        let p = dst.as_mut_ptr().wrapping_offset(base + off as isize);
+        let old = _mm512_maskz_loadu_ps(mm, p);
+        _mm512_mask_storeu_ps(p, mm, _mm512_add_ps(old, v));
     }
 }
 
