@@ -1400,7 +1400,15 @@ impl<'a> NearField<'a> {
         }
         let (dx, dy) = self.dirs[n];
         let mut count = [self.near.segs[n].len() as u32; LANES];
-        if self.grid.edge == Edge::None {
+        // With `edge=none`, rays that leave the surface before the cut stop there. When the
+        // cut points of the strip's two end lanes are on the surface, every lane's is (the
+        // surface is convex) and the rays all run to the cut, as `count` already says.
+        let (cut, wm, hm) = (self.cuts[n], (w - 1) as f64, (self.grid.height - 1) as f64);
+        let inside = |xx: usize| {
+            let (px, py) = (xx as f64 + cut * dx, y as f64 + cut * dy);
+            (0.0..=wm).contains(&px) && (0.0..=hm).contains(&py)
+        };
+        if self.grid.edge == Edge::None && !(inside(x) && inside(x + lanes - 1)) {
             for (i, c) in count.iter_mut().enumerate().take(lanes) {
                 let ray = Ray::new(&self.grid, x + i, y, dx, dy, Some(self.cuts[n]));
                 *c = self.near.count(n, ray.s_end);
