@@ -31,9 +31,10 @@ pub enum Error {
     /// The bake was canceled by its owner.
     #[error("canceled")]
     Canceled,
-    /// File-system or other I/O failure on our side.
+    /// File-system or other I/O failure on our side (an I/O error that carries an object
+    /// storage failure becomes [`Error::Unavailable`]: see the `From<std::io::Error>` impl).
     #[error("I/O error: {0}")]
-    Io(#[from] std::io::Error),
+    Io(std::io::Error),
     /// A bug or an unexpected internal failure (a caught panic, an encoder that refused).
     #[error("internal error: {0}")]
     Internal(String),
@@ -104,5 +105,42 @@ impl Error {
             Error::Internal(_) => "internal",
             Error::Unavailable(_) => "store_unavailable",
         }
+    }
+}
+
+impl From<std::io::Error> for Error {
+    /// The S3 store's streamed readers and writers speak `std::io` (a bake writes its layers
+    /// through them, the split its tile windows), so an object-storage failure in the middle of
+    /// a stream arrives as an I/O error. It is the store being away (a 5xx after the client's
+    /// retries, a full volume, a dropped connection), never the bake's fault: it becomes
+    /// [`Error::Unavailable`], so the job goes back to the queue (a bounded number of times)
+    /// instead of failing as an internal error, as a failed whole-blob put already did.
+    fn from(e: std::io::Error) -> Self {
+        if let Some(s) = e.get_ref().and_then(|i| i.downcast_ref::<object_store::Error>()) {
+            return Error::Unavailable(format!("object storage: {s}"));
+        }
+        Error::Io(e)
+    }
+}
+
+#[cfg(test)]
+mod io_tests {
+    use super::Error;
+
+    /// Found by the tiles bench: weed ran out of volumes mid-upload, the S3 writer's part PUT
+    /// failed with a 500, and the bake failed as `io_error` ("an internal error occurred")
+    /// instead of going back to the queue like a failed whole-blob put.
+    #[test]
+    fn an_object_storage_failure_inside_a_stream_is_unavailable_not_io() {
+        let store = object_store::Error::Generic {
+            store: "S3",
+            source: "Server returned non-2xx status code: 500 Internal Server Error".into(),
+        };
+        let e: Error = std::io::Error::other(store).into();
+        assert!(matches!(&e, Error::Unavailable(m) if m.contains("500")), "{e:?}");
+        assert_eq!(e.code(), "store_unavailable");
+        // Plain I/O stays I/O.
+        let e: Error = std::io::Error::new(std::io::ErrorKind::PermissionDenied, "no").into();
+        assert!(matches!(e, Error::Io(_)), "{e:?}");
     }
 }
