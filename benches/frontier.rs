@@ -11,13 +11,15 @@
 //! Build once with `cargo bench --bench frontier --no-run`, then run the binary it names, or
 //! `cargo bench --bench frontier`. Arguments: `[size]` (default 2048).
 
+use horizon_bake::bake::FileSpill;
 use horizon_bake::kernels::exact::ExactHorizon;
 use horizon_bake::kernels::lengyel_fast::LengyelFast;
 use horizon_bake::kernels::march::March;
-use horizon_bake::kernels::sweep::{Sweep, NEAR, SUB};
+use horizon_bake::kernels::sweep::{FarSpill, Options, Sweep, NEAR, SUB};
 use horizon_bake::kernels::{compute_all, Grid, HorizonRows};
 use horizon_bake::params::{Edge, Reduce, YAxis};
 use horizon_bake::progress::Progress;
+use std::sync::Arc;
 use std::time::Instant;
 
 /// Rows of the map whose per-bin values are compared with `exact` (and on which `exact` is
@@ -152,6 +154,24 @@ fn main() {
         let name = r.map_or("unlimited".to_string(), |r| r.to_string());
         let note = format!("near field {NEAR} steps, {SUB} sub-lines, build included");
         row("sweep", &name, secs, Some(err), Some(err_r), &note);
+    }
+    {
+        // The same bake with its far field in a temporary file, as a map whose table passes
+        // `MAX_TABLE_BYTES` gets it: the cost of the disk's round trip (the values are the same
+        // bits, `tests/sweep.rs`).
+        let t = Instant::now();
+        let spill = Some(Arc::new(FileSpill::new(n * n)) as Arc<dyn FarSpill>);
+        let opt = Options { spill, ..Options::default() };
+        let k = Sweep::with_options(grid, None, bins, Reduce::Average, opt);
+        let out = compute_all(&k, &Progress::new()).expect("not canceled");
+        std::hint::black_box(&out);
+        let secs = t.elapsed().as_secs_f64();
+        let note = format!(
+            "far field in a file in {} ({} MiB), build included",
+            horizon_bake::bake::spill_dir().display(),
+            n * n * bins as usize * 4 >> 20
+        );
+        row("sweep, spilled", "unlimited", secs, None, None, &note);
     }
     for r in [Some(16u32), None] {
         let k = ExactHorizon::new(grid, r, bins, Reduce::Average);

@@ -15,7 +15,7 @@ use crate::kernels::{self, Band, Grid, HorizonRows};
 use crate::params::{BakeParams, Encoding, Method, Radius};
 use crate::progress::{Progress, Stage};
 use serde::Serialize;
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 
 pub use crate::layers::{HorizonLayers, Precisions, Sample};
 
@@ -139,10 +139,16 @@ pub fn make_kernel_for<'a>(
         Method::Sweep => {
             let r = (params.radius != Radius::Unlimited || params.max_distance.is_some())
                 .then_some(radius);
+            let (w, h) = (grid.width as u32, grid.height as u32);
+            let spill = kernels::sweep::spills(w, h, params.bins).then(|| {
+                Arc::new(FileSpill::new(grid.width * grid.height))
+                    as Arc<dyn kernels::sweep::FarSpill>
+            });
             let opt = kernels::sweep::Options {
                 curvature: curvature(params),
                 isa: None,
                 progress: Some(progress.clone()),
+                spill,
             };
             Box::new(kernels::sweep::Sweep::with_options(grid, r, params.bins, params.reduce, opt))
         }
@@ -153,6 +159,82 @@ pub fn make_kernel_for<'a>(
                 .with_curvature(curvature(params))
                 .with_holes(holes),
         ),
+    }
+}
+
+/// Where `sweep` spills its far field (see [`FileSpill`]); unset, the system's temporary
+/// directory (`TMPDIR`).
+static SPILL_DIR: std::sync::OnceLock<std::path::PathBuf> = std::sync::OnceLock::new();
+
+/// Makes `dir` the directory of `sweep`'s spill files for this process (the service's data
+/// directory's `tmp`, where the operator put the disk for the service's files). Only the first
+/// call counts.
+pub fn set_spill_dir(dir: std::path::PathBuf) {
+    let _ = SPILL_DIR.set(dir);
+}
+
+/// The directory spill files go to.
+pub fn spill_dir() -> std::path::PathBuf {
+    SPILL_DIR.get().cloned().unwrap_or_else(std::env::temp_dir)
+}
+
+/// `sweep`'s far field in a temporary file, one plane of `plane` f32 per bin at offset
+/// `n · plane · 4` (native byte order: the file never leaves the process). The file is created
+/// unlinked on first use ([`tempfile::tempfile_in`]), so it is gone when the kernel is dropped
+/// or the process dies, and written and read with positioned I/O, so the sweeps of several
+/// azimuths and the bands of several threads use it at once without a lock.
+pub struct FileSpill {
+    plane: usize,
+    file: std::sync::OnceLock<std::result::Result<std::fs::File, String>>,
+}
+
+impl FileSpill {
+    /// A spill for planes of `plane` values, in [`spill_dir`].
+    pub fn new(plane: usize) -> FileSpill {
+        FileSpill { plane, file: std::sync::OnceLock::new() }
+    }
+
+    fn file(&self) -> std::io::Result<&std::fs::File> {
+        let made = self.file.get_or_init(|| {
+            let dir = spill_dir();
+            std::fs::create_dir_all(&dir)
+                .and_then(|()| tempfile::tempfile_in(&dir))
+                .map_err(|e| format!("cannot create a temporary file in {}: {e}", dir.display()))
+        });
+        made.as_ref().map_err(|e| std::io::Error::other(e.clone()))
+    }
+}
+
+impl kernels::sweep::FarSpill for FileSpill {
+    fn put(&self, n: usize, start: usize, values: &[f32]) -> std::io::Result<()> {
+        use std::os::unix::fs::FileExt;
+        let file = self.file()?;
+        let mut off = ((n * self.plane + start) * 4) as u64;
+        // In pieces of 1 MiB, so the byte copy stays small.
+        let mut bytes = Vec::with_capacity(values.len().min(1 << 18) * 4);
+        for piece in values.chunks(1 << 18) {
+            bytes.clear();
+            bytes.extend(piece.iter().flat_map(|v| v.to_ne_bytes()));
+            file.write_all_at(&bytes, off)?;
+            off += bytes.len() as u64;
+        }
+        Ok(())
+    }
+
+    fn get(&self, n: usize, start: usize, out: &mut [f32]) -> std::io::Result<()> {
+        use std::os::unix::fs::FileExt;
+        let file = self.file()?;
+        let mut off = ((n * self.plane + start) * 4) as u64;
+        let mut bytes = vec![0u8; out.len().min(1 << 18) * 4];
+        for piece in out.chunks_mut(1 << 18) {
+            let b = &mut bytes[..piece.len() * 4];
+            file.read_exact_at(b, off)?;
+            for (v, c) in piece.iter_mut().zip(b.chunks_exact(4)) {
+                *v = f32::from_ne_bytes([c[0], c[1], c[2], c[3]]);
+            }
+            off += b.len() as u64;
+        }
+        Ok(())
     }
 }
 
@@ -201,6 +283,9 @@ impl HorizonRows for Masked<'_> {
     }
     fn texel_cost(&self) -> f64 {
         self.inner.texel_cost()
+    }
+    fn failure(&self) -> Option<crate::Error> {
+        self.inner.failure()
     }
     fn rows(&self, y0: usize, channels: &mut [f32], mut bins_out: Option<&mut [f32]>) {
         self.inner.rows(y0, channels, bins_out.as_deref_mut());
@@ -259,6 +344,9 @@ impl HorizonRows for RowWindow<'_> {
     }
     fn texel_cost(&self) -> f64 {
         self.inner.texel_cost()
+    }
+    fn failure(&self) -> Option<crate::Error> {
+        self.inner.failure()
     }
     fn rows(&self, y0: usize, channels: &mut [f32], bins_out: Option<&mut [f32]>) {
         self.inner.rows(self.oy + y0, channels, bins_out);
@@ -484,7 +572,10 @@ fn compute_window<T: Sample, K: HorizonRows + ?Sized>(
             let rows = band.min(h - y0);
             let ch = &mut ch[..rows * w * 8];
             kernel.rows(y0, ch, None);
-            // A kernel may return early on cancel; never hand its partial band on.
+            // A kernel may return early on cancel or a failure; never hand its partial band on.
+            if let Some(e) = kernel.failure() {
+                return Err(e);
+            }
             if progress.is_canceled() {
                 return Err(crate::Error::Canceled);
             }

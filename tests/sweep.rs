@@ -213,7 +213,7 @@ fn every_isa_matches_the_scalar_oracle_of_the_same_samples() {
             .map(|(t, n)| oracle(&g, t % w, t / w, n, bins, radius.map(f64::from), c))
             .collect();
         for &isa in &isas {
-            let opt = Options { curvature: c, isa: Some(isa), progress: None };
+            let opt = Options { curvature: c, isa: Some(isa), progress: None, spill: None };
             let got = per_bin(&Sweep::with_options(g, radius, bins as u32, Reduce::Point, opt));
             // With the curvature the oracle scans the near field finely instead of solving it.
             let tol = if c > 0.0 { 5e-4 } else { 3e-5 };
@@ -401,28 +401,175 @@ fn cli_bakes_with_method_sweep_close_to_exact() {
     assert!(worst <= 2, "sweep vs exact: {worst} LSB");
 }
 
-/// The far-field table is one f32 per texel and bin of the whole map: a map where it would pass
-/// `MAX_TABLE_BYTES` is refused before the bake (a 422 naming `method`, exit 2 in the CLI), not
-/// left to take the process down. 700² at 720 bins would be 1.3 GiB; 700² at 32 bins is fine.
+/// The far-field table is one f32 per texel and bin of the whole map: up to `MAX_TABLE_BYTES`
+/// in memory, beyond that in a temporary file, and only a table that would pass
+/// `MAX_SPILL_BYTES` even there is refused before the bake (a 422 naming `method`, exit 2 in
+/// the CLI). 700² at 720 bins (1.3 GiB) was refused while the table had to fit in memory; it is
+/// spilled now. 8192² at 256 bins (64 GiB) is refused.
 #[test]
-fn a_map_whose_far_field_table_would_not_fit_is_refused() {
+fn only_a_far_field_too_big_even_for_the_disk_is_refused() {
     use horizon_bake::encode::png::{encode8, PngColor};
-    use horizon_bake::heightmap::{decode_for, Limits};
+    use horizon_bake::heightmap::{check_method_fits, decode_for, Limits};
+    use horizon_bake::kernels::sweep::{spills, MAX_SPILL_BYTES};
     let png = encode8(700, 700, PngColor::Gray, &vec![0u8; 700 * 700]).unwrap();
     let parse = |q: &str| {
         BakeParams::from_pairs(q.split('&').map(|kv| kv.split_once('=').unwrap())).unwrap()
     };
     let mut p = parse("method=sweep&bins=720&outputs=angles&reduce=point");
-    match decode_for(&png, &mut p, &Limits::default()) {
+    assert!(decode_for(&png, &mut p, &Limits::default()).is_ok());
+    assert!(spills(700, 700, 720) && !spills(700, 700, 32) && !spills(2048, 2048, 32));
+    let p = parse("method=sweep&bins=256");
+    assert!(8192u64 * 8192 * 256 * 4 > MAX_SPILL_BYTES);
+    match check_method_fits(&p, 8192, 8192) {
         Err(horizon_bake::Error::Param { field, message }) => {
             assert_eq!(field, "method");
             assert!(message.contains("MiB") && message.contains("march"), "{message}");
         }
-        other => panic!("not refused: {:?}", other.map(|_| ())),
+        other => panic!("not refused: {other:?}"),
     }
-    let mut p = parse("method=sweep&bins=32");
-    assert!(decode_for(&png, &mut p, &Limits::default()).is_ok());
+    assert!(check_method_fits(&parse("method=sweep&bins=32"), 8192, 8192).is_ok());
     // Other methods keep no such table.
-    let mut p = parse("method=march&radius=8&bins=720&outputs=angles&reduce=point");
-    assert!(decode_for(&png, &mut p, &Limits::default()).is_ok());
+    assert!(check_method_fits(&parse("method=march&radius=8&bins=256"), 8192, 8192).is_ok());
+}
+
+/// A [`FarSpill`] in memory, counting what passes through it, or failing on demand.
+#[derive(Default)]
+struct MemSpill {
+    planes: std::sync::Mutex<std::collections::HashMap<usize, Vec<f32>>>,
+    fail_put: Option<std::io::ErrorKind>,
+    fail_get: bool,
+}
+
+impl horizon_bake::kernels::sweep::FarSpill for MemSpill {
+    fn put(&self, n: usize, start: usize, values: &[f32]) -> std::io::Result<()> {
+        if let Some(kind) = self.fail_put {
+            return Err(std::io::Error::new(kind, "the test's store refuses"));
+        }
+        let mut planes = self.planes.lock().unwrap();
+        let plane = planes.entry(n).or_default();
+        if plane.len() < start + values.len() {
+            plane.resize(start + values.len(), f32::NAN);
+        }
+        plane[start..start + values.len()].copy_from_slice(values);
+        Ok(())
+    }
+    fn get(&self, n: usize, start: usize, out: &mut [f32]) -> std::io::Result<()> {
+        if self.fail_get {
+            return Err(std::io::Error::other("the test's store cannot read"));
+        }
+        let planes = self.planes.lock().unwrap();
+        out.copy_from_slice(&planes[&n][start..start + out.len()]);
+        Ok(())
+    }
+}
+
+/// The far field read back from a spill store, in memory or in a real temporary file
+/// (`bake::FileSpill`), gives the bits of the in-memory table: random fBm, both edges, finite
+/// and unlimited radii, both reductions, the per-bin output, odd sizes and several band
+/// heights (bands whose rows straddle planes' boundaries in the file).
+#[test]
+fn a_spilled_far_field_gives_the_bits_of_the_table_in_memory() {
+    use horizon_bake::bake::FileSpill;
+    use horizon_bake::kernels::run_bands;
+    use std::sync::Arc;
+    let mut rng = Rng(0x5e11);
+    for (w, h, edge, radius, reduce, bins) in [
+        (67, 45, Edge::Wrap, None, Reduce::Average, 32u32),
+        (67, 45, Edge::None, None, Reduce::Point, 32),
+        (50, 71, Edge::None, Some(30), Reduce::Average, 48),
+        (33, 1, Edge::Wrap, Some(20), Reduce::Point, 16),
+    ] {
+        let hts = fbm(&mut rng, w, h, 30.0);
+        let g = Grid::new(w, h, &hts, edge, YAxis::Down);
+        let run = |spill: Option<Arc<dyn horizon_bake::kernels::sweep::FarSpill>>, band: usize| {
+            let opt = Options { spill, ..Options::default() };
+            let k = Sweep::with_options(g, radius, bins, reduce, opt);
+            let nb = k.bins();
+            let ch = std::sync::Mutex::new(vec![0.0f32; w * h * 8]);
+            let bo = std::sync::Mutex::new(vec![0.0f32; w * h * nb]);
+            run_bands(&k, band, true, &Progress::new(), |_, b| {
+                let start = b.y0 * w;
+                ch.lock().unwrap()[start * 8..][..b.channels.len()].copy_from_slice(b.channels);
+                let bins = b.bins.unwrap();
+                bo.lock().unwrap()[start * nb..][..bins.len()].copy_from_slice(bins);
+            })
+            .unwrap();
+            (ch.into_inner().unwrap(), bo.into_inner().unwrap())
+        };
+        let want = run(None, 7);
+        let nonzero = want.1.iter().filter(|&&v| v > 0.0).count();
+        assert!(nonzero > want.1.len() / 4, "the map casts horizons: {nonzero}");
+        for band in [1, 4, h] {
+            let mem = Arc::new(MemSpill::default());
+            let got = run(Some(mem.clone()), band);
+            assert_eq!(mem.planes.lock().unwrap().len(), bins as usize, "every plane stored");
+            assert!(got == want, "{w}×{h} {edge:?} R {radius:?}: memory spill, band {band}");
+            let file = Arc::new(FileSpill::new(w * h));
+            let got = run(Some(file), band);
+            assert!(got == want, "{w}×{h} {edge:?} R {radius:?}: file spill, band {band}");
+        }
+    }
+}
+
+/// A spill store that fails makes the bake fail with the store's error, never hands on a band
+/// made of what it could not read: a full disk is `Unavailable` (retried later), a read error
+/// an I/O error.
+#[test]
+fn a_failing_spill_fails_the_bake() {
+    use horizon_bake::kernels::run_bands;
+    use std::sync::Arc;
+    let mut rng = Rng(7);
+    let hts = fbm(&mut rng, 40, 30, 30.0);
+    let g = Grid::new(40, 30, &hts, Edge::Wrap, YAxis::Down);
+    let bake = |store: MemSpill| {
+        let opt = Options { spill: Some(Arc::new(store)), ..Options::default() };
+        let k = Sweep::with_options(g, None, 32, Reduce::Average, opt);
+        let handed = std::sync::atomic::AtomicUsize::new(0);
+        let r = run_bands(&k, 4, false, &Progress::new(), |_, _| {
+            handed.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        });
+        (r, handed.into_inner())
+    };
+    let full = MemSpill { fail_put: Some(std::io::ErrorKind::StorageFull), ..MemSpill::default() };
+    match bake(full) {
+        (Err(horizon_bake::Error::Unavailable(m)), 0) => assert!(m.contains("no space"), "{m}"),
+        (other, n) => panic!("a full disk: {other:?} after {n} bands"),
+    }
+    match bake(MemSpill { fail_get: true, ..MemSpill::default() }) {
+        (Err(horizon_bake::Error::Io(e)), 0) => assert!(e.to_string().contains("far field"), "{e}"),
+        (other, n) => panic!("a read error: {other:?} after {n} bands"),
+    }
+    let (ok, n) = bake(MemSpill::default());
+    assert!(ok.is_ok() && n == 30usize.div_ceil(4), "{ok:?} {n}");
+}
+
+/// The bake itself hands `sweep` a temporary file once the table passes `MAX_TABLE_BYTES`
+/// (726² at 256 bins: 515 MiB), and its layers are those of the kernel with the table in
+/// memory.
+#[test]
+fn a_bake_past_the_memory_table_spills_and_keeps_its_values() {
+    use horizon_bake::bake::bake_horizon;
+    use horizon_bake::heightmap::HeightMap;
+    use horizon_bake::kernels::compute_all;
+    use horizon_bake::kernels::sweep::spills;
+    use horizon_bake::layers::Precisions;
+    let n = 726;
+    assert!(spills(n as u32, n as u32, 256));
+    let mut rng = Rng(0xb16);
+    let hts = fbm(&mut rng, n, n, 20.0);
+    let q = "method=sweep&radius=unlimited&edge=none&bins=256&reduce=point&height_scale=1";
+    let p = BakeParams::from_pairs(q.split('&').map(|kv| kv.split_once('=').unwrap())).unwrap();
+    let map = HeightMap::from_values(n, n, hts.clone()).unwrap();
+    let (layers, _) =
+        bake_horizon(&map, &p, Precisions { u8: false, u16: false, f32: true }, &Progress::new())
+            .unwrap();
+    let [l0, l1] = layers.f32.unwrap();
+    let g = Grid::new(n, n, &hts, Edge::None, p.y_axis);
+    let want = compute_all(&Sweep::new(g, None, 256, Reduce::Point), &Progress::new()).unwrap();
+    let lit = want.iter().filter(|&&v| v > 0.01).count();
+    assert!(lit > want.len() / 4, "the map casts horizons: {lit}");
+    for (t, (a, b)) in want.chunks_exact(8).zip(l0.chunks_exact(4).zip(l1.chunks_exact(4))) {
+        assert_eq!(&t[..4], a);
+        assert_eq!(&t[4..], b);
+    }
 }

@@ -131,6 +131,14 @@ pub trait HorizonRows: Sync {
     fn texel_cost(&self) -> f64 {
         1.0
     }
+
+    /// A failure of the kernel's own storage (`sweep`'s spilled far field), reported by every
+    /// call once it has happened: after one, [`HorizonRows::rows`] may have left its rows
+    /// unfinished, and no band may be handed on. Kernels that keep everything in memory never
+    /// fail.
+    fn failure(&self) -> Option<Error> {
+        None
+    }
 }
 
 /// Rows per band for a default-cost kernel: small enough to balance across threads and to
@@ -204,7 +212,10 @@ where
                 None
             };
             kernel.rows(y0, &mut ch[..], bins);
-            // A kernel may return early on cancel; never hand its partial band on.
+            // A kernel may return early on cancel or a failure; never hand its partial band on.
+            if let Some(e) = kernel.failure() {
+                return Err(e);
+            }
             if progress.is_canceled() {
                 return Err(Error::Canceled);
             }

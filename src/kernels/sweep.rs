@@ -47,10 +47,17 @@
 //!
 //! # Memory, order and speed
 //! The far field is computed when the kernel is built, per azimuth in parallel (a cancel is
-//! seen between azimuths), into one f32 per texel and bin (4·bins bytes per texel: 0.5 GB at
-//! 2048², 32 bins); the bands then run the near field and join the two. So the memory grows
-//! with the map × bins, not with a band: an 8192² bake needs ~9 GB (not bounded yet, and
-//! refused by [`check_memory`]), and the bake's progress only moves once the bands start.
+//! seen between azimuths), one f32 per texel and bin (4·bins bytes per texel: 0.5 GiB at
+//! 2048², 32 bins); the bands then run the near field and join the two. The sweeps make the
+//! table azimuth by azimuth (a whole plane each) and the bands read it row by row (every bin
+//! of a few rows), so all of it exists between the two. Up to [`MAX_TABLE_BYTES`] it stays in
+//! memory; beyond, the bake hands the kernel a [`FarSpill`] (a temporary file: the kernel
+//! itself does no I/O) that takes each plane as it is swept and gives each band its rows, and
+//! the build sweeps one major axis at a time with as many azimuths at once as
+//! `SPILL_SWEEP_BYTES` allows. So the memory is the map, its padded major lines, the planes in
+//! flight (up to 3 of W·H each) and a band: about 1.3 GB at 8192², whatever the bins; the disk
+//! holds the table. Bigger than [`MAX_SPILL_BYTES`] is refused by [`check_memory`]. The bake's
+//! progress only moves once the bands start.
 //!
 //! Without curvature, on a CPU with AVX-512, the sweeps run 16 lines of a family in lockstep
 //! ([`far_field_fast`], f32): the 16 samples of a column are one contiguous lerp of a padded
@@ -83,6 +90,8 @@ use crate::params::{Edge, Reduce};
 use crate::progress::Progress;
 use rayon::prelude::*;
 use std::f64::consts::PI;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 
 /// Major-axis steps covered exactly by the near field. Measured shorter (`tests/sweep.rs`, the
 /// frontier bench): 8 steps save ~10 % of the CPU time at 2048² unlimited (14.5 → 13.0 CPU-s)
@@ -160,8 +169,12 @@ pub struct Sweep<'a> {
     bins: usize,
     reduce: Reduce,
     near: NearField<'a>,
-    /// `far[n · W·H + texel]`: the far field's tan α (0 when nothing beyond rises).
-    far: Vec<f32>,
+    /// The far field's tan α per bin and texel (0 when nothing beyond rises).
+    far: Far,
+    /// The first failure of the spill store (see [`FarSpill`]), as its kind and message so
+    /// every band after it can report it; `failed` says there is one without taking the lock.
+    failure: Mutex<Option<(std::io::ErrorKind, String)>>,
+    failed: AtomicBool,
     progress: Option<Progress>,
     /// Where rays end (`None`: the map's edge), each direction's near-field cut, the image
     /// directions and the curvature: for the point at exactly R (see [`Sweep::end_points`]).
@@ -171,8 +184,35 @@ pub struct Sweep<'a> {
     curv: f64,
 }
 
+/// Where the far field waits between the sweeps and the bands.
+enum Far {
+    /// `far[n · W·H + texel]`.
+    Memory(Vec<f32>),
+    /// One plane of W·H per bin, in the caller's store.
+    Spilled(Arc<dyn FarSpill>),
+}
+
+/// A store for the far field's planes outside the process's memory (a temporary file, in
+/// `bake.rs`): the kernel stays free of I/O and the caller picks where the bytes go. The far
+/// field is made azimuth by azimuth (a whole plane of W·H per sweep) but read band by band (all
+/// bins of a few rows), so without a store the whole W·H·bins table sits in memory between the
+/// two; with one the kernel holds only the planes being swept and one band of every bin.
+pub trait FarSpill: Send + Sync {
+    /// Stores `values` of plane `n` (W·H values, texel-major) from texel `start` on. Every
+    /// texel of every plane is stored once before the first read.
+    ///
+    /// # Errors
+    /// The store's I/O error; the bake then fails with it.
+    fn put(&self, n: usize, start: usize, values: &[f32]) -> std::io::Result<()>;
+    /// Fills `out` with plane `n`'s values from texel `start` on.
+    ///
+    /// # Errors
+    /// The store's I/O error; the bake then fails with it.
+    fn get(&self, n: usize, start: usize, out: &mut [f32]) -> std::io::Result<()>;
+}
+
 /// How the kernel is built beyond the grid, radius, bins and reduction.
-#[derive(Debug, Clone, Default)]
+#[derive(Clone, Default)]
 pub struct Options {
     /// Earth-curvature drop per texel² (0: off).
     pub curvature: f64,
@@ -181,6 +221,9 @@ pub struct Options {
     /// Checked between azimuths and strips: a canceled build stops early (its output is then
     /// unspecified and must be discarded, as [`super::run_bands`] does).
     pub progress: Option<Progress>,
+    /// Where the far field waits for the bands (`None`: in memory, 4·bins bytes per texel;
+    /// see [`spills`] for when the bake provides one).
+    pub spill: Option<Arc<dyn FarSpill>>,
 }
 
 impl<'a> Sweep<'a> {
@@ -222,26 +265,110 @@ impl<'a> Sweep<'a> {
             .collect();
         let isa = opt.isa.filter(|i| i.supported()).unwrap_or_else(Isa::detect);
         let near = NearField::new(grid, &dirs, &cuts, curv, isa);
-        let mut far = vec![0.0f32; w * h * bins];
         let progress = opt.progress.clone();
         // Without curvature and with AVX-512, the vector sweeps of `far_field_fast` (f32);
         // otherwise the scalar f64 ones of `far_field`.
         let fast = curv == 0.0 && isa == Isa::Avx512;
-        let majors: [Option<MajorLines>; 2] = [false, true].map(|major_x| {
-            let needed = dirs.iter().any(|&d| Lines::new(d).major_x == major_x);
-            (fast && needed).then(|| MajorLines::new(&grid, major_x))
-        });
-        far.par_chunks_mut(w * h).zip(&dirs).for_each_init(Scratch::default, |sc, (out, &d)| {
-            if progress.as_ref().is_some_and(Progress::is_canceled) {
-                return;
-            }
-            let lines = Lines::new(d);
-            match &majors[usize::from(lines.major_x)] {
-                Some(ml) => far_field_fast(&grid, ml, lines, reach, out, sc),
+        let sweep_one =
+            |ml: Option<&MajorLines>, lines: Lines, out: &mut [f32], sc: &mut Scratch| match ml {
+                Some(ml) => far_field_fast(&grid, ml, lines, reach, out, sc, None),
                 None => far_field(&grid, lines, reach, curv, out, &mut sc.miss),
+            };
+        let failure = Mutex::new(None);
+        let failed = AtomicBool::new(false);
+        let far = match opt.spill {
+            None => {
+                let mut far = vec![0.0f32; w * h * bins];
+                let majors: [Option<MajorLines>; 2] = [false, true].map(|major_x| {
+                    let needed = dirs.iter().any(|&d| Lines::new(d).major_x == major_x);
+                    (fast && needed).then(|| MajorLines::new(&grid, major_x))
+                });
+                far.par_chunks_mut(w * h).zip(&dirs).for_each_init(
+                    Scratch::default,
+                    |sc, (out, &d)| {
+                        if progress.as_ref().is_some_and(Progress::is_canceled) {
+                            return;
+                        }
+                        let lines = Lines::new(d);
+                        sweep_one(majors[usize::from(lines.major_x)].as_ref(), lines, out, sc);
+                    },
+                );
+                Far::Memory(far)
             }
-        });
-        Sweep { grid, bins, reduce, near, far, progress: opt.progress, reach, cuts, dirs, curv }
+            Some(store) => {
+                // One major axis at a time, so only its padded lines are alive; at most
+                // `slots` azimuths at once, each with 2 planes of W·H (the sums or the plane,
+                // and the weights: the vector sweeps along x hand their transposed rows to
+                // the store band by band), so the build's memory is bounded by the map, not
+                // the map × bins.
+                let plane = w * h * 4;
+                let slots = (SPILL_SWEEP_BYTES / (2 * plane).max(1))
+                    .clamp(1, rayon::current_num_threads().max(1));
+                let mut work: Vec<(Vec<f32>, Scratch)> =
+                    (0..slots).map(|_| (Vec::new(), Scratch::default())).collect();
+                for major_x in [false, true] {
+                    let ns: Vec<usize> =
+                        (0..bins).filter(|&n| Lines::new(dirs[n]).major_x == major_x).collect();
+                    if ns.is_empty() {
+                        continue;
+                    }
+                    let ml = fast.then(|| MajorLines::new(&grid, major_x));
+                    for chunk in ns.chunks(slots) {
+                        if failed.load(Ordering::Relaxed)
+                            || progress.as_ref().is_some_and(Progress::is_canceled)
+                        {
+                            break;
+                        }
+                        chunk.par_iter().zip(work.par_iter_mut()).for_each(|(&n, (out, sc))| {
+                            let lines = Lines::new(dirs[n]);
+                            let put = |start: usize, values: &[f32]| {
+                                if let Err(e) = store.put(n, start, values) {
+                                    record(&failure, &failed, e);
+                                }
+                            };
+                            out.clear();
+                            match &ml {
+                                Some(ml) if major_x => {
+                                    // The plane of the azimuths along y is not needed any more:
+                                    // freed, not just emptied, or it stays resident.
+                                    *out = Vec::new();
+                                    let mut emit = put;
+                                    far_field_fast(
+                                        &grid,
+                                        ml,
+                                        lines,
+                                        reach,
+                                        out,
+                                        sc,
+                                        Some(&mut emit),
+                                    );
+                                }
+                                _ => {
+                                    out.resize(w * h, 0.0);
+                                    sweep_one(ml.as_ref(), lines, out, sc);
+                                    put(0, out);
+                                }
+                            }
+                        });
+                    }
+                }
+                Far::Spilled(store)
+            }
+        };
+        Sweep {
+            grid,
+            bins,
+            reduce,
+            near,
+            far,
+            failure,
+            failed,
+            progress: opt.progress,
+            reach,
+            cuts,
+            dirs,
+            curv,
+        }
     }
 
     /// tan of the point at exactly s = R on the texel's own ray, when R ends the far field
@@ -651,6 +778,10 @@ fn tangent_right(hull: &[Pt], q: i64, h0: f64, cc: f64) -> Option<f64> {
     Some(slope(hull[lo]) + corr)
 }
 
+/// Rows per band of a plane that [`far_field_fast`] hands on transposed (16 rows at 8192
+/// columns: 512 KiB).
+const EMIT_ROWS: usize = 16;
+
 /// Lanes of the vector far field: 16 lines of one family in lockstep.
 const FL: usize = 16;
 /// Margin of the padded major lines ([`MajorLines`]) on either side of the minor axis.
@@ -758,12 +889,19 @@ fn far_field_fast(
     reach: Option<f64>,
     out: &mut [f32],
     sc: &mut Scratch,
+    mut emit: Option<&mut dyn FnMut(usize, &[f32])>,
 ) {
     let (w, h) = (grid.width, grid.height);
     let (wa, hb) = if lines.major_x { (w, h) } else { (h, w) };
     let r_steps = reach.map(|r| (r / lines.step + 1e-9).floor() as i64);
     let d = NEAR as i64;
     if r_steps.is_some_and(|r| r < d) {
+        if let Some(emit) = emit.as_deref_mut() {
+            let zeros = vec![0.0f32; w * EMIT_ROWS.min(h)];
+            for y0 in (0..h).step_by(EMIT_ROWS) {
+                emit(y0 * w, &zeros[..EMIT_ROWS.min(h - y0) * w]);
+            }
+        }
         return;
     }
     let wrap = grid.edge == Edge::Wrap;
@@ -843,7 +981,21 @@ fn far_field_fast(
             i0 += FL as i64;
         }
     }
-    if lines.major_x {
+    if let (true, Some(emit)) = (lines.major_x, emit) {
+        // Transposed and normalised a band of rows at a time, each band handed on: no plane
+        // in the image layout is ever whole.
+        let mut buf = vec![0.0f32; w * EMIT_ROWS.min(h)];
+        for y0 in (0..h).step_by(EMIT_ROWS) {
+            let n = EMIT_ROWS.min(h - y0);
+            for x in 0..w {
+                let (a, ws) = (&acc[x * h + y0..][..n], &sc.miss[x * h + y0..][..n]);
+                for (r, (&a, &ws)) in a.iter().zip(ws).enumerate() {
+                    buf[r * w + x] = if ws > 0.0 { a / ws } else { a };
+                }
+            }
+            emit(y0 * w, &buf[..n * w]);
+        }
+    } else if lines.major_x {
         // Transposed back to the image layout while normalising, in tiles.
         const T: usize = 32;
         for x0 in (0..w).step_by(T) {
@@ -1266,6 +1418,14 @@ impl HorizonRows for Sweep<'_> {
     fn bins(&self) -> usize {
         self.bins
     }
+    fn failure(&self) -> Option<crate::error::Error> {
+        if !self.failed.load(Ordering::Relaxed) {
+            return None;
+        }
+        let f = self.failure.lock().ok()?.clone();
+        let (kind, message) = f.unwrap_or((std::io::ErrorKind::Other, "unknown".into()));
+        Some(spill_error(std::io::Error::new(kind, message)))
+    }
     fn rows(&self, y0: usize, channels: &mut [f32], mut bins_out: Option<&mut [f32]>) {
         let (w, h, nb) = (self.grid.width, self.grid.height, self.bins);
         let n_rows = channels.len() / (w * 8);
@@ -1276,6 +1436,27 @@ impl HorizonRows for Sweep<'_> {
         // `reduce=point` reads one bin per channel: the others are not computed unless asked.
         let step =
             if self.reduce == Reduce::Point && bins_out.is_none() && nb >= 8 { nb / 8 } else { 1 };
+        if self.failed.load(Ordering::Relaxed) {
+            return;
+        }
+        // The band's far field: the table's rows, or every needed bin's rows read from the
+        // spill store (`far[n · n_rows·W + r·W + x]` either way, with its own origin).
+        let band;
+        let (far, plane, origin): (&[f32], usize, usize) = match &self.far {
+            Far::Memory(t) => (t, w * h, 0),
+            Far::Spilled(store) => {
+                let mut b = vec![0.0f32; nb * n_rows * w];
+                for n in (0..nb).step_by(step) {
+                    let out = &mut b[n * n_rows * w..][..n_rows * w];
+                    if let Err(e) = store.get(n, y0 * w, out) {
+                        record(&self.failure, &self.failed, e);
+                        return;
+                    }
+                }
+                band = b;
+                (&band, n_rows * w, y0 * w)
+            }
+        };
         for r in 0..n_rows {
             let y = y0 + r;
             for x in (0..w).step_by(NEAR_LANES) {
@@ -1286,10 +1467,10 @@ impl HorizonRows for Sweep<'_> {
                 for n in (0..nb).step_by(step) {
                     self.near.strip(n, x, y, &mut best);
                     self.end_points(n, x, y, lanes, &mut ep);
-                    let far = &self.far[n * w * h + y * w + x..][..lanes];
+                    let fb = &far[n * plane + y * w + x - origin..][..lanes];
                     for i in 0..lanes {
                         // sin α in f32 (tan α ≥ 0; a vertical horizon, ∞, gives 1).
-                        let t = best[i].max(far[i]).max(ep[i]).min(1e15);
+                        let t = best[i].max(fb[i]).max(ep[i]).min(1e15);
                         sn[i] = t / (1.0 + t * t).sqrt();
                     }
                     for i in 0..lanes {
@@ -1309,29 +1490,76 @@ impl HorizonRows for Sweep<'_> {
     }
 }
 
-/// Most bytes the far-field table ([`Sweep`] keeps one f32 per texel and bin for the whole map,
-/// built before the bands run) may take: 1 GiB, a 2048² map at 64 bins or a 4096² one at 16.
-pub const MAX_TABLE_BYTES: u64 = 1 << 30;
+/// Most bytes the far-field table may take in memory (4·bins bytes per texel: a 2048² map at
+/// 32 bins); a bigger one waits in a [`FarSpill`] store instead, so that the process stays
+/// within about 1.5 GB for the largest map the service takes (8192² at any bins).
+pub const MAX_TABLE_BYTES: u64 = 512 << 20;
+
+/// Most bytes the planes being swept may take when the table is spilled (up to 3 planes of
+/// W·H f32 per azimuth in flight: the plane, the missing weights and the transposed sums), so
+/// fewer azimuths run at once on a big map: one at 8192², two (on two threads) at 4096².
+const SPILL_SWEEP_BYTES: usize = 768 << 20;
+
+/// Most bytes a spilled table may take on disk: 32 GiB, an 8192² map at 128 bins.
+pub const MAX_SPILL_BYTES: u64 = 32 << 30;
+
+/// The bytes of the far-field table of a `width` × `height` map at `bins` azimuths.
+pub fn table_bytes(width: u32, height: u32, bins: u32) -> u64 {
+    u64::from(width) * u64::from(height) * u64::from(bins.max(1)) * 4
+}
+
+/// Whether a bake of this size should give the kernel a [`FarSpill`] store (its table would
+/// pass [`MAX_TABLE_BYTES`]).
+pub fn spills(width: u32, height: u32, bins: u32) -> bool {
+    table_bytes(width, height, bins) > MAX_TABLE_BYTES
+}
+
+/// Keeps the first failure of the spill store and says there is one.
+fn record(
+    failure: &Mutex<Option<(std::io::ErrorKind, String)>>,
+    failed: &AtomicBool,
+    e: std::io::Error,
+) {
+    if let Ok(mut f) = failure.lock() {
+        f.get_or_insert_with(|| (e.kind(), e.to_string()));
+    }
+    failed.store(true, Ordering::Relaxed);
+}
+
+/// A spill failure as the bake's error: a full disk is a condition to retry later (`Unavailable`,
+/// so a queued bake goes back to the queue a bounded number of times), anything else an I/O error.
+fn spill_error(e: std::io::Error) -> crate::error::Error {
+    if e.kind() == std::io::ErrorKind::StorageFull {
+        crate::error::Error::Unavailable(format!(
+            "method=sweep could not write its far field to disk (no space left): {e}"
+        ))
+    } else {
+        crate::error::Error::Io(std::io::Error::new(
+            e.kind(),
+            format!("method=sweep's far field on disk: {e}"),
+        ))
+    }
+}
 
 /// Refuses a `width` × `height` map at `bins` azimuths whose far-field table would exceed
-/// [`MAX_TABLE_BYTES`], before anything is decoded or queued: an 8192² map at 32 bins would
-/// need 8 GiB and could take the whole process down with it.
+/// [`MAX_SPILL_BYTES`] even on disk, before anything is decoded or queued.
 ///
 /// # Errors
 /// [`Error::Param`] naming `method`, with the size and what to use instead.
 pub fn check_memory(width: u32, height: u32, bins: u32) -> crate::error::Result<()> {
-    let bytes = u64::from(width) * u64::from(height) * u64::from(bins.max(8)) * 4;
-    if bytes > MAX_TABLE_BYTES {
+    let bytes = table_bytes(width, height, bins.max(8));
+    if bytes > MAX_SPILL_BYTES {
         return Err(crate::error::Error::param(
             "method",
             format!(
-                "method=sweep keeps its far field for the whole map, width × height × bins × 4 \
-                 bytes = {} MiB for this {width}×{height} map at {} bins, over the {} MiB it may \
-                 use; use fewer bins, or method=march with a finite radius or max_distance, or \
-                 method=exact",
+                "method=sweep keeps its far field for the whole map (in memory up to {} MiB, \
+                 beyond that in a temporary file), width × height × bins × 4 bytes = {} MiB for \
+                 this {width}×{height} map at {} bins, over the {} MiB it may use; use fewer \
+                 bins, or method=march with a finite radius or max_distance, or method=exact",
+                MAX_TABLE_BYTES >> 20,
                 bytes >> 20,
                 bins.max(8),
-                MAX_TABLE_BYTES >> 20
+                MAX_SPILL_BYTES >> 20
             ),
         ));
     }
@@ -1430,7 +1658,7 @@ mod tests {
                             far_field(&g, lines, reach, 0.0, &mut want, &mut wsum);
                             let mut got = vec![0.0f32; w * h];
                             let ml = &mls[usize::from(lines.major_x)];
-                            far_field_fast(&g, ml, lines, reach, &mut got, &mut sc);
+                            far_field_fast(&g, ml, lines, reach, &mut got, &mut sc, None);
                             for (t, (a, b)) in got.iter().zip(&want).enumerate() {
                                 assert!(
                                     (a - b).abs() <= 2e-5 * (1.0 + b.abs()),
