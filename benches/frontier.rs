@@ -156,6 +156,23 @@ fn main() {
         row("sweep", &name, secs, Some(err), Some(err_r), &note);
     }
     {
+        // `edge=none` (a DEM's edge): one plain hull per line at `unlimited`, no suffix and
+        // prefix passes, so the cheapest case of the far field.
+        let grid_none = Grid::new(n, n, &heights, Edge::None, YAxis::Up);
+        let rough_none = Grid::new(ROUGH, ROUGH, &rough_h, Edge::None, YAxis::Up);
+        let t = Instant::now();
+        let k = Sweep::new(grid_none, None, bins, Reduce::Average);
+        let out = compute_all(&k, &Progress::new()).expect("not canceled");
+        std::hint::black_box(&out);
+        let secs = t.elapsed().as_secs_f64();
+        drop(out);
+        let err = errors(&bins_of(&k, CROP_ROWS), &exact_crop(grid_none, None));
+        drop(k);
+        let kr = Sweep::new(rough_none, None, bins, Reduce::Average);
+        let err_r = errors(&bins_of(&kr, CROP_ROWS), &exact_crop(rough_none, None));
+        row("sweep, edge=none", "unlimited", secs, Some(err), Some(err_r), "build included");
+    }
+    {
         // The same bake with its far field in a temporary file, as a map whose table passes
         // `MAX_TABLE_BYTES` gets it: the cost of the disk's round trip (the values are the same
         // bits, `tests/sweep.rs`).
@@ -169,7 +186,7 @@ fn main() {
         let note = format!(
             "far field in a file in {} ({} MiB), build included",
             horizon_bake::bake::spill_dir().display(),
-            n * n * bins as usize * 4 >> 20
+            (n * n * bins as usize * 4) >> 20
         );
         row("sweep, spilled", "unlimited", secs, None, None, &note);
     }

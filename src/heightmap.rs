@@ -445,8 +445,9 @@ pub fn check_submission_for(
     Ok((probed, report))
 }
 
-/// Refuses a method whose memory grows with the whole map (`sweep`'s far-field table) on a map
-/// where it would not fit ([`crate::kernels::sweep::check_memory`]).
+/// Refuses a method whose storage grows with the whole map × bins (`sweep`'s far-field table,
+/// in memory or spilled to a temporary file) on a map where it would not fit even on disk
+/// ([`crate::kernels::sweep::check_memory`]).
 ///
 /// # Errors
 /// [`Error::Param`] naming `method`.

@@ -419,7 +419,7 @@ fn only_a_far_field_too_big_even_for_the_disk_is_refused() {
     assert!(decode_for(&png, &mut p, &Limits::default()).is_ok());
     assert!(spills(700, 700, 720) && !spills(700, 700, 32) && !spills(2048, 2048, 32));
     let p = parse("method=sweep&bins=256");
-    assert!(8192u64 * 8192 * 256 * 4 > MAX_SPILL_BYTES);
+    const { assert!(8192u64 * 8192 * 256 * 4 > MAX_SPILL_BYTES) };
     match check_method_fits(&p, 8192, 8192) {
         Err(horizon_bake::Error::Param { field, message }) => {
             assert_eq!(field, "method");

@@ -778,6 +778,10 @@ fn tangent_right(hull: &[Pt], q: i64, h0: f64, cc: f64) -> Option<f64> {
     Some(slope(hull[lo]) + corr)
 }
 
+/// Where [`far_field_fast`] hands on a plane's rows (first texel, values) instead of filling a
+/// plane in the image layout.
+type Emit<'e> = &'e mut dyn FnMut(usize, &[f32]);
+
 /// Rows per band of a plane that [`far_field_fast`] hands on transposed (16 rows at 8192
 /// columns: 512 KiB).
 const EMIT_ROWS: usize = 16;
@@ -889,7 +893,7 @@ fn far_field_fast(
     reach: Option<f64>,
     out: &mut [f32],
     sc: &mut Scratch,
-    mut emit: Option<&mut dyn FnMut(usize, &[f32])>,
+    mut emit: Option<Emit<'_>>,
 ) {
     let (w, h) = (grid.width, grid.height);
     let (wa, hb) = if lines.major_x { (w, h) } else { (h, w) };
