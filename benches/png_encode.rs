@@ -79,6 +79,7 @@ fn main() {
     )
     .expect("bake");
     let [horizon, _] = layers.u8.expect("u8 layers");
+    let heights: Vec<u8> = map.values.iter().flat_map(|v| v.to_le_bytes()).collect();
     let mut s = 5u64;
     let noise: Vec<u8> = (0..n * n * 4).map(|_| (common::splitmix(&mut s) >> 56) as u8).collect();
     let (p1, p2) = (pool(1), pool(2));
@@ -125,6 +126,32 @@ fn main() {
             let got = image::load_from_memory(png).expect("decode").to_rgba8().into_raw();
             assert!(&got == d, "{name}: decodes to the samples");
         }
+    }
+    // Issue 23's other lever: would tile blobs cross the store smaller? A tile result holds
+    // the raw samples of its layers (as `horizon` here), a tile window the input's f32 heights.
+    println!("\nzstd level 1 of raw tile blob contents, {n}², one thread\n");
+    println!("| blob content | MB | zstd MB | × size | compress MB/s | decompress MB/s |");
+    println!("| --- | --- | --- | --- | --- | --- |");
+    for (name, d) in [
+        ("tile result: horizon R16 png8 samples", &horizon),
+        ("tile window: f32 heights of the input", &heights),
+        ("noise", &noise),
+    ] {
+        let t = Instant::now();
+        let z = zstd::bulk::compress(d, 1).expect("zstd");
+        let c = t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        let back = zstd::bulk::decompress(&z, d.len()).expect("unzstd");
+        let u = t.elapsed().as_secs_f64();
+        assert!(&back == d);
+        let mb = d.len() as f64 / 1e6;
+        println!(
+            "| {name} | {mb:.1} | {:.1} | {:.3} | {:.0} | {:.0} |",
+            z.len() as f64 / 1e6,
+            z.len() as f64 / d.len() as f64,
+            mb / c,
+            mb / u
+        );
     }
 }
 

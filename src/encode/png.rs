@@ -652,6 +652,27 @@ mod tests {
         pw.finish().unwrap()
     }
 
+    /// The IDAT data inflated by a zlib decoder that checks the Adler-32 (the `image` crate's
+    /// PNG decoder does not): the filtered rows.
+    fn inflate_checked(png: &[u8]) -> Vec<u8> {
+        use std::io::Read;
+        let (mut i, mut z) = (8, Vec::new());
+        while i < png.len() {
+            let n = u32::from_be_bytes(png[i..i + 4].try_into().unwrap()) as usize;
+            if &png[i + 4..i + 8] == b"IDAT" {
+                z.extend_from_slice(&png[i + 8..i + 8 + n]);
+            }
+            i += 12 + n;
+        }
+        let mut out = Vec::new();
+        flate2::read::ZlibDecoder::new(&z[..]).read_to_end(&mut out).unwrap();
+        // A wrong checksum is an error above; a flipped one must be too.
+        let last = z.len() - 1;
+        z[last] ^= 1;
+        assert!(flate2::read::ZlibDecoder::new(&z[..]).read_to_end(&mut Vec::new()).is_err());
+        out
+    }
+
     fn pool(n: usize) -> rayon::ThreadPool {
         rayon::ThreadPoolBuilder::new().num_threads(n).build().unwrap()
     }
@@ -673,6 +694,7 @@ mod tests {
             assert!(whole == plain, "{w}×{h}: plain thread in bands");
             let img = image::load_from_memory(&whole).unwrap().to_rgba8();
             assert!(img.as_raw() == &d, "{w}×{h}: decodes to the samples");
+            assert_eq!(inflate_checked(&whole).len(), h * (w * 4 + 1), "{w}×{h}: checksum");
             let old = image::load_from_memory(&oracle(w, h, PngColor::Rgba, &d)).unwrap();
             assert!(old.to_rgba8().as_raw() == &d);
         }
@@ -689,6 +711,7 @@ mod tests {
         assert_eq!(img.color(), image::ColorType::La16);
         let got: Vec<u16> = img.to_luma_alpha16().into_raw();
         assert!(got == d16, "16-bit decodes to the samples");
+        assert_eq!(inflate_checked(&a).len(), h * (w * 4 + 1));
     }
 
     #[test]
@@ -713,6 +736,7 @@ mod tests {
             assert!(png.len() <= raw + framing, "{n} threads: {} for {raw}", png.len());
             let img = image::load_from_memory(&png).unwrap().to_rgba8();
             assert!(img.as_raw() == &noise);
+            assert_eq!(inflate_checked(&png).len(), h * (w * 4 + 1));
         }
         // A repetitive layer (a 600-byte period, rows of 4400 bytes): with the 32 KiB before
         // each piece as its dictionary the pieces start with matches, without they cannot.
