@@ -7,13 +7,14 @@
 //! cargo test --bench png_encode -- --quick # 1024² instead of 4096²
 //! ```
 //!
-//! Two RGBA8 layers of N² (N = 4096, `--quick` 1024): a real horizon layer (layer 0 of the
-//! tiles bench's input, `common::terrain_png16`, baked at R 16 into png8 samples) and white
+//! Three RGBA8 layers of N² (N = 4096, `--quick` 1024): a real horizon layer (layer 0 of the
+//! tiles bench's input, `common::terrain_png16`, baked at R 16 into png8 samples), the same
+//! bake of a smooth fBm terrain (`common::fbm`, 100 texels of relief, no fine noise), and white
 //! noise (every piece stored). Writers: the single-stream one the crate used before
 //! (`png::single_stream`, the baseline), the parallel [`PngRowWriter`] on rayon pools of 1 and 2
-//! threads, on a plain thread (its scoped-thread path, as the tiled assembly's encoder thread
-//! runs it), and without the 32 KiB dictionary per piece (what priming each piece costs and
-//! buys). Each row is the best of 3 runs; rows are fed in bands of 64 rows as the streaming
+//! threads and on a plain thread (its scoped-thread path, as the tiled assembly's encoder
+//! thread runs it), and with every piece primed with the 32 KiB before it (what the small-image
+//! level does; what priming costs and buys at level 1). Each row is the best of 3 runs; rows are fed in bands of 64 rows as the streaming
 //! bake does.
 
 mod common;
@@ -34,8 +35,8 @@ fn single(n: usize, d: &[u8]) -> Vec<u8> {
 
 fn parallel(n: usize, d: &[u8], dictionary: bool) -> Vec<u8> {
     let mut w = PngRowWriter::<_, u8>::new(Vec::new(), n, n, PngColor::Rgba).expect("png");
-    if !dictionary {
-        w = w.without_dictionary();
+    if dictionary {
+        w = w.dictionary(true);
     }
     for rows in d.chunks(BAND * n * 4) {
         w.write_rows(rows).expect("rows");
@@ -79,6 +80,18 @@ fn main() {
     )
     .expect("bake");
     let [horizon, _] = layers.u8.expect("u8 layers");
+    // A smoother one: the same bake of `common::fbm` (no fine noise), 100 texels of relief.
+    let fbm: Vec<f32> = common::fbm(n).into_iter().map(|v| v * 100.0).collect();
+    let smooth_map = horizon_bake::heightmap::HeightMap::from_values(n, n, fbm).expect("map");
+    let (layers, _) = horizon_bake::bake::bake_horizon(
+        &smooth_map,
+        &horizon_bake::params::BakeParams::from_pairs([("radius", "16"), ("height_scale", "1")])
+            .expect("params"),
+        horizon_bake::bake::Precisions { u8: true, u16: false, f32: false },
+        &horizon_bake::progress::Progress::new(),
+    )
+    .expect("bake");
+    let [smooth, _] = layers.u8.expect("u8 layers");
     let heights: Vec<u8> = map.values.iter().flat_map(|v| v.to_le_bytes()).collect();
     let mut s = 5u64;
     let noise: Vec<u8> = (0..n * n * 4).map(|_| (common::splitmix(&mut s) >> 56) as u8).collect();
@@ -93,7 +106,11 @@ fn main() {
          its bytes |"
     );
     println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
-    for (name, d) in [("horizon R16 png8", &horizon), ("noise", &noise)] {
+    for (name, d) in [
+        ("horizon R16 png8", &horizon),
+        ("horizon R16 png8, smooth fBm", &smooth),
+        ("noise", &noise),
+    ] {
         let mb = d.len() as f64 / 1e6;
         let (base_ms, base_cpu, base) = time(&|| single(n, d));
         let want = image::load_from_memory(&base).expect("decode").to_rgba8().into_raw();
@@ -109,20 +126,23 @@ fn main() {
             );
         };
         row("single stream (before)", "1", &(base_ms, base_cpu, base.clone()));
-        let one = time(&|| p1.install(|| parallel(n, d, true)));
-        row("pieces + dictionary", "1 (pool)", &one);
-        let two = time(&|| p2.install(|| parallel(n, d, true)));
-        row("pieces + dictionary", "2 (pool)", &two);
+        let one = time(&|| p1.install(|| parallel(n, d, false)));
+        row("pieces (the writer)", "1 (pool)", &one);
+        let two = time(&|| p2.install(|| parallel(n, d, false)));
+        row("pieces (the writer)", "2 (pool)", &two);
         let plain = time(&|| {
-            std::thread::scope(|sc| sc.spawn(|| parallel(n, d, true)).join().expect("thread"))
+            std::thread::scope(|sc| sc.spawn(|| parallel(n, d, false)).join().expect("thread"))
         });
         let threads = format!("{} (plain thread)", rayon::current_num_threads());
-        row("pieces + dictionary", &threads, &plain);
-        let nodict = time(&|| p2.install(|| parallel(n, d, false)));
-        row("pieces, no dictionary", "2 (pool)", &nodict);
-        let (out1, out2, outp, outn) = (&one.2, &two.2, &plain.2, &nodict.2);
+        row("pieces (the writer)", &threads, &plain);
+        let primed1 = time(&|| p1.install(|| parallel(n, d, true)));
+        row("pieces primed with the 32 KiB before", "1 (pool)", &primed1);
+        let primed2 = time(&|| p2.install(|| parallel(n, d, true)));
+        row("pieces primed with the 32 KiB before", "2 (pool)", &primed2);
+        let (out1, out2, outp) = (&one.2, &two.2, &plain.2);
         assert!(out1 == out2 && out1 == outp, "{name}: the same bytes on any number of threads");
-        for png in [out1, outn] {
+        assert!(primed1.2 == primed2.2, "{name}: primed, the same bytes on 1 and 2 threads");
+        for png in [out1, &primed1.2] {
             let got = image::load_from_memory(png).expect("decode").to_rgba8().into_raw();
             assert!(&got == d, "{name}: decodes to the samples");
         }
