@@ -148,6 +148,13 @@ pub struct PngRowWriter<W: std::io::Write, T: PngSample> {
     raw: Vec<u8>,
     /// The last [`WINDOW`] filtered bytes deflated so far.
     tail: Vec<u8>,
+    /// Per piece of a batch, its filtered bytes and its deflate data: kept from batch to batch
+    /// (the pieces are filled on scoped threads that live for one batch; allocating anew in each
+    /// would leave freed buffers in the arenas of threads long gone).
+    filtered: Vec<Vec<u8>>,
+    deflated: Vec<Vec<u8>>,
+    /// Compressors (miniz_oxide's state is ~300 KiB to allocate), one per piece in flight.
+    compressors: std::sync::Mutex<Vec<flate2::Compress>>,
     adler: Adler32,
     /// The IDAT data not written yet.
     idat: Vec<u8>,
@@ -300,11 +307,9 @@ fn filter_rows(bpp: usize, prev: &[u8], rows: &[u8], out: &mut Vec<u8>) {
     }
 }
 
-thread_local! {
-    /// A compressor per thread and level (miniz_oxide's state is ~300 KiB to allocate): reset
-    /// before every piece, so which thread compresses a piece never shows in its bytes.
-    static DEFLATE: std::cell::RefCell<Option<(u32, flate2::Compress)>> =
-        const { std::cell::RefCell::new(None) };
+/// Locks `m`, also after a panic elsewhere (the data are scratch buffers, rewritten before use).
+fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
 /// Runs `data` through `deflate` with a sync flush (ending at a byte boundary), appending to
@@ -324,24 +329,23 @@ fn deflate_sync(deflate: &mut flate2::Compress, data: &[u8], out: &mut Vec<u8>) 
     }
 }
 
-/// One piece's deflate data: `data` compressed by a fresh compressor primed with `dict` (the
-/// bytes just before it in the stream), flushed to a byte boundary; or stored blocks when those
-/// are not larger. Appends to `out`.
-fn deflate_piece(level: u32, dict: &[u8], data: &[u8], out: &mut Vec<u8>) -> Result<()> {
+/// One piece's deflate data: `data` compressed by `deflate` reset, primed with `dict` (the
+/// bytes just before it in the stream; none when empty), flushed to a byte boundary; or stored
+/// blocks when those are not larger. Appends to `out`. A reset compressor is a fresh one, so
+/// which compressor (and thread) compresses a piece never shows in its bytes.
+fn deflate_piece(
+    deflate: &mut flate2::Compress,
+    dict: &[u8],
+    data: &[u8],
+    out: &mut Vec<u8>,
+) -> Result<()> {
     let start = out.len();
-    DEFLATE.with(|cell| -> Result<()> {
-        let mut cell = cell.borrow_mut();
-        if !matches!(&*cell, Some((l, _)) if *l == level) {
-            *cell = Some((level, flate2::Compress::new(flate2::Compression::new(level), false)));
-        }
-        let Some((_, deflate)) = cell.as_mut() else { unreachable!("set just above") };
-        deflate.reset();
-        if !dict.is_empty() {
-            let mut primed = Vec::with_capacity(dict.len() + 1024);
-            deflate_sync(deflate, dict, &mut primed)?;
-        }
-        deflate_sync(deflate, data, out)
-    })?;
+    deflate.reset();
+    if !dict.is_empty() {
+        let mut primed = Vec::with_capacity(dict.len() + 1024);
+        deflate_sync(deflate, dict, &mut primed)?;
+    }
+    deflate_sync(deflate, data, out)?;
     let stored = data.len() + 5 * data.len().div_ceil(65535);
     if out.len() - start > stored {
         // Stored blocks (BFINAL 0, BTYPE 00; the stream is at a byte boundary after every
@@ -445,6 +449,9 @@ impl<W: std::io::Write, T: PngSample> PngRowWriter<W, T> {
             prev: vec![0; row_bytes],
             raw: Vec::with_capacity(batch_rows * row_bytes),
             tail: Vec::new(),
+            filtered: Vec::new(),
+            deflated: Vec::new(),
+            compressors: std::sync::Mutex::new(Vec::new()),
             adler: Adler32::new(),
             idat,
             _sample: std::marker::PhantomData,
@@ -501,36 +508,62 @@ impl<W: std::io::Write, T: PngSample> PngRowWriter<W, T> {
         let threads = rayon::current_num_threads();
         let piece_raw = self.rows_per_piece * rb;
         let pieces: Vec<&[u8]> = self.raw.chunks(piece_raw).collect();
+        let n = pieces.len();
         let (raw, prev) = (&self.raw, &self.prev);
-        let filtered: Vec<(Vec<u8>, Adler32)> = par_map(pieces.len(), threads, |k| {
+        let mut bufs = std::mem::take(&mut self.filtered);
+        bufs.resize_with(n.max(bufs.len()), Vec::new);
+        let slots: Vec<std::sync::Mutex<Vec<u8>>> =
+            bufs.into_iter().map(std::sync::Mutex::new).collect();
+        let adlers: Vec<Adler32> = par_map(n, threads, |k| {
             let above = if k == 0 { &prev[..] } else { &raw[k * piece_raw - rb..k * piece_raw] };
-            let mut out = Vec::with_capacity(pieces[k].len() + pieces[k].len() / rb);
+            let mut out = lock(&slots[k]);
+            out.clear();
             filter_rows(bpp, above, pieces[k], &mut out);
             let mut adler = Adler32::new();
             adler.update(&out);
-            (out, adler)
+            adler
         });
-        let (tail, dictionary) = (&self.tail, self.dictionary);
-        let deflated: Vec<Result<Vec<u8>>> = par_map(filtered.len(), threads, |k| {
-            let data = &filtered[k].0;
+        let filtered: Vec<Vec<u8>> = slots
+            .into_iter()
+            .map(|m| m.into_inner().unwrap_or_else(std::sync::PoisonError::into_inner))
+            .collect();
+        let (tail, dictionary, compressors) = (&self.tail, self.dictionary, &self.compressors);
+        let mut bufs = std::mem::take(&mut self.deflated);
+        bufs.resize_with(n.max(bufs.len()), Vec::new);
+        let slots: Vec<std::sync::Mutex<Vec<u8>>> =
+            bufs.into_iter().map(std::sync::Mutex::new).collect();
+        let done: Vec<Result<()>> = par_map(n, threads, |k| {
             let dict = if !dictionary {
                 Vec::new()
             } else {
                 // The last WINDOW bytes before piece k (a whole piece is longer than WINDOW).
                 let mut before: Vec<&[u8]> = vec![tail];
-                before.extend(filtered[..k].iter().map(|(f, _)| &f[..]));
+                before.extend(filtered[..k].iter().map(|f| &f[..]));
                 last_bytes(&before, WINDOW)
             };
-            let mut out = Vec::with_capacity(data.len() / 2 + 1024);
-            deflate_piece(level, &dict, data, &mut out).map(|()| out)
+            let mut deflate = lock(compressors)
+                .pop()
+                .unwrap_or_else(|| flate2::Compress::new(flate2::Compression::new(level), false));
+            let mut out = lock(&slots[k]);
+            out.clear();
+            let res = deflate_piece(&mut deflate, &dict, &filtered[k], &mut out);
+            lock(compressors).push(deflate);
+            res
         });
-        for ((data, adler), piece) in filtered.iter().zip(deflated) {
-            self.adler = self.adler.combine(*adler, data.len());
-            self.idat.extend_from_slice(&piece?);
+        let deflated: Vec<Vec<u8>> = slots
+            .into_iter()
+            .map(|m| m.into_inner().unwrap_or_else(std::sync::PoisonError::into_inner))
+            .collect();
+        for (k, res) in done.into_iter().enumerate() {
+            res?;
+            self.adler = self.adler.combine(adlers[k], filtered[k].len());
+            self.idat.extend_from_slice(&deflated[k]);
         }
         let mut before: Vec<&[u8]> = vec![&self.tail];
-        before.extend(filtered.iter().map(|(f, _)| &f[..]));
+        before.extend(filtered[..n].iter().map(|f| &f[..]));
         self.tail = last_bytes(&before, WINDOW);
+        self.filtered = filtered;
+        self.deflated = deflated;
         self.prev.copy_from_slice(&self.raw[self.raw.len() - rb..]);
         self.raw.clear();
         let mut written = 0;
