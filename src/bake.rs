@@ -625,8 +625,9 @@ where
 }
 
 /// Streams `kernel` into `sink` in row order: windows of `2 × threads` bands are computed in
-/// parallel, then handed on band by band while the next window is being computed (so a
-/// single-threaded encoder in the sink overlaps the kernel). Memory: two windows of quantised
+/// parallel, then handed on band by band while the next window is being computed (so an
+/// encoder in the sink overlaps the kernel; the PNG writer's own parallel deflate runs on the
+/// same pool). Memory: two windows of quantised
 /// rows and one window of f32 channels, whatever the map size.
 ///
 /// Progress advances by a band's rows once the sink has taken it; a cancel is checked before

@@ -318,7 +318,7 @@ where
         png::PngRowWriter::<W, T>::new(o1, w, h, png::PngColor::Rgba)?,
     ];
     let radius = bake::stream_horizon(map, params, progress, |rows: LayerRows<'_, T>| {
-        // Deflate is single-threaded and as slow as the kernel: the two layers in parallel.
+        // The two layers side by side; each writer also deflates its pieces on the pool.
         let [w0, w1] = &mut writers;
         let (a, b) =
             rayon::join(|| w0.write_rows(rows.layers[0]), || w1.write_rows(rows.layers[1]));

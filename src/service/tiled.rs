@@ -564,8 +564,9 @@ fn pieces_of(pieces: &[(tiles::TileGeom, String)]) -> Vec<TilePiece> {
 
 /// Streams the two PNG layers of a tiled bake into `outs`, band by band in row order, each band
 /// read by range from the tiles it crosses ([`TileRows`], one per layer over readers made by
-/// `read`): the two layers are encoded side by side (deflate is single-threaded), as the
-/// untiled bake does, and memory is one band per layer, whatever the map size.
+/// `read`): the two layers are encoded side by side, as the untiled bake does (each writer
+/// deflates a batch of pieces on several threads too), and memory is one band and one batch
+/// per layer, whatever the map size.
 ///
 /// # Errors
 /// [`Error::Canceled`], the reads', the encoder's and the writers' errors.
