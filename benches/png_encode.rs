@@ -106,6 +106,7 @@ fn main() {
          its bytes |"
     );
     println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
+    let mut decodes = Vec::new();
     for (name, d) in [
         ("horizon R16 png8", &horizon),
         ("horizon R16 png8, smooth fBm", &smooth),
@@ -146,6 +147,17 @@ fn main() {
             let got = image::load_from_memory(png).expect("decode").to_rgba8().into_raw();
             assert!(&got == d, "{name}: decodes to the samples");
         }
+        // What readers pay: the `image` crate's decode of each writer's file (best of 3).
+        let decode = |png: &[u8]| {
+            time(&|| image::load_from_memory(png).expect("decode").to_rgba8().into_raw()).0
+        };
+        decodes.push((name, decode(&base), decode(out1)));
+    }
+    println!();
+    println!("| layer | decode ms, single stream | decode ms, pieces | × |");
+    println!("| --- | --- | --- | --- |");
+    for (name, a, b) in decodes {
+        println!("| {name} | {a:.0} | {b:.0} | {:.2} |", a / b);
     }
     // Issue 23's other lever: would tile blobs cross the store smaller? A tile result holds
     // the raw samples of its layers (as `horizon` here), a tile window the input's f32 heights.
