@@ -165,6 +165,69 @@ fn png_error(what: &str, e: impl std::fmt::Display) -> Error {
     Error::Internal(format!("png {what}: {e}"))
 }
 
+/// Checks and writes the PNG signature and the IHDR chunk of a `width × height` image, the
+/// same for both writers.
+fn write_header<W: std::io::Write, T: PngSample>(
+    out: &mut W,
+    width: usize,
+    height: usize,
+    color: PngColor,
+) -> Result<()> {
+    let (Ok(w32), Ok(h32)) = (u32::try_from(width), u32::try_from(height)) else {
+        return Err(Error::Internal(format!("png: {width}×{height} is too large")));
+    };
+    if width == 0 || height == 0 || w32 > i32::MAX as u32 || h32 > i32::MAX as u32 {
+        return Err(Error::Internal(format!("png: {width}×{height} has no pixels or too many")));
+    }
+    out.write_all(b"\x89PNG\r\n\x1a\n")?;
+    let mut ihdr = Vec::with_capacity(13);
+    ihdr.extend_from_slice(&w32.to_be_bytes());
+    ihdr.extend_from_slice(&h32.to_be_bytes());
+    let color_type = match color {
+        PngColor::Gray => 0,
+        PngColor::GrayAlpha => 4,
+        PngColor::Rgba => 6,
+    };
+    ihdr.extend_from_slice(&[T::BITS, color_type, 0, 0, 0]);
+    write_chunk(out, b"IHDR", &ihdr)
+}
+
+/// Refuses rows that are not whole rows of `row_samples` or more than the `rows_left`.
+fn check_rows(len: usize, row_samples: usize, rows_left: usize) -> Result<()> {
+    if !len.is_multiple_of(row_samples) || len / row_samples > rows_left {
+        return Err(Error::Internal(format!(
+            "png rows: {len} samples are not whole rows of {row_samples} within the {rows_left} \
+             rows left"
+        )));
+    }
+    Ok(())
+}
+
+/// Appends `data` to `out` as stored deflate blocks (BFINAL 0, BTYPE 00; the stream is at a
+/// byte boundary after every piece, so the decoder's window receives the same bytes).
+fn store_blocks(data: &[u8], out: &mut Vec<u8>) {
+    for block in data.chunks(65535) {
+        let len = block.len() as u16;
+        out.push(0);
+        out.extend_from_slice(&len.to_le_bytes());
+        out.extend_from_slice(&(!len).to_le_bytes());
+        out.extend_from_slice(block);
+    }
+}
+
+/// Ends an image whose rows are all deflated into `idat`: a final empty stored block, the
+/// checksum of everything deflated, the last IDAT chunks and IEND.
+fn write_trailer<W: std::io::Write>(out: &mut W, idat: &mut Vec<u8>, adler: Adler32) -> Result<()> {
+    idat.extend_from_slice(&[1, 0, 0, 0xff, 0xff]);
+    idat.extend_from_slice(&adler.finish().to_be_bytes());
+    for chunk in idat.chunks(STREAM_CHUNK) {
+        write_chunk(out, b"IDAT", chunk)?;
+    }
+    write_chunk(out, b"IEND", &[])?;
+    out.flush()?;
+    Ok(())
+}
+
 /// Writes one chunk: length, type, data, CRC of type and data.
 fn write_chunk<W: std::io::Write>(out: &mut W, kind: &[u8; 4], data: &[u8]) -> Result<()> {
     let mut crc = crc32fast::Hasher::new();
@@ -348,16 +411,8 @@ fn deflate_piece(
     deflate_sync(deflate, data, out)?;
     let stored = data.len() + 5 * data.len().div_ceil(65535);
     if out.len() - start > stored {
-        // Stored blocks (BFINAL 0, BTYPE 00; the stream is at a byte boundary after every
-        // piece): the decoder's window receives the same bytes either way.
         out.truncate(start);
-        for block in data.chunks(65535) {
-            let len = block.len() as u16;
-            out.push(0);
-            out.extend_from_slice(&len.to_le_bytes());
-            out.extend_from_slice(&(!len).to_le_bytes());
-            out.extend_from_slice(block);
-        }
+        store_blocks(data, out);
     }
     Ok(())
 }
@@ -407,25 +462,7 @@ impl<W: std::io::Write, T: PngSample> PngRowWriter<W, T> {
     /// # Errors
     /// [`Error::Io`] when `out` fails; [`Error::Internal`] for a 0-sized or oversized image.
     pub fn new(mut out: W, width: usize, height: usize, color: PngColor) -> Result<Self> {
-        let (Ok(w32), Ok(h32)) = (u32::try_from(width), u32::try_from(height)) else {
-            return Err(Error::Internal(format!("png: {width}×{height} is too large")));
-        };
-        if width == 0 || height == 0 || w32 > i32::MAX as u32 || h32 > i32::MAX as u32 {
-            return Err(Error::Internal(format!(
-                "png: {width}×{height} has no pixels or too many"
-            )));
-        }
-        out.write_all(b"\x89PNG\r\n\x1a\n")?;
-        let mut ihdr = Vec::with_capacity(13);
-        ihdr.extend_from_slice(&w32.to_be_bytes());
-        ihdr.extend_from_slice(&h32.to_be_bytes());
-        let color_type = match color {
-            PngColor::Gray => 0,
-            PngColor::GrayAlpha => 4,
-            PngColor::Rgba => 6,
-        };
-        ihdr.extend_from_slice(&[T::BITS, color_type, 0, 0, 0]);
-        write_chunk(&mut out, b"IHDR", &ihdr)?;
+        write_header::<W, T>(&mut out, width, height, color)?;
         let small = width.saturating_mul(height) <= SMALL_IMAGE_TEXELS;
         let level = if small { flate2::Compression::default().level() } else { 1 };
         let row_samples = width * color.channels();
@@ -473,15 +510,7 @@ impl<W: std::io::Write, T: PngSample> PngRowWriter<W, T> {
     /// # Errors
     /// [`Error::Internal`] for a partial row or more rows than the image has; [`Error::Io`].
     pub fn write_rows(&mut self, rows: &[T]) -> Result<()> {
-        let n = rows.len() / self.row_samples;
-        if !rows.len().is_multiple_of(self.row_samples) || n > self.rows_left {
-            return Err(Error::Internal(format!(
-                "png rows: {} samples are not whole rows of {} within the {} rows left",
-                rows.len(),
-                self.row_samples,
-                self.rows_left
-            )));
-        }
+        check_rows(rows.len(), self.row_samples, self.rows_left)?;
         let batch_rows = self.rows_per_piece * self.pieces_per_batch;
         let mut rest = rows;
         while !rest.is_empty() {
@@ -584,14 +613,7 @@ impl<W: std::io::Write, T: PngSample> PngRowWriter<W, T> {
             return Err(Error::Internal(format!("png: {} rows never written", self.rows_left)));
         }
         self.deflate_batch()?;
-        // A final empty stored block, then the checksum of everything deflated.
-        self.idat.extend_from_slice(&[1, 0, 0, 0xff, 0xff]);
-        self.idat.extend_from_slice(&self.adler.finish().to_be_bytes());
-        for chunk in self.idat.chunks(STREAM_CHUNK) {
-            write_chunk(&mut self.out, b"IDAT", chunk)?;
-        }
-        write_chunk(&mut self.out, b"IEND", &[])?;
-        self.out.flush()?;
+        write_trailer(&mut self.out, &mut self.idat, self.adler)?;
         Ok(self.out)
     }
 }

@@ -4,8 +4,8 @@
 //! `cargo bench --bench png_encode`; nothing in the product writes with it.
 
 use super::{
-    filter_row, png_error, write_chunk, Adler32, PngColor, PngSample, PIECE, SMALL_IMAGE_TEXELS,
-    STREAM_CHUNK,
+    check_rows, filter_row, png_error, store_blocks, write_chunk, write_header, write_trailer,
+    Adler32, PngColor, PngSample, PIECE, SMALL_IMAGE_TEXELS, STREAM_CHUNK,
 };
 use crate::error::{Error, Result};
 
@@ -51,25 +51,7 @@ impl<W: std::io::Write, T: PngSample> SingleStreamWriter<W, T> {
     /// # Errors
     /// [`Error::Io`] when `out` fails; [`Error::Internal`] for a 0-sized or oversized image.
     pub fn new(mut out: W, width: usize, height: usize, color: PngColor) -> Result<Self> {
-        let (Ok(w32), Ok(h32)) = (u32::try_from(width), u32::try_from(height)) else {
-            return Err(Error::Internal(format!("png: {width}×{height} is too large")));
-        };
-        if width == 0 || height == 0 || w32 > i32::MAX as u32 || h32 > i32::MAX as u32 {
-            return Err(Error::Internal(format!(
-                "png: {width}×{height} has no pixels or too many"
-            )));
-        }
-        out.write_all(b"\x89PNG\r\n\x1a\n")?;
-        let mut ihdr = Vec::with_capacity(13);
-        ihdr.extend_from_slice(&w32.to_be_bytes());
-        ihdr.extend_from_slice(&h32.to_be_bytes());
-        let color_type = match color {
-            PngColor::Gray => 0,
-            PngColor::GrayAlpha => 4,
-            PngColor::Rgba => 6,
-        };
-        ihdr.extend_from_slice(&[T::BITS, color_type, 0, 0, 0]);
-        write_chunk(&mut out, b"IHDR", &ihdr)?;
+        write_header::<W, T>(&mut out, width, height, color)?;
         let small = width.saturating_mul(height) <= SMALL_IMAGE_TEXELS;
         let level =
             if small { flate2::Compression::default() } else { flate2::Compression::new(1) };
@@ -101,15 +83,7 @@ impl<W: std::io::Write, T: PngSample> SingleStreamWriter<W, T> {
     /// # Errors
     /// [`Error::Internal`] for a partial row or more rows than the image has; [`Error::Io`].
     pub fn write_rows(&mut self, rows: &[T]) -> Result<()> {
-        let n = rows.len() / self.row_samples;
-        if !rows.len().is_multiple_of(self.row_samples) || n > self.rows_left {
-            return Err(Error::Internal(format!(
-                "png rows: {} samples are not whole rows of {} within the {} rows left",
-                rows.len(),
-                self.row_samples,
-                self.rows_left
-            )));
-        }
+        check_rows(rows.len(), self.row_samples, self.rows_left)?;
         for row in rows.chunks_exact(self.row_samples) {
             self.cur.clear();
             T::extend_be(row, &mut self.cur);
@@ -158,15 +132,8 @@ impl<W: std::io::Write, T: PngSample> SingleStreamWriter<W, T> {
         if self.piece.len() <= stored {
             self.idat.extend_from_slice(&self.piece);
         } else {
-            // Stored blocks (BFINAL 0, BTYPE 00; the stream is at a byte boundary after every
-            // piece): the decoder's window receives the same bytes the compressor's holds.
-            for block in self.pending.chunks(65535) {
-                let len = block.len() as u16;
-                self.idat.push(0);
-                self.idat.extend_from_slice(&len.to_le_bytes());
-                self.idat.extend_from_slice(&(!len).to_le_bytes());
-                self.idat.extend_from_slice(block);
-            }
+            // The compressor's window holds the same bytes either way.
+            store_blocks(&self.pending, &mut self.idat);
         }
         self.pending.clear();
         while self.idat.len() >= STREAM_CHUNK {
@@ -185,14 +152,7 @@ impl<W: std::io::Write, T: PngSample> SingleStreamWriter<W, T> {
             return Err(Error::Internal(format!("png: {} rows never written", self.rows_left)));
         }
         self.deflate_pending()?;
-        // A final empty stored block, then the checksum of everything deflated.
-        self.idat.extend_from_slice(&[1, 0, 0, 0xff, 0xff]);
-        self.idat.extend_from_slice(&self.adler.finish().to_be_bytes());
-        for chunk in self.idat.chunks(STREAM_CHUNK) {
-            write_chunk(&mut self.out, b"IDAT", chunk)?;
-        }
-        write_chunk(&mut self.out, b"IEND", &[])?;
-        self.out.flush()?;
+        write_trailer(&mut self.out, &mut self.idat, self.adler)?;
         Ok(self.out)
     }
 }
