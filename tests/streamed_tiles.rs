@@ -104,6 +104,30 @@ fn check(bytes: &[u8], channel: Channel, nodata: NoData, t: usize, halo: usize) 
     last.unwrap()
 }
 
+/// Bytes per value of each blob of a one-pass cut into windows of `t` + `halo` (wrapped).
+fn bytes_per_value(bytes: &[u8], t: usize, halo: usize) -> Vec<usize> {
+    let limits = Limits::default();
+    let (whole, info) =
+        heightmap::decode_with(bytes, Channel::Luma, NoData::None, &limits).unwrap();
+    let windows = plan(whole.width, whole.height, t, halo, true);
+    let mut out = vec![0; windows.len()];
+    stream::decode_tiles(
+        Cursor::new(bytes),
+        &info.content_hash,
+        Channel::Luma,
+        NoData::None,
+        &limits,
+        &windows,
+        &mut |i, blob| {
+            let n = windows[i].width as usize * windows[i].height as usize;
+            out[i] = (blob.len() - stream::TILE_HEADER) / n;
+            Ok(())
+        },
+    )
+    .unwrap();
+    out
+}
+
 fn png_bytes(img: image::DynamicImage) -> Vec<u8> {
     let mut out = Cursor::new(Vec::new());
     img.write_to(&mut out, image::ImageFormat::Png).unwrap();
@@ -124,6 +148,8 @@ fn png_8_and_16_bit_grey_odd_sizes() {
     // Tiles larger than the map, halos larger than a tile, a one-tile plan.
     check(&bytes, Channel::Luma, NoData::Auto, 64, 5);
     check(&bytes, Channel::Luma, NoData::Auto, 5, 9);
+    // 16-bit samples cross the blob store in 2 bytes each (the same values, as checked above).
+    assert!(bytes_per_value(&bytes, 8, 3).iter().all(|&b| b == 2));
     // 16-bit with a nodata value as stored (a hole wherever the sample is 0..=4095 → 0 here).
     let holed = image::ImageBuffer::<image::Luma<u16>, _>::from_fn(w, h, |x, y| {
         image::Luma([if (x * 7 + y * 3) % 11 == 0 { 1000 } else { (x * 1700 + y * 90) as u16 }])
@@ -172,6 +198,7 @@ fn tiff_int16_strips_with_nodata() {
     let bytes = tiff_i16_strips(w, h, &data);
     let s = check(&bytes, Channel::Luma, NoData::Value(-32768.0), 8, 3);
     assert!(s.holes > 0);
+    assert!(bytes_per_value(&bytes, 8, 3).iter().all(|&b| b == 2), "signed DEM: 2 bytes");
     check(&bytes, Channel::Luma, NoData::None, 6, 2);
 }
 

@@ -160,22 +160,79 @@ pub struct TileHeights {
 pub const TILE_MAGIC: &[u8; 4] = b"HBH1";
 /// Bytes before the values of a tile height blob.
 pub const TILE_HEADER: usize = 32;
+/// Flag: a hole mask follows the values.
+const HAS_HOLES: u32 = 1;
+/// Flag: the values are u16 samples k of a 16-bit image, each value `(k / 65535) as f32` in
+/// f64 (the decoder's own normalisation).
+const NORM16: u32 = 2;
+/// Flag: the values are u16 integers k, each value `k as f32` (an unsigned integer DEM).
+const INT16: u32 = 4;
+/// Flag: the values are i16 integers k, each value `k as f32` (a signed integer DEM: land
+/// below sea level, or a nodata of −32768).
+const SINT16: u32 = 8;
+/// The narrow forms: at most one is set.
+const NARROW: [u32; 3] = [NORM16, INT16, SINT16];
+
+/// The sample a 16-bit image normalised to `v`, if `v` is exactly one (bit for bit).
+fn norm16(v: f32) -> Option<u16> {
+    let k = (f64::from(v) * 65535.0).round();
+    if !(0.0..=65535.0).contains(&k) {
+        return None;
+    }
+    let k = k as u16;
+    ((f64::from(k) / 65535.0) as f32).to_bits().eq(&v.to_bits()).then_some(k)
+}
+
+/// The u16 integer `v` is, if it is exactly one (not −0, not a fraction, not NaN).
+fn int16(v: f32) -> Option<u16> {
+    let k = v as u16;
+    (f32::from(k).to_bits() == v.to_bits()).then_some(k)
+}
+
+/// The i16 integer `v` is, if it is exactly one, as its two's-complement bits.
+fn sint16(v: f32) -> Option<u16> {
+    let k = v as i16;
+    (f32::from(k).to_bits() == v.to_bits()).then_some(k as u16)
+}
 
 impl TileHeights {
-    /// The blob: `HBH1`, u32 width, u32 height, i64 x0, i64 y0, u32 flags (bit 0: a hole mask
-    /// follows), the f32 values (row-major), then the hole bits (LSB first, row-major) if any;
-    /// all little-endian.
+    /// The blob: `HBH1`, u32 width, u32 height, i64 x0, i64 y0, u32 flags, the values
+    /// (row-major), then the hole bits (LSB first, row-major) if flag 1 says so; all
+    /// little-endian. The values take 2 bytes each when every one of them is a 16-bit sample
+    /// as the decoder normalises it (flag 2: a 16-bit PNG or TIFF, the common case of a huge
+    /// map) or a u16 or i16 integer (flags 4 and 8: an integer DEM), else 4 (f32): half the bytes through the
+    /// blob store for the same values, bit for bit (each is checked on the way in).
     pub fn encode(&self) -> Vec<u8> {
         let n = self.values.len();
-        let mut out = Vec::with_capacity(TILE_HEADER + 4 * n + n.div_ceil(8));
+        let narrow = if self.values.iter().all(|&v| norm16(v).is_some()) {
+            Some((NORM16, norm16 as fn(f32) -> Option<u16>))
+        } else if self.values.iter().all(|&v| int16(v).is_some()) {
+            Some((INT16, int16 as fn(f32) -> Option<u16>))
+        } else if self.values.iter().all(|&v| sint16(v).is_some()) {
+            Some((SINT16, sint16 as fn(f32) -> Option<u16>))
+        } else {
+            None
+        };
+        let size = if narrow.is_some() { 2 } else { 4 };
+        let mut out = Vec::with_capacity(TILE_HEADER + size * n + n.div_ceil(8));
         out.extend_from_slice(TILE_MAGIC);
         out.extend_from_slice(&self.window.width.to_le_bytes());
         out.extend_from_slice(&self.window.height.to_le_bytes());
         out.extend_from_slice(&self.window.x0.to_le_bytes());
         out.extend_from_slice(&self.window.y0.to_le_bytes());
-        out.extend_from_slice(&u32::from(self.holes.is_some()).to_le_bytes());
-        for v in &self.values {
-            out.extend_from_slice(&v.to_le_bytes());
+        let holes = if self.holes.is_some() { HAS_HOLES } else { 0 };
+        out.extend_from_slice(&(holes | narrow.map_or(0, |(f, _)| f)).to_le_bytes());
+        match narrow {
+            Some((_, to_u16)) => {
+                for &v in &self.values {
+                    out.extend_from_slice(&to_u16(v).unwrap_or(0).to_le_bytes());
+                }
+            }
+            None => {
+                for v in &self.values {
+                    out.extend_from_slice(&v.to_le_bytes());
+                }
+            }
         }
         if let Some(h) = &self.holes {
             out.extend(pack_bits(h));
@@ -196,17 +253,29 @@ impl TileHeights {
         let i64_at = |o: usize| i64::from_le_bytes(bytes[o..o + 8].try_into().unwrap_or([0; 8]));
         let window = Window { width: u32_at(4), height: u32_at(8), x0: i64_at(12), y0: i64_at(20) };
         let flags = u32_at(28);
-        let n = window.width as usize * window.height as usize;
-        let end = TILE_HEADER + 4 * n;
-        let want = end + if flags & 1 == 1 { n.div_ceil(8) } else { 0 };
+        let narrow = NARROW.iter().filter(|&&f| flags & f != 0).count();
+        if flags & !(HAS_HOLES | NORM16 | INT16 | SINT16) != 0 || narrow > 1 {
+            return Err(bad());
+        }
+        let n = (window.width as usize).checked_mul(window.height as usize).ok_or_else(bad)?;
+        let size = if narrow == 1 { 2 } else { 4 };
+        let end = n.checked_mul(size).and_then(|b| b.checked_add(TILE_HEADER)).ok_or_else(bad)?;
+        let want = end + if flags & HAS_HOLES != 0 { n.div_ceil(8) } else { 0 };
         if bytes.len() != want {
             return Err(bad());
         }
-        let values = bytes[TILE_HEADER..end]
-            .chunks_exact(4)
-            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-            .collect();
-        let holes = (flags & 1 == 1).then(|| unpack_bits(&bytes[end..], n));
+        let vals = &bytes[TILE_HEADER..end];
+        let values = if flags & NORM16 != 0 {
+            let f = |c: &[u8]| (f64::from(u16::from_le_bytes([c[0], c[1]])) / 65535.0) as f32;
+            vals.chunks_exact(2).map(f).collect()
+        } else if flags & INT16 != 0 {
+            vals.chunks_exact(2).map(|c| f32::from(u16::from_le_bytes([c[0], c[1]]))).collect()
+        } else if flags & SINT16 != 0 {
+            vals.chunks_exact(2).map(|c| f32::from(i16::from_le_bytes([c[0], c[1]]))).collect()
+        } else {
+            vals.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
+        };
+        let holes = (flags & HAS_HOLES != 0).then(|| unpack_bits(&bytes[end..], n));
         Ok(TileHeights { window, values, holes })
     }
 
@@ -984,4 +1053,80 @@ fn decode_tiles_inner<R: Read + Seek>(
         content_hash: content_hash.to_string(),
     };
     Ok(MapStats { info, georef, nodata, holes: checks.holes, min, max, fill })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn blob(values: Vec<f32>, holes: Option<Vec<bool>>) -> (TileHeights, Vec<u8>) {
+        let window = Window { x0: -3, y0: 7, width: 5, height: values.len() as u32 / 5 };
+        let t = TileHeights { window, values, holes };
+        let b = t.encode();
+        (t, b)
+    }
+
+    fn same_bits(a: &[f32], b: &[f32]) -> bool {
+        a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())
+    }
+
+    #[test]
+    fn sixteen_bit_samples_travel_in_two_bytes_and_come_back_bit_for_bit() {
+        // As the PNG decoder normalises them, the extremes included.
+        let ks = [0u16, 1, 2, 255, 256, 32767, 32768, 65534, 65535, 12345];
+        let values: Vec<f32> = ks.iter().map(|&k| (f64::from(k) / 65535.0) as f32).collect();
+        let holes = Some((0..10).map(|i| i % 3 == 0).collect::<Vec<_>>());
+        let (t, b) = blob(values, holes);
+        assert_eq!(b.len(), TILE_HEADER + 2 * 10 + 2);
+        let back = TileHeights::decode(&b).unwrap();
+        assert!(same_bits(&back.values, &t.values));
+        assert_eq!(back.holes, t.holes);
+        assert_eq!(back.window, t.window);
+        // Every 16-bit sample survives, not only those.
+        for k in 0..=u16::MAX {
+            let v = (f64::from(k) / 65535.0) as f32;
+            assert_eq!(norm16(v), Some(k), "sample {k}");
+        }
+    }
+
+    #[test]
+    fn integer_dems_travel_in_two_bytes() {
+        let values: Vec<f32> = vec![0.0, 1.0, 2.0, 3000.0, 65535.0, 17.0, 4.0, 8.0, 9.0, 10.0];
+        let signed: Vec<f32> = vec![0.0, -1.0, 2.0, -32768.0, 32767.0, 17.0, 4.0, -8.0, 9.0, 1.0];
+        for values in [values, signed] {
+            let (t, b) = blob(values, None);
+            assert_eq!(b.len(), TILE_HEADER + 2 * 10);
+            assert!(same_bits(&TileHeights::decode(&b).unwrap().values, &t.values));
+        }
+    }
+
+    #[test]
+    fn any_other_value_keeps_the_whole_window_in_f32() {
+        let eighth = (f64::from(100u16) / 65535.0) as f32;
+        for odd in [0.5f32, -0.0, -1.0, 65536.0, f32::NAN, 1e-9, 123.25, -32769.0] {
+            // A normalised sample next to an integer and the odd one: no narrow form holds all.
+            let values = vec![eighth, 3.0, odd, 0.0, 1.0];
+            let (t, b) = blob(values, None);
+            assert_eq!(b.len(), TILE_HEADER + 4 * 5, "{odd}");
+            assert!(same_bits(&TileHeights::decode(&b).unwrap().values, &t.values), "{odd}");
+        }
+    }
+
+    #[test]
+    fn a_blob_cut_short_or_with_unknown_flags_is_refused() {
+        let values: Vec<f32> = (0..10).map(|k| (f64::from(k) / 65535.0) as f32).collect();
+        let (_, b) = blob(values, None);
+        assert!(TileHeights::decode(&b[..b.len() - 1]).is_err());
+        let mut odd = b.clone();
+        odd[28] |= 8;
+        assert!(TileHeights::decode(&odd).is_err());
+        let mut odd = b.clone();
+        odd[28] |= 16;
+        assert!(TileHeights::decode(&odd).is_err());
+        for f in [INT16, SINT16] {
+            let mut both = b.clone();
+            both[28] |= f as u8;
+            assert!(TileHeights::decode(&both).is_err());
+        }
+    }
 }
