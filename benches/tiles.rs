@@ -8,8 +8,10 @@
 //! For each: wall time, every process's peak resident memory (VmHWM from /proc/PID/status),
 //! and the bytes each process read and wrote through its sockets and files (rchar/wchar from
 //! /proc/PID/io: for the workers and the API that is the S3 and PostgreSQL traffic, plus the
-//! HTTP upload and downloads at the API). The tiled layers are checked byte-identical to the
-//! untiled ones.
+//! HTTP upload and downloads at the API), and the CPU time each process used (user + system,
+//! from /proc/PID/stat), the S3 server's included (its pid from the engines' `weed.pid`): on
+//! one machine every process shares the same cores, so the sum is what a tiled bake costs
+//! beside the untiled one. The tiled layers are checked byte-identical to the untiled ones.
 //!
 //! `TILES_BENCH_WORKERS=1` runs only the tiled case with one worker (default `1,2`); each
 //! run's phases (split, tiles, assembly: the bake's `timings_ms`) go to stderr.
@@ -30,6 +32,22 @@ fn proc_field(pid: u32, file: &str, key: &str) -> u64 {
         .find_map(|l| l.strip_prefix(key))
         .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
         .unwrap_or(0)
+}
+
+/// CPU seconds (user + system, every thread) of process `pid`: fields 14 and 15 of
+/// /proc/PID/stat, in clock ticks of 1/100 s (Linux's USER_HZ on every mainstream platform).
+fn cpu(pid: u32) -> f64 {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
+    // After the command's closing parenthesis: state is field 3, utime 14, stime 15.
+    let rest = stat.rsplit_once(')').map_or("", |(_, r)| r);
+    let f: Vec<u64> = rest.split_whitespace().map(|x| x.parse().unwrap_or(0)).collect();
+    f.get(11).zip(f.get(12)).map_or(0.0, |(u, s)| (u + s) as f64 / 100.0)
+}
+
+/// The S3 server's pid, from the engines' directory (`HORIZON_TEST_ENGINES`), if running.
+fn weed_pid() -> Option<u32> {
+    let dir = std::env::var("HORIZON_TEST_ENGINES").ok()?;
+    std::fs::read_to_string(format!("{dir}/weed.pid")).ok()?.trim().parse().ok()
 }
 
 fn io(pid: u32) -> u64 {
@@ -93,22 +111,25 @@ async fn main() {
         t.elapsed().as_secs_f64()
     );
     let mtex = (n * n) as f64 / 1e6;
-    println!("| {n}² R16 png8 | wall | per Mtexel | peak RSS (VmHWM) per process | bytes read + written per process |");
-    println!("| --- | --- | --- | --- | --- |");
+    println!("| {n}² R16 png8 | wall | per Mtexel | peak RSS (VmHWM) per process | bytes read + written per process | CPU-s per process (user + sys) |");
+    println!("| --- | --- | --- | --- | --- | --- |");
+    let weed = weed_pid();
 
     // Untiled, one embedded node.
     let above = (n * n).to_string();
     let (emb, base) = serve(&tmp.path().join("emb"), &["--tile-above", &above]);
     let pid = emb.0.id();
     let io0 = io(pid);
+    let cpu0 = cpu(pid);
     let (secs, reference, v) = bake(&c, &base, &png).await;
     assert!(v.get("tiles").is_none(), "the untiled bake was tiled: {v}");
     let untiled = secs;
     println!(
-        "| untiled, 1 node (embedded) | {secs:.1} s | {:.1} ms | {} MB | {} MB |",
+        "| untiled, 1 node (embedded) | {secs:.1} s | {:.1} ms | {} MB | {} MB | {:.1} |",
         secs * 1e3 / mtex,
         proc_field(pid, "status", "VmHWM:") / 1024,
-        (io(pid) - io0) / 1_000_000
+        (io(pid) - io0) / 1_000_000,
+        cpu(pid) - cpu0
     );
     drop(emb);
 
@@ -158,6 +179,8 @@ async fn main() {
             nodes.push((id, w));
         }
         let io0: Vec<u64> = nodes.iter().map(|(_, p)| io(p.0.id())).collect();
+        let cpu0: Vec<f64> = nodes.iter().map(|(_, p)| cpu(p.0.id())).collect();
+        let weed0 = weed.map(cpu);
         let (secs, layers, v) = bake(&c, &base, &png).await;
         assert!(
             layers == reference,
@@ -174,13 +197,22 @@ async fn main() {
             .zip(&io0)
             .map(|((name, p), before)| format!("{name} {} MB", (io(p.0.id()) - before) / 1_000_000))
             .collect();
+        let mut used: Vec<String> = nodes
+            .iter()
+            .zip(&cpu0)
+            .map(|((name, p), before)| format!("{name} {:.1}", cpu(p.0.id()) - before))
+            .collect();
+        if let (Some(pid), Some(before)) = (weed, weed0) {
+            used.push(format!("S3 server {:.1}", cpu(pid) - before));
+        }
         println!(
-            "| tiled ({} tiles of {tile}²), API + {workers} worker(s) | {secs:.1} s ({:.2} × untiled) | {:.1} ms | {} | {} |",
+            "| tiled ({} tiles of {tile}²), API + {workers} worker(s) | {secs:.1} s ({:.2} × untiled) | {:.1} ms | {} | {} | {} |",
             v["tiles"]["total"],
             secs / untiled,
             secs * 1e3 / mtex,
             rss.join(", "),
-            moved.join(", ")
+            moved.join(", "),
+            used.join(", ")
         );
         // The phases: split (decode), tiles (bake), assembly (encode).
         eprintln!("{workers} worker(s) timings_ms: {}", v["timings_ms"]);
