@@ -269,11 +269,15 @@ impl<'a> Sweep<'a> {
         // Without curvature and with AVX-512, the vector sweeps of `far_field_fast` (f32);
         // otherwise the scalar f64 ones of `far_field`.
         let fast = curv == 0.0 && isa == Isa::Avx512;
-        let sweep_one =
-            |ml: Option<&MajorLines>, lines: Lines, out: &mut [f32], sc: &mut Scratch| match ml {
-                Some(ml) => far_field_fast(&grid, ml, lines, reach, out, sc, None),
-                None => far_field(&grid, lines, reach, curv, out, &mut sc.miss),
-            };
+        // `fresh`: `out` is memory never touched yet (a plane of the table in memory).
+        let sweep_one = |ml: Option<&MajorLines>,
+                         lines: Lines,
+                         out: &mut [f32],
+                         sc: &mut Scratch,
+                         fresh: bool| match ml {
+            Some(ml) => far_field_fast(&grid, ml, lines, reach, out, sc, None, fresh),
+            None => far_field(&grid, lines, reach, curv, out, &mut sc.miss),
+        };
         let failure = Mutex::new(None);
         let failed = AtomicBool::new(false);
         let far = match opt.spill {
@@ -290,7 +294,8 @@ impl<'a> Sweep<'a> {
                             return;
                         }
                         let lines = Lines::new(d);
-                        sweep_one(majors[usize::from(lines.major_x)].as_ref(), lines, out, sc);
+                        let ml = majors[usize::from(lines.major_x)].as_ref();
+                        sweep_one(ml, lines, out, sc, true);
                     },
                 );
                 Far::Memory(far)
@@ -341,11 +346,12 @@ impl<'a> Sweep<'a> {
                                         out,
                                         sc,
                                         Some(&mut emit),
+                                        false,
                                     );
                                 }
                                 _ => {
                                     out.resize(w * h, 0.0);
-                                    sweep_one(ml.as_ref(), lines, out, sc);
+                                    sweep_one(ml.as_ref(), lines, out, sc, false);
                                     put(0, out);
                                 }
                             }
@@ -886,6 +892,13 @@ struct Family<'s> {
 /// (AVX-512): the same samples and hulls, so the same values up to f32 rounding (tested
 /// against it). Hulls are linked lists through the columns (`nx`), so a push is one contiguous
 /// store per 16 lanes and only a pop or a query step gathers.
+///
+/// `fresh`: `out` was never touched (a plane of the far table, which is allocated zeroed and
+/// so not yet mapped). The sums are then added up in the thread's scratch plane, already
+/// mapped, and written to `out` once: adding into `out` itself would first map each of its
+/// pages to the shared zero page (the add reads) and then copy it on the write, which costs a
+/// TLB shootdown across the pool's threads per 4 KiB page.
+#[allow(clippy::too_many_arguments)] // the plane, its scratch and how it is handed on
 fn far_field_fast(
     grid: &Grid<'_>,
     ml: &MajorLines,
@@ -894,6 +907,7 @@ fn far_field_fast(
     out: &mut [f32],
     sc: &mut Scratch,
     mut emit: Option<Emit<'_>>,
+    fresh: bool,
 ) {
     let (w, h) = (grid.width, grid.height);
     let (wa, hb) = if lines.major_x { (w, h) } else { (h, w) };
@@ -930,7 +944,8 @@ fn far_field_fast(
     sc.miss.clear();
     sc.miss.resize(w * h, 0.0);
     let mut acc = std::mem::take(&mut sc.acc);
-    if lines.major_x {
+    let via_acc = lines.major_x || fresh;
+    if via_acc {
         acc.clear();
         acc.resize(w * h, 0.0);
     }
@@ -942,7 +957,7 @@ fn far_field_fast(
     abase.extend((0..wa as i64).map(|u| major(u) * hb));
     let mut cols = std::mem::take(&mut sc.cols);
     let mut qs = std::mem::take(&mut sc.qs);
-    let sums: &mut [f32] = if lines.major_x { &mut acc } else { out };
+    let sums: &mut [f32] = if via_acc { &mut acc } else { out };
     for k in 0..SUB {
         cols.clear();
         cols.extend((0..len).map(|u| {
@@ -1011,6 +1026,10 @@ fn far_field_fast(
                     }
                 }
             }
+        }
+    } else if via_acc {
+        for ((o, &a), &ws) in out.iter_mut().zip(acc.iter()).zip(sc.miss.iter()) {
+            *o = if ws > 0.0 { a / ws } else { a };
         }
     } else {
         for (o, &ws) in out.iter_mut().zip(sc.miss.iter()) {
@@ -1660,14 +1679,19 @@ mod tests {
                             let mut want = vec![0.0f32; w * h];
                             let mut wsum = Vec::new();
                             far_field(&g, lines, reach, 0.0, &mut want, &mut wsum);
-                            let mut got = vec![0.0f32; w * h];
                             let ml = &mls[usize::from(lines.major_x)];
-                            far_field_fast(&g, ml, lines, reach, &mut got, &mut sc, None);
-                            for (t, (a, b)) in got.iter().zip(&want).enumerate() {
-                                assert!(
-                                    (a - b).abs() <= 2e-5 * (1.0 + b.abs()),
-                                    "{w}×{h} {edge:?} R {radius:?} bin {n} texel {t}: {a} vs {b}"
+                            for fresh in [false, true] {
+                                let mut got = vec![0.0f32; w * h];
+                                far_field_fast(
+                                    &g, ml, lines, reach, &mut got, &mut sc, None, fresh,
                                 );
+                                for (t, (a, b)) in got.iter().zip(&want).enumerate() {
+                                    assert!(
+                                        (a - b).abs() <= 2e-5 * (1.0 + b.abs()),
+                                        "{w}×{h} {edge:?} R {radius:?} bin {n} texel {t} \
+                                         fresh {fresh}: {a} vs {b}"
+                                    );
+                                }
                             }
                         }
                     }
