@@ -65,7 +65,8 @@
 //! nearest vertices live in registers (so most pops and tangent steps touch no memory) and
 //! whose rest sits by depth in a few KiB (a push spills one vertex with a masked scatter, a
 //! pop refills one with a masked gather); slopes are compared by cross-multiplication, with
-//! one division per query; a group's tangents are added to the sums after its sweeps. It is
+//! one division per query; a group's tangents are added to the sums after its sweeps, 8 groups
+//! of neighbouring lines at a time so each row of the sums is visited once per batch. It is
 //! tested against the scalar f64 [`far_field`] (the same samples), which remains the path
 //! with curvature and on other CPUs. The lanes of a group pop as often as their busiest lane,
 //! ≈2.4 vector pops per push on fBm against ≈1 pop per line: the gathers of those pops are
@@ -830,6 +831,11 @@ impl MajorLines {
     }
 }
 
+/// Groups of lines whose tangents go into the sums together ([`add_batch_avx512`]).
+/// Measured at 2048², 32 bins (A/B pairs of one binary, 8 against 1): the build 5–11 % shorter
+/// (`edge=none` unlimited 2.9 s against 3.2 s, `edge=wrap` R = 64 4.4 s against 4.9 s).
+const BATCH: usize = 8;
+
 /// Per-thread scratch of [`far_field_fast`].
 #[derive(Default)]
 struct Scratch {
@@ -839,7 +845,7 @@ struct Scratch {
     /// The hull stacks below their three registers, `st_t`/`st_y[depth·16 + lane]`.
     st_t: Vec<i32>,
     st_y: Vec<f32>,
-    /// A group's tangents, `sb[q·16 + lane]` (−∞: none).
+    /// The tangents of a batch of groups, `sb[(slot·W + q)·16 + lane]` (−∞: none).
     sb: Vec<f32>,
     /// Sums in major-line layout when that is not the image's, and per-azimuth tables.
     acc: Vec<f32>,
@@ -951,7 +957,7 @@ fn far_field_fast(
     }
     sc.st_t.resize(len as usize * FL, -1);
     sc.st_y.resize(len as usize * FL, 0.0);
-    sc.sb.resize(wa * FL, f32::NEG_INFINITY);
+    sc.sb.resize(BATCH * wa * FL, f32::NEG_INFINITY);
     let mut abase = std::mem::take(&mut sc.abase);
     abase.clear();
     abase.extend((0..wa as i64).map(|u| major(u) * hb));
@@ -990,14 +996,26 @@ fn far_field_fast(
         };
         let (i_lo, i_hi) = if wrap { (0, hbi - 1) } else { (sh_lo, hbi - 1 + sh_hi) };
         let mut i0 = i_lo;
+        let mut batch: [(i64, u32); BATCH] = [(0, 0); BATCH];
+        let mut nb = 0;
         while i0 <= i_hi {
             let nl = (i_hi - i0 + 1).min(FL as i64) as u32;
+            batch[nb] = (i0, nl);
             #[cfg(target_arch = "x86_64")]
             // SAFETY: only called when the CPU has AVX-512F (see `Sweep::with_options`).
             unsafe {
-                group_avx512(&fam, i0, nl, sums, sc)
+                group_avx512(&fam, i0, nl, nb, sc)
             };
+            nb += 1;
             i0 += FL as i64;
+            if nb == BATCH || i0 > i_hi {
+                #[cfg(target_arch = "x86_64")]
+                // SAFETY: as above.
+                unsafe {
+                    add_batch_avx512(&fam, &batch[..nb], sums, sc)
+                };
+                nb = 0;
+            }
         }
     }
     if let (true, Some(emit)) = (lines.major_x, emit) {
@@ -1068,8 +1086,10 @@ fn lane_range(b0: i64, lim: i64, nl: u32) -> u16 {
 /// nothing; the prefix pass's queries walk the stack from its bottom with plain loads.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
-unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &mut Scratch) {
+unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, slot: usize, sc: &mut Scratch) {
     use std::arch::x86_64::*;
+    // This group's tangents: slot `slot` of the batch (see [`add_batch_avx512`]).
+    let sb = sc.sb[slot * f.wa as usize * FL..][..f.wa as usize * FL].as_mut_ptr();
     let all: u16 = if nl >= 16 { 0xffff } else { ((1u32 << nl) - 1) as u16 };
     let lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
     let none = _mm512_set1_epi32(-1);
@@ -1198,7 +1218,7 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &
     let last = if blocked { ((f.wa - 1 + f.d) / blk + 1) * blk - 1 } else { f.len - 1 };
     // Query columns the suffix pass does not reach (within N of the line's end).
     let from = (f.len - f.d).clamp(0, f.wa) as usize * FL;
-    sc.sb[from..f.wa as usize * FL].fill(f32::NEG_INFINITY);
+    std::slice::from_raw_parts_mut(sb, f.wa as usize * FL)[from..].fill(f32::NEG_INFINITY);
     // Suffix (or whole-line) pass, right to left.
     let (mut t1, mut t2, mut t3, mut dep) = (none, none, none, zero_i);
     let (mut y1, mut y2, mut y3) = (ninf, ninf, ninf);
@@ -1271,7 +1291,7 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &
             let slope = _mm512_div_ps(_mm512_sub_ps(cur_y, hq), _mm512_sub_ps(cur_x, xq));
             res = _mm512_mask_mov_ps(res, qm, slope);
         }
-        _mm512_storeu_ps(sc.sb.as_mut_ptr().add(q as usize * FL), res);
+        _mm512_storeu_ps(sb.add(q as usize * FL), res);
     }
     if let Some((r, _)) = f.r_steps {
         // Prefix pass, left to right: the window's part in the next block, so only blocks
@@ -1368,21 +1388,39 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &
                 m = rising;
             }
             let slope = _mm512_div_ps(_mm512_sub_ps(cur_y, hq), _mm512_sub_ps(cur_x, xq));
-            let p = sc.sb.as_mut_ptr().add(q as usize * FL);
+            let p = sb.add(q as usize * FL);
             let res = _mm512_loadu_ps(p);
             _mm512_storeu_ps(p, _mm512_mask_max_ps(res, qm, res, slope));
         }
     }
-    // The tangents into the sums, in one pass of independent adds (interleaved with the hull
-    // work, every add waited for its cache misses). A texel's two roles weigh 1 in all, so
-    // only when a role finds nothing ahead (rare) is the other's weight, then the texel's
-    // whole valid weight, kept (`sc.miss`; both missing sum to 1 over a sum of 0).
+}
+
+/// The tangents of a batch of groups (slots 0.. of `sc.sb`, groups `batch[g]` = (i0, lines))
+/// into the sums, in one pass of independent adds (interleaved with the hull work, every add
+/// waited for its cache misses), query column by query column. Each column's sums are a new
+/// row of the plane, so one group alone touches a page per column; the groups of a batch are
+/// neighbours across the lines, so at each column they add into one run of the row: one page
+/// and a few adjacent cache lines for the whole batch. A texel's two roles weigh 1 in all, so
+/// only when a role finds nothing ahead (rare) is the other's weight, then the texel's whole
+/// valid weight, kept (`sc.miss`; both missing sum to 1 over a sum of 0).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn add_batch_avx512(
+    f: &Family<'_>,
+    batch: &[(i64, u32)],
+    sums: &mut [f32],
+    sc: &mut Scratch,
+) {
+    use std::arch::x86_64::*;
+    let ninf = _mm512_set1_ps(f32::NEG_INFINITY);
+    let wa = f.wa as usize;
     const PFS: i64 = 24;
+    let Some(&(first, _)) = batch.first() else { return };
     for q in 0..f.wa {
         // Each query column's sums are a new row: fetch a few ahead.
         let qa = q + PFS;
         if qa < f.wa {
-            let o = f.abase[qa as usize] as isize + (i0 - f.qs[qa as usize].shift) as isize;
+            let o = f.abase[qa as usize] as isize + (first - f.qs[qa as usize].shift) as isize;
             let o = o.clamp(0, sums.len() as isize - 1);
             _mm_prefetch::<_MM_HINT_T0>(sums.as_ptr().offset(o) as *const i8);
         }
@@ -1390,15 +1428,23 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, sums: &mut [f32], sc: &
         if !qc.on {
             continue;
         }
-        let (tm, b0) = texels(q);
-        let res = _mm512_loadu_ps(sc.sb.as_ptr().add(q as usize * FL));
-        let got = tm & _mm512_cmp_ps_mask::<_CMP_GT_OQ>(res, ninf);
-        if got != 0 {
-            let v = _mm512_mul_ps(_mm512_set1_ps(qc.wt * f.inv_step), res);
-            add_lanes(f, q, b0, got, v, sums);
-        }
-        if tm & !got != 0 {
-            add_lanes(f, q, b0, tm & !got, _mm512_set1_ps(qc.other), &mut sc.miss);
+        let wt = _mm512_set1_ps(qc.wt * f.inv_step);
+        for (g, &(i0, nl)) in batch.iter().enumerate() {
+            let b0 = i0 - qc.shift;
+            let (tm, b0) = if f.wrap {
+                let all: u16 = if nl >= 16 { 0xffff } else { ((1u32 << nl) - 1) as u16 };
+                (all, b0.rem_euclid(f.hb))
+            } else {
+                (lane_range(b0, f.hb, nl), b0)
+            };
+            let res = _mm512_loadu_ps(sc.sb.as_ptr().add((g * wa + q as usize) * FL));
+            let got = tm & _mm512_cmp_ps_mask::<_CMP_GT_OQ>(res, ninf);
+            if got != 0 {
+                add_lanes(f, q, b0, got, _mm512_mul_ps(wt, res), sums);
+            }
+            if tm & !got != 0 {
+                add_lanes(f, q, b0, tm & !got, _mm512_set1_ps(qc.other), &mut sc.miss);
+            }
         }
     }
 }
