@@ -167,32 +167,35 @@ const HAS_HOLES: u32 = 1;
 const NORM16: u32 = 2;
 /// Flag: the values are u16 integers k, each value `k as f32` (an unsigned integer DEM).
 const INT16: u32 = 4;
-/// Flag: the values are i16 integers k, each value `k as f32` (a signed integer DEM: land
-/// below sea level, or a nodata of −32768).
+/// Flag: the values are i16 integers k (stored as their two's-complement bits), each value
+/// `k as f32` (a signed integer DEM: land below sea level, or a nodata of −32768).
 const SINT16: u32 = 8;
-/// The narrow forms: at most one is set.
-const NARROW: [u32; 3] = [NORM16, INT16, SINT16];
 
-/// The sample a 16-bit image normalised to `v`, if `v` is exactly one (bit for bit).
-fn norm16(v: f32) -> Option<u16> {
-    let k = (f64::from(v) * 65535.0).round();
-    if !(0.0..=65535.0).contains(&k) {
-        return None;
+/// A 2-byte form of a window's values: its flag, the value a stored u16 stands for, and the
+/// u16 a value would be stored as if it is one of those (checked against `value`).
+struct Narrow {
+    flag: u32,
+    value: fn(u16) -> f32,
+    guess: fn(f32) -> u16,
+}
+
+/// The 2-byte forms, tried in this order; at most one flag is set in a blob.
+const NARROW: [Narrow; 3] = [
+    Narrow {
+        flag: NORM16,
+        value: |k| (f64::from(k) / 65535.0) as f32,
+        guess: |v| (f64::from(v) * 65535.0).round() as u16,
+    },
+    Narrow { flag: INT16, value: f32::from, guess: |v| v as u16 },
+    Narrow { flag: SINT16, value: |k| f32::from(k as i16), guess: |v| v as i16 as u16 },
+];
+
+impl Narrow {
+    /// The u16 that stands for `v` exactly (bit for bit: not −0 for 0, not NaN, no fraction).
+    fn of(&self, v: f32) -> Option<u16> {
+        let k = (self.guess)(v);
+        ((self.value)(k).to_bits() == v.to_bits()).then_some(k)
     }
-    let k = k as u16;
-    ((f64::from(k) / 65535.0) as f32).to_bits().eq(&v.to_bits()).then_some(k)
-}
-
-/// The u16 integer `v` is, if it is exactly one (not −0, not a fraction, not NaN).
-fn int16(v: f32) -> Option<u16> {
-    let k = v as u16;
-    (f32::from(k).to_bits() == v.to_bits()).then_some(k)
-}
-
-/// The i16 integer `v` is, if it is exactly one, as its two's-complement bits.
-fn sint16(v: f32) -> Option<u16> {
-    let k = v as i16;
-    (f32::from(k).to_bits() == v.to_bits()).then_some(k as u16)
 }
 
 impl TileHeights {
@@ -200,19 +203,12 @@ impl TileHeights {
     /// (row-major), then the hole bits (LSB first, row-major) if flag 1 says so; all
     /// little-endian. The values take 2 bytes each when every one of them is a 16-bit sample
     /// as the decoder normalises it (flag 2: a 16-bit PNG or TIFF, the common case of a huge
-    /// map) or a u16 or i16 integer (flags 4 and 8: an integer DEM), else 4 (f32): half the bytes through the
-    /// blob store for the same values, bit for bit (each is checked on the way in).
+    /// map) or a u16 or i16 integer (flags 4 and 8: an integer DEM), else 4 (f32): half the
+    /// bytes through the blob store for the same values, bit for bit (each is checked on the
+    /// way in, see [`Narrow::of`]).
     pub fn encode(&self) -> Vec<u8> {
         let n = self.values.len();
-        let narrow = if self.values.iter().all(|&v| norm16(v).is_some()) {
-            Some((NORM16, norm16 as fn(f32) -> Option<u16>))
-        } else if self.values.iter().all(|&v| int16(v).is_some()) {
-            Some((INT16, int16 as fn(f32) -> Option<u16>))
-        } else if self.values.iter().all(|&v| sint16(v).is_some()) {
-            Some((SINT16, sint16 as fn(f32) -> Option<u16>))
-        } else {
-            None
-        };
+        let narrow = NARROW.iter().find(|f| self.values.iter().all(|&v| f.of(v).is_some()));
         let size = if narrow.is_some() { 2 } else { 4 };
         let mut out = Vec::with_capacity(TILE_HEADER + size * n + n.div_ceil(8));
         out.extend_from_slice(TILE_MAGIC);
@@ -221,11 +217,11 @@ impl TileHeights {
         out.extend_from_slice(&self.window.x0.to_le_bytes());
         out.extend_from_slice(&self.window.y0.to_le_bytes());
         let holes = if self.holes.is_some() { HAS_HOLES } else { 0 };
-        out.extend_from_slice(&(holes | narrow.map_or(0, |(f, _)| f)).to_le_bytes());
+        out.extend_from_slice(&(holes | narrow.map_or(0, |f| f.flag)).to_le_bytes());
         match narrow {
-            Some((_, to_u16)) => {
+            Some(f) => {
                 for &v in &self.values {
-                    out.extend_from_slice(&to_u16(v).unwrap_or(0).to_le_bytes());
+                    out.extend_from_slice(&f.of(v).unwrap_or(0).to_le_bytes());
                 }
             }
             None => {
@@ -253,27 +249,26 @@ impl TileHeights {
         let i64_at = |o: usize| i64::from_le_bytes(bytes[o..o + 8].try_into().unwrap_or([0; 8]));
         let window = Window { width: u32_at(4), height: u32_at(8), x0: i64_at(12), y0: i64_at(20) };
         let flags = u32_at(28);
-        let narrow = NARROW.iter().filter(|&&f| flags & f != 0).count();
-        if flags & !(HAS_HOLES | NORM16 | INT16 | SINT16) != 0 || narrow > 1 {
+        let mut forms = NARROW.iter().filter(|f| flags & f.flag != 0);
+        let narrow = forms.next();
+        if flags & !(HAS_HOLES | NORM16 | INT16 | SINT16) != 0 || forms.next().is_some() {
             return Err(bad());
         }
         let n = (window.width as usize).checked_mul(window.height as usize).ok_or_else(bad)?;
-        let size = if narrow == 1 { 2 } else { 4 };
+        let size = if narrow.is_some() { 2 } else { 4 };
         let end = n.checked_mul(size).and_then(|b| b.checked_add(TILE_HEADER)).ok_or_else(bad)?;
         let want = end + if flags & HAS_HOLES != 0 { n.div_ceil(8) } else { 0 };
         if bytes.len() != want {
             return Err(bad());
         }
         let vals = &bytes[TILE_HEADER..end];
-        let values = if flags & NORM16 != 0 {
-            let f = |c: &[u8]| (f64::from(u16::from_le_bytes([c[0], c[1]])) / 65535.0) as f32;
-            vals.chunks_exact(2).map(f).collect()
-        } else if flags & INT16 != 0 {
-            vals.chunks_exact(2).map(|c| f32::from(u16::from_le_bytes([c[0], c[1]]))).collect()
-        } else if flags & SINT16 != 0 {
-            vals.chunks_exact(2).map(|c| f32::from(i16::from_le_bytes([c[0], c[1]]))).collect()
-        } else {
-            vals.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
+        let values = match narrow {
+            Some(f) => {
+                vals.chunks_exact(2).map(|c| (f.value)(u16::from_le_bytes([c[0], c[1]]))).collect()
+            }
+            None => {
+                vals.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
+            }
         };
         let holes = (flags & HAS_HOLES != 0).then(|| unpack_bits(&bytes[end..], n));
         Ok(TileHeights { window, values, holes })
@@ -1085,7 +1080,7 @@ mod tests {
         // Every 16-bit sample survives, not only those.
         for k in 0..=u16::MAX {
             let v = (f64::from(k) / 65535.0) as f32;
-            assert_eq!(norm16(v), Some(k), "sample {k}");
+            assert_eq!(NARROW[0].of(v), Some(k), "sample {k}");
         }
     }
 
