@@ -896,8 +896,8 @@ struct Family<'s> {
 
 /// The far field of [`far_field`] without curvature, in f32, 16 lines of a family at a time
 /// (AVX-512): the same samples and hulls, so the same values up to f32 rounding (tested
-/// against it). Hulls are linked lists through the columns (`nx`), so a push is one contiguous
-/// store per 16 lanes and only a pop or a query step gathers.
+/// against it). Each lane's hull is a stack, its top three vertices in registers (see
+/// [`group_avx512`]).
 ///
 /// `fresh`: `out` was never touched (a plane of the far table, which is allocated zeroed and
 /// so not yet mapped). The sums are then added up in the thread's scratch plane, already
@@ -1063,6 +1063,20 @@ fn far_field_fast(
     sc.qs = qs;
 }
 
+/// For the group of `nl` lines from `i0` at a query column whose lines lie `shift` from its
+/// texels: the lanes whose texel is in the map, and lane 0's minor (reduced modulo the map
+/// with `edge=wrap`, where every lane's texel is).
+#[inline]
+fn texels_at(f: &Family<'_>, i0: i64, nl: u32, shift: i64) -> (u16, i64) {
+    let b0 = i0 - shift;
+    if f.wrap {
+        let all = if nl >= 16 { 0xffff } else { ((1u32 << nl) - 1) as u16 };
+        (all, b0.rem_euclid(f.hb))
+    } else {
+        (lane_range(b0, f.hb, nl), b0)
+    }
+}
+
 /// The lanes (bit l: lane l) whose minor b0 + l lies in 0..lim, of the first `nl`.
 #[inline]
 fn lane_range(b0: i64, lim: i64, nl: u32) -> u16 {
@@ -1088,8 +1102,11 @@ fn lane_range(b0: i64, lim: i64, nl: u32) -> u16 {
 #[target_feature(enable = "avx512f")]
 unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, slot: usize, sc: &mut Scratch) {
     use std::arch::x86_64::*;
-    // This group's tangents: slot `slot` of the batch (see [`add_batch_avx512`]).
-    let sb = sc.sb[slot * f.wa as usize * FL..][..f.wa as usize * FL].as_mut_ptr();
+    // This group's tangents: slot `slot` of the batch (see [`add_batch_avx512`]); the query
+    // columns the suffix pass does not reach (within N of the line's end) have none.
+    let slot = &mut sc.sb[slot * f.wa as usize * FL..][..f.wa as usize * FL];
+    slot[(f.len - f.d).clamp(0, f.wa) as usize * FL..].fill(f32::NEG_INFINITY);
+    let sb = slot.as_mut_ptr();
     let all: u16 = if nl >= 16 { 0xffff } else { ((1u32 << nl) - 1) as u16 };
     let lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
     let none = _mm512_set1_epi32(-1);
@@ -1145,15 +1162,7 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, slot: usize, sc: &mut S
             }
         }};
     }
-    // Lanes whose texel at query column q is in the map, and lane 0's minor there.
-    let texels = |q: i64| -> (u16, i64) {
-        let b0 = i0 - f.qs[q as usize].shift;
-        if f.wrap {
-            (all, b0.rem_euclid(f.hb))
-        } else {
-            (lane_range(b0, f.hb, nl), b0)
-        }
-    };
+    let texels = |q: i64| texels_at(f, i0, nl, f.qs[q as usize].shift);
     // Pops the lanes of `pm`: t1 ← t2 ← t3, which leaves a hole in t3 (−1 with vertices left
     // in memory); only a lane that had a hole already refills t2 from memory (a gather). So a
     // pop after a push, or a push after a pop, moves nothing between registers and memory.
@@ -1216,9 +1225,6 @@ unsafe fn group_avx512(f: &Family<'_>, i0: i64, nl: u32, slot: usize, sc: &mut S
     let blk = f.r_steps.map_or(i64::MAX, |(_, b)| b);
     // The suffix pass needs the samples up to the end of the block of the last query.
     let last = if blocked { ((f.wa - 1 + f.d) / blk + 1) * blk - 1 } else { f.len - 1 };
-    // Query columns the suffix pass does not reach (within N of the line's end).
-    let from = (f.len - f.d).clamp(0, f.wa) as usize * FL;
-    std::slice::from_raw_parts_mut(sb, f.wa as usize * FL)[from..].fill(f32::NEG_INFINITY);
     // Suffix (or whole-line) pass, right to left.
     let (mut t1, mut t2, mut t3, mut dep) = (none, none, none, zero_i);
     let (mut y1, mut y2, mut y3) = (ninf, ninf, ninf);
@@ -1430,13 +1436,7 @@ unsafe fn add_batch_avx512(
         }
         let wt = _mm512_set1_ps(qc.wt * f.inv_step);
         for (g, &(i0, nl)) in batch.iter().enumerate() {
-            let b0 = i0 - qc.shift;
-            let (tm, b0) = if f.wrap {
-                let all: u16 = if nl >= 16 { 0xffff } else { ((1u32 << nl) - 1) as u16 };
-                (all, b0.rem_euclid(f.hb))
-            } else {
-                (lane_range(b0, f.hb, nl), b0)
-            };
+            let (tm, b0) = texels_at(f, i0, nl, qc.shift);
             let res = _mm512_loadu_ps(sc.sb.as_ptr().add((g * wa + q as usize) * FL));
             let got = tm & _mm512_cmp_ps_mask::<_CMP_GT_OQ>(res, ninf);
             if got != 0 {
