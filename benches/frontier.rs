@@ -139,26 +139,31 @@ fn main() {
             &note,
         );
     }
-    for r in [Some(64u32), Some(256), None] {
-        // Building the kernel runs the far-field sweeps: it is part of the time.
+    // A sweep timed on the bench map (its build included), its errors on both maps, and where
+    // the time went: the build is the far field's sweeps, the bands the near field and joins.
+    let sweep = |g: Grid<'_>, rg: Grid<'_>, r: Option<u32>| {
         let t = Instant::now();
-        let k = Sweep::new(grid, r, bins, Reduce::Average);
+        let k = Sweep::new(g, r, bins, Reduce::Average);
         let built = t.elapsed().as_secs_f64();
         let out = compute_all(&k, &Progress::new()).expect("not canceled");
         std::hint::black_box(&out);
         let secs = t.elapsed().as_secs_f64();
         drop(out);
-        let err = errors(&bins_of(&k, CROP_ROWS), &exact_crop(grid, r));
+        let err = errors(&bins_of(&k, CROP_ROWS), &exact_crop(g, r));
         drop(k);
-        let kr = Sweep::new(rough, r, bins, Reduce::Average);
-        let err_r = errors(&bins_of(&kr, CROP_ROWS), &exact_crop(rough, r));
-        let name = r.map_or("unlimited".to_string(), |r| r.to_string());
-        // The build is the far field's sweeps, the bands the near field and the joins.
-        let note = format!(
-            "near field {NEAR} steps, {SUB} sub-lines; build (far field) {:.0} ms + bands {:.0} ms",
+        let kr = Sweep::new(rg, r, bins, Reduce::Average);
+        let err_r = errors(&bins_of(&kr, CROP_ROWS), &exact_crop(rg, r));
+        let split = format!(
+            "build (far field) {:.0} ms + bands {:.0} ms",
             built * 1e3,
             (secs - built) * 1e3
         );
+        (secs, err, err_r, split)
+    };
+    for r in [Some(64u32), Some(256), None] {
+        let (secs, err, err_r, split) = sweep(grid, rough, r);
+        let name = r.map_or("unlimited".to_string(), |r| r.to_string());
+        let note = format!("near field {NEAR} steps, {SUB} sub-lines; {split}");
         row("sweep", &name, secs, Some(err), Some(err_r), &note);
     }
     {
@@ -166,23 +171,8 @@ fn main() {
         // prefix passes, so the cheapest case of the far field.
         let grid_none = Grid::new(n, n, &heights, Edge::None, YAxis::Up);
         let rough_none = Grid::new(ROUGH, ROUGH, &rough_h, Edge::None, YAxis::Up);
-        let t = Instant::now();
-        let k = Sweep::new(grid_none, None, bins, Reduce::Average);
-        let built = t.elapsed().as_secs_f64();
-        let out = compute_all(&k, &Progress::new()).expect("not canceled");
-        std::hint::black_box(&out);
-        let secs = t.elapsed().as_secs_f64();
-        drop(out);
-        let err = errors(&bins_of(&k, CROP_ROWS), &exact_crop(grid_none, None));
-        drop(k);
-        let kr = Sweep::new(rough_none, None, bins, Reduce::Average);
-        let err_r = errors(&bins_of(&kr, CROP_ROWS), &exact_crop(rough_none, None));
-        let note = format!(
-            "build (far field) {:.0} ms + bands {:.0} ms",
-            built * 1e3,
-            (secs - built) * 1e3
-        );
-        row("sweep, edge=none", "unlimited", secs, Some(err), Some(err_r), &note);
+        let (secs, err, err_r, split) = sweep(grid_none, rough_none, None);
+        row("sweep, edge=none", "unlimited", secs, Some(err), Some(err_r), &split);
     }
     {
         // The same bake with its far field in a temporary file, as a map whose table passes
