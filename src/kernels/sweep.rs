@@ -64,13 +64,17 @@
 //! copy of the map's major lines ([`MajorLines`]); each lane's hull is a stack whose three
 //! nearest vertices live in registers (so most pops and tangent steps touch no memory) and
 //! whose rest sits by depth in a few KiB (a push spills one vertex with a masked scatter, a
-//! pop refills one with a masked gather); slopes are compared by cross-multiplication, with
-//! one division per query; a group's tangents are added to the sums after its sweeps, 8 groups
-//! of neighbouring lines at a time so each row of the sums is visited once per batch. It is
-//! tested against the scalar f64 [`far_field`] (the same samples), which remains the path
-//! with curvature and on other CPUs. The lanes of a group pop as often as their busiest lane,
-//! ≈2.4 vector pops per push on fBm against ≈1 pop per line: the gathers of those pops are
-//! now the largest cost. With `edge=wrap` the lines run R past the map and a finite R takes
+//! pop refills one with a masked gather, column and height packed in one 64-bit entry so each
+//! moves 16 entries rather than 32); slopes are compared by cross-multiplication, with one
+//! division per query; two groups run side by side in one loop ([`GROUPS`]), so their chains
+//! of dependent compares overlap; a group's tangents are added to the sums after its sweeps, 8
+//! groups of neighbouring lines at a time so each row of the sums is visited once per batch.
+//! It is tested against the scalar f64 [`far_field`] (the same samples), which remains the
+//! path with curvature and on other CPUs. The lanes of a group pop as often as their busiest
+//! lane, ≈2.4 vector pops per push on fBm against ≈1 pop per line: the gathers of those pops
+//! are the largest single cost. The bands give each texel's far value to the near field as a
+//! floor ([`NearField::strip_above`]), so its walk culls the cells that cannot beat it.
+//! With `edge=wrap` the lines run R past the map and a finite R takes
 //! two passes (suffix and prefix hulls, ≈3 pushes per sample), so `unlimited` with
 //! `edge=none` is the cheapest case.
 //!
@@ -414,6 +418,16 @@ impl<'a> Sweep<'a> {
             let (inv_r, drop) = ((1.0 / r) as f32, drop as f32);
             let h0 = &g.heights[y * g.width + x..][..lanes];
             let mut c0 = (x as i64 + ox).rem_euclid(w) as usize;
+            if c0 + lanes < w as usize {
+                // No lane wraps: the same arithmetic over plain runs, which vectorises.
+                let (a0, a1) = (&r0[c0..=c0 + lanes], &r1[c0..=c0 + lanes]);
+                for (i, (e, &h0)) in ep.iter_mut().zip(h0).enumerate() {
+                    let a = a0[i] + (a0[i + 1] - a0[i]) * fx;
+                    let b = a1[i] + (a1[i + 1] - a1[i]) * fx;
+                    *e = (a + (b - a) * fy - drop - h0) * inv_r;
+                }
+                return;
+            }
             for (e, &h0) in ep.iter_mut().zip(h0) {
                 let c1 = if c0 + 1 == w as usize { 0 } else { c0 + 1 };
                 let a = r0[c0] + (r0[c1] - r0[c0]) * fx;
@@ -1657,7 +1671,7 @@ impl HorizonRows for Sweep<'_> {
         let (w, h, nb) = (self.grid.width, self.grid.height, self.bins);
         let n_rows = channels.len() / (w * 8);
         let mut strip = vec![0.0f32; NEAR_LANES * nb];
-        let mut best = [0.0f32; NEAR_LANES];
+        let mut best: [f32; NEAR_LANES];
         let mut ep = [0.0f32; NEAR_LANES];
         let mut sn = [0.0f32; NEAR_LANES];
         // `reduce=point` reads one bin per channel: the others are not computed unless asked.
@@ -1692,12 +1706,29 @@ impl HorizonRows for Sweep<'_> {
                 }
                 let lanes = NEAR_LANES.min(w - x);
                 for n in (0..nb).step_by(step) {
-                    self.near.strip(n, x, y, &mut best);
                     self.end_points(n, x, y, lanes, &mut ep);
                     let fb = &far[n * plane + y * w + x - origin..][..lanes];
+                    // The bins' planes are read as 32 streams at once, more than the hardware
+                    // prefetchers follow: fetch each a few strips ahead.
+                    #[cfg(target_arch = "x86_64")]
+                    // SAFETY: a prefetch reads nothing and never faults, whatever the address.
+                    unsafe {
+                        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+                        _mm_prefetch::<_MM_HINT_T0>(
+                            fb.as_ptr().wrapping_add(4 * NEAR_LANES) as *const i8
+                        );
+                    }
+                    // The far field and the point at R first: the near field then only walks
+                    // the cells that could beat them (the max is the same but for the f32
+                    // rounding of a culled cell's value).
+                    best = [0.0; NEAR_LANES];
+                    for i in 0..lanes {
+                        best[i] = best[i].max(fb[i]).max(ep[i]);
+                    }
+                    self.near.strip_above(n, x, y, &mut best);
                     for i in 0..lanes {
                         // sin α in f32 (tan α ≥ 0; a vertical horizon, ∞, gives 1).
-                        let t = best[i].max(fb[i]).max(ep[i]).min(1e15);
+                        let t = best[i].min(1e15);
                         sn[i] = t / (1.0 + t * t).sqrt();
                     }
                     for i in 0..lanes {
