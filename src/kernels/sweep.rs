@@ -39,7 +39,8 @@
 //! A point s texels away is lowered by c·s². Along a line with origin-free coordinate x (major
 //! steps, c' = c·L² per step², L = √(1 + m²)), the drop from the query at x to x' is
 //! c'(x' − x)², and (h(x') − c'(x' − x)² − h0)/(x' − x) = (g(x') − (h0 − c'x²))/(x' − x) + 2c'x
-//! with g(x') = h(x') − c'x'²: a tangent query on the fixed hull of g, in f64.
+//! with g(x') = h(x') − c'x'²: a tangent query on the fixed hull of g, in f64 (in f32 on the
+//! vector path, see below).
 //!
 //! # Holes
 //! Maps with nodata holes are baked by `exact` instead (see `bake::make_kernel_for`): the
@@ -59,7 +60,7 @@
 //! holds the table. Bigger than [`MAX_SPILL_BYTES`] is refused by [`check_memory`]. The bake's
 //! progress only moves once the bands start.
 //!
-//! Without curvature, on a CPU with AVX-512, the sweeps run 16 lines of a family in lockstep
+//! On a CPU with AVX-512, the sweeps run 16 lines of a family in lockstep
 //! ([`far_field_fast`], f32): the 16 samples of a column are one contiguous lerp of a padded
 //! copy of the map's major lines ([`MajorLines`]); each lane's hull is a stack whose three
 //! nearest vertices live in registers (so most pops and tangent steps touch no memory) and
@@ -69,8 +70,11 @@
 //! division per query; two groups run side by side in one loop ([`GROUPS`]), so their chains
 //! of dependent compares overlap; a group's tangents are added to the sums after its sweeps, 8
 //! groups of neighbouring lines at a time so each row of the sums is visited once per batch.
-//! It is tested against the scalar f64 [`far_field`] (the same samples), which remains the
-//! path with curvature and on other CPUs. The lanes of a group pop as often as their busiest
+//! The curvature drop is the same g = h − c'u² as in f64 (the drops c'u², c'q² and 2c'q
+//! computed in f64, then rounded to f32): at u = 4096, g's rounding moves a tangent by about
+//! 0.03 millidegrees with 30 m cells and 1 millidegree with 1 km cells (the drop is then 39
+//! and 1300 texels). It is tested against the scalar f64 [`far_field`] (the same
+//! samples, with and without the drop), which remains the path on other CPUs. The lanes of a group pop as often as their busiest
 //! lane, ≈2.4 vector pops per push on fBm against ≈1 pop per line: the gathers of those pops
 //! are the largest single cost. The bands give each texel's far value to the near field as a
 //! floor ([`NearField::strip_above`]), so its walk culls the cells that cannot beat it.
@@ -271,16 +275,16 @@ impl<'a> Sweep<'a> {
         let isa = opt.isa.filter(|i| i.supported()).unwrap_or_else(Isa::detect);
         let near = NearField::new(grid, &dirs, &cuts, curv, isa);
         let progress = opt.progress.clone();
-        // Without curvature and with AVX-512, the vector sweeps of `far_field_fast` (f32);
-        // otherwise the scalar f64 ones of `far_field`.
-        let fast = curv == 0.0 && isa == Isa::Avx512;
+        // With AVX-512, the vector sweeps of `far_field_fast` (f32); otherwise the scalar f64
+        // ones of `far_field`.
+        let fast = isa == Isa::Avx512;
         // `fresh`: `out` is memory never touched yet (a plane of the table in memory).
         let sweep_one = |ml: Option<&MajorLines>,
                          lines: Lines,
                          out: &mut [f32],
                          sc: &mut Scratch,
                          fresh: bool| match ml {
-            Some(ml) => far_field_fast(&grid, ml, lines, reach, out, sc, None, fresh),
+            Some(ml) => far_field_fast(&grid, ml, lines, reach, curv, out, sc, None, fresh),
             None => far_field(&grid, lines, reach, curv, out, &mut sc.miss),
         };
         let failure = Mutex::new(None);
@@ -348,6 +352,7 @@ impl<'a> Sweep<'a> {
                                         ml,
                                         lines,
                                         reach,
+                                        curv,
                                         out,
                                         sc,
                                         Some(&mut emit),
@@ -912,6 +917,9 @@ struct Family<'s> {
     /// Finite window: steps within R and the block length (see the module doc).
     r_steps: Option<(i64, i64)>,
     inv_step: f32,
+    /// The curvature drop per major step², c' (0: none): samples are g = h − c'·u² at column
+    /// u, a query at q starts from h0 − c'·q² and adds 2c'·q to its slope (module doc).
+    cc: f64,
 }
 
 /// The far field of [`far_field`] without curvature, in f32, 16 lines of a family at a time
@@ -930,6 +938,7 @@ fn far_field_fast(
     ml: &MajorLines,
     lines: Lines,
     reach: Option<f64>,
+    curv: f64,
     out: &mut [f32],
     sc: &mut Scratch,
     mut emit: Option<Emit<'_>>,
@@ -1012,6 +1021,7 @@ fn far_field_fast(
             wrap,
             r_steps: r_steps.map(|r| (r, r - d + 1)),
             inv_step: (1.0 / lines.step) as f32,
+            cc: curv * lines.step * lines.step,
         };
         let (i_lo, i_hi) = if wrap { (0, hbi - 1) } else { (sh_lo, hbi - 1 + sh_hi) };
         let mut i0 = i_lo;
@@ -1341,6 +1351,12 @@ unsafe fn groups_avx512<const G: usize>(
             }
             if any != 0 {
                 let xp = _mm512_set1_ps(u as f32);
+                if f.cc != 0.0 {
+                    let drop = _mm512_set1_ps((f.cc * (u * u) as f64) as f32);
+                    for g in 0..G {
+                        v[g] = _mm512_sub_ps(v[g], drop);
+                    }
+                }
                 loop {
                     let mut pm = [0u16; G];
                     let mut anyp = 0u16;
@@ -1387,6 +1403,9 @@ unsafe fn groups_avx512<const G: usize>(
         }
         let shift = f.qs[q as usize].shift;
         let xq = _mm512_set1_ps(q as f32);
+        // The query's height on the hulls of g, and the slope's correction (module doc).
+        let (q_drop, q_corr) = (f.cc * (q * q) as f64, 2.0 * f.cc * q as f64);
+        let (q_drop, q_corr) = (_mm512_set1_ps(q_drop as f32), _mm512_set1_ps(q_corr as f32));
         let (mut qm, mut hq) = ([0u16; G], [ninf; G]);
         let (mut cur_x, mut cur_y, mut nt, mut nyv) = ([ninf; G], y1, t2, y2);
         // The memory stack's depth of the vertex after the next (from the third step on).
@@ -1395,7 +1414,7 @@ unsafe fn groups_avx512<const G: usize>(
             let (tm, b0) = texels_at(f, i0[g], nl[g], shift);
             qm[g] = tm & _mm512_cmpge_epi32_mask(t1[g], zero_i);
             if qm[g] != 0 {
-                hq[g] = load_h0!(q, b0);
+                hq[g] = _mm512_sub_ps(load_h0!(q, b0), q_drop);
             }
             cur_x[g] = _mm512_cvtepi32_ps(t1[g]);
         }
@@ -1444,7 +1463,7 @@ unsafe fn groups_avx512<const G: usize>(
             if qm[g] != 0 {
                 let slope =
                     _mm512_div_ps(_mm512_sub_ps(cur_y[g], hq[g]), _mm512_sub_ps(cur_x[g], xq));
-                res = _mm512_mask_mov_ps(res, qm[g], slope);
+                res = _mm512_mask_mov_ps(res, qm[g], _mm512_add_ps(slope, q_corr));
             }
             _mm512_storeu_ps(sb[g].add(q as usize * FL), res);
         }
@@ -1480,6 +1499,8 @@ unsafe fn groups_avx512<const G: usize>(
         }
         let shift = f.qs[q as usize].shift;
         let xq = _mm512_set1_ps(q as f32);
+        let (q_drop, q_corr) = (f.cc * (q * q) as f64, 2.0 * f.cc * q as f64);
+        let (q_drop, q_corr) = (_mm512_set1_ps(q_drop as f32), _mm512_set1_ps(q_corr as f32));
         let (mut qm, mut hq) = ([0u16; G], [ninf; G]);
         // The registers' vertices bottom up: [t3, t2, t1] without the empty ones.
         let (mut r0t, mut r0y, mut r1t, mut r1y) = ([none; G], [ninf; G], [none; G], [ninf; G]);
@@ -1489,7 +1510,7 @@ unsafe fn groups_avx512<const G: usize>(
             if qm[g] == 0 {
                 continue;
             }
-            hq[g] = load_h0!(q, b0);
+            hq[g] = _mm512_sub_ps(load_h0!(q, b0), q_drop);
             let has3 = _mm512_cmpge_epi32_mask(t3[g], zero_i);
             let has2 = _mm512_cmpge_epi32_mask(t2[g], zero_i);
             r0t[g] = _mm512_mask_mov_epi32(_mm512_mask_mov_epi32(t1[g], has2, t2[g]), has3, t3[g]);
@@ -1566,6 +1587,7 @@ unsafe fn groups_avx512<const G: usize>(
                 continue;
             }
             let slope = _mm512_div_ps(_mm512_sub_ps(cur_y[g], hq[g]), _mm512_sub_ps(cur_x[g], xq));
+            let slope = _mm512_add_ps(slope, q_corr);
             let p = sb[g].add(q as usize * FL);
             let res = _mm512_loadu_ps(p);
             _mm512_storeu_ps(p, _mm512_mask_max_ps(res, qm[g], res, slope));
@@ -1920,23 +1942,25 @@ mod tests {
                             (None, Edge::None) => None,
                         };
                         let mut sc = Scratch::default();
-                        for n in 0..32 {
+                        // Without the curvature drop, and with one that lowers the far end of
+                        // the longest line by several times the relief.
+                        for (n, curv) in (0..32).flat_map(|n| [(n, 0.0), (n, 2e-3)]) {
                             let d = exact::direction(n as f64 * 2.0 * PI / 32.0, g.row_step());
                             let lines = Lines::new(d);
                             let mut want = vec![0.0f32; w * h];
                             let mut wsum = Vec::new();
-                            far_field(&g, lines, reach, 0.0, &mut want, &mut wsum);
+                            far_field(&g, lines, reach, curv, &mut want, &mut wsum);
                             let ml = &mls[usize::from(lines.major_x)];
                             for fresh in [false, true] {
                                 let mut got = vec![0.0f32; w * h];
                                 far_field_fast(
-                                    &g, ml, lines, reach, &mut got, &mut sc, None, fresh,
+                                    &g, ml, lines, reach, curv, &mut got, &mut sc, None, fresh,
                                 );
                                 for (t, (a, b)) in got.iter().zip(&want).enumerate() {
                                     assert!(
                                         (a - b).abs() <= 2e-5 * (1.0 + b.abs()),
-                                        "{w}×{h} {edge:?} R {radius:?} bin {n} texel {t} \
-                                         fresh {fresh}: {a} vs {b}"
+                                        "{w}×{h} {edge:?} R {radius:?} bin {n} curvature \
+                                         {curv} texel {t} fresh {fresh}: {a} vs {b}"
                                     );
                                 }
                             }
