@@ -1258,6 +1258,25 @@ unsafe fn groups_avx512<const G: usize>(
             _mm512_loadu_ps(data.offset((f.cols[$q as usize].base as i64 + $b0) as isize))
         };
     }
+    // A query at column q: its abscissa, the slope's curvature correction, and per group the
+    // lanes whose texel is on the map and whose hull is not empty, with their heights on the
+    // hulls of g (module doc).
+    macro_rules! query_at {
+        ($q:expr) => {{
+            let q = $q;
+            let shift = f.qs[q as usize].shift;
+            let q_drop = _mm512_set1_ps((f.cc * (q * q) as f64) as f32);
+            let (mut qm, mut hq) = ([0u16; G], [ninf; G]);
+            for g in 0..G {
+                let (tm, b0) = texels_at(f, i0[g], nl[g], shift);
+                qm[g] = tm & _mm512_cmpge_epi32_mask(t1[g], zero_i);
+                if qm[g] != 0 {
+                    hq[g] = _mm512_sub_ps(load_h0!(q, b0), q_drop);
+                }
+            }
+            (_mm512_set1_ps(q as f32), _mm512_set1_ps((2.0 * f.cc * q as f64) as f32), qm, hq)
+        }};
+    }
     // Lanes of group g whose sample at column c is on the surface, and their samples.
     macro_rules! sample {
         ($c:expr, $g:expr) => {{
@@ -1401,21 +1420,11 @@ unsafe fn groups_avx512<const G: usize>(
         if q >= f.wa || !f.qs[q as usize].on {
             continue;
         }
-        let shift = f.qs[q as usize].shift;
-        let xq = _mm512_set1_ps(q as f32);
-        // The query's height on the hulls of g, and the slope's correction (module doc).
-        let (q_drop, q_corr) = (f.cc * (q * q) as f64, 2.0 * f.cc * q as f64);
-        let (q_drop, q_corr) = (_mm512_set1_ps(q_drop as f32), _mm512_set1_ps(q_corr as f32));
-        let (mut qm, mut hq) = ([0u16; G], [ninf; G]);
+        let (xq, q_corr, qm, hq) = query_at!(q);
         let (mut cur_x, mut cur_y, mut nt, mut nyv) = ([ninf; G], y1, t2, y2);
         // The memory stack's depth of the vertex after the next (from the third step on).
         let (mut below, mut stepn) = (dep, [0u32; G]);
         for g in 0..G {
-            let (tm, b0) = texels_at(f, i0[g], nl[g], shift);
-            qm[g] = tm & _mm512_cmpge_epi32_mask(t1[g], zero_i);
-            if qm[g] != 0 {
-                hq[g] = _mm512_sub_ps(load_h0!(q, b0), q_drop);
-            }
             cur_x[g] = _mm512_cvtepi32_ps(t1[g]);
         }
         let mut m = qm;
@@ -1497,29 +1506,22 @@ unsafe fn groups_avx512<const G: usize>(
         if top / blk <= (q + f.d) / blk {
             continue;
         }
-        let shift = f.qs[q as usize].shift;
-        let xq = _mm512_set1_ps(q as f32);
-        let (q_drop, q_corr) = (f.cc * (q * q) as f64, 2.0 * f.cc * q as f64);
-        let (q_drop, q_corr) = (_mm512_set1_ps(q_drop as f32), _mm512_set1_ps(q_corr as f32));
-        let (mut qm, mut hq) = ([0u16; G], [ninf; G]);
+        let (xq, q_corr, qm, hq) = query_at!(q);
+        if qm.iter().all(|&m| m == 0) {
+            continue;
+        }
         // The registers' vertices bottom up: [t3, t2, t1] without the empty ones.
         let (mut r0t, mut r0y, mut r1t, mut r1y) = ([none; G], [ninf; G], [none; G], [ninf; G]);
         for g in 0..G {
-            let (tm, b0) = texels_at(f, i0[g], nl[g], shift);
-            qm[g] = tm & _mm512_cmpge_epi32_mask(t1[g], zero_i);
             if qm[g] == 0 {
                 continue;
             }
-            hq[g] = _mm512_sub_ps(load_h0!(q, b0), q_drop);
             let has3 = _mm512_cmpge_epi32_mask(t3[g], zero_i);
             let has2 = _mm512_cmpge_epi32_mask(t2[g], zero_i);
             r0t[g] = _mm512_mask_mov_epi32(_mm512_mask_mov_epi32(t1[g], has2, t2[g]), has3, t3[g]);
             r0y[g] = _mm512_mask_mov_ps(_mm512_mask_mov_ps(y1[g], has2, y2[g]), has3, y3[g]);
             r1t[g] = _mm512_mask_mov_epi32(t1[g], has3, t2[g]);
             r1y[g] = _mm512_mask_mov_ps(y1[g], has3, y2[g]);
-        }
-        if qm.iter().all(|&m| m == 0) {
-            continue;
         }
         // Vertex j of a lane's hull from the bottom (j ≤ its last), group g.
         let at = |g: usize, j: i32| -> (__m512i, __m512) {
