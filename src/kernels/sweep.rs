@@ -73,13 +73,13 @@
 //! The curvature drop is the same g = h − c'u² as in f64 (the drops c'u², c'q² and 2c'q
 //! computed in f64, then rounded to f32): at u = 4096, g's rounding moves a tangent by about
 //! 0.03 millidegrees with 30 m cells and 1 millidegree with 1 km cells (the drop is then 39
-//! and 1300 texels). It is tested against the scalar f64 [`far_field`] (the same
-//! samples, with and without the drop), which remains the path on other CPUs. The lanes of a group pop as often as their busiest
-//! lane, ≈2.4 vector pops per push on fBm against ≈1 pop per line: the gathers of those pops
-//! are the largest single cost. The bands give each texel's far value to the near field as a
-//! floor ([`NearField::strip_above`]), so its walk culls the cells that cannot beat it.
-//! With `edge=wrap` the lines run R past the map and a finite R takes
-//! two passes (suffix and prefix hulls, ≈3 pushes per sample), so `unlimited` with
+//! and 1300 texels). It is tested against the scalar f64 [`far_field`] (the same samples,
+//! with and without the drop), which remains the path on other CPUs. The lanes of a group pop
+//! as often as their busiest lane, ≈2.4 vector pops per push on fBm against ≈1 pop per line:
+//! the gathers of those pops are the largest single cost. The bands give each texel's far
+//! value to the near field as a floor ([`NearField::strip_above`]), so its walk culls the
+//! cells that cannot beat it. With `edge=wrap` the lines run R past the map and a finite R
+//! takes two passes (suffix and prefix hulls, ≈3 pushes per sample), so `unlimited` with
 //! `edge=none` is the cheapest case.
 //!
 //! Counted (temporary counters, 1024² fBm, 32 bins, per group of 16 lines and W = 1024 query
@@ -922,9 +922,9 @@ struct Family<'s> {
     cc: f64,
 }
 
-/// The far field of [`far_field`] without curvature, in f32, 16 lines of a family at a time
-/// (AVX-512): the same samples and hulls, so the same values up to f32 rounding (tested
-/// against it). Each lane's hull is a stack, its top three vertices in registers (see
+/// The far field of [`far_field`] in f32, 16 lines of a family at a time (AVX-512), the
+/// curvature drop included: the same samples and hulls, so the same values up to f32 rounding
+/// (tested against it). Each lane's hull is a stack, its top three vertices in registers (see
 /// [`groups_avx512`]).
 ///
 /// `fresh`: `out` was never touched (a plane of the far table, which is allocated zeroed and
@@ -1200,10 +1200,10 @@ unsafe fn unpack(
 ///
 /// Each lane's hull is a stack: the three vertices nearest the sweep's position in registers
 /// (t1, t2, t3: column and height), the rest in memory by depth ([`Scratch::st`], a region
-/// per group), a few KiB that stay in L1. A push spills t3 (one masked
-/// scatter), a pop refills it (one masked gather, needed only a pop later), so short pops and
-/// query walks wait for nothing; the prefix pass's queries walk the stack from its bottom with
-/// plain loads.
+/// per group), a few KiB that stay in L1. A push spills t3 (one masked scatter), a pop
+/// refills it (one masked gather, needed only a pop later), so short pops and query walks
+/// wait for nothing; the prefix pass's queries walk the stack from its bottom with plain
+/// loads.
 ///
 /// Why several groups at once: a group's pops and tangent walks are one chain of dependent
 /// compares, gathers and data-dependent branches, so one group alone leaves the core waiting
