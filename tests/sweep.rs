@@ -14,7 +14,7 @@ use common::{mean_p99, surface, waves, Rng};
 use horizon_bake::eval::corpus;
 use horizon_bake::kernels::exact::{self, ExactHorizon};
 use horizon_bake::kernels::lengyel_fast::Isa;
-use horizon_bake::kernels::sweep::{Lines, Options, Sweep, NEAR, SUB};
+use horizon_bake::kernels::sweep::{azimuth_lines, Options, Sweep, NEAR};
 use horizon_bake::kernels::{Grid, HorizonRows};
 use horizon_bake::params::{BakeParams, Edge, Reduce, YAxis};
 use horizon_bake::progress::Progress;
@@ -105,7 +105,9 @@ fn fbm(rng: &mut Rng, w: usize, h: usize, slope_deg: f64) -> Vec<f32> {
 fn oracle(g: &Grid<'_>, x: usize, y: usize, n: usize, bins: usize, r: Option<f64>, c: f64) -> f64 {
     let phi = n as f64 * 2.0 * PI / bins as f64;
     let d = exact::direction(phi, g.row_step());
-    let lines = Lines::new(d);
+    // The kernel's lines of this azimuth (with `edge=wrap`, maybe the opposite's read
+    // backwards: `azimuth_lines`).
+    let lines = azimuth_lines(g, r.map(|r| r as u32), bins as u32)[n];
     let reach = match (r, g.edge) {
         (Some(r), _) => Some(r),
         (None, Edge::Wrap) => Some(g.width.max(g.height) as f64),
@@ -146,7 +148,7 @@ fn oracle(g: &Grid<'_>, x: usize, y: usize, n: usize, bins: usize, r: Option<f64
     let (mut sum, mut wsum) = (0.0f64, 0.0f64);
     for (k, shift, wt) in lines.pair(u) {
         let i = b as i64 + shift;
-        let line_at = |up: f64| i as f64 + k as f64 / SUB as f64 + lines.m * up;
+        let line_at = |up: f64| lines.minor(k, i, up);
         let mut line_best = f64::NEG_INFINITY;
         // Every major grid line from N to R, and halfway between two of them.
         let mut k_off = NEAR as f64;

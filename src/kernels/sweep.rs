@@ -35,6 +35,13 @@
 //! every block boundary (the suffix), a left-to-right pass builds prefix hulls (queried by
 //! binary search); the tangent is the larger of the two. So an occluder beyond R never counts.
 //!
+//! Opposite azimuths share those passes where they can ([`azimuth_lines`]): a window
+//! [s, s + R' − N] of a line is the window of a query at s − N looking one way and of one at
+//! s + R' looking the other, so with `edge=wrap` the opposite azimuth's lines are taken to be
+//! these lines read backwards ([`Lines::mirror`]), its texels queried on the line a multiple of
+//! W further on (the same texels on a wrapping map), and one suffix and one prefix pass answer
+//! both azimuths, each pass walking one query from the top of its hull and one from the bottom.
+//!
 //! # Earth curvature
 //! A point s texels away is lowered by c·s². Along a line with origin-free coordinate x (major
 //! steps, c' = c·L² per step², L = √(1 + m²)), the drop from the query at x to x' is
@@ -79,8 +86,8 @@
 //! the gathers of those pops are the largest single cost. The bands give each texel's far
 //! value to the near field as a floor ([`NearField::strip_above`]), so its walk culls the
 //! cells that cannot beat it. With `edge=wrap` the lines run R past the map and a finite R
-//! takes two passes (suffix and prefix hulls, ≈3 pushes per sample), so `unlimited` with
-//! `edge=none` is the cheapest case.
+//! takes two passes (suffix and prefix hulls, ≈3 pushes per sample), shared by two azimuths
+//! where R' reaches across most of the map (`unlimited` always), so ≈1.5 per azimuth.
 //!
 //! Counted (temporary counters, 1024² fBm, 32 bins, per group of 16 lines and W = 1024 query
 //! columns): `edge=wrap` unlimited pushes 1.75·W samples in the suffix pass and 1.01·W in the
@@ -90,7 +97,9 @@
 //! row loads). Any window split into a suffix and a prefix hull costs at least the span of
 //! its queries plus one block per set of queries whose window starts fit in one block, and
 //! W > R' − N + 1 needs two such sets, so ≈3·W pushes is the floor of this scheme at
-//! `unlimited` with `edge=wrap`; fewer needs another way to drop occluders beyond R.
+//! `unlimited` with `edge=wrap` for one azimuth; the opposite azimuth's windows are the same
+//! windows (module doc, Radius), so a pair of them costs about what one did (measured at
+//! 1024², the build's wall time −15 to −20 %, the rest being the queries and the sums).
 
 use super::exact::{self, NearField, NEAR_LANES};
 use super::lengyel_fast::Isa;
@@ -126,6 +135,10 @@ pub struct Lines {
     pub m: f64,
     /// Arc length per major step, √(1 + m²).
     pub step: f64,
+    /// Where the lines are anchored: look-order position u lies on column `at.0 + at.1·u` of
+    /// the lines, which pass at minor k/SUB + i + m·at.1·column (family k, line i). (0, 1) for
+    /// an azimuth of its own; a [`Lines::mirror`] reads another azimuth's lines backwards.
+    pub at: (i64, i64),
 }
 
 impl Lines {
@@ -135,13 +148,36 @@ impl Lines {
         let major_x = dx.abs() >= dy.abs();
         let (a, b) = if major_x { (dx, dy) } else { (dy, dx) };
         let m = b / a.abs();
-        Lines { major_x, sign: if a < 0.0 { -1 } else { 1 }, m, step: (1.0 + m * m).sqrt() }
+        let sign = if a < 0.0 { -1 } else { 1 };
+        Lines { major_x, sign, m, step: (1.0 + m * m).sqrt(), at: (0, 1) }
+    }
+
+    /// The lines of the opposite azimuth that are these very lines read backwards, its
+    /// position 0 on column `end` of these: the sweeps of both azimuths then share every
+    /// sample and every window (see [`far_field_fast`]). With `edge=wrap` a texel's own column
+    /// and that column plus a multiple of the major size are the same texel, so `end` may lie
+    /// past the map.
+    pub fn mirror(&self, end: i64) -> Lines {
+        Lines { sign: -self.sign, m: -self.m, at: (end, -self.at.1), ..*self }
+    }
+
+    /// The minor coordinate of line i of family k at look-order position u.
+    pub fn minor(&self, k: usize, i: i64, u: f64) -> f64 {
+        let (c, m) = self.column(u);
+        i as f64 + (k as f64 / SUB as f64 + m * c)
+    }
+
+    /// The lines' column of look-order position u, and the minor change per column.
+    #[inline]
+    fn column(&self, u: f64) -> (f64, f64) {
+        (self.at.0 as f64 + self.at.1 as f64 * u, self.m * self.at.1 as f64)
     }
 
     /// For a texel at major position u (in look order), the family k and shift so that the
     /// texel at minor coordinate b lies nearest line i = b + shift of family k.
     pub fn family(&self, u: i64) -> (usize, i64) {
-        let kk = (-self.m * u as f64 * SUB as f64).round() as i64;
+        let (c, m) = self.column(u as f64);
+        let kk = (-m * c * SUB as f64).round() as i64;
         (kk.rem_euclid(SUB as i64) as usize, kk.div_euclid(SUB as i64))
     }
 
@@ -149,7 +185,8 @@ impl Lines {
     /// on the minor axis, as (family k, shift, weight): the texel at minor b lies between line
     /// b + shift of family k of each, and its far field is their tangents weighted so.
     pub fn pair(&self, u: i64) -> [(usize, i64, f64); 2] {
-        let f = -self.m * u as f64 * SUB as f64;
+        let (c, m) = self.column(u as f64);
+        let f = -m * c * SUB as f64;
         let kk = f.floor();
         let t = f - kk;
         let kk = kk as i64;
@@ -166,7 +203,8 @@ impl Lines {
 
     /// [`Lines::sample`] at a fractional major position.
     pub fn sample_at(&self, k: usize, u: f64) -> (i64, f64) {
-        let z = k as f64 / SUB as f64 + self.m * u;
+        let (c, m) = self.column(u);
+        let z = k as f64 / SUB as f64 + m * c;
         let off = z.floor();
         (off as i64, z - off)
     }
@@ -252,17 +290,8 @@ impl<'a> Sweep<'a> {
     ) -> Self {
         let (w, h) = (grid.width, grid.height);
         let bins = bins.max(1) as usize;
-        let cap = crate::params::MAX_RADIUS.max(w.max(h) as u32);
-        // Where every ray ends: R, max(W, H) for `unlimited` when wrapping, or the map's edge.
-        let reach = match (radius, grid.edge) {
-            (Some(r), _) => Some(f64::from(r.clamp(1, cap))),
-            (None, Edge::Wrap) => Some(w.max(h) as f64),
-            (None, Edge::None) => None,
-        };
-        let row_step = grid.row_step();
-        let dirs: Vec<(f64, f64)> = (0..bins)
-            .map(|n| exact::direction(n as f64 * 2.0 * PI / bins as f64, row_step))
-            .collect();
+        let reach = reach_of(&grid, radius);
+        let dirs = directions(&grid, bins);
         let curv =
             if opt.curvature.is_finite() && opt.curvature > 0.0 { opt.curvature } else { 0.0 };
         let cuts: Vec<f64> = dirs
@@ -275,6 +304,11 @@ impl<'a> Sweep<'a> {
         let isa = opt.isa.filter(|i| i.supported()).unwrap_or_else(Isa::detect);
         let near = NearField::new(grid, &dirs, &cuts, curv, isa);
         let progress = opt.progress.clone();
+        let half = if bins.is_multiple_of(2) { bins / 2 } else { 0 };
+        let lines_of = azimuth_lines(&grid, radius, bins as u32);
+        // Azimuth n < half whose opposite's lines are its own read backwards.
+        let paired: Vec<bool> =
+            (0..bins).map(|n| n < half && lines_of[n + half].at.1 < 0).collect();
         // With AVX-512, the vector sweeps of `far_field_fast` (f32); otherwise the scalar f64
         // ones of `far_field`.
         let fast = isa == Isa::Avx512;
@@ -284,7 +318,7 @@ impl<'a> Sweep<'a> {
                          out: &mut [f32],
                          sc: &mut Scratch,
                          fresh: bool| match ml {
-            Some(ml) => far_field_fast(&grid, ml, lines, reach, curv, out, sc, None, fresh),
+            Some(ml) => far_field_fast(&grid, ml, lines, reach, curv, out, sc, None, fresh, None),
             None => far_field(&grid, lines, reach, curv, out, &mut sc.miss),
         };
         let failure = Mutex::new(None);
@@ -293,20 +327,33 @@ impl<'a> Sweep<'a> {
             None => {
                 let mut far = vec![0.0f32; w * h * bins];
                 let majors: [Option<MajorLines>; 2] = [false, true].map(|major_x| {
-                    let needed = dirs.iter().any(|&d| Lines::new(d).major_x == major_x);
+                    let needed = lines_of.iter().any(|l| l.major_x == major_x);
                     (fast && needed).then(|| MajorLines::new(&grid, major_x))
                 });
-                far.par_chunks_mut(w * h).zip(&dirs).for_each_init(
-                    Scratch::default,
-                    |sc, (out, &d)| {
-                        if progress.as_ref().is_some_and(Progress::is_canceled) {
-                            return;
+                // One task per azimuth, or per pair when the vector sweeps serve both.
+                let mut planes: Vec<Option<&mut [f32]>> = far.chunks_mut(w * h).map(Some).collect();
+                let mut tasks = Vec::with_capacity(bins);
+                for n in 0..bins {
+                    let Some(out) = planes[n].take() else { continue };
+                    let two = fast && n < half && paired[n];
+                    let other = if two { planes[n + half].take() } else { None };
+                    tasks.push((n, out, other));
+                }
+                tasks.into_par_iter().for_each_init(Scratch::default, |sc, (n, out, other)| {
+                    if progress.as_ref().is_some_and(Progress::is_canceled) {
+                        return;
+                    }
+                    let lines = lines_of[n];
+                    match majors[usize::from(lines.major_x)].as_ref() {
+                        Some(ml) => {
+                            let mirror = other.map(|o| (lines_of[n + half], o));
+                            far_field_fast(
+                                &grid, ml, lines, reach, curv, out, sc, None, true, mirror,
+                            );
                         }
-                        let lines = Lines::new(d);
-                        let ml = majors[usize::from(lines.major_x)].as_ref();
-                        sweep_one(ml, lines, out, sc, true);
-                    },
-                );
+                        None => far_field(&grid, lines, reach, curv, out, &mut sc.miss),
+                    }
+                });
                 Far::Memory(far)
             }
             Some(store) => {
@@ -322,7 +369,7 @@ impl<'a> Sweep<'a> {
                     (0..slots).map(|_| (Vec::new(), Scratch::default())).collect();
                 for major_x in [false, true] {
                     let ns: Vec<usize> =
-                        (0..bins).filter(|&n| Lines::new(dirs[n]).major_x == major_x).collect();
+                        (0..bins).filter(|&n| lines_of[n].major_x == major_x).collect();
                     if ns.is_empty() {
                         continue;
                     }
@@ -334,7 +381,7 @@ impl<'a> Sweep<'a> {
                             break;
                         }
                         chunk.par_iter().zip(work.par_iter_mut()).for_each(|(&n, (out, sc))| {
-                            let lines = Lines::new(dirs[n]);
+                            let lines = lines_of[n];
                             let put = |start: usize, values: &[f32]| {
                                 if let Err(e) = store.put(n, start, values) {
                                     record(&failure, &failed, e);
@@ -357,6 +404,7 @@ impl<'a> Sweep<'a> {
                                         sc,
                                         Some(&mut emit),
                                         false,
+                                        None,
                                     );
                                 }
                                 _ => {
@@ -466,6 +514,68 @@ impl<'a> Sweep<'a> {
             }
         }
     }
+}
+
+/// Where every ray ends: R (clamped to what the service takes, or the map), max(W, H) for
+/// `unlimited` when wrapping, or the map's edge (`None`).
+fn reach_of(grid: &Grid<'_>, radius: Option<u32>) -> Option<f64> {
+    let (w, h) = (grid.width, grid.height);
+    let cap = crate::params::MAX_RADIUS.max(w.max(h) as u32);
+    match (radius, grid.edge) {
+        (Some(r), _) => Some(f64::from(r.clamp(1, cap))),
+        (None, Edge::Wrap) => Some(w.max(h) as f64),
+        (None, Edge::None) => None,
+    }
+}
+
+/// The image directions of the `bins` azimuths.
+fn directions(grid: &Grid<'_>, bins: usize) -> Vec<(f64, f64)> {
+    let row_step = grid.row_step();
+    (0..bins).map(|n| exact::direction(n as f64 * 2.0 * PI / bins as f64, row_step)).collect()
+}
+
+/// The far field's lines of each of the `bins` azimuths, as [`Sweep`] bakes them: an azimuth's
+/// own ([`Lines::new`]), or, with `edge=wrap` and a window reaching across most of the map,
+/// the opposite azimuth's read backwards ([`Lines::mirror`], [`mirror_end`]), so that one
+/// sweep serves both (`far_field_fast`). Chosen by geometry alone, so every instruction set
+/// and every path (in memory or spilled) bakes the same lines.
+pub fn azimuth_lines(grid: &Grid<'_>, radius: Option<u32>, bins: u32) -> Vec<Lines> {
+    let bins = bins.max(1) as usize;
+    let reach = reach_of(grid, radius);
+    let mut lines: Vec<Lines> = directions(grid, bins).into_iter().map(Lines::new).collect();
+    if bins.is_multiple_of(2) {
+        let half = bins / 2;
+        for n in 0..half {
+            if let Some(e) = mirror_end(grid, lines[n], reach) {
+                lines[n + half] = lines[n].mirror(e);
+            }
+        }
+    }
+    lines
+}
+
+/// For an azimuth's `lines`, the column of its own lines on which the opposite azimuth's
+/// query column 0 should sit so that the two share their windows ([`Lines::mirror`],
+/// [`far_field_fast`]), or `None` where that saves nothing. Only with `edge=wrap` (a texel's
+/// column plus a multiple of the major size W is the same texel) and a window of R' ≥ N steps:
+/// this azimuth's windows start at q + N (q < W), the mirror's at p − R' for p from J·W, so J
+/// is the multiple of W nearest R' + N (and ≥ R', so no window starts before column 0). Pairs
+/// only when the two sets of windows overlap enough that the shared passes cover at most
+/// 1.5·W window starts (R' about W/2 or more: `unlimited` always).
+fn mirror_end(grid: &Grid<'_>, lines: Lines, reach: Option<f64>) -> Option<i64> {
+    if grid.edge != Edge::Wrap {
+        return None;
+    }
+    let r = (reach? / lines.step + 1e-9).floor() as i64;
+    let d = NEAR as i64;
+    if r < d {
+        return None;
+    }
+    let wa = (if lines.major_x { grid.width } else { grid.height }) as i64;
+    let j = (((r + d) as f64 / wa as f64).round() as i64).max((r + wa - 1) / wa).max(1);
+    let a2 = j * wa;
+    let starts = (wa + d).max(a2 + wa - r) - d.min(a2 - r);
+    (2 * starts <= 3 * wa).then_some(a2 + wa - 1)
 }
 
 /// A hull vertex: major position and height (less the curvature term).
@@ -874,6 +984,11 @@ struct Scratch {
     sb: Vec<f32>,
     /// Sums in major-line layout when that is not the image's, and per-azimuth tables.
     acc: Vec<f32>,
+    /// The mirror azimuth's `acc` and `miss`, and its query columns and sums' offsets.
+    acc2: Vec<f32>,
+    miss2: Vec<f32>,
+    qs2: Vec<QCol>,
+    abase2: Vec<usize>,
     fams: Vec<[(usize, i64, f64); 2]>,
     abase: Vec<usize>,
     cols: Vec<Col>,
@@ -903,6 +1018,7 @@ struct QCol {
 }
 
 /// Everything a group of lines shares within one family and azimuth.
+#[derive(Clone, Copy)]
 struct Family<'s> {
     cols: &'s [Col],
     qs: &'s [QCol],
@@ -920,6 +1036,10 @@ struct Family<'s> {
     /// The curvature drop per major step², c' (0: none): samples are g = h − c'·u² at column
     /// u, a query at q starts from h0 − c'·q² and adds 2c'·q to its slope (module doc).
     cc: f64,
+    /// The mirror azimuth swept along ([`Lines::mirror`]): the column e of its query column 0
+    /// (its query column u' sits at column e − u' of these lines), and its query columns.
+    mirror: Option<i64>,
+    mq: &'s [QCol],
 }
 
 /// The far field of [`far_field`] in f32, 16 lines of a family at a time (AVX-512), the
@@ -927,12 +1047,19 @@ struct Family<'s> {
 /// (tested against it). Each lane's hull is a stack, its top three vertices in registers (see
 /// [`groups_avx512`]).
 ///
+/// `mirror`: the opposite azimuth's lines as [`Lines::mirror`] of these, and its plane. Its
+/// windows are these lines' windows seen from their other end: a window [s, s + R' − N] is
+/// this azimuth's query at s − N looking right and the mirror's at s + R' looking left, so one
+/// suffix pass and one prefix pass answer both, and the hull pushes (the larger part of the
+/// build) are shared by two azimuths. Only with a finite window (`edge=wrap`): the mirror's
+/// query columns lie past the map's major size, on the same texels.
+///
 /// `fresh`: `out` was never touched (a plane of the far table, which is allocated zeroed and
 /// so not yet mapped). The sums are then added up in the thread's scratch plane, already
 /// mapped, and written to `out` once: adding into `out` itself would first map each of its
 /// pages to the shared zero page (the add reads) and then copy it on the write, which costs a
 /// TLB shootdown across the pool's threads per 4 KiB page.
-#[allow(clippy::too_many_arguments)] // the plane, its scratch and how it is handed on
+#[allow(clippy::too_many_arguments)] // the planes, their scratch and how they are handed on
 fn far_field_fast(
     grid: &Grid<'_>,
     ml: &MajorLines,
@@ -943,6 +1070,7 @@ fn far_field_fast(
     sc: &mut Scratch,
     mut emit: Option<Emit<'_>>,
     fresh: bool,
+    mut mirror: Option<(Lines, &mut [f32])>,
 ) {
     let (w, h) = (grid.width, grid.height);
     let (wa, hb) = if lines.major_x { (w, h) } else { (h, w) };
@@ -958,10 +1086,18 @@ fn far_field_fast(
         return;
     }
     let wrap = grid.edge == Edge::Wrap;
+    // The mirror needs a window and lines that wrap; its query column 0 sits at column e.
+    let e = match (&mirror, r_steps) {
+        (Some((m, _)), Some(_)) if wrap => Some(m.at.0),
+        _ => None,
+    };
+    debug_assert!(e.is_some() == mirror.is_some() && (e.is_none() || emit.is_none()));
     let len = match (wrap, r_steps) {
-        (true, Some(r)) => wa as i64 + r,
+        (true, Some(r)) => (wa as i64 + r).max(e.map_or(0, |e| e - d + 1)),
         _ => wa as i64,
     };
+    // The columns whose heights a query reads reach the mirror's last query column.
+    let ncols = len.max(e.map_or(0, |e| e + 1));
     let hbi = hb as i64;
     let major = |u: i64| -> usize {
         let u = if wrap { u.rem_euclid(wa as i64) } else { u };
@@ -976,39 +1112,64 @@ fn far_field_fast(
         .iter()
         .flatten()
         .fold((i64::MAX, i64::MIN), |(lo, hi), &(_, s, _)| (lo.min(s), hi.max(s)));
-    sc.miss.clear();
-    sc.miss.resize(w * h, 0.0);
-    let mut acc = std::mem::take(&mut sc.acc);
     let via_acc = lines.major_x || fresh;
-    if via_acc {
-        acc.clear();
-        acc.resize(w * h, 0.0);
+    let planes = if e.is_some() { 2 } else { 1 };
+    let mut acc = std::mem::take(&mut sc.acc);
+    let mut acc2 = std::mem::take(&mut sc.acc2);
+    for (p, (a, miss)) in
+        [(&mut acc, &mut sc.miss), (&mut acc2, &mut sc.miss2)].into_iter().enumerate()
+    {
+        miss.clear();
+        a.clear();
+        if p < planes {
+            miss.resize(w * h, 0.0);
+            if via_acc {
+                a.resize(w * h, 0.0);
+            }
+        }
     }
     sc.st.resize(GROUPS * len as usize * FL, 0);
-    sc.sb.resize((BATCH + GROUPS) * wa * FL, f32::NEG_INFINITY);
+    sc.sb.resize(planes * (BATCH + GROUPS) * wa * FL, f32::NEG_INFINITY);
     let mut abase = std::mem::take(&mut sc.abase);
     abase.clear();
     abase.extend((0..wa as i64).map(|u| major(u) * hb));
+    let mut abase2 = std::mem::take(&mut sc.abase2);
+    let mut fams2: Vec<[(usize, i64, f64); 2]> = Vec::new();
+    abase2.clear();
+    if let Some((ml2, _)) = &mirror {
+        // The mirror's own look order, as `major` for it (its query columns are on the map).
+        let m2 = |u: i64| (if ml2.sign > 0 { u } else { wa as i64 - 1 - u }) as usize;
+        abase2.extend((0..wa as i64).map(|u| m2(u) * hb));
+        fams2.extend((0..wa as i64).map(|u| ml2.pair(u)));
+    }
     let mut cols = std::mem::take(&mut sc.cols);
     let mut qs = std::mem::take(&mut sc.qs);
-    let sums: &mut [f32] = if via_acc { &mut acc } else { out };
+    let mut qs2 = std::mem::take(&mut sc.qs2);
+    let (sums, sums2): (&mut [f32], &mut [f32]) = match (via_acc, mirror.as_mut()) {
+        (true, _) => (&mut acc, &mut acc2),
+        (false, Some((_, o2))) => (out, o2),
+        (false, None) => (out, &mut acc2),
+    };
+    let q_col = |p: &[(usize, i64, f64); 2], k: usize| {
+        let role = |r: usize| QCol {
+            on: true,
+            shift: if wrap { p[r].1.rem_euclid(hbi) } else { p[r].1 },
+            wt: p[r].2 as f32,
+            other: p[1 - r].2 as f32,
+        };
+        (0..2).find(|&r| p[r].0 == k).map_or(QCol::default(), role)
+    };
     for k in 0..SUB {
         cols.clear();
-        cols.extend((0..len).map(|u| {
+        cols.extend((0..ncols).map(|u| {
             let (off, wt) = lines.sample(k, u);
             let start = if wrap { off.rem_euclid(hbi) } else { off };
             Col { start, wt: wt as f32, wt0: wt == 0.0, base: major(u) * ml.stride + PADM }
         }));
         qs.clear();
-        qs.extend(fams.iter().map(|p| {
-            let role = |r: usize| QCol {
-                on: true,
-                shift: if wrap { p[r].1.rem_euclid(hbi) } else { p[r].1 },
-                wt: p[r].2 as f32,
-                other: p[1 - r].2 as f32,
-            };
-            (0..2).find(|&r| p[r].0 == k).map_or(QCol::default(), role)
-        }));
+        qs.extend(fams.iter().map(|p| q_col(p, k)));
+        qs2.clear();
+        qs2.extend(fams2.iter().map(|p| q_col(p, k)));
         let fam = Family {
             cols: &cols,
             qs: &qs,
@@ -1022,7 +1183,11 @@ fn far_field_fast(
             r_steps: r_steps.map(|r| (r, r - d + 1)),
             inv_step: (1.0 / lines.step) as f32,
             cc: curv * lines.step * lines.step,
+            mirror: e,
+            mq: &qs2,
         };
+        // The mirror's sums are added as this family's with its query columns.
+        let fam2 = Family { qs: &qs2, abase: &abase2, ..fam };
         let (i_lo, i_hi) = if wrap { (0, hbi - 1) } else { (sh_lo, hbi - 1 + sh_hi) };
         let mut i0 = i_lo;
         let mut batch = [(0i64, 0u32); BATCH + GROUPS];
@@ -1048,55 +1213,82 @@ fn far_field_fast(
                 #[cfg(target_arch = "x86_64")]
                 // SAFETY: as above.
                 unsafe {
-                    add_batch_avx512(&fam, &batch[..nb], sums, sc)
+                    add_batch_avx512(&fam, &batch[..nb], 0, sums, &sc.sb, &mut sc.miss);
+                    if e.is_some() {
+                        let s0 = BATCH + GROUPS;
+                        add_batch_avx512(&fam2, &batch[..nb], s0, sums2, &sc.sb, &mut sc.miss2);
+                    }
                 };
                 nb = 0;
             }
         }
     }
-    if let (true, Some(emit)) = (lines.major_x, emit) {
+    finish(lines.major_x, via_acc, emit, &acc, &sc.miss, out, w, h);
+    if let Some((ml2, out2)) = mirror.as_mut().filter(|_| e.is_some()) {
+        finish(ml2.major_x, via_acc, None, &acc2, &sc.miss2, out2, w, h);
+    }
+    sc.fams = fams;
+    sc.acc = acc;
+    sc.acc2 = acc2;
+    sc.abase = abase;
+    sc.abase2 = abase2;
+    sc.cols = cols;
+    sc.qs = qs;
+    sc.qs2 = qs2;
+}
+
+/// The sums of a far-field plane (`acc` if `via_acc`, else already in `out`; major-line
+/// layout) divided by their weights where a role missed (`miss`), into `out` in the image
+/// layout, or band by band to `emit` (the sweeps along x only).
+#[allow(clippy::too_many_arguments)] // the plane's layouts and where it goes
+fn finish(
+    major_x: bool,
+    via_acc: bool,
+    emit: Option<Emit<'_>>,
+    acc: &[f32],
+    miss: &[f32],
+    out: &mut [f32],
+    w: usize,
+    h: usize,
+) {
+    if let (true, Some(emit)) = (major_x, emit) {
         // Transposed and normalised a band of rows at a time, each band handed on: no plane
         // in the image layout is ever whole.
         let mut buf = vec![0.0f32; w * EMIT_ROWS.min(h)];
         for y0 in (0..h).step_by(EMIT_ROWS) {
             let n = EMIT_ROWS.min(h - y0);
             for x in 0..w {
-                let (a, ws) = (&acc[x * h + y0..][..n], &sc.miss[x * h + y0..][..n]);
+                let (a, ws) = (&acc[x * h + y0..][..n], &miss[x * h + y0..][..n]);
                 for (r, (&a, &ws)) in a.iter().zip(ws).enumerate() {
                     buf[r * w + x] = if ws > 0.0 { a / ws } else { a };
                 }
             }
             emit(y0 * w, &buf[..n * w]);
         }
-    } else if lines.major_x {
+    } else if major_x {
         // Transposed back to the image layout while normalising, in tiles.
         const T: usize = 32;
         for x0 in (0..w).step_by(T) {
             for y0 in (0..h).step_by(T) {
                 for x in x0..(x0 + T).min(w) {
                     for y in y0..(y0 + T).min(h) {
-                        let (a, ws) = (acc[x * h + y], sc.miss[x * h + y]);
+                        let (a, ws) = (acc[x * h + y], miss[x * h + y]);
                         out[y * w + x] = if ws > 0.0 { a / ws } else { a };
                     }
                 }
             }
         }
     } else if via_acc {
-        for ((o, &a), &ws) in out.iter_mut().zip(acc.iter()).zip(sc.miss.iter()) {
+        for ((o, &a), &ws) in out.iter_mut().zip(acc.iter()).zip(miss.iter()) {
             *o = if ws > 0.0 { a / ws } else { a };
         }
     } else {
-        for (o, &ws) in out.iter_mut().zip(sc.miss.iter()) {
+        for (o, &ws) in out.iter_mut().zip(miss.iter()) {
             if ws > 0.0 {
                 *o /= ws;
             }
         }
     }
-    sc.fams = fams;
-    sc.acc = acc;
-    sc.abase = abase;
-    sc.cols = cols;
-    sc.qs = qs;
 }
 
 /// For the group of `nl` lines from `i0` at a query column whose lines lie `shift` from its
@@ -1230,6 +1422,7 @@ unsafe fn groups_avx512<const G: usize>(
     let (i0, nl) = (gs.map(|g| g.0), gs.map(|g| g.1));
     let all = nl.map(|n| if n >= 16 { 0xffff } else { ((1u32 << n) - 1) as u16 });
     let mut sb = [std::ptr::null_mut::<f32>(); G];
+    let mut sbm = [std::ptr::null_mut::<f32>(); G];
     let mut st = [std::ptr::null_mut::<i64>(); G];
     for g in 0..G {
         // This group's tangents: its slot of the batch; the query columns the suffix pass does
@@ -1238,6 +1431,10 @@ unsafe fn groups_avx512<const G: usize>(
         slot[(f.len - f.d).clamp(0, f.wa) as usize * FL..].fill(f32::NEG_INFINITY);
         sb[g] = slot.as_mut_ptr();
         st[g] = sc.st.as_mut_ptr().add(g * region);
+        if f.mirror.is_some() {
+            // The mirror's tangents: the same slot in the second half of the batch's slots.
+            sbm[g] = sc.sb[(BATCH + GROUPS + slot0 + g) * wa * FL..][..wa * FL].as_mut_ptr();
+        }
     }
     // The hulls' registers and memory depths, per group.
     let (mut t1, mut t2, mut t3, mut dep) = ([none; G], [none; G], [none; G], [zero_i; G]);
@@ -1258,13 +1455,13 @@ unsafe fn groups_avx512<const G: usize>(
             _mm512_loadu_ps(data.offset((f.cols[$q as usize].base as i64 + $b0) as isize))
         };
     }
-    // A query at column q: its abscissa, the slope's curvature correction, and per group the
-    // lanes whose texel is on the map and whose hull is not empty, with their heights on the
-    // hulls of g (module doc).
+    // A query at column q (query column `qc`; from the right if `$mir`): its abscissa, the
+    // slope's curvature term, and per group the lanes whose texel is on the map and whose hull
+    // is not empty, with their heights on the hulls of g (module doc).
     macro_rules! query_at {
-        ($q:expr) => {{
+        ($q:expr, $qc:expr, $mir:expr) => {{
             let q = $q;
-            let shift = f.qs[q as usize].shift;
+            let shift = $qc.shift;
             let q_drop = _mm512_set1_ps((f.cc * (q * q) as f64) as f32);
             let (mut qm, mut hq) = ([0u16; G], [ninf; G]);
             for g in 0..G {
@@ -1274,7 +1471,9 @@ unsafe fn groups_avx512<const G: usize>(
                     hq[g] = _mm512_sub_ps(load_h0!(q, b0), q_drop);
                 }
             }
-            (_mm512_set1_ps(q as f32), _mm512_set1_ps((2.0 * f.cc * q as f64) as f32), qm, hq)
+            let corr = 2.0 * f.cc * q as f64;
+            let corr = if $mir { -corr } else { corr };
+            (_mm512_set1_ps(q as f32), _mm512_set1_ps(corr as f32), qm, hq)
         }};
     }
     // Lanes of group g whose sample at column c is on the surface, and their samples.
@@ -1399,16 +1598,202 @@ unsafe fn groups_avx512<const G: usize>(
             }
         }};
     }
+    // Tangent walks. A query from the left (this azimuth) looks at slopes (y − hq)/(x − xq), one
+    // from the right (the mirror azimuth, see `far_field_fast`) at (y − hq)/(xq − x): the same
+    // compares with the abscissae's differences negated, and its curvature term is −2c'p.
+    macro_rules! dx {
+        ($x:expr, $xq:expr, $mir:expr) => {
+            if $mir {
+                _mm512_sub_ps($xq, $x)
+            } else {
+                _mm512_sub_ps($x, $xq)
+            }
+        };
+    }
+    // The tangent from the query (xq, hq) of groups' lanes qm, walked from the top of each
+    // lane's stack (t1, the vertex nearest the query, then t2, t3 and memory by gathers):
+    // per group its vertex (x, y).
+    macro_rules! near_walk {
+        ($xq:expr, $hq:expr, $qm:expr, $mir:expr) => {{
+            let (xq, hq, qm) = ($xq, $hq, $qm);
+            let (mut cur_x, mut cur_y, mut nt, mut nyv) = ([ninf; G], y1, t2, y2);
+            // The memory stack's depth of the vertex after the next (from the third step on).
+            let (mut below, mut stepn) = (dep, [0u32; G]);
+            for g in 0..G {
+                cur_x[g] = _mm512_cvtepi32_ps(t1[g]);
+            }
+            let mut m = qm;
+            loop {
+                let mut rising = [0u16; G];
+                let mut any = 0u16;
+                for g in 0..G {
+                    let am = _mm512_mask_cmpge_epi32_mask(m[g], nt[g], zero_i);
+                    let nxf = _mm512_cvtepi32_ps(nt[g]);
+                    // Rising: the next vertex (farther) has the larger slope.
+                    let lhs = _mm512_mul_ps(_mm512_sub_ps(nyv[g], hq[g]), dx!(cur_x[g], xq, $mir));
+                    let rhs = _mm512_mul_ps(_mm512_sub_ps(cur_y[g], hq[g]), dx!(nxf, xq, $mir));
+                    rising[g] = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(am, lhs, rhs);
+                    cur_x[g] = _mm512_mask_mov_ps(cur_x[g], rising[g], nxf);
+                    cur_y[g] = _mm512_mask_mov_ps(cur_y[g], rising[g], nyv[g]);
+                    any |= rising[g];
+                }
+                if any == 0 {
+                    break;
+                }
+                for g in 0..G {
+                    let r = rising[g];
+                    m[g] = r;
+                    if r == 0 {
+                        continue;
+                    }
+                    stepn[g] += 1;
+                    // From t2 on to t3, or past a hole in t3 straight to memory.
+                    let reg = if stepn[g] == 1 {
+                        _mm512_mask_cmpge_epi32_mask(r, t3[g], zero_i)
+                    } else {
+                        0
+                    };
+                    (nt[g], nyv[g]) = (t3[g], y3[g]);
+                    let mem = r & !reg;
+                    if mem != 0 {
+                        let gm = _mm512_mask_cmpgt_epi32_mask(mem, below[g], zero_i);
+                        below[g] = _mm512_mask_sub_epi32(below[g], gm, below[g], one_i);
+                        let i = idx!(below[g]);
+                        nt[g] = _mm512_mask_mov_epi32(nt[g], mem, none);
+                        nyv[g] = _mm512_mask_mov_ps(nyv[g], mem, ninf);
+                        (nt[g], nyv[g]) = refill(st[g], gm, i, nt[g], nyv[g]);
+                    }
+                }
+            }
+            (cur_x, cur_y)
+        }};
+    }
+    // The same tangent walked from the bottom of each lane's stack (the vertex nearest a query
+    // on the other side): memory rows 0 .. dep with plain loads, then the registers.
+    macro_rules! far_walk {
+        ($xq:expr, $hq:expr, $qm:expr, $mir:expr) => {{
+            let (xq, hq, qm) = ($xq, $hq, $qm);
+            // The registers' vertices bottom up: [t3, t2, t1] without the empty ones.
+            let (mut r0t, mut r0y, mut r1t, mut r1y) = ([none; G], [ninf; G], [none; G], [ninf; G]);
+            for g in 0..G {
+                if qm[g] == 0 {
+                    continue;
+                }
+                let has3 = _mm512_cmpge_epi32_mask(t3[g], zero_i);
+                let has2 = _mm512_cmpge_epi32_mask(t2[g], zero_i);
+                r0t[g] =
+                    _mm512_mask_mov_epi32(_mm512_mask_mov_epi32(t1[g], has2, t2[g]), has3, t3[g]);
+                r0y[g] = _mm512_mask_mov_ps(_mm512_mask_mov_ps(y1[g], has2, y2[g]), has3, y3[g]);
+                r1t[g] = _mm512_mask_mov_epi32(t1[g], has3, t2[g]);
+                r1y[g] = _mm512_mask_mov_ps(y1[g], has3, y2[g]);
+            }
+            // Vertex j of a lane's hull from the bottom (j ≤ its last), group g.
+            let at = |g: usize, j: i32| -> (__m512i, __m512) {
+                let jv = _mm512_set1_epi32(j);
+                let k = _mm512_sub_epi32(jv, dep[g]);
+                let (mut t, mut y) = (t1[g], y1[g]);
+                let k1 = _mm512_cmpeq_epi32_mask(k, one_i);
+                t = _mm512_mask_mov_epi32(t, k1, r1t[g]);
+                y = _mm512_mask_mov_ps(y, k1, r1y[g]);
+                let k0 = _mm512_cmpeq_epi32_mask(k, zero_i);
+                t = _mm512_mask_mov_epi32(t, k0, r0t[g]);
+                y = _mm512_mask_mov_ps(y, k0, r0y[g]);
+                let mm = _mm512_cmpgt_epi32_mask(dep[g], jv);
+                if mm != 0 {
+                    let row = st[g].add(j as usize * FL);
+                    let lo = _mm512_maskz_loadu_epi64(mm as u8, row);
+                    let hi = _mm512_maskz_loadu_epi64((mm >> 8) as u8, row.add(8));
+                    (t, y) = unpack(mm, lo, hi, t, y);
+                }
+                (t, y)
+            };
+            let (mut cur_t, mut cur_y, mut cur_x) = ([none; G], [ninf; G], [ninf; G]);
+            for g in 0..G {
+                if qm[g] != 0 {
+                    (cur_t[g], cur_y[g]) = at(g, 0);
+                    cur_x[g] = _mm512_cvtepi32_ps(cur_t[g]);
+                }
+            }
+            let mut m = qm;
+            let mut j = 0;
+            loop {
+                let mut am = [0u16; G];
+                let mut any = 0u16;
+                for g in 0..G {
+                    am[g] = m[g] & _mm512_cmpneq_epi32_mask(cur_t[g], t1[g]);
+                    any |= am[g];
+                }
+                if any == 0 {
+                    break;
+                }
+                j += 1;
+                let mut anyr = 0u16;
+                for g in 0..G {
+                    if am[g] == 0 {
+                        m[g] = 0;
+                        continue;
+                    }
+                    let (nt, nyv) = at(g, j);
+                    let nxf = _mm512_cvtepi32_ps(nt);
+                    let lhs = _mm512_mul_ps(_mm512_sub_ps(nyv, hq[g]), dx!(cur_x[g], xq, $mir));
+                    let rhs = _mm512_mul_ps(_mm512_sub_ps(cur_y[g], hq[g]), dx!(nxf, xq, $mir));
+                    let rising = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(am[g], lhs, rhs);
+                    cur_t[g] = _mm512_mask_mov_epi32(cur_t[g], rising, nt);
+                    cur_x[g] = _mm512_mask_mov_ps(cur_x[g], rising, nxf);
+                    cur_y[g] = _mm512_mask_mov_ps(cur_y[g], rising, nyv);
+                    m[g] = rising;
+                    anyr |= rising;
+                }
+                if anyr == 0 {
+                    break;
+                }
+            }
+            (cur_x, cur_y)
+        }};
+    }
+    // A query's tangents from its walk's vertices into the slots `$sb` at query index `$k`:
+    // stored (the first of its two parts, every group's lanes, −∞ where none) or joined by
+    // max (the second, only the groups with lanes).
+    macro_rules! put {
+        ($sb:expr, $k:expr, $xq:expr, $hq:expr, $qm:expr, $corr:expr, $cur:expr, $mir:expr,
+         $join:expr) => {{
+            let (xq, hq, qm, corr, (cur_x, cur_y)) = ($xq, $hq, $qm, $corr, $cur);
+            for g in 0..G {
+                if $join && qm[g] == 0 {
+                    continue;
+                }
+                let mut res = ninf;
+                if qm[g] != 0 {
+                    let slope =
+                        _mm512_div_ps(_mm512_sub_ps(cur_y[g], hq[g]), dx!(cur_x[g], xq, $mir));
+                    res = _mm512_mask_mov_ps(res, qm[g], _mm512_add_ps(slope, corr));
+                }
+                let p = $sb[g].add($k as usize * FL);
+                if $join {
+                    let old = _mm512_loadu_ps(p);
+                    res = _mm512_mask_max_ps(old, qm[g], old, res);
+                }
+                _mm512_storeu_ps(p, res);
+            }
+        }};
+    }
     let blocked = f.r_steps.is_some();
     let blk = f.r_steps.map_or(i64::MAX, |(_, b)| b);
-    // The suffix pass needs the samples up to the end of the block of the last query.
-    let last = if blocked { ((f.wa - 1 + f.d) / blk + 1) * blk - 1 } else { f.len - 1 };
+    let r = f.r_steps.map_or(0, |(r, _)| r);
+    // The windows' first columns: this azimuth's q + N for q < W, the mirror's p − R' for its
+    // query columns p = e − u', u' < W (the mirror exists only with a finite window).
+    let (s_lo, s_hi) = match f.mirror {
+        Some(e) => (f.d.min(e - f.wa + 1 - r), (f.wa - 1 + f.d).max(e - r)),
+        None => (f.d, f.wa - 1 + f.d),
+    };
+    // The suffix pass needs the samples up to the end of the block of the last window.
+    let last = if blocked { (s_hi / blk + 1) * blk - 1 } else { f.len - 1 };
     // Suffix (or whole-line) pass, right to left.
-    for up in (f.d..=last.min(f.len - 1)).rev() {
+    for up in (s_lo..=last.min(f.len - 1)).rev() {
         if blocked && up % blk == blk - 1 {
             reset!();
         }
-        // The query's heights (the first to touch a row; the samples read it N steps later).
+        // The queries' heights (the first to touch a row; the samples read it N steps later).
         prefetch!(up - f.d - PF);
         // Keep t1 where the slope p→t1 is above t1→t2.
         step!(up, |x1: __m512, x2: __m512, y1: __m512, y2: __m512, v: __m512, xp: __m512| {
@@ -1417,88 +1802,80 @@ unsafe fn groups_avx512<const G: usize>(
             _mm512_cmp_ps_mask::<_CMP_GT_OQ>(lhs, rhs)
         });
         let q = up - f.d;
-        if q >= f.wa || !f.qs[q as usize].on {
-            continue;
+        if (0..f.wa).contains(&q) && f.qs[q as usize].on {
+            let (xq, corr, qm, hq) = query_at!(q, f.qs[q as usize], false);
+            let cur = near_walk!(xq, hq, qm, false);
+            put!(sb, q, xq, hq, qm, corr, cur, false, false);
         }
-        let (xq, q_corr, qm, hq) = query_at!(q);
-        let (mut cur_x, mut cur_y, mut nt, mut nyv) = ([ninf; G], y1, t2, y2);
-        // The memory stack's depth of the vertex after the next (from the third step on).
-        let (mut below, mut stepn) = (dep, [0u32; G]);
-        for g in 0..G {
-            cur_x[g] = _mm512_cvtepi32_ps(t1[g]);
-        }
-        let mut m = qm;
-        loop {
-            let mut rising = [0u16; G];
-            let mut any = 0u16;
-            for g in 0..G {
-                let am = _mm512_mask_cmpge_epi32_mask(m[g], nt[g], zero_i);
-                let nxf = _mm512_cvtepi32_ps(nt[g]);
-                // Rising: the next vertex (farther) has the larger slope.
-                let lhs = _mm512_mul_ps(_mm512_sub_ps(nyv[g], hq[g]), _mm512_sub_ps(cur_x[g], xq));
-                let rhs = _mm512_mul_ps(_mm512_sub_ps(cur_y[g], hq[g]), _mm512_sub_ps(nxf, xq));
-                rising[g] = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(am, lhs, rhs);
-                cur_x[g] = _mm512_mask_mov_ps(cur_x[g], rising[g], nxf);
-                cur_y[g] = _mm512_mask_mov_ps(cur_y[g], rising[g], nyv[g]);
-                any |= rising[g];
+        if let Some(e) = f.mirror {
+            // The mirror's query whose window starts here: its hull is this suffix, seen from
+            // the right, so walked from the bottom (the block's end).
+            prefetch!(up + r - PF);
+            let p = up + r;
+            let k = e - p;
+            if (0..f.wa).contains(&k) && f.mq[k as usize].on {
+                let (xq, corr, qm, hq) = query_at!(p, f.mq[k as usize], true);
+                let cur = far_walk!(xq, hq, qm, true);
+                put!(sbm, k, xq, hq, qm, corr, cur, true, false);
             }
-            if any == 0 {
-                break;
-            }
-            for g in 0..G {
-                let r = rising[g];
-                m[g] = r;
-                if r == 0 {
-                    continue;
-                }
-                stepn[g] += 1;
-                // From t2 on to t3, or past a hole in t3 straight to memory.
-                let reg =
-                    if stepn[g] == 1 { _mm512_mask_cmpge_epi32_mask(r, t3[g], zero_i) } else { 0 };
-                (nt[g], nyv[g]) = (t3[g], y3[g]);
-                let mem = r & !reg;
-                if mem != 0 {
-                    let gm = _mm512_mask_cmpgt_epi32_mask(mem, below[g], zero_i);
-                    below[g] = _mm512_mask_sub_epi32(below[g], gm, below[g], one_i);
-                    let i = idx!(below[g]);
-                    nt[g] = _mm512_mask_mov_epi32(nt[g], mem, none);
-                    nyv[g] = _mm512_mask_mov_ps(nyv[g], mem, ninf);
-                    (nt[g], nyv[g]) = refill(st[g], gm, i, nt[g], nyv[g]);
-                }
-            }
-        }
-        for g in 0..G {
-            let mut res = ninf;
-            if qm[g] != 0 {
-                let slope =
-                    _mm512_div_ps(_mm512_sub_ps(cur_y[g], hq[g]), _mm512_sub_ps(cur_x[g], xq));
-                res = _mm512_mask_mov_ps(res, qm[g], _mm512_add_ps(slope, q_corr));
-            }
-            _mm512_storeu_ps(sb[g].add(q as usize * FL), res);
         }
     }
-    let Some((r, _)) = f.r_steps else { return };
-    // Prefix pass, left to right: the window's part in the next block, so only blocks from the
-    // second on. The queries walk each lane's hull from its bottom (the block's first sample,
-    // never popped): memory rows 0 .. dep, then the registers.
+    if !blocked {
+        return;
+    }
+    // Prefix pass, left to right: a window's part in the next block, so only blocks after the
+    // first window's start. This azimuth's queries walk each lane's hull from its bottom (the
+    // block's first sample, never popped), the mirror's from its top.
     reset!();
-    let mut next = f.d.max(blk);
+    let mut next = (s_lo / blk + 1) * blk;
+    let end = match f.mirror {
+        Some(e) => (f.wa - 1 + r).max(e - f.d),
+        None => f.wa - 1 + r,
+    }
+    .min(f.len - 1);
+    macro_rules! advance {
+        ($to:expr) => {{
+            let to = $to;
+            while next <= to {
+                if next % blk == 0 {
+                    reset!();
+                }
+                prefetch!(next + PF);
+                // Keep t1 where the slope t2→t1 is above t1→p.
+                step!(next, |x1: __m512,
+                             x2: __m512,
+                             y1: __m512,
+                             y2: __m512,
+                             v: __m512,
+                             xp: __m512| {
+                    let lhs = _mm512_mul_ps(_mm512_sub_ps(y1, y2), _mm512_sub_ps(xp, x1));
+                    let rhs = _mm512_mul_ps(_mm512_sub_ps(v, y1), _mm512_sub_ps(x1, x2));
+                    _mm512_cmp_ps_mask::<_CMP_GT_OQ>(lhs, rhs)
+                });
+                if let Some(e) = f.mirror {
+                    // The mirror's query whose window ends here, when it reaches back into
+                    // the previous block.
+                    let p = next + f.d;
+                    let k = e - p;
+                    if (0..f.wa).contains(&k)
+                        && f.mq[k as usize].on
+                        && (next - blk + 1) / blk < next / blk
+                    {
+                        let (xq, corr, qm, hq) = query_at!(p, f.mq[k as usize], true);
+                        if qm.iter().any(|&m| m != 0) {
+                            let cur = near_walk!(xq, hq, qm, true);
+                            put!(sbm, k, xq, hq, qm, corr, cur, true, true);
+                        }
+                    }
+                }
+                next += 1;
+            }
+        }};
+    }
     for q in 0..f.wa {
         prefetch!(q + PF);
         let top = (q + r).min(f.len - 1);
-        while next <= top {
-            if next % blk == 0 {
-                reset!();
-            }
-            prefetch!(next + PF);
-            // Keep t1 where the slope t2→t1 is above t1→p.
-            step!(next, |x1: __m512, x2: __m512, y1: __m512, y2: __m512, v: __m512, xp: __m512| {
-                let lhs = _mm512_mul_ps(_mm512_sub_ps(y1, y2), _mm512_sub_ps(xp, x1));
-                let rhs = _mm512_mul_ps(_mm512_sub_ps(v, y1), _mm512_sub_ps(x1, x2));
-                _mm512_cmp_ps_mask::<_CMP_GT_OQ>(lhs, rhs)
-            });
-            next += 1;
-        }
+        advance!(top);
         if !f.qs[q as usize].on {
             continue;
         }
@@ -1506,112 +1883,33 @@ unsafe fn groups_avx512<const G: usize>(
         if top / blk <= (q + f.d) / blk {
             continue;
         }
-        let (xq, q_corr, qm, hq) = query_at!(q);
+        let (xq, corr, qm, hq) = query_at!(q, f.qs[q as usize], false);
         if qm.iter().all(|&m| m == 0) {
             continue;
         }
-        // The registers' vertices bottom up: [t3, t2, t1] without the empty ones.
-        let (mut r0t, mut r0y, mut r1t, mut r1y) = ([none; G], [ninf; G], [none; G], [ninf; G]);
-        for g in 0..G {
-            if qm[g] == 0 {
-                continue;
-            }
-            let has3 = _mm512_cmpge_epi32_mask(t3[g], zero_i);
-            let has2 = _mm512_cmpge_epi32_mask(t2[g], zero_i);
-            r0t[g] = _mm512_mask_mov_epi32(_mm512_mask_mov_epi32(t1[g], has2, t2[g]), has3, t3[g]);
-            r0y[g] = _mm512_mask_mov_ps(_mm512_mask_mov_ps(y1[g], has2, y2[g]), has3, y3[g]);
-            r1t[g] = _mm512_mask_mov_epi32(t1[g], has3, t2[g]);
-            r1y[g] = _mm512_mask_mov_ps(y1[g], has3, y2[g]);
-        }
-        // Vertex j of a lane's hull from the bottom (j ≤ its last), group g.
-        let at = |g: usize, j: i32| -> (__m512i, __m512) {
-            let jv = _mm512_set1_epi32(j);
-            let k = _mm512_sub_epi32(jv, dep[g]);
-            let (mut t, mut y) = (t1[g], y1[g]);
-            let k1 = _mm512_cmpeq_epi32_mask(k, one_i);
-            t = _mm512_mask_mov_epi32(t, k1, r1t[g]);
-            y = _mm512_mask_mov_ps(y, k1, r1y[g]);
-            let k0 = _mm512_cmpeq_epi32_mask(k, zero_i);
-            t = _mm512_mask_mov_epi32(t, k0, r0t[g]);
-            y = _mm512_mask_mov_ps(y, k0, r0y[g]);
-            let mm = _mm512_cmpgt_epi32_mask(dep[g], jv);
-            if mm != 0 {
-                let row = st[g].add(j as usize * FL);
-                let lo = _mm512_maskz_loadu_epi64(mm as u8, row);
-                let hi = _mm512_maskz_loadu_epi64((mm >> 8) as u8, row.add(8));
-                (t, y) = unpack(mm, lo, hi, t, y);
-            }
-            (t, y)
-        };
-        let (mut cur_t, mut cur_y, mut cur_x) = ([none; G], [ninf; G], [ninf; G]);
-        for g in 0..G {
-            if qm[g] != 0 {
-                (cur_t[g], cur_y[g]) = at(g, 0);
-                cur_x[g] = _mm512_cvtepi32_ps(cur_t[g]);
-            }
-        }
-        let mut m = qm;
-        let mut j = 0;
-        loop {
-            let mut am = [0u16; G];
-            let mut any = 0u16;
-            for g in 0..G {
-                am[g] = m[g] & _mm512_cmpneq_epi32_mask(cur_t[g], t1[g]);
-                any |= am[g];
-            }
-            if any == 0 {
-                break;
-            }
-            j += 1;
-            let mut anyr = 0u16;
-            for g in 0..G {
-                if am[g] == 0 {
-                    m[g] = 0;
-                    continue;
-                }
-                let (nt, nyv) = at(g, j);
-                let nxf = _mm512_cvtepi32_ps(nt);
-                let lhs = _mm512_mul_ps(_mm512_sub_ps(nyv, hq[g]), _mm512_sub_ps(cur_x[g], xq));
-                let rhs = _mm512_mul_ps(_mm512_sub_ps(cur_y[g], hq[g]), _mm512_sub_ps(nxf, xq));
-                let rising = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(am[g], lhs, rhs);
-                cur_t[g] = _mm512_mask_mov_epi32(cur_t[g], rising, nt);
-                cur_x[g] = _mm512_mask_mov_ps(cur_x[g], rising, nxf);
-                cur_y[g] = _mm512_mask_mov_ps(cur_y[g], rising, nyv);
-                m[g] = rising;
-                anyr |= rising;
-            }
-            if anyr == 0 {
-                break;
-            }
-        }
-        for g in 0..G {
-            if qm[g] == 0 {
-                continue;
-            }
-            let slope = _mm512_div_ps(_mm512_sub_ps(cur_y[g], hq[g]), _mm512_sub_ps(cur_x[g], xq));
-            let slope = _mm512_add_ps(slope, q_corr);
-            let p = sb[g].add(q as usize * FL);
-            let res = _mm512_loadu_ps(p);
-            _mm512_storeu_ps(p, _mm512_mask_max_ps(res, qm[g], res, slope));
-        }
+        let cur = far_walk!(xq, hq, qm, false);
+        put!(sb, q, xq, hq, qm, corr, cur, false, true);
     }
+    advance!(end);
 }
 
-/// The tangents of a batch of groups (slots 0.. of `sc.sb`, groups `batch[g]` = (i0, lines))
+/// The tangents of a batch of groups (slots `slot0`.. of `sb`, groups `batch[g]` = (i0, lines))
 /// into the sums, in one pass of independent adds (interleaved with the hull work, every add
 /// waited for its cache misses), query column by query column. Each column's sums are a new
 /// row of the plane, so one group alone touches a page per column; the groups of a batch are
 /// neighbours across the lines, so at each column they add into one run of the row: one page
 /// and a few adjacent cache lines for the whole batch. A texel's two roles weigh 1 in all, so
 /// only when a role finds nothing ahead (rare) is the other's weight, then the texel's whole
-/// valid weight, kept (`sc.miss`; both missing sum to 1 over a sum of 0).
+/// valid weight, kept (`miss`; both missing sum to 1 over a sum of 0).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 unsafe fn add_batch_avx512(
     f: &Family<'_>,
     batch: &[(i64, u32)],
+    slot0: usize,
     sums: &mut [f32],
-    sc: &mut Scratch,
+    sb: &[f32],
+    miss: &mut [f32],
 ) {
     use std::arch::x86_64::*;
     let ninf = _mm512_set1_ps(f32::NEG_INFINITY);
@@ -1633,13 +1931,13 @@ unsafe fn add_batch_avx512(
         let wt = _mm512_set1_ps(qc.wt * f.inv_step);
         for (g, &(i0, nl)) in batch.iter().enumerate() {
             let (tm, b0) = texels_at(f, i0, nl, qc.shift);
-            let res = _mm512_loadu_ps(sc.sb.as_ptr().add((g * wa + q as usize) * FL));
+            let res = _mm512_loadu_ps(sb.as_ptr().add(((slot0 + g) * wa + q as usize) * FL));
             let got = tm & _mm512_cmp_ps_mask::<_CMP_GT_OQ>(res, ninf);
             if got != 0 {
                 add_lanes(f, q, b0, got, _mm512_mul_ps(wt, res), sums);
             }
             if tm & !got != 0 {
-                add_lanes(f, q, b0, tm & !got, _mm512_set1_ps(qc.other), &mut sc.miss);
+                add_lanes(f, q, b0, tm & !got, _mm512_set1_ps(qc.other), miss);
             }
         }
     }
@@ -1931,6 +2229,7 @@ mod tests {
             (150, 5),
             (6, 133),
         ];
+        let mut paired = 0;
         for (w, h) in sizes {
             for rough in [2.0f32, 12.0] {
                 let heights: Vec<f32> = (0..w * h).map(|_| rnd() * rough).collect();
@@ -1953,23 +2252,53 @@ mod tests {
                             let mut wsum = Vec::new();
                             far_field(&g, lines, reach, curv, &mut want, &mut wsum);
                             let ml = &mls[usize::from(lines.major_x)];
+                            let close = |got: &[f32], want: &[f32], what: &str| {
+                                for (t, (a, b)) in got.iter().zip(want).enumerate() {
+                                    assert!(
+                                        (a - b).abs() <= 2e-5 * (1.0 + b.abs()),
+                                        "{w}×{h} {edge:?} R {radius:?} bin {n} curvature \
+                                         {curv} texel {t} {what}: {a} vs {b}"
+                                    );
+                                }
+                            };
                             for fresh in [false, true] {
                                 let mut got = vec![0.0f32; w * h];
                                 far_field_fast(
                                     &g, ml, lines, reach, curv, &mut got, &mut sc, None, fresh,
+                                    None,
                                 );
-                                for (t, (a, b)) in got.iter().zip(&want).enumerate() {
-                                    assert!(
-                                        (a - b).abs() <= 2e-5 * (1.0 + b.abs()),
-                                        "{w}×{h} {edge:?} R {radius:?} bin {n} curvature \
-                                         {curv} texel {t} fresh {fresh}: {a} vs {b}"
-                                    );
-                                }
+                                close(&got, &want, &format!("fresh {fresh}"));
+                            }
+                            // Swept with the opposite azimuth where the bake pairs them: both
+                            // planes against the scalar sweeps of each alone.
+                            let Some(e) = mirror_end(&g, lines, reach) else { continue };
+                            paired += 1;
+                            let mirror = lines.mirror(e);
+                            let mut want2 = vec![0.0f32; w * h];
+                            far_field(&g, mirror, reach, curv, &mut want2, &mut wsum);
+                            for fresh in [false, true] {
+                                let (mut got, mut got2) = (vec![0.0f32; w * h], vec![0.0; w * h]);
+                                far_field_fast(
+                                    &g,
+                                    ml,
+                                    lines,
+                                    reach,
+                                    curv,
+                                    &mut got,
+                                    &mut sc,
+                                    None,
+                                    fresh,
+                                    Some((mirror, &mut got2)),
+                                );
+                                close(&got, &want, &format!("paired, fresh {fresh}"));
+                                close(&got2, &want2, &format!("its mirror, fresh {fresh}"));
                             }
                         }
                     }
                 }
             }
         }
+        // Every wrapped size pairs at `unlimited` (and some at finite radii).
+        assert!(paired >= 9 * 2 * 2 * 32, "only {paired} paired sweeps");
     }
 }
