@@ -38,9 +38,10 @@
 //! Opposite azimuths share those passes where they can ([`azimuth_lines`]): a window
 //! [s, s + R' − N] of a line is the window of a query at s − N looking one way and of one at
 //! s + R' looking the other, so with `edge=wrap` the opposite azimuth's lines are taken to be
-//! these lines read backwards ([`Lines::mirror`]), its texels queried on the line a multiple of
-//! W further on (the same texels on a wrapping map), and one suffix and one prefix pass answer
-//! both azimuths, each pass walking one query from the top of its hull and one from the bottom.
+//! these lines read backwards ([`Lines::mirror`]), each azimuth's texels queried where on the
+//! line (a multiple of W apart: the same texels on a wrapping map) their windows coincide or
+//! overlap most ([`mirror_end`]), and one suffix and one prefix pass answer both azimuths,
+//! each pass walking one query from the top of its hull and one from the bottom.
 //!
 //! # Earth curvature
 //! A point s texels away is lowered by c·s². Along a line with origin-free coordinate x (major
@@ -86,8 +87,8 @@
 //! the gathers of those pops are the largest single cost. The bands give each texel's far
 //! value to the near field as a floor ([`NearField::strip_above`]), so its walk culls the
 //! cells that cannot beat it. With `edge=wrap` the lines run R past the map and a finite R
-//! takes two passes (suffix and prefix hulls, ≈3 pushes per sample), shared by two azimuths
-//! where R' reaches across most of the map (`unlimited` always), so ≈1.5 per azimuth.
+//! takes two passes (suffix and prefix hulls, ≈3 pushes per sample at `unlimited`, ≈2 at a
+//! short R), shared by the two opposite azimuths, so about half that per azimuth.
 //!
 //! Counted (temporary counters, 1024² fBm, 32 bins, per group of 16 lines and W = 1024 query
 //! columns): `edge=wrap` unlimited pushes 1.75·W samples in the suffix pass and 1.01·W in the
@@ -153,12 +154,13 @@ impl Lines {
     }
 
     /// The lines of the opposite azimuth that are these very lines read backwards, its
-    /// position 0 on column `end` of these: the sweeps of both azimuths then share every
+    /// position 0 on position `end` of these: the sweeps of both azimuths then share every
     /// sample and every window (see [`far_field_fast`]). With `edge=wrap` a texel's own column
     /// and that column plus a multiple of the major size are the same texel, so `end` may lie
     /// past the map.
     pub fn mirror(&self, end: i64) -> Lines {
-        Lines { sign: -self.sign, m: -self.m, at: (end, -self.at.1), ..*self }
+        let at = (self.at.0 + self.at.1 * end, -self.at.1);
+        Lines { sign: -self.sign, m: -self.m, at, ..*self }
     }
 
     /// The minor coordinate of line i of family k at look-order position u.
@@ -546,7 +548,8 @@ pub fn azimuth_lines(grid: &Grid<'_>, radius: Option<u32>, bins: u32) -> Vec<Lin
     if bins.is_multiple_of(2) {
         let half = bins / 2;
         for n in 0..half {
-            if let Some(e) = mirror_end(grid, lines[n], reach) {
+            if let Some((a, e)) = mirror_end(grid, lines[n], reach) {
+                lines[n].at = (a, 1);
                 lines[n + half] = lines[n].mirror(e);
             }
         }
@@ -554,15 +557,15 @@ pub fn azimuth_lines(grid: &Grid<'_>, radius: Option<u32>, bins: u32) -> Vec<Lin
     lines
 }
 
-/// For an azimuth's `lines`, the column of its own lines on which the opposite azimuth's
-/// query column 0 should sit so that the two share their windows ([`Lines::mirror`],
-/// [`far_field_fast`]), or `None` where that saves nothing. Only with `edge=wrap` (a texel's
-/// column plus a multiple of the major size W is the same texel) and a window of R' ≥ N steps:
-/// this azimuth's windows start at q + N (q < W), the mirror's at p − R' for p from J·W, so J
-/// is the multiple of W nearest R' + N (and ≥ R', so no window starts before column 0). Pairs
-/// only when the two sets of windows overlap enough that the shared passes cover at most
-/// 1.5·W window starts (R' about W/2 or more: `unlimited` always).
-fn mirror_end(grid: &Grid<'_>, lines: Lines, reach: Option<f64>) -> Option<i64> {
+/// Where an azimuth's texels and its opposite's sit on the azimuth's lines so that the two
+/// share their windows ([`Lines::mirror`], [`far_field_fast`]): (A, e), the azimuth's texel u
+/// on column A + u and the mirror's query column 0 on position e (column A + e), or `None`
+/// where that saves nothing. Only with `edge=wrap` (a texel's column plus a multiple of the
+/// major size W is the same texel, so A and e + 1 are multiples of W) and a window of R' ≥ N
+/// steps: the azimuth's windows start at A + u + N, the mirror's at A + J·W + u − R', so J is
+/// the multiple of W nearest R' + N, and A the first multiple of W that starts no window
+/// before column 0. Pairs when the shared passes cover at most 1.5·W window starts.
+fn mirror_end(grid: &Grid<'_>, lines: Lines, reach: Option<f64>) -> Option<(i64, i64)> {
     if grid.edge != Edge::Wrap {
         return None;
     }
@@ -572,10 +575,11 @@ fn mirror_end(grid: &Grid<'_>, lines: Lines, reach: Option<f64>) -> Option<i64> 
         return None;
     }
     let wa = (if lines.major_x { grid.width } else { grid.height }) as i64;
-    let j = (((r + d) as f64 / wa as f64).round() as i64).max((r + wa - 1) / wa).max(1);
+    let j = ((r + d) as f64 / wa as f64).round() as i64;
+    let a = ((r - j * wa).max(0) + wa - 1) / wa * wa;
     let a2 = j * wa;
     let starts = (wa + d).max(a2 + wa - r) - d.min(a2 - r);
-    (2 * starts <= 3 * wa).then_some(a2 + wa - 1)
+    (2 * starts <= 3 * wa).then_some((a, a2 + wa - 1))
 }
 
 /// A hull vertex: major position and height (less the curvature term).
@@ -1040,6 +1044,8 @@ struct Family<'s> {
     /// (its query column u' sits at column e − u' of these lines), and its query columns.
     mirror: Option<i64>,
     mq: &'s [QCol],
+    /// The column of query column 0 (0 unless paired with a mirror: [`mirror_end`]).
+    qoff: i64,
 }
 
 /// The far field of [`far_field`] in f32, 16 lines of a family at a time (AVX-512), the
@@ -1092,8 +1098,14 @@ fn far_field_fast(
         _ => None,
     };
     debug_assert!(e.is_some() == mirror.is_some() && (e.is_none() || emit.is_none()));
+    // Paired, the sweeps run over the lines' own columns (the mirror's are columns of these
+    // lines too), this azimuth's texel u on column `qoff` + u; alone, over its look order.
+    let (base, qoff) = match e {
+        Some(_) => (Lines { at: (0, 1), ..lines }, lines.at.0),
+        None => (lines, 0),
+    };
     let len = match (wrap, r_steps) {
-        (true, Some(r)) => (wa as i64 + r).max(e.map_or(0, |e| e - d + 1)),
+        (true, Some(r)) => (qoff + wa as i64 + r).max(e.map_or(0, |e| e - d + 1)),
         _ => wa as i64,
     };
     // The columns whose heights a query reads reach the mirror's last query column.
@@ -1162,7 +1174,7 @@ fn far_field_fast(
     for k in 0..SUB {
         cols.clear();
         cols.extend((0..ncols).map(|u| {
-            let (off, wt) = lines.sample(k, u);
+            let (off, wt) = base.sample(k, u);
             let start = if wrap { off.rem_euclid(hbi) } else { off };
             Col { start, wt: wt as f32, wt0: wt == 0.0, base: major(u) * ml.stride + PADM }
         }));
@@ -1185,6 +1197,7 @@ fn far_field_fast(
             cc: curv * lines.step * lines.step,
             mirror: e,
             mq: &qs2,
+            qoff,
         };
         // The mirror's sums are added as this family's with its query columns.
         let fam2 = Family { qs: &qs2, abase: &abase2, ..fam };
@@ -1428,7 +1441,7 @@ unsafe fn groups_avx512<const G: usize>(
         // This group's tangents: its slot of the batch; the query columns the suffix pass does
         // not reach (within N of the line's end) have none.
         let slot = &mut sc.sb[(slot0 + g) * wa * FL..][..wa * FL];
-        slot[(f.len - f.d).clamp(0, f.wa) as usize * FL..].fill(f32::NEG_INFINITY);
+        slot[(f.len - f.d - f.qoff).clamp(0, f.wa) as usize * FL..].fill(f32::NEG_INFINITY);
         sb[g] = slot.as_mut_ptr();
         st[g] = sc.st.as_mut_ptr().add(g * region);
         if f.mirror.is_some() {
@@ -1783,7 +1796,7 @@ unsafe fn groups_avx512<const G: usize>(
     // The windows' first columns: this azimuth's q + N for q < W, the mirror's p − R' for its
     // query columns p = e − u', u' < W (the mirror exists only with a finite window).
     let (s_lo, s_hi) = match f.mirror {
-        Some(e) => (f.d.min(e - f.wa + 1 - r), (f.wa - 1 + f.d).max(e - r)),
+        Some(e) => ((f.qoff + f.d).min(e - f.wa + 1 - r), (f.qoff + f.wa - 1 + f.d).max(e - r)),
         None => (f.d, f.wa - 1 + f.d),
     };
     // The suffix pass needs the samples up to the end of the block of the last window.
@@ -1801,9 +1814,10 @@ unsafe fn groups_avx512<const G: usize>(
             let rhs = _mm512_mul_ps(_mm512_sub_ps(y2, y1), _mm512_sub_ps(x1, xp));
             _mm512_cmp_ps_mask::<_CMP_GT_OQ>(lhs, rhs)
         });
-        let q = up - f.d;
+        // This azimuth's query whose window starts here (query column q, on column q + qoff).
+        let q = up - f.d - f.qoff;
         if (0..f.wa).contains(&q) && f.qs[q as usize].on {
-            let (xq, corr, qm, hq) = query_at!(q, f.qs[q as usize], false);
+            let (xq, corr, qm, hq) = query_at!(up - f.d, f.qs[q as usize], false);
             let cur = near_walk!(xq, hq, qm, false);
             put!(sb, q, xq, hq, qm, corr, cur, false, false);
         }
@@ -1829,7 +1843,7 @@ unsafe fn groups_avx512<const G: usize>(
     reset!();
     let mut next = (s_lo / blk + 1) * blk;
     let end = match f.mirror {
-        Some(e) => (f.wa - 1 + r).max(e - f.d),
+        Some(e) => (f.qoff + f.wa - 1 + r).max(e - f.d),
         None => f.wa - 1 + r,
     }
     .min(f.len - 1);
@@ -1873,17 +1887,18 @@ unsafe fn groups_avx512<const G: usize>(
         }};
     }
     for q in 0..f.wa {
-        prefetch!(q + PF);
-        let top = (q + r).min(f.len - 1);
+        let qc = f.qoff + q;
+        prefetch!(qc + PF);
+        let top = (qc + r).min(f.len - 1);
         advance!(top);
         if !f.qs[q as usize].on {
             continue;
         }
         // Only when the window reaches into the next block (see `far_field`).
-        if top / blk <= (q + f.d) / blk {
+        if top / blk <= (qc + f.d) / blk {
             continue;
         }
-        let (xq, corr, qm, hq) = query_at!(q, f.qs[q as usize], false);
+        let (xq, corr, qm, hq) = query_at!(qc, f.qs[q as usize], false);
         if qm.iter().all(|&m| m == 0) {
             continue;
         }
@@ -2229,7 +2244,7 @@ mod tests {
             (150, 5),
             (6, 133),
         ];
-        let mut paired = 0;
+        let (mut paired, mut shifted) = (0, 0);
         for (w, h) in sizes {
             for rough in [2.0f32, 12.0] {
                 let heights: Vec<f32> = (0..w * h).map(|_| rnd() * rough).collect();
@@ -2271,8 +2286,13 @@ mod tests {
                             }
                             // Swept with the opposite azimuth where the bake pairs them: both
                             // planes against the scalar sweeps of each alone.
-                            let Some(e) = mirror_end(&g, lines, reach) else { continue };
+                            let Some((a, e)) = mirror_end(&g, lines, reach) else { continue };
                             paired += 1;
+                            shifted += usize::from(a > 0);
+                            // Its texels where the pairing puts them, and the mirror.
+                            let lines = Lines { at: (a, 1), ..lines };
+                            let mut want = vec![0.0f32; w * h];
+                            far_field(&g, lines, reach, curv, &mut want, &mut wsum);
                             let mirror = lines.mirror(e);
                             let mut want2 = vec![0.0f32; w * h];
                             far_field(&g, mirror, reach, curv, &mut want2, &mut wsum);
@@ -2298,7 +2318,9 @@ mod tests {
                 }
             }
         }
-        // Every wrapped size pairs at `unlimited` (and some at finite radii).
+        // Every wrapped size pairs at `unlimited`, and some at finite radii with the texels
+        // a whole map further along the lines (a short window: `mirror_end`).
         assert!(paired >= 9 * 2 * 2 * 32, "only {paired} paired sweeps");
+        assert!(shifted > 0, "no pairing of a short window");
     }
 }
