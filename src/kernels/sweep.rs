@@ -341,10 +341,21 @@ impl<'a> Sweep<'a> {
                     let other = if two { planes[n + half].take() } else { None };
                     tasks.push((n, out, other));
                 }
-                tasks.into_par_iter().for_each_init(Scratch::default, |sc, (n, out, other)| {
+                // One scratch per thread of the pool for the whole build: `for_each_init`
+                // would make one per split of the work, each mapping its planes (64 MiB at
+                // 2048²) afresh, a page fault per 4 KiB.
+                let scratch: Vec<Mutex<Scratch>> = (0..rayon::current_num_threads().max(1))
+                    .map(|_| Mutex::new(Scratch::default()))
+                    .collect();
+                tasks.into_par_iter().for_each(|(n, out, other)| {
                     if progress.as_ref().is_some_and(Progress::is_canceled) {
                         return;
                     }
+                    let slot = rayon::current_thread_index().unwrap_or(0) % scratch.len();
+                    // Only this thread takes this slot; a poisoned one (a panic, caught by the
+                    // bake) is still plain scratch.
+                    let mut guard = scratch[slot].lock().unwrap_or_else(|e| e.into_inner());
+                    let sc = &mut *guard;
                     let lines = lines_of[n];
                     match majors[usize::from(lines.major_x)].as_ref() {
                         Some(ml) => {
