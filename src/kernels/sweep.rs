@@ -155,7 +155,7 @@ impl Lines {
 
     /// The lines of the opposite azimuth that are these very lines read backwards, its
     /// position 0 on position `end` of these: the sweeps of both azimuths then share every
-    /// sample and every window (see [`far_field_fast`]). With `edge=wrap` a texel's own column
+    /// sample and their windows (see `far_field_fast`). With `edge=wrap` a texel's own column
     /// and that column plus a multiple of the major size are the same texel, so `end` may lie
     /// past the map.
     pub fn mirror(&self, end: i64) -> Lines {
@@ -548,10 +548,11 @@ fn directions(grid: &Grid<'_>, bins: usize) -> Vec<(f64, f64)> {
 }
 
 /// The far field's lines of each of the `bins` azimuths, as [`Sweep`] bakes them: an azimuth's
-/// own ([`Lines::new`]), or, with `edge=wrap` and a window reaching across most of the map,
-/// the opposite azimuth's read backwards ([`Lines::mirror`], [`mirror_end`]), so that one
-/// sweep serves both (`far_field_fast`). Chosen by geometry alone, so every instruction set
-/// and every path (in memory or spilled) bakes the same lines.
+/// own ([`Lines::new`]), or, with `edge=wrap` and a window of at least N steps, for azimuth
+/// n < bins/2 its own anchored a multiple of W along them and for its opposite n + bins/2 the
+/// same lines read backwards ([`Lines::mirror`]; `mirror_end` picks where), so that one sweep
+/// serves both (`far_field_fast`). Chosen by geometry alone, so every instruction set and
+/// every path (in memory or spilled) bakes the same lines.
 pub fn azimuth_lines(grid: &Grid<'_>, radius: Option<u32>, bins: u32) -> Vec<Lines> {
     let bins = bins.max(1) as usize;
     let reach = reach_of(grid, radius);
@@ -1066,10 +1067,11 @@ struct Family<'s> {
 ///
 /// `mirror`: the opposite azimuth's lines as [`Lines::mirror`] of these, and its plane. Its
 /// windows are these lines' windows seen from their other end: a window [s, s + R' − N] is
-/// this azimuth's query at s − N looking right and the mirror's at s + R' looking left, so one
-/// suffix pass and one prefix pass answer both, and the hull pushes (the larger part of the
-/// build) are shared by two azimuths. Only with a finite window (`edge=wrap`): the mirror's
-/// query columns lie past the map's major size, on the same texels.
+/// this azimuth's query at s − N looking right and the mirror's at s + R' looking left (with
+/// a short window the two sets of windows overlap rather than coincide: [`mirror_end`]), so
+/// one suffix pass and one prefix pass answer both, and the hull pushes (a large part of the
+/// build) are shared by two azimuths. Only with a finite window (`edge=wrap`): the query
+/// columns lie a multiple of the map's major size along the lines, on the same texels.
 ///
 /// `fresh`: `out` was never touched (a plane of the far table, which is allocated zeroed and
 /// so not yet mapped). The sums are then added up in the thread's scratch plane, already
