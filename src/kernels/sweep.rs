@@ -332,12 +332,16 @@ impl<'a> Sweep<'a> {
                     let needed = lines_of.iter().any(|l| l.major_x == major_x);
                     (fast && needed).then(|| MajorLines::new(&grid, major_x))
                 });
-                // One task per azimuth, or per pair when the vector sweeps serve both.
+                // One task per azimuth, or per pair when the vector sweeps serve both and the
+                // pair's two more scratch planes per thread fit in `PAIR_SCRATCH_BYTES` (a
+                // table in memory of few bins can belong to a map of 8192²).
+                let threads = rayon::current_num_threads().max(1);
+                let pair_fits = 2 * w * h * 4 * threads <= PAIR_SCRATCH_BYTES;
                 let mut planes: Vec<Option<&mut [f32]>> = far.chunks_mut(w * h).map(Some).collect();
                 let mut tasks = Vec::with_capacity(bins);
                 for n in 0..bins {
                     let Some(out) = planes[n].take() else { continue };
-                    let two = fast && n < half && paired[n];
+                    let two = fast && pair_fits && n < half && paired[n];
                     let other = if two { planes[n + half].take() } else { None };
                     tasks.push((n, out, other));
                 }
@@ -2107,6 +2111,11 @@ pub const MAX_TABLE_BYTES: u64 = 512 << 20;
 /// W·H f32 per azimuth in flight: the plane, the missing weights and the transposed sums), so
 /// fewer azimuths run at once on a big map: one at 8192², two (on two threads) at 4096².
 const SPILL_SWEEP_BYTES: usize = 768 << 20;
+
+/// Most bytes the second azimuth of a pair may add to the sweeps' scratch over all threads
+/// (its sums and missing weights, 2 planes of W·H f32 per thread): 2048² pairs on 2 threads
+/// with 64 MiB, 4096² with 256 MiB; bigger maps sweep each azimuth alone, as before.
+const PAIR_SCRATCH_BYTES: usize = 256 << 20;
 
 /// Most bytes a spilled table may take on disk: 32 GiB, an 8192² map at 128 bins.
 pub const MAX_SPILL_BYTES: u64 = 32 << 30;
