@@ -348,9 +348,8 @@ impl<'a> Sweep<'a> {
                 // One scratch per thread of the pool for the whole build: `for_each_init`
                 // would make one per split of the work, each mapping its planes (64 MiB at
                 // 2048²) afresh, a page fault per 4 KiB.
-                let scratch: Vec<Mutex<Scratch>> = (0..rayon::current_num_threads().max(1))
-                    .map(|_| Mutex::new(Scratch::default()))
-                    .collect();
+                let scratch: Vec<Mutex<Scratch>> =
+                    (0..threads).map(|_| Mutex::new(Scratch::default())).collect();
                 tasks.into_par_iter().for_each(|(n, out, other)| {
                     if progress.as_ref().is_some_and(Progress::is_canceled) {
                         return;
@@ -361,14 +360,15 @@ impl<'a> Sweep<'a> {
                     let mut guard = scratch[slot].lock().unwrap_or_else(|e| e.into_inner());
                     let sc = &mut *guard;
                     let lines = lines_of[n];
-                    match majors[usize::from(lines.major_x)].as_ref() {
-                        Some(ml) => {
-                            let mirror = other.map(|o| (lines_of[n + half], o));
+                    let ml = majors[usize::from(lines.major_x)].as_ref();
+                    match (ml, other) {
+                        (Some(ml), Some(o)) => {
+                            let mirror = Some((lines_of[n + half], o));
                             far_field_fast(
                                 &grid, ml, lines, reach, curv, out, sc, None, true, mirror,
                             );
                         }
-                        None => far_field(&grid, lines, reach, curv, out, &mut sc.miss),
+                        _ => sweep_one(ml, lines, out, sc, true),
                     }
                 });
                 Far::Memory(far)
