@@ -33,7 +33,9 @@
 //!   clamping in the loop), cull the piece when no lane's (max corner − h0)/s_entry beats its
 //!   best value (the four corners' maximum read from a second padded copy of every cell's when
 //!   the padding is narrow, as `sweep`'s near field of 16 steps: one load instead of four and
-//!   three maxima; measured at 2048² `sweep` unlimited, the bands' CPU time 10–20 % lower),
+//!   three maxima, at an offset per piece listed with its s_entry, the corner rows sliced only
+//!   for the pieces that pass; measured at 2048² `sweep` unlimited, the bands' CPU time 10–20 %
+//!   lower with the maxima, then 8–10 % lower again with the listed offsets),
 //!   and otherwise evaluate the per-cell closed form in f32 lanes (the divisions and
 //!   square root only when some lane can have an interior maximum). The strip stops when no
 //!   lane can still be raised by the highest point of the map. Beyond 32 texels the pieces are
@@ -510,6 +512,10 @@ struct Near {
     /// values, so the same culls). Empty when the padding is wide (`exact`'s long near field:
     /// another copy of a padded 8192² map would cost 0.4 GB); [`CELL_MAX_PAD`].
     cmax: Vec<f32>,
+    /// Per direction and piece, where its cell lies in the padded layout relative to the
+    /// strip's first texel (cyo·pw + cxo) and its s_a in f32: all a piece's cull reads
+    /// (empty without `cmax`).
+    culls: Vec<Vec<(i32, f32)>>,
     avx2: bool,
     avx512: bool,
     /// Earth-curvature drop per texel² in the pieces' closed form (0: flat).
@@ -705,7 +711,12 @@ impl Near {
         let blocks = PadPyramid::new(&padded, pw, ph, top);
         let spans = segs.iter().map(|g| Spans::new(g, top)).collect();
         let mut cmax = Vec::new();
+        let mut culls = Vec::new();
         if pad <= CELL_MAX_PAD {
+            culls = segs
+                .iter()
+                .map(|d| d.iter().map(|g| (g.cyo * pw as i32 + g.cxo, g.s_a as f32)).collect())
+                .collect();
             cmax = vec![f32::INFINITY; pw * ph];
             for r in 0..ph - 1 {
                 let (a, b) = (&padded[r * pw..][..pw], &padded[(r + 1) * pw..][..pw]);
@@ -733,6 +744,7 @@ impl Near {
             spans,
             blocks,
             cmax,
+            culls,
             avx2,
             avx512,
             curv: 0.0,
@@ -924,12 +936,15 @@ impl Near {
     }
 
     /// Pieces `a..b` of the strip's direction one by one, each culled on its own corners or
-    /// solved in closed form; false once every lane is done.
+    /// solved in closed form; false once every lane is done. With the cells' maxima, as
+    /// [`Near::run_cells`].
     #[inline(always)]
     fn run(&self, cx: &Strip<'_>, a: usize, b: usize, best: &mut [f32; LANES]) -> bool {
+        if !self.cmax.is_empty() {
+            return self.run_cells(cx, a, b, best);
+        }
         let (dx, dy) = cx.d;
         let (h0, count) = (cx.h0, cx.count);
-        let cmax = !self.cmax.is_empty();
         for (k, seg) in self.segs[cx.n].iter().enumerate().take(b).skip(a) {
             let s_b = seg.s_a + seg.len;
             let s_a = seg.s_a as f32;
@@ -941,16 +956,9 @@ impl Near {
             let row0 = &self.padded[r * self.pw + c..r * self.pw + c + LANES + 1];
             let row1 = &self.padded[(r + 1) * self.pw + c..(r + 1) * self.pw + c + LANES + 1];
             let mut any = false;
-            if cmax {
-                let m = &self.cmax[r * self.pw + c..][..LANES];
-                for i in 0..LANES {
-                    any |= m[i] - h0[i] > best[i] * s_a;
-                }
-            } else {
-                for i in 0..LANES {
-                    let m = row0[i].max(row0[i + 1]).max(row1[i]).max(row1[i + 1]);
-                    any |= m - h0[i] > best[i] * s_a;
-                }
+            for i in 0..LANES {
+                let m = row0[i].max(row0[i + 1]).max(row1[i]).max(row1[i + 1]);
+                any |= m - h0[i] > best[i] * s_a;
             }
             if !any {
                 continue;
@@ -963,6 +971,46 @@ impl Near {
                 piece::<true>(row0, row1, g, s_a, len, inv_sb, h0, valid, best);
             } else {
                 let g = (fx, fy, dx, dy, cx.curv);
+                piece::<false>(row0, row1, g, s_a, len, inv_sb, h0, valid, best);
+            }
+        }
+        true
+    }
+
+    /// [`Near::run`] with the cells' maxima: each piece's cull is one load at the piece's
+    /// offset in the padded layout ([`Near::culls`]) and one compare per lane; the piece's
+    /// rows are sliced only for the pieces that pass.
+    #[inline(always)]
+    fn run_cells(&self, cx: &Strip<'_>, a: usize, b: usize, best: &mut [f32; LANES]) -> bool {
+        let (dx, dy) = cx.d;
+        let (h0, count) = (cx.h0, cx.count);
+        let pw = self.pw;
+        let base = (cx.base_r * pw as i64 + cx.base_c) as isize;
+        let culls = &self.culls[cx.n][a..b];
+        let segs = &self.segs[cx.n][a..b];
+        for (j, (&(off, s_a), seg)) in culls.iter().zip(segs).enumerate() {
+            let k = a + j;
+            if k % 8 == 7 && done(cx, best, s_a) {
+                return false;
+            }
+            let o = (base + off as isize) as usize;
+            let m = &self.cmax[o..o + LANES];
+            let mut any = false;
+            for i in 0..LANES {
+                any |= m[i] - h0[i] > best[i] * s_a;
+            }
+            if !any {
+                continue;
+            }
+            let row0 = &self.padded[o..o + LANES + 1];
+            let row1 = &self.padded[o + pw..o + pw + LANES + 1];
+            let (fx, fy, len) = (seg.fx, seg.fy, seg.len as f32);
+            let inv_sb = (1.0 / (seg.s_a + seg.len)) as f32;
+            let valid = |i: usize| (k as u32) < count[i];
+            let g = (fx, fy, dx, dy, cx.curv);
+            if seg.s_a == 0.0 {
+                piece::<true>(row0, row1, g, s_a, len, inv_sb, h0, valid, best);
+            } else {
                 piece::<false>(row0, row1, g, s_a, len, inv_sb, h0, valid, best);
             }
         }
