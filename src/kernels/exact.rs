@@ -1521,6 +1521,40 @@ mod tests {
     use super::*;
     use crate::params::YAxis;
 
+    /// A seeded generator of uniform values in [0, 1) (a 64-bit LCG's high bits).
+    fn lcg(mut seed: u64) -> impl FnMut() -> f32 {
+        move || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (seed >> 40) as f32 / (1u64 << 24) as f32
+        }
+    }
+
+    /// The near-field tests' w × h maps: `kind` 0 smooth waves, 1 rough noise, 2 single-texel
+    /// spikes 24 high on 3 % of the texels.
+    fn near_map(kind: usize, w: usize, h: usize, rnd: &mut impl FnMut() -> f32) -> Vec<f32> {
+        (0..w * h)
+            .map(|i| match kind {
+                0 => ((i % w) as f32 * 0.2).sin() * 3.0 + ((i / w) as f32 * 0.13).cos() * 2.0,
+                1 => rnd() * 6.0,
+                _ => {
+                    if rnd() < 0.03 {
+                        24.0
+                    } else {
+                        rnd() * 0.5
+                    }
+                }
+            })
+            .collect()
+    }
+
+    /// `bins` image directions of `g` and near-field cuts of 16 major-axis steps, as `sweep`'s.
+    fn near_dirs(g: &Grid<'_>, bins: usize) -> (Vec<(f64, f64)>, Vec<f64>) {
+        let dirs: Vec<(f64, f64)> =
+            (0..bins).map(|n| direction(n as f64 * 2.0 * PI / bins as f64, g.row_step())).collect();
+        let cuts = dirs.iter().map(|d| 16.0 * d.0.hypot(d.1).max(1.0)).collect();
+        (dirs, cuts)
+    }
+
     /// A floor given to the near field (`sweep` gives its far field) changes no value beyond
     /// rounding: the result is at least the floor, bit for bit, and max(floor, the near field
     /// without one) to within a few f32 ulp of the map's height range (a cell culled against
@@ -1530,32 +1564,14 @@ mod tests {
     #[test]
     fn a_floor_culls_cells_but_changes_no_value() {
         use super::super::lengyel_fast::Isa;
-        let mut seed = 4242u64;
-        let mut rnd = || {
-            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            (seed >> 40) as f32 / (1u64 << 24) as f32
-        };
+        let mut rnd = lcg(4242);
         let (w, h) = (53usize, 29usize);
         for kind in 0..3 {
-            let heights: Vec<f32> = (0..w * h)
-                .map(|i| match kind {
-                    0 => ((i % w) as f32 * 0.2).sin() * 3.0 + ((i / w) as f32 * 0.13).cos() * 2.0,
-                    1 => rnd() * 6.0,
-                    _ => {
-                        if rnd() < 0.03 {
-                            24.0
-                        } else {
-                            rnd() * 0.5
-                        }
-                    }
-                })
-                .collect();
+            let heights = near_map(kind, w, h, &mut rnd);
             for edge in [Edge::Wrap, Edge::None] {
                 let g = Grid::new(w, h, &heights, edge, YAxis::Up);
                 let range = g.range().1 - g.range().0;
-                let dirs: Vec<(f64, f64)> =
-                    (0..32).map(|n| direction(n as f64 * 2.0 * PI / 32.0, g.row_step())).collect();
-                let cuts: Vec<f64> = dirs.iter().map(|d| 16.0 * d.0.hypot(d.1).max(1.0)).collect();
+                let (dirs, cuts) = near_dirs(&g, 32);
                 for isa in [Isa::Avx512, Isa::Avx2, Isa::Baseline] {
                     if !isa.supported() {
                         continue;
@@ -1608,32 +1624,14 @@ mod tests {
     #[test]
     fn cells_maxima_cull_as_the_corners_do() {
         use super::super::lengyel_fast::Isa;
-        let mut seed = 77u64;
-        let mut rnd = || {
-            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            (seed >> 40) as f32 / (1u64 << 24) as f32
-        };
+        let mut rnd = lcg(77);
         let (w, h) = (41usize, 23usize);
         let mut compared = 0usize;
         for kind in 0..3 {
-            let heights: Vec<f32> = (0..w * h)
-                .map(|i| match kind {
-                    0 => ((i % w) as f32 * 0.3).sin() * 2.0 + ((i / w) as f32 * 0.17).cos(),
-                    1 => rnd() * 6.0,
-                    _ => {
-                        if rnd() < 0.05 {
-                            24.0
-                        } else {
-                            rnd() * 0.5
-                        }
-                    }
-                })
-                .collect();
+            let heights = near_map(kind, w, h, &mut rnd);
             for edge in [Edge::Wrap, Edge::None] {
                 let g = Grid::new(w, h, &heights, edge, YAxis::Up);
-                let dirs: Vec<(f64, f64)> =
-                    (0..24).map(|n| direction(n as f64 * 2.0 * PI / 24.0, g.row_step())).collect();
-                let cuts: Vec<f64> = dirs.iter().map(|d| 16.0 * d.0.hypot(d.1).max(1.0)).collect();
+                let (dirs, cuts) = near_dirs(&g, 24);
                 for isa in [Isa::Avx512, Isa::Avx2, Isa::Baseline] {
                     if !isa.supported() {
                         continue;
