@@ -1766,6 +1766,7 @@ unsafe fn groups_avx512<const G: usize>(
     macro_rules! far_walk {
         ($xq:expr, $hq:expr, $qm:expr, $mir:expr) => {{
             let (xq, hq, qm) = ($xq, $hq, $qm);
+            // The registers' vertices bottom up: [t3, t2, t1] without the empty ones.
             let (mut r0t, mut r0y, mut r1t, mut r1y) = ([none; G], [ninf; G], [none; G], [ninf; G]);
             for g in 0..G {
                 if qm[g] == 0 {
@@ -1779,6 +1780,7 @@ unsafe fn groups_avx512<const G: usize>(
                 r1t[g] = _mm512_mask_mov_epi32(t1[g], has3, t2[g]);
                 r1y[g] = _mm512_mask_mov_ps(y1[g], has3, y2[g]);
             }
+            // Vertex j of a lane's hull from the bottom, group g (t1 again past its last).
             let at = |g: usize, j: i32| -> (__m512i, __m512) {
                 let jv = _mm512_set1_epi32(j);
                 let k = _mm512_sub_epi32(jv, dep[g]);
