@@ -1484,7 +1484,9 @@ impl<'a> NearField<'a> {
     /// floor (≥ 0, 0 for none) on entry; lanes past the row's end are unspecified. A floor
     /// known beforehand (`sweep`'s far field) culls every cell that cannot beat it, so the
     /// walk skips cells where the far horizon is high; the result is max(floor, near field) up
-    /// to the f32 rounding of a cell's value, a few ulp of the height range (tested).
+    /// to the f32 rounding of a cell's value, a few ulp of the height range (tested). Always
+    /// inlined: `sweep`'s bands call it per strip and bin from code compiled for AVX-512.
+    #[inline(always)]
     pub(crate) fn strip_above(&self, n: usize, x: usize, y: usize, best: &mut [f32; LANES]) {
         let w = self.grid.width;
         let lanes = LANES.min(w - x);

@@ -279,6 +279,51 @@ pub fn reduce_into(reduce: crate::params::Reduce, bins: &[f32], out: &mut [f32])
     out.copy_from_slice(&ch);
 }
 
+/// [`reduce_into`] for the `L` texels of a strip at once, bins lane-major: `bins[n][i]` is
+/// texel i's bin n; texel i's 8 channels go to `out[8i .. 8i + 8]` for i < `lanes`. The same
+/// sums in the same order lane by lane, so bit for bit `reduce_into`'s, in a form the compiler
+/// turns into vector adds across the strip (a texel alone is a chain of f64 adds).
+#[inline(always)]
+pub fn reduce_strip<const L: usize>(
+    reduce: crate::params::Reduce,
+    bins: &[[f32; L]],
+    lanes: usize,
+    out: &mut [f32],
+) {
+    let b = bins.len();
+    let step = b / 8;
+    let mut ch = [[0.0f32; L]; 8];
+    match reduce {
+        crate::params::Reduce::Average => {
+            let half = b / 16;
+            let inv = 1.0 / (step + 1) as f64;
+            for (c, o) in ch.iter_mut().enumerate() {
+                let mut i = (c * step + b - half) % b;
+                let mut sum = [0.0f64; L];
+                for _ in 0..=2 * half {
+                    for (s, &v) in sum.iter_mut().zip(&bins[i]) {
+                        *s += v as f64;
+                    }
+                    i = if i + 1 == b { 0 } else { i + 1 };
+                }
+                for (o, s) in o.iter_mut().zip(sum) {
+                    *o = (s * inv) as f32;
+                }
+            }
+        }
+        crate::params::Reduce::Point => {
+            for (c, o) in ch.iter_mut().enumerate() {
+                *o = bins[c * step];
+            }
+        }
+    }
+    for (i, t) in out.chunks_exact_mut(8).take(lanes).enumerate() {
+        for (c, v) in t.iter_mut().enumerate() {
+            *v = ch[c][i];
+        }
+    }
+}
+
 /// Reduces per-bin values to 8 channels by taking the bin at each channel's azimuth.
 #[inline]
 pub fn reduce_point(bins: &[f32], out: &mut [f32; 8]) {
@@ -313,6 +358,45 @@ mod tests {
                     .sum();
                 let want = (sum * (1.0 / (step + 1) as f64)) as f32;
                 assert_eq!(g.to_bits(), want.to_bits(), "{b} bins, channel {c}");
+            }
+        }
+    }
+
+    /// The strip form against the texel form, bit for bit, for every bin count up to 64, both
+    /// reductions, and a strip shorter than its lanes.
+    #[test]
+    fn reduce_strip_is_reduce_into_lane_by_lane() {
+        let mut seed = 11u64;
+        for b in 1..=64usize {
+            let bins: Vec<[f32; 16]> = (0..b)
+                .map(|_| {
+                    std::array::from_fn(|_| {
+                        seed = seed
+                            .wrapping_mul(6364136223846793005)
+                            .wrapping_add(1442695040888963407);
+                        (seed >> 40) as f32 / (1u64 << 20) as f32
+                    })
+                })
+                .collect();
+            for reduce in [crate::params::Reduce::Average, crate::params::Reduce::Point] {
+                for lanes in [16, 5] {
+                    let mut got = vec![-1.0f32; 16 * 8];
+                    reduce_strip(reduce, &bins, lanes, &mut got);
+                    for i in 0..16 {
+                        let texel: Vec<f32> = bins.iter().map(|v| v[i]).collect();
+                        let mut want = [-1.0f32; 8];
+                        if i < lanes {
+                            reduce_into(reduce, &texel, &mut want);
+                        }
+                        for c in 0..8 {
+                            assert_eq!(
+                                got[i * 8 + c].to_bits(),
+                                want[c].to_bits(),
+                                "{b} bins, {reduce:?}, {lanes} lanes, texel {i} channel {c}"
+                            );
+                        }
+                    }
+                }
             }
         }
     }
