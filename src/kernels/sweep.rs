@@ -91,9 +91,10 @@
 //! a one-at-a-time walk reaches, by the same float operations: the same bits). The bands give
 //! each texel's far value to the near field as a floor ([`NearField::strip_above`]), so its
 //! walk culls the cells that cannot beat it; with AVX-512 the join around it (the point at R,
-//! sin α, the channel sums across a strip) is compiled for it too ([`Sweep::rows_avx512`]). With `edge=wrap` the lines run R past the map and
-//! a finite R takes two passes (suffix and prefix hulls, ≈3 pushes per sample at `unlimited`,
-//! ≈2 at a short R), shared by the two opposite azimuths, so about half that per azimuth. A
+//! sin α, the channel sums across a strip) is compiled for it too ([`Sweep::rows_avx512`]).
+//! With `edge=wrap` the lines run R past the map and a finite R takes two passes (suffix and
+//! prefix hulls, ≈3 pushes per sample at `unlimited`, ≈2 at a short R), shared by the two
+//! opposite azimuths, so about half that per azimuth. A
 //! query of the prefix pass looks at the far part of its window (from the next block's start
 //! on) after the suffix pass gave it the near part's tangent: where the highest sample of that
 //! far part cannot beat it, no walk is made (a bound by the same float operations, so the
