@@ -1041,6 +1041,16 @@ fn done(cx: &Strip<'_>, best: &[f32; LANES], s_a: f32) -> bool {
     done
 }
 
+/// `a < b ? a : b`: one `minps`, as [`fmax`].
+#[inline(always)]
+fn fmin(a: f32, b: f32) -> f32 {
+    if a < b {
+        a
+    } else {
+        b
+    }
+}
+
 /// `a > b ? a : b`: one `maxps`, unlike `f32::max` whose NaN rules cost two more instructions
 /// (NaN cannot win here: it only arises in masked-out lanes).
 #[inline(always)]
@@ -1612,6 +1622,27 @@ impl<'a> NearField<'a> {
         h0: &[f32; LANES],
         best: &mut [f32; LANES],
     ) {
+        self.walk(n, x, y, h0, best, true);
+    }
+
+    /// [`NearField::strip_above`] by the cell walk alone (for the tests of its culls).
+    #[cfg(test)]
+    fn cell_walk_above(&self, n: usize, x: usize, y: usize, best: &mut [f32; LANES]) {
+        let h0 = self.lanes_h0(x, y);
+        self.walk(n, x, y, &h0, best, false);
+    }
+
+    /// [`NearField::strip_from`], by crossings only where `crossings` allows it.
+    #[inline(always)]
+    fn walk(
+        &self,
+        n: usize,
+        x: usize,
+        y: usize,
+        h0: &[f32; LANES],
+        best: &mut [f32; LANES],
+        crossings: bool,
+    ) {
         let w = self.grid.width;
         let lanes = LANES.min(w - x);
         let (dx, dy) = self.dirs[n];
@@ -1624,11 +1655,15 @@ impl<'a> NearField<'a> {
             let (px, py) = (xx as f64 + cut * dx, y as f64 + cut * dy);
             (0.0..=wm).contains(&px) && (0.0..=hm).contains(&py)
         };
-        if self.grid.edge == Edge::None && !(inside(x) && inside(x + lanes - 1)) {
+        let border = self.grid.edge == Edge::None && !(inside(x) && inside(x + lanes - 1));
+        if border {
             for (i, c) in count.iter_mut().enumerate().take(lanes) {
                 let ray = Ray::new(&self.grid, x + i, y, dx, dy, Some(self.cuts[n]));
                 *c = self.near.count(n, ray.s_end);
             }
+        }
+        // The crossing walk reads the cells' maxima, kept while the near field is short.
+        if border || !crossings || self.near.cmax.is_empty() {
             self.near.strip(n, (dx, dy), x, y, h0, &count, self.hmax, best);
         } else {
             self.crossings(n, x, y, h0, best);
@@ -1759,7 +1794,11 @@ impl<'a> NearField<'a> {
             let mut v = [0.0f32; LANES];
             let mut interior = false;
             for i in 0..LANES {
-                v[i] = (a[i] + (b[i] - a[i]) * f - (h0[i] + drop)) * inv_sb;
+                // Never above the higher texel, whatever the rounding: a lerp that rounded up
+                // past it would lift a texel level with its neighbours by an ulp of heights
+                // of 1e30, a tan α of 1e22.
+                let h = fmin(a[i] + (b[i] - a[i]) * f, fmax(a[i], b[i]));
+                v[i] = (h - (h0[i] + drop)) * inv_sb;
                 out[i] = fmax(v[i], out[i]);
                 let t = tw[i] * bulge + lift;
                 interior |= (t > 0.0) & (fmax(prev[i], v[i]) + t + margin > out[i]);
@@ -1768,16 +1807,25 @@ impl<'a> NearField<'a> {
                 // The bound can beat the best somewhere: whether the stationary point of the
                 // piece's quadratic lies inside it, as `piece` asks, before solving it whole.
                 let Xing { s_a, s_b, len_inv, len, l2, .. } = *xg;
+                // And the cell walk's own cull, on exact values: the cell's highest corner
+                // over s_a must beat the best value. Without it the closed form would run on
+                // cells it never needed, where its f32 cancellation shows: a ±1e30
+                // checkerboard's diagonal gave a high texel tan α 0.23 above nothing.
+                let cm = &near.cmax[oc..oc + LANES];
                 let mut inside = false;
+                for i in 0..LANES {
+                    inside |= cm[i] - h0[i] > out[i] * s_a;
+                }
+                let mut stationary = false;
                 for i in 0..LANES {
                     let d2 = -(tw[i] * bulge + lift) * qi;
                     let (ha, hb) = (prev[i] * s_a, v[i] * s_b);
                     let d1 = (hb - ha) * len_inv - d2 * len;
                     let nn = d1 * s_a - ha;
                     let span = l2 * -d2;
-                    inside |= (d2 < 0.0) & (nn > -1e-3 * span) & (nn < 1.001 * span);
+                    stationary |= (d2 < 0.0) & (nn > -1e-3 * span) & (nn < 1.001 * span);
                 }
-                if inside {
+                if inside & stationary {
                     whole(p, (oc, pw), seg, (dx, dy, curv), inv_sb, h0, &mut out, false);
                 }
             }
@@ -1948,6 +1996,57 @@ mod tests {
         }
         assert!(compared > 50_000, "compared {compared}");
         assert!(raised > 100, "interior maxima above both ends of a piece: {raised}");
+        // Heights of ±1e30 in a checkerboard: a high texel has nothing above it, in every
+        // direction (the diagonals run through cells whose closed form cancels badly in f32,
+        // and a lerp rounded up by an ulp of 1e30 would be a tan α of 1e22).
+        let (w, h) = (8usize, 6usize);
+        let board: Vec<f32> =
+            (0..w * h).map(|k| if (k % w + k / w) % 2 == 0 { 1e30 } else { -1e30 }).collect();
+        let g = Grid::new(w, h, &board, Edge::Wrap, YAxis::Up);
+        let (dirs, cuts) = near_dirs(&g, 32);
+        for isa in [Isa::Avx512, Isa::Avx2, Isa::Baseline] {
+            if !isa.supported() {
+                continue;
+            }
+            let near = NearField::new(g, &dirs, &cuts, 0.0, isa);
+            for y in 0..h {
+                let h0 = near.lanes_h0(0, y);
+                for n in 0..dirs.len() {
+                    let mut got = [0.0f32; LANES];
+                    near.crossings(n, 0, y, &h0, &mut got);
+                    for (x, &v) in got.iter().enumerate().take(w) {
+                        if board[y * w + x] > 0.0 {
+                            assert!(v <= 0.0, "{isa:?} high texel ({x}, {y}) bin {n}: {v}");
+                        } else {
+                            assert!(v > 1e29, "{isa:?} low texel ({x}, {y}) bin {n}: {v}");
+                        }
+                    }
+                }
+            }
+            // Random heights of ±1e30 scale: the highest texel has nothing above it, even
+            // where the lerp towards it from a lower neighbour ends next to it.
+            for seed in 0..20u64 {
+                let mut r = lcg(seed);
+                let (w, h) = (19usize, 17usize);
+                let vals: Vec<f32> = (0..w * h).map(|_| (r() * 2.0 - 1.0) * 1e30).collect();
+                let top = vals.iter().copied().fold(f32::MIN, f32::max);
+                let t = vals.iter().position(|&v| v == top).unwrap();
+                let (tx, ty) = (t % w, t / w);
+                let g = Grid::new(w, h, &vals, Edge::Wrap, YAxis::Up);
+                let (dirs, cuts) = near_dirs(&g, 64);
+                let near = NearField::new(g, &dirs, &cuts, 0.0, isa);
+                let h0 = near.lanes_h0(tx, ty);
+                for n in 0..dirs.len() {
+                    let mut got = [0.0f32; LANES];
+                    near.crossings(n, tx, ty, &h0, &mut got);
+                    assert!(
+                        got[0] <= 0.0,
+                        "{isa:?} seed {seed} top ({tx}, {ty}) bin {n}: {}",
+                        got[0]
+                    );
+                }
+            }
+        }
     }
 
     /// The cells' maxima ([`Near::cmax`]) cull exactly the pieces the four corners culled: a
@@ -1979,8 +2078,8 @@ mod tests {
                                 let f = rnd() * 0.5;
                                 for floor in [0.0, f] {
                                     let (mut a, mut b) = ([floor; LANES], [floor; LANES]);
-                                    with.strip_above(n, x, y, &mut a);
-                                    without.strip_above(n, x, y, &mut b);
+                                    with.cell_walk_above(n, x, y, &mut a);
+                                    without.cell_walk_above(n, x, y, &mut b);
                                     for i in 0..LANES.min(w - x) {
                                         assert_eq!(
                                             a[i].to_bits(),
