@@ -1729,12 +1729,15 @@ impl<'a> NearField<'a> {
     /// the piece's larger end by up to −d2·len²/(4·s_a) (see [`piece`]). So each piece costs
     /// its exit's value (a lerp of the two texels of the grid line it crosses, one load per
     /// texel and lane) and that bound from the cell's twist; where the bound beats the best
-    /// value for some lane and the stationary point lies inside the piece, the piece is solved
-    /// whole in closed form (`INTERIOR`; false only for a test). No cull against the best
-    /// value: with a piece this cheap, the branch a cull takes costs more than the piece. The
-    /// first piece (from the texel itself, whose limit s → 0⁺ counts) is always solved whole.
-    /// Measured at 2048² `unlimited` on fBm: 3.4 of 22.7 pieces a strip pass the bound, 1.05
-    /// also the stationary point's test; the cell walk solved 9.4 whole after its culls.
+    /// value for some lane, the cell walk's own cull would not drop the piece (its highest
+    /// corner over s_a beats the best value: on exact values, so the closed form never runs
+    /// where its f32 cancellation could invent a horizon) and the stationary point lies inside
+    /// the piece, the piece is solved whole in closed form (`INTERIOR`; false only for a test).
+    /// No cull before the exit's value: with a piece this cheap, the branch a cull takes costs
+    /// more than the piece. The first piece (from the texel itself, whose limit s → 0⁺ counts)
+    /// is always solved whole. Measured at 2048² `unlimited` on fBm: 3.4 of 22.7 pieces a strip
+    /// pass the bound, 1.05 also the stationary point's test (before the cull joined it); the
+    /// cell walk solved 9.4 whole after its culls.
     #[inline(always)]
     fn crossings_body<const INTERIOR: bool>(
         &self,

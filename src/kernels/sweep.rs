@@ -3,10 +3,12 @@
 //!
 //! # Two fields joined by max
 //! - **Near field**, 0 < s ≤ [`NEAR`] major-axis steps (N·√(1 + m²) texels of arc, clipped to
-//!   R): exact, on the texel's own ray, by the exact kernel's vectorised cell walk
-//!   ([`NearField`]: 16 texels of a row in lockstep, the per-cell quadratic maximum, the
-//!   curvature drop as a term of that quadratic). Near the texel the azimuth of a sample matters
-//!   most; sampling only grid-line crossings there would miss the bilinear saddle inside a cell.
+//!   R): exact, on the texel's own ray ([`NearField`]: 16 texels of a row in lockstep; the
+//!   ray's values at its grid-line crossings, and a piece within a cell solved in closed form,
+//!   the per-cell quadratic maximum with the curvature drop as a term of it, wherever the
+//!   cell's twist can lift the surface above the chord enough to matter). Near the texel the
+//!   azimuth of a sample matters most; sampling only grid-line crossings there would miss the
+//!   bilinear saddle inside a cell, which the closed form does not.
 //! - **Far field**, beyond: per azimuth, lines parallel to it. The major axis (the one the
 //!   azimuth moves along faster) steps one texel; the minor coordinate moves by the slope
 //!   m ∈ [−1, 1]. [`SUB`] families of lines sit at minor intercepts k/SUB; a sample of a line at
@@ -92,8 +94,9 @@
 //! each texel's far value to the near field as a floor ([`NearField::strip_from`]); where all
 //! of a strip's rays run to the cut, the near field walks crossings: each piece's exit as a
 //! lerp of the two texels of the grid line it crosses, and the piece solved whole only where
-//! the bulge of the cell's twist can beat the best value (3.4 of 22.7 pieces a strip on fBm,
-//! 1.05 once the stationary point is tested too). The bands run a row's strips bin by bin, so
+//! the bulge of the cell's twist can beat the best value and the cell walk would not cull it
+//! (3.4 of 22.7 pieces a strip on fBm pass the first test, 1.05 the stationary point's, fewer
+//! all). The bands run a row's strips bin by bin, so
 //! the points at R and the far table are read along rows; with AVX-512 the join around the
 //! near field (the point at R, sin α, the channel sums across a strip) is compiled for it too
 //! ([`Sweep::rows_avx512`]).
