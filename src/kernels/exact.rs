@@ -1471,8 +1471,8 @@ pub(crate) struct NearField<'a> {
     /// Per direction and piece, its exit crossing ([`Xing`]), for the crossing walk.
     xings: Vec<Vec<Xing>>,
     /// Per padded texel (r, c), the twist k3 − k1 − k2 + k0 of the cell it is the top left of:
-    /// the bilinear surface's only second-order term, so a piece bulges above its chord only
-    /// where twist·dx·dy exceeds the curvature drop.
+    /// the bilinear surface's only second-order term, so a piece (less the curvature drop)
+    /// bulges above its chord only where twist·dx·dy is below the drop's c.
     twist: Vec<f32>,
 }
 
@@ -1491,9 +1491,9 @@ struct Xing {
     inv_sb: f32,
     /// The curvature drop at the exit, curv·s_b².
     drop: f32,
-    /// The bound on the bulge above the chord: tan α inside the piece is at most the larger
-    /// end's plus max(twist·`bulge`, 0) + `lift` (−dx·dy·len²/(4·s_a) and the curvature's
-    /// share, curv·len²/(4·s_a), with a margin for the rounding of the ends).
+    /// The bound on the bulge above the chord: where t = twist·`bulge` + `lift` > 0
+    /// (`bulge` = −dx·dy·len²/(4·s_a), `lift` = curv·len²/(4·s_a)), tan α inside the piece is
+    /// at most the larger end's plus t; `margin` covers the rounding of the ends.
     bulge: f32,
     lift: f32,
     margin: f32,
@@ -1693,7 +1693,14 @@ impl<'a> NearField<'a> {
     /// The crossing walk without the pieces solved whole (the pieces' ends and the first
     /// piece's slope alone), for the test that shows those are needed.
     #[cfg(test)]
-    fn crossings_ends(&self, n: usize, x: usize, y: usize, h0: &[f32; LANES], b: &mut [f32; 16]) {
+    fn crossings_ends(
+        &self,
+        n: usize,
+        x: usize,
+        y: usize,
+        h0: &[f32; LANES],
+        b: &mut [f32; LANES],
+    ) {
         self.crossings_body::<false>(n, x, y, h0, b);
     }
 
@@ -1815,9 +1822,9 @@ impl<'a> NearField<'a> {
                 // cells it never needed, where its f32 cancellation shows: a ±1e30
                 // checkerboard's diagonal gave a high texel tan α 0.23 above nothing.
                 let cm = &near.cmax[oc..oc + LANES];
-                let mut inside = false;
+                let mut kept = false;
                 for i in 0..LANES {
-                    inside |= cm[i] - h0[i] > out[i] * s_a;
+                    kept |= cm[i] - h0[i] > out[i] * s_a;
                 }
                 let mut stationary = false;
                 for i in 0..LANES {
@@ -1828,7 +1835,7 @@ impl<'a> NearField<'a> {
                     let span = l2 * -d2;
                     stationary |= (d2 < 0.0) & (nn > -1e-3 * span) & (nn < 1.001 * span);
                 }
-                if inside & stationary {
+                if kept & stationary {
                     whole(p, (oc, pw), seg, (dx, dy, curv), inv_sb, h0, &mut out, false);
                 }
             }

@@ -96,17 +96,17 @@
 //! lerp of the two texels of the grid line it crosses, and the piece solved whole only where
 //! the bulge of the cell's twist can beat the best value and the cell walk would not cull it
 //! (3.4 of 22.7 pieces a strip on fBm pass the first test, 1.05 the stationary point's, fewer
-//! all). The bands run a row's strips bin by bin, so
-//! the points at R and the far table are read along rows; with AVX-512 the join around the
-//! near field (the point at R, sin α, the channel sums across a strip) is compiled for it too
-//! ([`Sweep::rows_avx512`]).
+//! all). The bands run a row's strips bin by bin, so the points at R and the far table are
+//! read along rows; with AVX-512 the join around the near field (the point at R, sin α, the
+//! channel sums across a strip) is compiled for it too ([`Sweep::rows_avx512`]).
+//!
 //! With `edge=wrap` the lines run R past the map and a finite R takes two passes (suffix and
 //! prefix hulls, ≈3 pushes per sample at `unlimited`, ≈2 at a short R), shared by the two
-//! opposite azimuths, so about half that per azimuth. A
-//! query of the prefix pass looks at the far part of its window (from the next block's start
-//! on) after the suffix pass gave it the near part's tangent: where the highest sample of that
-//! far part cannot beat it, no walk is made (a bound by the same float operations, so the
-//! same bits; measured −7 % of the build at 2048² `unlimited`).
+//! opposite azimuths, so about half that per azimuth. A query of the prefix pass looks at the
+//! far part of its window (from the next block's start on) after the suffix pass gave it the
+//! near part's tangent: where the highest sample of that far part cannot beat it, no walk is
+//! made (a bound by the same float operations, so the same bits; measured −7 % of the build
+//! at 2048² `unlimited`).
 //!
 //! Counted (temporary counters, 1024² fBm, 32 bins, per group of 16 lines and W = 1024 query
 //! columns): `edge=wrap` unlimited pushes 1.75·W samples in the suffix pass and 1.01·W in the
@@ -2217,9 +2217,9 @@ impl Sweep<'_> {
                     let (x, lanes) = (j * NEAR_LANES, NEAR_LANES.min(w - j * NEAR_LANES));
                     self.end_points(n, x, y, lanes, &hs[j], &mut ep);
                     let fb = &row[x..x + lanes];
-                    // The far field and the point at R first: the near field then only walks
-                    // the cells that could beat them (the max is the same but for the f32
-                    // rounding of a culled cell's value).
+                    // The far field and the point at R first: the near field then only solves
+                    // the pieces that could beat them (the max is the same but for the f32
+                    // rounding of a skipped piece's value).
                     best = [0.0; NEAR_LANES];
                     if let Ok(fb) = <&[f32; NEAR_LANES]>::try_from(fb) {
                         // A whole strip: a loop of fixed length, which vectorises.
