@@ -1152,8 +1152,9 @@ struct QCol {
 struct Family<'s> {
     cols: &'s [Col],
     qs: &'s [QCol],
-    /// Offset of minor 0 of query column q in the sums (major-line layout).
+    /// Offset of minor 0 of query column q in the sums' chunk 0 (major-line layout).
     abase: &'s [usize],
+    lay: SumLayout,
     data: &'s [f32],
     /// [`MajorLines::chunk`].
     chunk: usize,
@@ -1254,6 +1255,10 @@ fn far_field_fast(
         .flatten()
         .fold((i64::MAX, i64::MIN), |(lo, hi), &(_, s, _)| (lo.min(s), hi.max(s)));
     let via_acc = lines.major_x || fresh;
+    // Sums in the scratch planes are kept in chunks of CA minor texels (see `SumLayout`); in
+    // `out` itself (the spill's planes along y), in its own layout.
+    let lay = SumLayout { chunk: if via_acc { wa * CA } else { 0 } };
+    let plane = if via_acc { hb.div_ceil(CA) * CA * wa } else { w * h };
     let planes = if e.is_some() { 2 } else { 1 };
     let mut acc = std::mem::take(&mut sc.acc);
     let mut acc2 = std::mem::take(&mut sc.acc2);
@@ -1263,9 +1268,9 @@ fn far_field_fast(
         miss.clear();
         a.clear();
         if p < planes {
-            miss.resize(w * h, 0.0);
+            miss.resize(plane, 0.0);
             if via_acc {
-                a.resize(w * h, 0.0);
+                a.resize(plane, 0.0);
             }
         }
     }
@@ -1273,14 +1278,14 @@ fn far_field_fast(
     sc.sb.resize(planes * (BATCH + GROUPS) * wa * FL, f32::NEG_INFINITY);
     let mut abase = std::mem::take(&mut sc.abase);
     abase.clear();
-    abase.extend((0..wa as i64).map(|u| major(u) * hb));
+    abase.extend((0..wa as i64).map(|u| major(u) * lay.row(hb)));
     let mut abase2 = std::mem::take(&mut sc.abase2);
     let mut fams2: Vec<[(usize, i64, f64); 2]> = Vec::new();
     abase2.clear();
     if let Some((ml2, _)) = &mirror {
         // The mirror's own look order, as `major` for it (its query columns are on the map).
         let m2 = |u: i64| (if ml2.sign > 0 { u } else { wa as i64 - 1 - u }) as usize;
-        abase2.extend((0..wa as i64).map(|u| m2(u) * hb));
+        abase2.extend((0..wa as i64).map(|u| m2(u) * lay.row(hb)));
         fams2.extend((0..wa as i64).map(|u| ml2.pair(u)));
     }
     let mut cols = std::mem::take(&mut sc.cols);
@@ -1315,6 +1320,7 @@ fn far_field_fast(
             cols: &cols,
             qs: &qs,
             abase: &abase,
+            lay,
             data: &ml.data,
             chunk: ml.chunk,
             hb: hbi,
@@ -1366,9 +1372,9 @@ fn far_field_fast(
             }
         }
     }
-    finish(lines.major_x, via_acc, emit, &acc, &sc.miss, out, w, h);
+    finish(lines.major_x, via_acc, lay, emit, &acc, &sc.miss, out, w, h);
     if let Some((ml2, out2)) = mirror.as_mut().filter(|_| e.is_some()) {
-        finish(ml2.major_x, via_acc, None, &acc2, &sc.miss2, out2, w, h);
+        finish(ml2.major_x, via_acc, lay, None, &acc2, &sc.miss2, out2, w, h);
     }
     sc.fams = fams;
     sc.acc = acc;
@@ -1387,6 +1393,7 @@ fn far_field_fast(
 fn finish(
     major_x: bool,
     via_acc: bool,
+    lay: SumLayout,
     emit: Option<Emit<'_>>,
     acc: &[f32],
     miss: &[f32],
@@ -1394,42 +1401,91 @@ fn finish(
     w: usize,
     h: usize,
 ) {
+    let norm = |a: f32, ws: f32| if ws > 0.0 { a / ws } else { a };
     if let (true, Some(emit)) = (major_x, emit) {
         // Transposed and normalised a band of rows at a time, each band handed on: no plane
-        // in the image layout is ever whole.
+        // in the image layout is ever whole. A band's rows lie in one chunk of the sums.
         let mut buf = vec![0.0f32; w * EMIT_ROWS.min(h)];
         for y0 in (0..h).step_by(EMIT_ROWS) {
             let n = EMIT_ROWS.min(h - y0);
             for x in 0..w {
-                let (a, ws) = (&acc[x * h + y0..][..n], &miss[x * h + y0..][..n]);
+                let o = lay.at(x * lay.row(h), y0);
+                let (a, ws) = (&acc[o..][..n], &miss[o..][..n]);
                 for (r, (&a, &ws)) in a.iter().zip(ws).enumerate() {
-                    buf[r * w + x] = if ws > 0.0 { a / ws } else { a };
+                    buf[r * w + x] = norm(a, ws);
                 }
             }
             emit(y0 * w, &buf[..n * w]);
         }
     } else if major_x {
-        // Transposed back to the image layout while normalising, in tiles.
+        // Transposed back to the image layout while normalising, in tiles (a tile's column
+        // in one chunk of the sums).
         const T: usize = 32;
         for x0 in (0..w).step_by(T) {
             for y0 in (0..h).step_by(T) {
                 for x in x0..(x0 + T).min(w) {
-                    for y in y0..(y0 + T).min(h) {
-                        let (a, ws) = (acc[x * h + y], miss[x * h + y]);
-                        out[y * w + x] = if ws > 0.0 { a / ws } else { a };
+                    let o = lay.at(x * lay.row(h), y0);
+                    for (y, i) in (y0..(y0 + T).min(h)).zip(o..) {
+                        out[y * w + x] = norm(acc[i], miss[i]);
                     }
                 }
             }
         }
     } else if via_acc {
-        for ((o, &a), &ws) in out.iter_mut().zip(acc.iter()).zip(miss.iter()) {
-            *o = if ws > 0.0 { a / ws } else { a };
+        // Rows of the image are rows of the sums, a chunk's run at a time.
+        for (y, row) in out.chunks_mut(w).enumerate() {
+            for x0 in (0..w).step_by(CA) {
+                let o = lay.at(y * lay.row(w), x0);
+                let n = CA.min(w - x0);
+                for ((v, &a), &ws) in row[x0..][..n].iter_mut().zip(&acc[o..][..n]).zip(&miss[o..])
+                {
+                    *v = norm(a, ws);
+                }
+            }
         }
     } else {
         for (o, &ws) in out.iter_mut().zip(miss.iter()) {
             if ws > 0.0 {
                 *o /= ws;
             }
+        }
+    }
+}
+
+/// Minor texels per chunk of the far field's sums (see [`SumLayout`]).
+const CA: usize = 128;
+
+/// Where the sums of a far-field plane are kept: with `chunk` = 0 in major-line layout
+/// (`major · hb + minor`), else in chunks of [`CA`] minor texels, each chunk (`chunk` floats)
+/// every major line's run of CA in turn (`(minor / CA) · chunk + major · CA + minor % CA`).
+/// The tangents of a batch of 8 groups of lines go into 128 adjacent texels of one query
+/// column after another, so in major-line layout every column's run was a new row, a new page
+/// (8 KiB rows at 2048²), and the adds waited on those misses even prefetched (more than half
+/// of [`add_batch_avx512`]'s profile); in chunks, a page holds 8 columns' runs.
+#[derive(Clone, Copy)]
+struct SumLayout {
+    chunk: usize,
+}
+
+impl SumLayout {
+    /// The floats a major line's run takes within a chunk (the whole minor size `hb` when
+    /// not chunked).
+    #[inline(always)]
+    fn row(self, hb: usize) -> usize {
+        if self.chunk == 0 {
+            hb
+        } else {
+            CA
+        }
+    }
+
+    /// The offset of minor `b` of the line whose run starts at `base` (major · [`Self::row`]).
+    #[inline(always)]
+    fn at(self, base: usize, b: usize) -> usize {
+        if self.chunk == 0 {
+            base + b
+        } else {
+            (b / CA) * self.chunk + base + b % CA
         }
     }
 }
@@ -2204,13 +2260,19 @@ unsafe fn add_batch_avx512(
     let wa = f.wa as usize;
     const PFS: i64 = 24;
     let Some(&(first, _)) = batch.first() else { return };
+    let span = batch.last().map_or(0, |&(i0, _)| i0 + FL as i64 - first);
     for q in 0..f.wa {
-        // Each query column's sums are a new row: fetch a few ahead.
+        // Each query column's sums are a new row: fetch a few ahead, every cache line of the
+        // batch's run of it.
         let qa = q + PFS;
-        if qa < f.wa {
-            let o = f.abase[qa as usize] as isize + (first - f.qs[qa as usize].shift) as isize;
-            let o = o.clamp(0, sums.len() as isize - 1);
-            _mm_prefetch::<_MM_HINT_T0>(sums.as_ptr().offset(o) as *const i8);
+        if qa < f.wa && f.qs[qa as usize].on {
+            let b_lo = first - f.qs[qa as usize].shift;
+            for off in (0..span + 16).step_by(16) {
+                let b = b_lo + off;
+                let b = if f.wrap { b.rem_euclid(f.hb) } else { b.clamp(0, f.hb - 1) };
+                let p = sums.as_ptr().wrapping_add(f.lay.at(f.abase[qa as usize], b as usize));
+                _mm_prefetch::<_MM_HINT_T0>(p as *const i8);
+            }
         }
         let qc = f.qs[q as usize];
         if !qc.on {
@@ -2251,11 +2313,26 @@ unsafe fn add_lanes(
         if mm == 0 {
             continue;
         }
-        // Masked lanes are neither read nor written, so the pointer may point before the
-        // slice for lanes that are masked off.
-        let p = dst.as_mut_ptr().wrapping_offset(base + off as isize);
-        let old = _mm512_maskz_loadu_ps(mm, p);
-        _mm512_mask_storeu_ps(p, mm, _mm512_add_ps(old, v));
+        // In chunks, the lanes from the next chunk's first texel on are that chunk's.
+        let (runs, n) = if f.lay.chunk == 0 {
+            ([(mm, off as isize), (0, 0)], 1)
+        } else {
+            let (c, r) = (off.div_euclid(CA as i64), off.rem_euclid(CA as i64));
+            let k = CA as i64 - r;
+            let lo = if k >= 16 { 0xffff } else { ((1u32 << k) - 1) as u16 };
+            let at = |c: i64| c as isize * f.lay.chunk as isize + r as isize;
+            ([(mm & lo, at(c)), (mm & !lo, at(c + 1) - CA as isize)], 2)
+        };
+        for &(mm, o) in &runs[..n] {
+            if mm == 0 {
+                continue;
+            }
+            // Masked lanes are neither read nor written, so the pointer may point before the
+            // slice for lanes that are masked off.
+            let p = dst.as_mut_ptr().wrapping_offset(base + o);
+            let old = _mm512_maskz_loadu_ps(mm, p);
+            _mm512_mask_storeu_ps(p, mm, _mm512_add_ps(old, v));
+        }
     }
 }
 
