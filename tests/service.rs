@@ -442,13 +442,85 @@ async fn finished_bakes_are_removed_after_the_retention() {
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
     // The record goes first (a GET must never find a record whose blobs are gone), its blobs
-    // a moment later in the same sweep: wait for them rather than stop in between (CI saw a
-    // stop land there, the blobs then left for the next start's orphan sweep).
-    while !blob_files(srv.dir.path()).is_empty() {
-        assert!(t.elapsed() < Duration::from_secs(30), "{:?}", blob_files(srv.dir.path()));
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
+    // a moment later in the same sweep; a stop landing in between waits for the sweep to finish
+    // (CI once saw the blobs left behind, before the drain waited for it; the test
+    // `a_drain_waits_for_a_retention_sweep_in_flight` makes that case happen every time).
     let dir = srv.stop().await;
+    assert!(blob_files(dir.path()).is_empty(), "{:?}", blob_files(dir.path()));
+}
+
+/// A blob store whose deletes take a while (an S3 round trip, a slow disk), so a retention
+/// sweep is still removing a bake's blobs when the server drains.
+struct SlowDeletes(horizon_bake::jobs::store::FsBlobStore);
+
+impl horizon_bake::jobs::store::BlobStore for SlowDeletes {
+    fn writer(
+        &self,
+    ) -> horizon_bake::error::Result<Box<dyn horizon_bake::jobs::store::BlobWriter>> {
+        self.0.writer()
+    }
+    fn put(
+        &self,
+        bytes: &[u8],
+        pin: horizon_bake::jobs::store::PinHook<'_>,
+    ) -> horizon_bake::error::Result<String> {
+        self.0.put(bytes, pin)
+    }
+    fn get(&self, hash: &str) -> horizon_bake::error::Result<Option<Vec<u8>>> {
+        self.0.get(hash)
+    }
+    fn contains(&self, hash: &str) -> horizon_bake::error::Result<bool> {
+        self.0.contains(hash)
+    }
+    fn delete(&self, hash: &str) -> horizon_bake::error::Result<()> {
+        std::thread::sleep(Duration::from_millis(300));
+        self.0.delete(hash)
+    }
+    fn list(&self) -> horizon_bake::error::Result<Vec<(String, u64)>> {
+        self.0.list()
+    }
+    fn open(
+        &self,
+        hash: &str,
+    ) -> horizon_bake::error::Result<Option<(u64, Box<dyn std::io::Read + Send>)>> {
+        self.0.open(hash)
+    }
+}
+
+/// A drain waits for a retention sweep in flight: the bake whose record the sweep removed
+/// loses its blobs before the drain returns (the process exits then), rather than keeping
+/// them until a later start's orphan sweep. Before the fix the sweeper was a detached task and
+/// the drain returned with the blobs still there.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_drain_waits_for_a_retention_sweep_in_flight() {
+    use horizon_bake::jobs::{embedded::EmbeddedRepo, store::FsBlobStore};
+    use std::sync::Arc;
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = horizon_bake::service::config::Config::for_dir(dir.path()).unwrap();
+    config.bake_threads = 1;
+    config.retention = Duration::ZERO;
+    config.sweep_interval = Duration::from_millis(100);
+    let repo = Arc::new(EmbeddedRepo::open(&dir.path().join("bakes.redb")).unwrap());
+    let blobs = Arc::new(SlowDeletes(FsBlobStore::open(&dir.path().join("blobs")).unwrap()));
+    let st = service::AppState::with_stores(config, repo, blobs).unwrap();
+    st.start().await.unwrap();
+    let app = service::app(st.clone());
+    let (s, h, _) = oneshot(&app, submit_req(&terrain_png16(16, 16, 3))).await;
+    assert_eq!(s, 202);
+    let loc = h["location"].to_str().unwrap().to_owned();
+    let t = Instant::now();
+    loop {
+        let (s, _, _) = oneshot(&app, Request::get(&loc).body(Body::empty()).unwrap()).await;
+        if s == 404 {
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(30), "not removed");
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    // The record is gone and its blobs are being deleted, 300 ms each.
+    let left = blob_files(dir.path()).len();
+    assert!(left > 1, "the sweep should still be deleting: {left} blob files left");
+    st.drain().await;
     assert!(blob_files(dir.path()).is_empty(), "{:?}", blob_files(dir.path()));
 }
 

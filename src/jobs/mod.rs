@@ -187,6 +187,9 @@ struct Inner {
     /// Ends background loops and watchers.
     closing: CancellationToken,
     tracker: TaskTracker,
+    /// The reaper and the retention sweeper: [`Jobs::drain`] waits for them to stop, so a
+    /// sweep in flight finishes removing a bake's blobs rather than leaving them behind.
+    housekeeping: TaskTracker,
     /// Local fan-out of the repository's change feed (and of local progress).
     changes: broadcast::Sender<String>,
     rt: tokio::runtime::Handle,
@@ -295,6 +298,11 @@ pub const TILE_AHEAD: usize = 1;
 /// instead of going back to the queue once more.
 const UNAVAILABLE_ATTEMPTS: u32 = 5;
 
+/// How long [`Jobs::drain`] waits for the reaper and a retention sweep in flight: each stops
+/// between bakes once closing, so this only bounds a store that has stopped answering (what is
+/// left then, blobs of a removed record, the next start's orphan sweep collects).
+pub const HOUSEKEEPING_GRACE: Duration = Duration::from_secs(30);
+
 /// Runs a blocking closure off the async workers.
 ///
 /// # Errors
@@ -344,6 +352,7 @@ impl Jobs {
             stop: CancellationToken::new(),
             closing: CancellationToken::new(),
             tracker: TaskTracker::new(),
+            housekeeping: TaskTracker::new(),
             changes,
             rt,
             tiling: std::sync::OnceLock::new(),
@@ -423,9 +432,9 @@ impl Jobs {
             }
         }
         let r = self.clone();
-        tokio::spawn(async move { r.reap_loop().await });
+        self.0.housekeeping.spawn(async move { r.reap_loop().await });
         let s = self.clone();
-        tokio::spawn(async move { s.sweep_loop().await });
+        self.0.housekeeping.spawn(async move { s.sweep_loop().await });
         Ok(queued)
     }
 
@@ -582,7 +591,9 @@ impl Jobs {
     }
 
     /// Removes finished bakes past their retention, then blobs no record references that are
-    /// older than `orphan_age`. Returns how many bakes were removed.
+    /// older than `orphan_age`. Returns how many bakes were removed. Once the core is closing
+    /// ([`Jobs::drain`]) it stops between bakes: each bake it started is removed whole, its
+    /// record and then its blobs, and the rest wait for the next start.
     ///
     /// # Errors
     /// Repository and store failures.
@@ -590,9 +601,15 @@ impl Jobs {
         let retention = self.0.cfg.retention.as_millis() as u64;
         let mut removed = 0;
         for id in self.0.repo.expired(now_ms(), retention).await? {
+            if self.0.closing.is_cancelled() {
+                return Ok(removed);
+            }
             if self.remove(&id).await? {
                 removed += 1;
             }
+        }
+        if self.0.closing.is_cancelled() {
+            return Ok(removed);
         }
         let blobs = self.0.blobs.clone();
         let listed = blocking(move || blobs.list()).await?;
@@ -1077,7 +1094,8 @@ impl Jobs {
     }
 
     /// Stops claiming, lets running bakes finish within `grace`, hands the others back to the
-    /// queue, then ends the background loops.
+    /// queue, then ends the background loops, waiting (within [`HOUSEKEEPING_GRACE`]) for a
+    /// retention sweep or a reap in flight to finish the bake it is on.
     pub async fn drain(&self, grace: Duration) {
         self.0.stop.cancel();
         self.0.tracker.close();
@@ -1091,6 +1109,12 @@ impl Jobs {
             self.0.tracker.wait().await;
         }
         self.0.closing.cancel();
+        self.0.housekeeping.close();
+        if tokio::time::timeout(HOUSEKEEPING_GRACE, self.0.housekeeping.wait()).await.is_err() {
+            tracing::warn!(
+                "a retention sweep or reap still running at shutdown: left to the next start"
+            );
+        }
     }
 
     /// Runs `f` to completion from a thread outside the runtime (the bake or preview pool, a
