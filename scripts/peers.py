@@ -201,7 +201,7 @@ def run_ours(binary, m, work, method, reduce_, read_layers):
     shutil.rmtree(out, ignore_errors=True)
     cmd = [binary, "bake", m.png, "-o", out, "--method", method, "--bins", str(DIRECTIONS),
            "--edge", "none", "--format", "exr", "--height-scale", repr(m.scale)]
-    if method == "exact":
+    if method in ("exact", "sweep"):
         cmd += ["--radius", "unlimited", "--reduce", reduce_]
     c0, t0 = child_cpu(), time.perf_counter()
     p = subprocess.run(cmd, capture_output=True, text=True)
@@ -689,7 +689,7 @@ SPEC §3.2 with the drop d²/(2·6 371 km), the drop GRASS applies. |Δα| over 
 32 azimuths against it (α clamped at 0 for the peers, as SPEC §3.2 defines it); |Δsvf| in the
 visual form 1 − mean sin α (Whitebox's form) over every texel. *Mtexel/s @32*: texels / compute
 time, every row at 32 azimuths (SVF alone for `sky_view_factor`). Compute: ours
-`timings_ms.bake` (kernel and products, without decode and GeoTIFF encode), GRASS the
+`timings_ms.bake` (kernel, products and their GeoTIFF encode, without the decode), GRASS the
 `r.horizon` process, Whitebox its calls on a raster in memory.
 """
 
@@ -864,6 +864,21 @@ def main():
         # the default model: lengyel R16 B32 (channel = mean of 5 bins)
         a_len, t_len = run_ours(binary, m, work, "lengyel", "average", True)
         t_len["dirs"] = DIRECTIONS
+        # sweep at the same radius: all 32 azimuths for the timing, the channel azimuths
+        # (reduce=point, as the reference) for its error
+        sweep_rows = []
+        if accepts_sweep(binary, work)[0]:
+            _, t_sw32 = run_ours(binary, m, work, "sweep", "average", False)
+            t_sw32["dirs"] = DIRECTIONS
+            a_sw, t_sw = run_ours(binary, m, work, "sweep", "point", True)
+            t_sw["dirs"] = 8
+            sweep_rows = [
+                ("horizon-bake `sweep`, 32 azimuths", "2", t_sw32, None, None,
+                 "`--method sweep --radius unlimited --reduce average`: timing only"),
+                ("horizon-bake `sweep`", "2", t_sw, stats(a_sw, ref, 0),
+                 stats(a_sw, ref, args.margin),
+                 "`--reduce point`: the channel azimuths, so Mtexel/s counts 8/32"),
+            ]
         log("  GRASS r.horizon")
         a_gr, t_gr = run_grass(m, work)
         t_gr["dirs"] = DIRECTIONS
@@ -875,6 +890,7 @@ def main():
              "`--reduce average`: every bin cast; timing only"),
             ("horizon-bake `exact` = reference", "2", t_ref, None, None,
              "`--reduce point`: casts only the 8 channel azimuths, so Mtexel/s counts 8/32"),
+            *sweep_rows,
             ("horizon-bake `lengyel` (default)", "2", t_len,
              stats(a_len, ref, 0), stats(a_len, ref, args.margin),
              "R16 B32: channel = mean of 5 splatted bins"),
@@ -887,10 +903,13 @@ def main():
         spot = None
         if args.check:
             log("  brute-force march at random texels")
-            spot = spot_check(m, [("horizon-bake `exact` (reference)", ref),
-                                  ("horizon-bake `lengyel`", a_len),
-                                  ("GRASS `r.horizon`", a_gr),
-                                  ("Whitebox `horizon_angle`", a_wb)], args.check, args.seed)
+            models = [("horizon-bake `exact` (reference)", ref),
+                      ("horizon-bake `lengyel`", a_len),
+                      ("GRASS `r.horizon`", a_gr),
+                      ("Whitebox `horizon_angle`", a_wb)]
+            if sweep_rows:
+                models.insert(1, ("horizon-bake `sweep`", a_sw))
+            spot = spot_check(m, models, args.check, args.seed)
             worst = spot["horizon-bake `exact` (reference)"]["ch"][1]
             log(f"  reference vs march: worst {worst:.4f} deg")
             if worst > args.check_tol:
