@@ -22,6 +22,8 @@ use axum::response::{IntoResponse, Response};
 pub const ASSETS: &[(&str, &str, &str)] = &[
     ("app.js", "text/javascript; charset=utf-8", include_str!("ui/app.js")),
     ("viewer.js", "text/javascript; charset=utf-8", include_str!("ui/viewer.js")),
+    ("api.js", "text/javascript; charset=utf-8", include_str!("ui/api.js")),
+    ("probe.js", "text/javascript; charset=utf-8", include_str!("ui/probe.js")),
     ("style.css", "text/css; charset=utf-8", include_str!("ui/style.css")),
 ];
 

@@ -1,359 +1,14 @@
 // The page of horizon-bake (GET /): upload, parameters, progress, the list of bakes, downloads,
-// and the WebGL2 viewer (viewer.js). Plain ES module, no bundler, no dependency.
+// and the WebGL2 viewer (viewer.js). Plain ES modules, no bundler, no dependency.
 //
-// Sections: the HTTP client (API key, problem+json, the event stream read with fetch), the
-// height-map header probe, then the page itself. `window.__horizon` is a small hook for the
-// browser test and for automation (read the canvas, set the light).
+// The HTTP client (API key, problem+json, the event stream read with fetch) is api.js, the
+// height-map header probe and the PNG height range are probe.js; this module is the page
+// itself. `window.__horizon` is a small hook for the browser test and for automation (read the
+// canvas, set the light).
 
 import { Viewer, decodeImage, fromAngles, DEFAULTS } from './viewer.js';
-
-// ---------------------------------------------------------------------------------------------
-// HTTP client: every request goes through `api()`, which sends the API key (when the server runs
-// with --api-key) as `Authorization: Bearer …`; a non-2xx answer becomes an `ApiError` with the
-// problem+json `code`, `detail` and `field`. The event stream is read with fetch and a streaming
-// reader and parsed here: EventSource cannot send an Authorization header.
-
-const KEY_STORAGE = 'horizon-bake.api-key';
-
-function getApiKey() {
-  try {
-    return localStorage.getItem(KEY_STORAGE) || '';
-  } catch {
-    return '';
-  }
-}
-
-function setApiKey(key) {
-  try {
-    if (key) localStorage.setItem(KEY_STORAGE, key);
-    else localStorage.removeItem(KEY_STORAGE);
-  } catch {
-    // Storage can be disabled (private mode): the key then lives only in the field.
-  }
-}
-
-/** An HTTP answer that was not 2xx, with the problem+json fields when the body had them. */
-class ApiError extends Error {
-  constructor(status, problem, retryAfter) {
-    const detail = (problem && problem.detail) || `HTTP ${status}`;
-    super(detail);
-    this.status = status;
-    this.code = (problem && problem.code) || `http_${status}`;
-    this.detail = detail;
-    this.field = (problem && problem.field) || null;
-    this.title = (problem && problem.title) || '';
-    this.retryAfter = retryAfter;
-  }
-}
-
-function authHeaders(extra) {
-  const h = new Headers(extra || {});
-  const key = getApiKey();
-  if (key) h.set('Authorization', `Bearer ${key}`);
-  return h;
-}
-
-async function problemOf(res) {
-  const type = res.headers.get('content-type') || '';
-  let problem = null;
-  try {
-    if (type.includes('json')) problem = await res.json();
-    else {
-      const text = await res.text();
-      problem = { detail: text.slice(0, 300) || res.statusText };
-    }
-  } catch {
-    problem = null;
-  }
-  const ra = res.headers.get('retry-after');
-  return new ApiError(res.status, problem, ra === null ? null : Number(ra));
-}
-
-/** fetch() with the API key; throws ApiError for a non-2xx answer. */
-async function api(path, options = {}) {
-  const res = await fetch(path, { ...options, headers: authHeaders(options.headers) });
-  if (!res.ok) throw await problemOf(res);
-  return res;
-}
-
-async function apiJson(path, options = {}) {
-  const res = await api(path, options);
-  return { status: res.status, body: await res.json(), headers: res.headers };
-}
-
-/** A blob: URL of an authenticated GET (for <img> and downloads, which cannot send headers). */
-async function blobUrl(path, signal) {
-  const res = await api(path, { signal });
-  return URL.createObjectURL(await res.blob());
-}
-
-/**
- * Reads a Server-Sent Events stream with fetch and calls `onEvent(name, data)` for every event
- * (data parsed as JSON when it is JSON). Resolves when the stream ends; rejects on a network or
- * HTTP error (ApiError). `signal` aborts it.
- */
-async function readEvents(path, onEvent, signal) {
-  const res = await api(path, { signal, headers: { Accept: 'text/event-stream' } });
-  const reader = res.body.getReader();
-  const decoder = new TextDecoder();
-  let buffer = '';
-  let name = '';
-  let data = [];
-  const dispatch = () => {
-    if (data.length) {
-      const text = data.join('\n');
-      let value = text;
-      try {
-        value = JSON.parse(text);
-      } catch {
-        // not JSON: pass the text on
-      }
-      onEvent(name || 'message', value);
-    }
-    name = '';
-    data = [];
-  };
-  for (;;) {
-    const { value, done } = await reader.read();
-    if (done) break;
-    buffer += decoder.decode(value, { stream: true });
-    // Lines end with \n, \r\n or \r (the SSE grammar allows all three).
-    let m;
-    while ((m = /\r\n|\n|\r/.exec(buffer)) !== null) {
-      // A lone \r at the very end may be the first half of \r\n: wait for more bytes.
-      if (m[0] === '\r' && m.index === buffer.length - 1) break;
-      const line = buffer.slice(0, m.index);
-      buffer = buffer.slice(m.index + m[0].length);
-      if (line === '') {
-        dispatch();
-        continue;
-      }
-      if (line.startsWith(':')) continue; // comment / keep-alive
-      const colon = line.indexOf(':');
-      const field = colon < 0 ? line : line.slice(0, colon);
-      let val = colon < 0 ? '' : line.slice(colon + 1);
-      if (val.startsWith(' ')) val = val.slice(1);
-      if (field === 'event') name = val;
-      else if (field === 'data') data.push(val);
-    }
-  }
-  dispatch();
-}
-
-// ---------------------------------------------------------------------------------------------
-// Height-map header probe
-
-const PNG_COLORS = { 0: 'gray', 2: 'rgb', 3: 'palette', 4: 'gray+alpha', 6: 'rgba' };
-
-/** The media type to send the bytes with, from their magic number ('' when unknown). */
-function sniffType(bytes) {
-  const b = bytes;
-  if (b.length >= 8 && b[0] === 0x89 && b[1] === 0x50 && b[2] === 0x4e && b[3] === 0x47) {
-    return 'image/png';
-  }
-  if (b.length >= 4 && ((b[0] === 0x49 && b[1] === 0x49 && b[2] === 0x2a && b[3] === 0) ||
-      (b[0] === 0x4d && b[1] === 0x4d && b[2] === 0 && b[3] === 0x2a))) {
-    return 'image/tiff';
-  }
-  if (b.length >= 4 && b[0] === 0x76 && b[1] === 0x2f && b[2] === 0x31 && b[3] === 0x01) {
-    return 'image/x-exr';
-  }
-  return '';
-}
-
-function png(dv) {
-  if (dv.byteLength < 29) throw new Error('truncated PNG header');
-  const tag = String.fromCharCode(dv.getUint8(12), dv.getUint8(13), dv.getUint8(14), dv.getUint8(15));
-  if (tag !== 'IHDR') throw new Error('PNG without IHDR');
-  return {
-    format: 'png',
-    width: dv.getUint32(16),
-    height: dv.getUint32(20),
-    bitDepth: dv.getUint8(24),
-    color: PNG_COLORS[dv.getUint8(25)] || `type ${dv.getUint8(25)}`,
-    float: false,
-  };
-}
-
-async function tiff(file, dv) {
-  const le = dv.getUint8(0) === 0x49;
-  const u16 = (v, o) => v.getUint16(o, le);
-  const u32 = (v, o) => v.getUint32(o, le);
-  const ifdOffset = u32(dv, 4);
-  // The IFD may sit anywhere in the file: read it (and the values it points to) on demand.
-  const read = async (off, len) => new DataView(await file.slice(off, off + len).arrayBuffer());
-  const head = await read(ifdOffset, 2);
-  if (head.byteLength < 2) throw new Error('truncated TIFF');
-  const n = u16(head, 0);
-  const ifd = await read(ifdOffset + 2, n * 12);
-  if (ifd.byteLength < n * 12) throw new Error('truncated TIFF directory');
-  const info = { format: 'tiff', width: 0, height: 0, bitDepth: 0, color: 'gray', float: false };
-  let spp = 1;
-  for (let i = 0; i < n; i++) {
-    const o = i * 12;
-    const tag = u16(ifd, o);
-    const type = u16(ifd, o + 2);
-    const value = type === 3 ? u16(ifd, o + 8) : u32(ifd, o + 8);
-    if (tag === 256) info.width = value;
-    else if (tag === 257) info.height = value;
-    else if (tag === 258) {
-      // Inline when the SHORTs fit in 4 bytes, else at an offset: the first sample's depth.
-      if (u32(ifd, o + 4) <= 2) info.bitDepth = u16(ifd, o + 8);
-      else {
-        const at = await read(u32(ifd, o + 8), 2);
-        if (at.byteLength === 2) info.bitDepth = u16(at, 0);
-      }
-    } else if (tag === 277) spp = value;
-    else if (tag === 339) info.float = value === 3;
-    else if (tag === 34735) info.geoKeys = true; // GeoKeyDirectory: a GeoTIFF (SPEC §2)
-    else if (tag === 33550 && type === 12 && u32(ifd, o + 4) >= 2) {
-      // ModelPixelScale: DOUBLEs at an offset; the first is the cell width in map units.
-      const at = await read(u32(ifd, o + 8), 8);
-      if (at.byteLength === 8) info.pixelScale = at.getFloat64(0, le);
-    }
-  }
-  info.color = { 1: 'gray', 2: 'gray+alpha', 3: 'rgb', 4: 'rgba' }[spp] || `${spp} samples`;
-  return info;
-}
-
-function exr(dv) {
-  let o = 8;
-  const str = () => {
-    let s = '';
-    while (o < dv.byteLength) {
-      const c = dv.getUint8(o++);
-      if (c === 0) return s;
-      s += String.fromCharCode(c);
-    }
-    throw new Error('truncated EXR header');
-  };
-  const info = { format: 'exr', width: 0, height: 0, bitDepth: 0, color: '', float: true };
-  for (;;) {
-    const name = str();
-    if (name === '') break;
-    const type = str();
-    const size = dv.getInt32(o, true);
-    o += 4;
-    if (name === 'dataWindow' && type === 'box2i') {
-      const [x0, y0, x1, y1] = [0, 4, 8, 12].map((k) => dv.getInt32(o + k, true));
-      info.width = x1 - x0 + 1;
-      info.height = y1 - y0 + 1;
-    } else if (name === 'channels' && type === 'chlist') {
-      let p = o;
-      const names = [];
-      let bits = 0;
-      while (p < o + size) {
-        let s = '';
-        while (dv.getUint8(p) !== 0) s += String.fromCharCode(dv.getUint8(p++));
-        p++;
-        if (s === '') break;
-        const pt = dv.getInt32(p, true);
-        bits = Math.max(bits, pt === 1 ? 16 : 32);
-        names.push(s);
-        p += 16;
-      }
-      info.color = names.join(',');
-      info.bitDepth = bits;
-    }
-    o += size;
-  }
-  return info;
-}
-
-/**
- * The header of `file` (a File or Blob): {format, width, height, bitDepth, color, float, type}.
- * Throws an Error with a readable message when the bytes are none of PNG, TIFF, OpenEXR.
- */
-async function probe(file) {
-  const head = new Uint8Array(await file.slice(0, 65536).arrayBuffer());
-  const type = sniffType(head);
-  const dv = new DataView(head.buffer, head.byteOffset, head.byteLength);
-  let info;
-  if (type === 'image/png') info = png(dv);
-  else if (type === 'image/tiff') info = await tiff(file, dv);
-  else if (type === 'image/x-exr') info = exr(dv);
-  else throw new Error('not a PNG, TIFF or OpenEXR file');
-  return { ...info, type };
-}
-
-// ---------------------------------------------------------------------------------------------
-// The range of a PNG's heights, before the upload: with the height scale it gives the relief in
-// texels (a 16-bit map spanning 236–1076 of 65535 is 0.1 texel at the default scale: a flat
-// grey bake). The IDAT stream is inflated with the browser's DecompressionStream and unfiltered
-// here, so 16-bit samples keep their precision (an <img> would give 8 bits).
-
-const PNG_CHANNELS = { 0: 1, 2: 3, 4: 2, 6: 4 };
-/** Largest map measured in the page (texels); larger ones are measured by the bake. */
-const RELIEF_MAX_TEXELS = 4096 * 4096;
-
-/**
- * {min, max} of the normalised samples of the PNG `file` as the bake reads them with `channel`
- * (luma = 0.2126 R + 0.7152 G + 0.0722 B), or null when it cannot tell (palette, interlaced,
- * under 8 bits, too large, no DecompressionStream).
- */
-async function pngRange(file, channel) {
-  const bytes = new Uint8Array(await file.arrayBuffer());
-  const dv = new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength);
-  const w = dv.getUint32(16);
-  const h = dv.getUint32(20);
-  const depth = bytes[24];
-  const ctype = bytes[25];
-  const nch = PNG_CHANNELS[ctype];
-  if (!nch || bytes[28] !== 0 || (depth !== 8 && depth !== 16) || w * h > RELIEF_MAX_TEXELS) return null;
-  if (typeof DecompressionStream === 'undefined') return null;
-  const idat = [];
-  for (let o = 8; o + 8 <= bytes.length;) {
-    const len = dv.getUint32(o);
-    const tag = String.fromCharCode(bytes[o + 4], bytes[o + 5], bytes[o + 6], bytes[o + 7]);
-    if (tag === 'IDAT') idat.push(bytes.subarray(o + 8, o + 8 + len));
-    if (tag === 'IEND') break;
-    o += 12 + len;
-  }
-  const inflated = new Uint8Array(await new Response(
-    new Blob(idat).stream().pipeThrough(new DecompressionStream('deflate'))).arrayBuffer());
-  const bpp = nch * (depth / 8);
-  const stride = w * bpp;
-  if (inflated.length < h * (stride + 1)) return null;
-  let prev = new Uint8Array(stride);
-  let row = new Uint8Array(stride);
-  const max = depth === 16 ? 65535 : 255;
-  const pick = { r: 0, g: 1, b: 2, a: nch - 1 }[channel];
-  let lo = Infinity;
-  let hi = -Infinity;
-  for (let y = 0; y < h; y++) {
-    const at = y * (stride + 1);
-    const f = inflated[at];
-    const src = inflated.subarray(at + 1, at + 1 + stride);
-    for (let i = 0; i < stride; i++) {
-      const a = i >= bpp ? row[i - bpp] : 0;
-      const b = prev[i];
-      const c = i >= bpp ? prev[i - bpp] : 0;
-      let v = src[i];
-      if (f === 1) v += a;
-      else if (f === 2) v += b;
-      else if (f === 3) v += (a + b) >> 1;
-      else if (f === 4) {
-        const p = a + b - c;
-        const pa = Math.abs(p - a);
-        const pb = Math.abs(p - b);
-        const pc = Math.abs(p - c);
-        v += pa <= pb && pa <= pc ? a : pb <= pc ? b : c;
-      }
-      row[i] = v & 255;
-    }
-    for (let x = 0; x < w; x++) {
-      const s = (k) => (depth === 16 ? (row[x * bpp + 2 * k] << 8) | row[x * bpp + 2 * k + 1] : row[x * bpp + k]);
-      let v;
-      if (nch <= 2) v = channel === 'a' && nch === 2 ? s(1) : s(0);
-      else if (pick === undefined) v = 0.2126 * s(0) + 0.7152 * s(1) + 0.0722 * s(2);
-      else v = s(Math.min(pick, nch - 1));
-      if (v < lo) lo = v;
-      if (v > hi) hi = v;
-    }
-    [prev, row] = [row, prev];
-  }
-  return { min: lo / max, max: hi / max };
-}
+import { api, apiJson, blobUrl, readEvents, fetchResult, getApiKey, setApiKey } from './api.js';
+import { probe, sniffType, pngRange } from './probe.js';
 
 // ---------------------------------------------------------------------------------------------
 // The page
@@ -662,7 +317,8 @@ async function measureRelief() {
   const file = state.file;
   if (file && state.fileInfo && state.fileInfo.format === 'png') {
     try {
-      const range = await pngRange(file, $('p-channel').value);
+      const channel = $('p-channel').value;
+      const range = await pngRange(await file.arrayBuffer(), channel);
       if (file === state.file) state.range = range;
     } catch {
       state.range = null;
@@ -699,7 +355,8 @@ async function chooseFile(file) {
   info.className = 'muted';
   info.textContent = `${file.name} — ${fmtBytes(file.size)}…`;
   try {
-    const h = await probe(file);
+    // The header is read in slices: a TIFF's directory may be anywhere in a large file.
+    const h = await probe((off, len) => file.slice(off, off + len).arrayBuffer());
     state.fileInfo = h;
     const depth = h.bitDepth ? `${h.bitDepth}-bit${h.float ? ' float' : ''}` : '';
     const over = [];
@@ -992,30 +649,19 @@ function showDownloads(res) {
   ul.append(el('li', {}, prev));
 }
 
-/**
- * GET of a result that may still be encoding: the server answers 202 + Retry-After at once for
- * a format the bake did not encode, then the file once it is stored.
- */
-async function fetchResult(path) {
-  for (;;) {
-    const res = await api(path);
-    if (res.status !== 202) return res;
-    const body = await res.json().catch(() => ({}));
-    const pct = body.progress ? ` ${(body.progress.fraction * 100).toFixed(0)}%` : '';
-    $('status').textContent = `encoding ${body.result || path}${pct}…`;
-    const wait = Number(res.headers.get('retry-after')) || 1;
-    await new Promise((r) => setTimeout(r, Math.min(wait, 2) * 1000));
-  }
-}
-
 // Downloads cannot send headers, and a format the bake did not encode answers 202 while it is
-// encoded: fetch the file (following the 202s) and hand the browser a blob.
+// encoded: fetch the file (following the 202s, shown in the status line) and hand the browser a
+// blob.
 $('downloads').addEventListener('click', async (ev) => {
   const a = ev.target.closest('a.dl');
   if (!a) return;
   ev.preventDefault();
   try {
-    const res = await fetchResult(a.getAttribute('href'));
+    const path = a.getAttribute('href');
+    const res = await fetchResult(path, (body) => {
+      const pct = body.progress ? ` ${(body.progress.fraction * 100).toFixed(0)}%` : '';
+      $('status').textContent = `encoding ${body.result || path}${pct}…`;
+    });
     const url = URL.createObjectURL(await res.blob());
     const tmp = el('a', { href: url, download: a.getAttribute('download') });
     document.body.append(tmp);

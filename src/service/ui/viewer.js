@@ -23,6 +23,8 @@
 // (GET /v1/shaders/horizon.glsl, same origin) when this module loads and compiled into the
 // fragment shader, so the browser test proves the shipped include against the CPU preview.
 
+import { fetchPublic } from './api.js';
+
 export const ALBEDO = 0.8;
 export const AMBIENT = 0.12;
 export const SPECULAR = 0.3;
@@ -65,7 +67,7 @@ export const INCLUDE_URL = new URL('../v1/shaders/horizon.glsl', import.meta.url
 let includeSource = null;
 let includeError = '';
 try {
-  const res = await fetch(INCLUDE_URL, { cache: 'no-cache' });
+  const res = await fetchPublic(INCLUDE_URL, { cache: 'no-cache' });
   if (!res.ok) throw new Error(`GET ${INCLUDE_URL.pathname} answered ${res.status}`);
   includeSource = await res.text();
 } catch (e) {
