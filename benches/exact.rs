@@ -15,7 +15,7 @@
 //! At the current speed the `unlimited` rows take minutes at 2048²; `1024 unlimited` is quicker.
 
 use horizon_bake::kernels::exact::{ExactHorizon, ExactMarch};
-use horizon_bake::kernels::lengyel_fast::LengyelFast;
+use horizon_bake::kernels::lengyel::LengyelFast;
 use horizon_bake::kernels::{compute_all, Grid};
 use horizon_bake::params::{Edge, Reduce, YAxis};
 use horizon_bake::progress::Progress;

@@ -13,9 +13,9 @@
 
 use horizon_bake::bake::FileSpill;
 use horizon_bake::kernels::exact::ExactHorizon;
-use horizon_bake::kernels::lengyel_fast::LengyelFast;
+use horizon_bake::kernels::lengyel::LengyelFast;
 use horizon_bake::kernels::march::March;
-use horizon_bake::kernels::sweep::{FarSpill, Options, Sweep, NEAR, SUB};
+use horizon_bake::kernels::sweep::{FarSpill, Options, Sweep, NEAR_STEPS, SUB};
 use horizon_bake::kernels::{compute_all, Grid, HorizonRows};
 use horizon_bake::params::{Edge, Reduce, YAxis};
 use horizon_bake::progress::Progress;
@@ -163,7 +163,7 @@ fn main() {
     for r in [Some(64u32), Some(256), None] {
         let (secs, err, err_r, split) = sweep(grid, rough, r);
         let name = r.map_or("unlimited".to_string(), |r| r.to_string());
-        let note = format!("near field {NEAR} steps, {SUB} sub-lines; {split}");
+        let note = format!("near field {NEAR_STEPS} steps, {SUB} sub-lines; {split}");
         row("sweep", &name, secs, Some(err), Some(err_r), &note);
     }
     {

@@ -22,8 +22,9 @@
 use horizon_bake::bake::{self, LayerRows, Precisions};
 use horizon_bake::encode::png::{encode16, PngColor, PngRowWriter};
 use horizon_bake::heightmap::HeightMap;
+use horizon_bake::kernels::isa::Isa;
+use horizon_bake::kernels::lengyel::LengyelFast;
 use horizon_bake::kernels::lengyel::LengyelNaive;
-use horizon_bake::kernels::lengyel_fast::{Isa, LengyelFast};
 use horizon_bake::kernels::{band_rows, run_bands, Grid, HorizonRows};
 use horizon_bake::params::{BakeParams, Edge, YAxis};
 use horizon_bake::progress::Progress;

@@ -109,8 +109,7 @@ pub fn make_kernel_for<'a>(
 ) -> Box<dyn HorizonRows + 'a> {
     match params.method {
         Method::Lengyel => Box::new(
-            kernels::lengyel_fast::LengyelFast::new(grid, radius, params.bins)
-                .with_cancel(progress),
+            kernels::lengyel::LengyelFast::new(grid, radius, params.bins).with_cancel(progress),
         ),
         Method::Exact => {
             // Unlimited means "to the map edge" with edge=none, which can be longer than

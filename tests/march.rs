@@ -15,8 +15,8 @@ mod common;
 use common::{mean_p99, surface, waves, Rng};
 use horizon_bake::eval::corpus;
 use horizon_bake::kernels::exact::{direction, ExactHorizon};
-use horizon_bake::kernels::lengyel_fast::Isa;
-use horizon_bake::kernels::march::{March, K_FAR, K_NEAR, NEAR};
+use horizon_bake::kernels::isa::Isa;
+use horizon_bake::kernels::march::{March, K_FAR, K_NEAR, K_NEAR_UNTIL};
 use horizon_bake::kernels::{Grid, HorizonRows};
 use horizon_bake::params::{Edge, Reduce, YAxis};
 use horizon_bake::progress::Progress;
@@ -25,7 +25,7 @@ use std::f64::consts::PI;
 /// The march's own definition, scalar and f64, straight from the bilinear surface: the largest
 /// (h̃(s) − h0)/s over its samples — the slope at s → 0, every grid-line crossing up to R and R
 /// itself, and K equally spaced interior points of every piece between them (K_NEAR while the
-/// piece's middle is within NEAR, K_FAR beyond) — as sin α. Points off the surface (edge=none)
+/// piece's middle is within K_NEAR_UNTIL, K_FAR beyond) — as sin α. Points off the surface (edge=none)
 /// do not count.
 fn naive(g: &Grid<'_>, x: usize, y: usize, phi: f64, r: f64) -> f64 {
     naive_curved(g, x, y, phi, r, 0.0)
@@ -68,7 +68,7 @@ fn naive_curved(g: &Grid<'_>, x: usize, y: usize, phi: f64, r: f64, curv: f64) -
     let mut best = ratio(1e-7).max(0.0);
     let mut prev = 0.0;
     for &s in &points {
-        let k = if (s + prev) * 0.5 <= NEAR { K_NEAR } else { K_FAR };
+        let k = if (s + prev) * 0.5 <= K_NEAR_UNTIL { K_NEAR } else { K_FAR };
         for j in 1..=k {
             best = best.max(ratio(prev + (s - prev) * j as f64 / (k + 1) as f64));
         }
@@ -266,7 +266,7 @@ fn meets_its_tolerance_on_random_maps() {
                 );
                 assert!(over < 2e-5, "overshoot {over}");
                 // Dense tall spikes seen from far away are the stated worst case (README):
-                // beyond NEAR a piece gets one interior point, and a spike's tent peaks between.
+                // beyond K_NEAR_UNTIL a piece gets one interior point, and a spike's tent peaks between.
                 let p99_bound = if kind == "spiky" { 1.5 } else { 0.5 };
                 assert!(
                     mean <= 0.1 && p99 <= p99_bound,

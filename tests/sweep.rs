@@ -13,8 +13,8 @@ mod common;
 use common::{mean_p99, surface, waves, Rng};
 use horizon_bake::eval::corpus;
 use horizon_bake::kernels::exact::{self, ExactHorizon};
-use horizon_bake::kernels::lengyel_fast::Isa;
-use horizon_bake::kernels::sweep::{azimuth_lines, Options, Sweep, NEAR};
+use horizon_bake::kernels::isa::Isa;
+use horizon_bake::kernels::sweep::{azimuth_lines, Options, Sweep, NEAR_STEPS};
 use horizon_bake::kernels::{Grid, HorizonRows};
 use horizon_bake::params::{BakeParams, Edge, Reduce, YAxis};
 use horizon_bake::progress::Progress;
@@ -113,7 +113,8 @@ fn oracle(g: &Grid<'_>, x: usize, y: usize, n: usize, bins: usize, r: Option<f64
         (None, Edge::Wrap) => Some(g.width.max(g.height) as f64),
         (None, Edge::None) => None,
     };
-    let near_cut = reach.map_or(NEAR as f64 * lines.step, |r| r.min(NEAR as f64 * lines.step));
+    let near_cut =
+        reach.map_or(NEAR_STEPS as f64 * lines.step, |r| r.min(NEAR_STEPS as f64 * lines.step));
     let h0 = g.heights[y * g.width + x] as f64;
     // Near: exact over 0 < s ≤ near_cut, with the curvature.
     let near = if c > 0.0 {
@@ -151,7 +152,7 @@ fn oracle(g: &Grid<'_>, x: usize, y: usize, n: usize, bins: usize, r: Option<f64
         let line_at = |up: f64| lines.minor(k, i, up);
         let mut line_best = f64::NEG_INFINITY;
         // Every major grid line from N to R, and halfway between two of them.
-        let mut k_off = NEAR as f64;
+        let mut k_off = NEAR_STEPS as f64;
         while k_off <= r_steps as f64 {
             let up = u as f64 + k_off;
             if g.edge == Edge::None && up > (wa - 1) as f64 {

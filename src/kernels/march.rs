@@ -13,7 +13,7 @@
 //!   (t from s_a; twist = h00 − h10 − h01 + h11 of the cell, kept in a second tile), so an
 //!   interior point costs two multiply-adds from values already at hand and one twist load.
 //!   The chord misses a bulge of up to ¼·|twist·dx·dy|·L²; K points cut what is missed to about
-//!   1/(K+1)² of it. K = [`K_NEAR`] up to s = [`NEAR`], where that bulge is worth degrees (a
+//!   1/(K+1)² of it. K = [`K_NEAR`] up to s = [`K_NEAR_UNTIL`], where that bulge is worth degrees (a
 //!   single-texel spike has twist = its height), and [`K_FAR`] beyond, where it falls as 1/s;
 //! - at s → 0 the slope of the first piece (part of the supremum of §3.2: on a ramp every s
 //!   gives it), and the point s = R, so the radius is honoured exactly at its end.
@@ -50,7 +50,7 @@
 //! within any tolerance and bounded in memory.
 
 use super::exact::{self, ExactHorizon};
-use super::lengyel_fast::Isa;
+use super::isa::Isa;
 use super::{Grid, HorizonRows};
 use crate::params::{Edge, Reduce};
 use crate::progress::Progress;
@@ -58,10 +58,10 @@ use std::cell::RefCell;
 use std::f64::consts::PI;
 
 /// Up to this distance (texels) a piece gets [`K_NEAR`] interior points, beyond it [`K_FAR`].
-pub const NEAR: f64 = 12.0;
+pub const K_NEAR_UNTIL: f64 = 12.0;
 /// Interior points per piece in the near field.
 pub const K_NEAR: usize = 3;
-/// Interior points per piece beyond [`NEAR`].
+/// Interior points per piece beyond [`K_NEAR_UNTIL`].
 pub const K_FAR: usize = 1;
 
 /// Widest strip of any variant; the tile keeps this many spare columns.
@@ -435,7 +435,7 @@ fn ray_samples(dx: f64, dy: f64, radius: f64, stride: isize, curv: f64) -> Ray {
         // The piece's cell: the one its middle lies in.
         let mid = prev + len * 0.5;
         let (cx, cy) = ((mid * dx).floor() as i64, (mid * dy).floor() as i64);
-        let mut k = if mid <= NEAR { K_NEAR } else { K_FAR };
+        let mut k = if mid <= K_NEAR_UNTIL { K_NEAR } else { K_FAR };
         let mut inner = [Inner::default(); MAX_INNER];
         for (j, p) in inner.iter_mut().enumerate().take(k) {
             let t = len * (j + 1) as f64 / (k + 1) as f64;
@@ -676,22 +676,6 @@ fn strip_body<const L: usize, const FMA: bool>(
     }
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx2,fma")]
-unsafe fn strip_avx512(t: Tiles<'_>, base: usize, rays: &[Ray], cast: &[bool], sbuf: &mut [f32]) {
-    strip_body::<32, true>(t, base, rays, cast, sbuf)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn strip_avx2(t: Tiles<'_>, base: usize, rays: &[Ray], cast: &[bool], sbuf: &mut [f32]) {
-    strip_body::<16, true>(t, base, rays, cast, sbuf)
-}
-
-fn strip_baseline(t: Tiles<'_>, base: usize, rays: &[Ray], cast: &[bool], sbuf: &mut [f32]) {
-    strip_body::<8, false>(t, base, rays, cast, sbuf)
-}
-
 impl March<'_> {
     /// Lanes per strip of the selected variant.
     fn lanes(&self) -> usize {
@@ -704,13 +688,14 @@ impl March<'_> {
 
     fn strip(&self, t: Tiles<'_>, base: usize, cast: &[bool], sbuf: &mut [f32]) {
         let rays = &self.rays;
-        match self.isa {
-            // SAFETY: `Isa::detect`/`with_isa` only select a variant the CPU supports.
-            #[cfg(target_arch = "x86_64")]
-            Isa::Avx512 => unsafe { strip_avx512(t, base, rays, cast, sbuf) },
-            #[cfg(target_arch = "x86_64")]
-            Isa::Avx2 => unsafe { strip_avx2(t, base, rays, cast, sbuf) },
-            _ => strip_baseline(t, base, rays, cast, sbuf),
+        let isa = self.isa;
+        // SAFETY: `Isa::detect`/`with_isa` only select a variant the CPU supports.
+        unsafe {
+            match isa {
+                Isa::Avx512 => isa.run(|| strip_body::<32, true>(t, base, rays, cast, sbuf)),
+                Isa::Avx2 => isa.run(|| strip_body::<16, true>(t, base, rays, cast, sbuf)),
+                Isa::Baseline => strip_body::<8, false>(t, base, rays, cast, sbuf),
+            }
         }
     }
 }

@@ -14,9 +14,10 @@
 pub mod cubemap;
 pub mod exact;
 pub mod fourier;
+pub mod isa;
 pub mod lengyel;
-pub mod lengyel_fast;
 pub mod march;
+pub(crate) mod nearfield;
 pub mod parallax;
 pub mod shade;
 pub mod sweep;
@@ -439,7 +440,7 @@ mod tests {
     fn lengyel_cost_grows_with_the_disc() {
         let h = vec![0f32; 64 * 64];
         let g = Grid::new(64, 64, &h, Edge::Wrap, YAxis::Up);
-        let cost = |r, b| lengyel_fast::LengyelFast::new(g, r, b).texel_cost();
+        let cost = |r, b| lengyel::LengyelFast::new(g, r, b).texel_cost();
         assert_eq!(cost(16, 32), 1.0);
         assert_eq!(cost(64, 32), 16.0);
         assert_eq!(cost(128, 64), 128.0);

@@ -1,4 +1,4 @@
-//! The Lengyel/Max horizon map, fast: the same function as the oracle in [`super::lengyel`],
+//! The Lengyel/Max horizon map, fast: the same function as the oracle in [`super::oracle`],
 //! vectorised across texels (SPEC §3.1).
 //!
 //! The oracle loops texel → neighbour → bin, which is branchy scalar work (≈0.4 Mtexel/s).
@@ -14,7 +14,7 @@
 //!   for `edge=none`, which never occludes), so the hot loop never clamps or wraps, even when the
 //!   radius exceeds the map (the padding then wraps several times).
 //! - For a strip of consecutive texels (128 with AVX-512, 64 AVX2, 16 SSE2; see
-//!   [`Isa::lanes`]): group → offset → lane, keeping max(tan) with tan = (h − h0)/r and the
+//!   [`lanes`]): group → offset → lane, keeping max(tan) with tan = (h − h0)/r and the
 //!   maximum starting at 0. Each neighbour is thus evaluated once, not once per bin it touches
 //!   (2.2–3.6× on average; R=16, B=32: 792 offsets in 104 groups instead of 2200 bin entries).
 //!   Since the oracle skips h < h0 and keeps the largest tan² ≥ 0, max(tan, 0)² is exactly its
@@ -40,14 +40,15 @@
 //! thousands of texels) the kernel falls back to the oracle: such bakes cost O(R²) per texel and
 //! are impractical either way, but they stay correct and bounded in memory.
 
-use super::lengyel::LengyelNaive;
-use super::{Grid, HorizonRows};
+use super::LengyelNaive;
+use crate::kernels::isa::Isa;
+use crate::kernels::{Grid, HorizonRows};
 use crate::params::Edge;
 use crate::progress::Progress;
 use std::cell::RefCell;
 use std::f64::consts::PI;
 
-/// The widest strip of any variant ([`Isa::lanes`]): the tile keeps this many spare columns
+/// The widest strip of any variant ([`lanes`]): the tile keeps this many spare columns
 /// and every strip's window is checked against it.
 pub const STRIP: usize = 128;
 
@@ -58,49 +59,18 @@ pub const MAX_TILE: usize = 1 << 24;
 /// raises a bin, and it never makes NaN (unlike −∞ − −∞ in the discarded lanes).
 const LOW: f32 = f32::MIN;
 
-/// Which compiled variant of the hot loop this CPU runs.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Isa {
-    Avx512,
-    Avx2,
-    Baseline,
-}
-
-impl Isa {
-    /// The best variant the running CPU supports.
-    pub fn detect() -> Isa {
-        [Isa::Avx512, Isa::Avx2].into_iter().find(|i| i.supported()).unwrap_or(Isa::Baseline)
-    }
-
-    /// Texels per strip in this variant's hot loop. Wider strips spread the per-group and
-    /// per-strip work (table walking, snapshots, the finish) over more texels, up to what the
-    /// registers hold: AVX-512 keeps h0 and the running maximum of 128 lanes in 16 of its 32
-    /// vector registers (~10% faster than 64 lanes with two interleaved maxima, ~25% than 32).
-    /// AVX2 has 16: 64 lanes with one maximum (h0 then comes from memory operands) measured
-    /// ~1.4× faster than 32 lanes with two, and than 128; SSE2 (whose arithmetic takes only
-    /// aligned memory operands) stays at 16 lanes with two maxima.
-    const fn lanes(self) -> usize {
-        match self {
-            Isa::Avx512 => 128,
-            Isa::Avx2 => 64,
-            Isa::Baseline => 16,
-        }
-    }
-
-    /// Whether the running CPU has every feature this variant was compiled for.
-    pub fn supported(self) -> bool {
-        #[cfg(target_arch = "x86_64")]
-        {
-            match self {
-                Isa::Avx512 => is_x86_feature_detected!("avx512f"),
-                Isa::Avx2 => is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma"),
-                Isa::Baseline => true,
-            }
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        {
-            self == Isa::Baseline
-        }
+/// Texels per strip in this variant's hot loop. Wider strips spread the per-group and
+/// per-strip work (table walking, snapshots, the finish) over more texels, up to what the
+/// registers hold: AVX-512 keeps h0 and the running maximum of 128 lanes in 16 of its 32
+/// vector registers (~10% faster than 64 lanes with two interleaved maxima, ~25% than 32).
+/// AVX2 has 16: 64 lanes with one maximum (h0 then comes from memory operands) measured
+/// ~1.4× faster than 32 lanes with two, and than 128; SSE2 (whose arithmetic takes only
+/// aligned memory operands) stays at 16 lanes with two maxima.
+const fn lanes(isa: Isa) -> usize {
+    match isa {
+        Isa::Avx512 => 128,
+        Isa::Avx2 => 64,
+        Isa::Baseline => 16,
     }
 }
 
@@ -176,7 +146,7 @@ impl<'a> LengyelFast<'a> {
     /// Prepares the kernel with a given variant (tests and benches compare them). A variant the
     /// CPU lacks is replaced by the best one it has.
     pub fn with_isa(grid: Grid<'a>, radius: u32, bins: u32, isa: Isa) -> Self {
-        let isa = if isa.supported() { isa } else { Isa::detect() };
+        let isa = isa.or_detected();
         let b = bins.max(1) as usize;
         let r = radius.max(1) as usize;
         let (w, h) = (grid.width, grid.height);
@@ -407,7 +377,7 @@ impl HorizonRows for LengyelFast<'_> {
                 }
                 fill_tile(&self.grid, t, y0 + r0, m, &mut scratch.tile);
                 // Per-bin results, then per-group maxima.
-                scratch.acc.resize((b + t.slots) * self.isa.lanes(), 0.0);
+                scratch.acc.resize((b + t.slots) * lanes(self.isa), 0.0);
                 let ch = &mut channels[r0 * w * 8..(r0 + m) * w * 8];
                 let bo = bins_out.as_deref_mut().map(|bo| &mut bo[r0 * w * b..(r0 + m) * w * b]);
                 let job = Job {
@@ -486,34 +456,22 @@ fn run_job(
     channels: &mut [f32],
     bins_out: Option<&mut [f32]>,
 ) {
-    #[cfg(target_arch = "x86_64")]
-    {
+    // SAFETY: a kernel holds Avx512 / Avx2 only when `Isa::supported` saw those features on
+    // this CPU (`with_isa` replaces anything else), which is all `Isa::run` and the variants'
+    // intrinsics need; `Portable` uses no CPU feature beyond the compile target's.
+    unsafe {
         match isa {
-            // SAFETY: a kernel holds Avx512 / Avx2 only when `Isa::supported` saw those features
-            // on this CPU (`with_isa` replaces anything else), which is the one requirement of
-            // calling a `#[target_feature]` function.
-            Isa::Avx512 => return unsafe { job_avx512(job, acc, channels, bins_out) },
-            Isa::Avx2 => return unsafe { job_avx2(job, acc, channels, bins_out) },
-            Isa::Baseline => {}
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => {
+                isa.run(|| job_body::<{ lanes(Isa::Avx512) }, Avx512>(job, acc, channels, bins_out))
+            }
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => {
+                isa.run(|| job_body::<{ lanes(Isa::Avx2) }, Avx2>(job, acc, channels, bins_out))
+            }
+            _ => job_body::<{ lanes(Isa::Baseline) }, Portable>(job, acc, channels, bins_out),
         }
     }
-    let _ = isa;
-    // SAFETY: `Portable` uses no CPU feature beyond the compile target's.
-    unsafe { job_body::<{ Isa::Baseline.lanes() }, Portable>(job, acc, channels, bins_out) }
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-fn job_avx512(job: &Job<'_>, acc: &mut [f32], channels: &mut [f32], bins_out: Option<&mut [f32]>) {
-    // SAFETY: this function only runs where avx512f is present, which `Avx512` needs.
-    unsafe { job_body::<{ Isa::Avx512.lanes() }, Avx512>(job, acc, channels, bins_out) }
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-fn job_avx2(job: &Job<'_>, acc: &mut [f32], channels: &mut [f32], bins_out: Option<&mut [f32]>) {
-    // SAFETY: `Avx2` uses no CPU feature beyond those of `job_avx2`.
-    unsafe { job_body::<{ Isa::Avx2.lanes() }, Avx2>(job, acc, channels, bins_out) }
 }
 
 /// What differs between the compiled variants besides the instruction set LLVM targets.

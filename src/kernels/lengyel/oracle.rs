@@ -2,7 +2,7 @@
 //!
 //! This is deliberately the obvious loop (texel → neighbour → bin) in f64, transcribed from the
 //! specification line by line so that it can be read against it. It is far too slow for
-//! production maps (≈0.4 Mtexel/s); `lengyel_fast` computes the same function and is tested
+//! production maps (≈0.4 Mtexel/s); [`super::fast`] computes the same function and is tested
 //! against this one on random inputs and on the golden files.
 //!
 //! For texel p with height h0 and every offset (i, j), |i|, |j| < R, 0 < i² + j² < R², whose
@@ -11,7 +11,7 @@
 //! and every bin n in floor((θ − δ)·B/2π) ..= ceil((θ + δ)·B/2π) (mod B) keeps the largest tan².
 //! Then s_n = √(tan² / (tan² + 1)) and channel c is the mean of the B/8 + 1 bins centred on c·B/8.
 
-use super::{reduce_average, Grid, HorizonRows};
+use crate::kernels::{reduce_average, Grid, HorizonRows};
 use crate::progress::Progress;
 use std::f64::consts::PI;
 

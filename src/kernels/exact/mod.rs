@@ -1,0 +1,389 @@
+//! The exact line-of-sight horizon (SPEC §3.2): the ground truth the approximations are judged
+//! against.
+//!
+//! For texel p with height h0 and azimuth φ, u = (cos φ, sin φ) in tangent space,
+//!   tan α = max(0, sup over 0 < s ≤ R of (h̃(p + s·u) − h0) / s)
+//! where h̃ is the bilinear surface through the texel centres, and the stored value is
+//! sin α = tan α / √(1 + tan² α).
+//!
+//! # Why per-cell analysis instead of a fine march
+//! Along a straight line, the bilinear surface inside one cell (the square between four texel
+//! centres) is a quadratic in s: h(t) = d0 + d1·t + d2·t², t = s − s_entry. The ratio
+//! g(t) = (h(t) − h0)/(s_entry + t) on that segment has at most one interior critical point,
+//! the root of d2·t² + 2·d2·s_entry·t + (d1·s_entry − (d0 − h0)) = 0, so its maximum over the
+//! segment is found exactly from the exit point and that root. A ray therefore costs one small
+//! closed-form evaluation per cell it crosses, and the result is exact up to f64 rounding:
+//! every candidate is g evaluated at a real point of the ray, so the kernel never overshoots the
+//! definition, and no maximum between samples is missed. A fine-step march (the test oracle in
+//! `tests/exact.rs`) can only approach this value from below.
+//!
+//! At s → 0 the ratio tends to the directional slope d1 of the first cell (p is a corner of it),
+//! which is part of the supremum: on a linear ramp every s gives the same ratio.
+//!
+//! # How the production kernel is fast without leaving the definition
+//! A convex-hull sweep (Timonen & Westerholm 2010) is O(1) per texel and direction, but its lines
+//! do not pass through texel centres, and the definition is texel-centred: measured, 9–22 % of
+//! 8-bit outputs came out more than 1 LSB low. A hard radius breaks a plain hull as well. So
+//! [`ExactHorizon`] keeps every ray texel-centred and exact, and makes rays cheap instead:
+//! - **Near field, vectorised** (s ≤ 1024 texels or R): the grid-line crossings of a ray from an
+//!   integer texel centre fall at s = k/|dx| and s = k/|dy| whatever the texel, so the rays of 16
+//!   consecutive texels of a row along one azimuth cross the same pieces at the same local
+//!   positions, in cells one column apart. The pieces are listed once per azimuth; per piece the
+//!   16 lanes load contiguous corner heights from a padded copy of the map (no wrapping or
+//!   clamping in the loop), cull the piece when no lane's (max corner − h0)/s_entry beats its
+//!   best value (the four corners' maximum read from a second padded copy of every cell's when
+//!   the padding is narrow, as `sweep`'s near field of 16 steps: one load instead of four and
+//!   three maxima, at an offset per piece listed with its s_entry, the corner rows sliced only
+//!   for the pieces that pass; measured at 2048² `sweep` unlimited, the bands' CPU time 10–20 %
+//!   lower with the maxima, then 8–10 % lower again with the listed offsets),
+//!   and otherwise evaluate the per-cell closed form in f32 lanes (the divisions and
+//!   square root only when some lane can have an interior maximum). The strip stops when no
+//!   lane can still be raised by the highest point of the map. Beyond 32 texels the pieces are
+//!   also grouped into spans (about s/2 of arc, split into spans of s/8 beyond 96), each culled
+//!   in one step against the maximum of the box its cells cover for all 16 lanes, read from a
+//!   4^k block pyramid of the padded copy. A culled span is one whose every piece its own cull
+//!   would drop, so the output is bit-identical to culling piece by piece; on flat terrain at
+//!   `unlimited` (fBm, 1024²) it made the kernel 1.6× faster. Fine spans stop being checked
+//!   after two misses in a row: on rough ground every box holds something above the
+//!   lowest-horizon lane, and the checks would only add to the pieces' own culls.
+//! - **Far field, skipping** (rays longer than that, `unlimited` on big maps): a scalar walk
+//!   seeded with the near-field value and a max pyramid of the surface (4×4, 16×16, 64×64, …
+//!   cells) that bounds (h − h0)/s ≤ (M − h0)/s_entry over a whole block, so a block that cannot
+//!   beat the best value so far is skipped in one step (the "maximum mipmap" traversal of
+//!   height-field ray casting), and the ray stops once the global maximum cannot beat it.
+//!
+//! Culling and skipping are conservative, so the result is the same as visiting every cell;
+//! [`ExactMarch`] (the plain oracle) does exactly that and the tests compare the two. The f32
+//! near field differs from the f64 oracle by ≤ 1e-5 in sin α (asserted).
+//!
+//! # Edges
+//! - `edge=wrap`: the surface tiles; blocks are laid out in unwrapped coordinates (a ray may cross
+//!   the period more than once) and their maxima are read from the wrapped heights, so map sizes
+//!   need not be powers of two.
+//! - `edge=none`: the surface exists on the convex hull of the texel centres,
+//!   [0, W−1] × [0, H−1] in image coordinates; a ray ends where it leaves it. The outer half
+//!   texel beyond the border centres is *not* part of the surface (nothing outside the map
+//!   occludes, and extrapolating the border would invent terrain). A ray running exactly along a
+//!   border row or column stays on the surface and sees it. A 1-texel-wide map is a single line.
+//! - `radius`: `Some(R)` clips every ray at s = R exactly (a cell straddling R is analysed on
+//!   [s_entry, R]); `None` (unlimited) runs to the map edge with `edge=none` and max(W, H) texels
+//!   with `edge=wrap` (SPEC §3.2).
+
+mod oracle;
+pub(crate) mod walk;
+
+pub use oracle::ExactMarch;
+pub use walk::horizon_sin;
+
+use super::nearfield::{StripMarch, LANES};
+use super::{reduce_into, Grid, HorizonRows};
+use crate::params::{Edge, Reduce};
+use crate::progress::Progress;
+use std::f64::consts::PI;
+use walk::{walk, Pyramid, Ray};
+
+/// Image-space unit direction (column step, row step) of tangent-space azimuth `phi` (radians).
+/// Components within 1e-12 of 0 are snapped to exactly 0, so rays at multiples of 90° stay on
+/// their row or column (sin π is 1.2e-16 in floating point; with `edge=none` such a ray along a
+/// border row would otherwise leave the surface at once).
+pub fn direction(phi: f64, row_step: i64) -> (f64, f64) {
+    let snap = |v: f64| if v.abs() < 1e-12 { 0.0 } else { v };
+    let (s, c) = phi.sin_cos();
+    let (c, s) = (snap(c), snap(s));
+    // Renormalise after snapping so (dx, dy) stays a unit vector.
+    let n = (c * c + s * s).sqrt();
+    (c / n, s / n * row_step as f64)
+}
+
+/// Image-space directions of the `bins` azimuths φ_n = n·2π/bins.
+fn bin_directions(bins: usize, row_step: i64) -> Vec<(f64, f64)> {
+    (0..bins).map(|n| direction(n as f64 * 2.0 * PI / bins as f64, row_step)).collect()
+}
+
+/// sin α from tan α ≥ 0 (1 for a vertical horizon, t = ∞).
+#[inline]
+pub(crate) fn sin_of_tan(t: f64) -> f64 {
+    if t.is_infinite() {
+        1.0
+    } else {
+        t / (1.0 + t * t).sqrt()
+    }
+}
+
+/// Arc length the vectorised near-field march covers; longer rays continue with the scalar,
+/// pyramid-skipping [`walk`] from there, seeded with the near-field value. The strip beats the
+/// walk per texel of ray even though the walk skips blocks (measured, `unlimited` on fBm:
+/// 1.5–1.7× faster at 1024 than at 256, the same on white noise; 2× slower at 64). The cost is
+/// padding: an 8192² map's padded copy grows from 0.30 to 0.42 GB.
+const NEAR_ARC: f64 = 1024.0;
+
+/// The production exact kernel: the same rays as [`ExactMarch`], with empty space skipped
+/// through a max pyramid and each ray stopped once nothing left can raise it.
+#[derive(Debug, Clone)]
+pub struct ExactHorizon<'a> {
+    grid: Grid<'a>,
+    radius: Option<f64>,
+    dirs: Vec<(f64, f64)>,
+    reduce: Reduce,
+    pyramid: Pyramid,
+    hmax: f64,
+    progress: Option<Progress>,
+    /// Unwrapped cell column `lo + i` → stored column, for i in 0..; likewise rows → row·W.
+    /// Replaces two `rem_euclid` per corner fetch in the hot loop.
+    lo: i64,
+    cols: Vec<u32>,
+    rows: Vec<u32>,
+    near: StripMarch,
+    /// Earth-curvature drop per texel² (see [`ExactHorizon::with_curvature`]).
+    curv: f64,
+    /// Nodata holes (see [`ExactHorizon::with_holes`]).
+    holes: Option<&'a [bool]>,
+}
+
+impl<'a> ExactHorizon<'a> {
+    /// Prepares the kernel (O(W·H) block maxima). `radius`: `None` = unlimited, otherwise at
+    /// most max(`MAX_RADIUS`, W, H) (larger values are clamped; `params` rejects them); `bins`
+    /// a multiple of 16 (validated by `params`).
+    pub fn new(grid: Grid<'a>, radius: Option<u32>, bins: u32, reduce: Reduce) -> Self {
+        let (w, h) = (grid.width, grid.height);
+        // Bounded so a caller bypassing `params` cannot ask for gigantic tables.
+        let cap = crate::params::MAX_RADIUS.max(w.max(h) as u32);
+        let radius = radius.map(|r| f64::from(r.min(cap)));
+        // How far outside the map a ray can go: the tables below must cover it.
+        let reach = match grid.edge {
+            Edge::Wrap => radius.unwrap_or(w.max(h) as f64),
+            Edge::None => 1.0,
+        };
+        let pyramid = Pyramid::new(&grid, reach);
+        let dirs = bin_directions(bins as usize, grid.row_step());
+        let hmax = grid.range().1 as f64;
+        let lo = -(reach.ceil() as i64) - 4;
+        let map = |n: usize, mul: usize| -> Vec<u32> {
+            let hi = n as i64 + reach.ceil() as i64 + 4;
+            (lo..=hi)
+                .map(|c| {
+                    let c = match grid.edge {
+                        Edge::Wrap => c.rem_euclid(n as i64),
+                        Edge::None => c.clamp(0, n as i64 - 1),
+                    };
+                    (c as usize * mul) as u32
+                })
+                .collect()
+        };
+        let (cols, rows) = (map(w, 1), map(h, w));
+        // Where every ray is clipped alike: a piece straddling a lane's own end would be lost
+        // (edge=none ends fall on grid lines, i.e. on piece boundaries, so they may differ).
+        let r_all = match grid.edge {
+            Edge::Wrap => radius.unwrap_or(w.max(h) as f64),
+            Edge::None => radius.unwrap_or(f64::INFINITY),
+        };
+        let s_cut = r_all.min(NEAR_ARC);
+        let near = StripMarch::new(&grid, &dirs, s_cut);
+        ExactHorizon {
+            grid,
+            radius,
+            dirs,
+            reduce,
+            pyramid,
+            hmax,
+            progress: None,
+            lo,
+            cols,
+            rows,
+            near,
+            curv: 0.0,
+            holes: None,
+        }
+    }
+
+    /// Treats the cells that touch a hole texel (`holes[row · W + col]`) as no surface (SPEC §2
+    /// "Nodata"): a ray passes over them and they occlude nothing, the slope at s → 0 included.
+    /// Such a cell is skipped whole by the walk, exactly as a cell that cannot beat the best
+    /// value is; the pyramid's block maxima stay upper bounds of what is left. Rays then take
+    /// the scalar walk from the start, as with the curvature.
+    pub fn with_holes(mut self, holes: Option<&'a [bool]>) -> Self {
+        self.holes = holes.filter(|h| h.len() == self.grid.width * self.grid.height);
+        self
+    }
+
+    /// Lowers a point at arc length s by `curv`·s² texels (the earth's curvature, SPEC §3.7:
+    /// `curv` = cell_size² · height_scale / (2 R_e)). The drop only lowers the surface, so the
+    /// pyramid's and the near field's skips stay conservative. The vectorised near field takes
+    /// the drop as a term of its per-cell quadratic (as the sweep's does) and the walk beyond
+    /// it the same drop in f64: a DEM's default (`earth_curvature=on`) used to send every ray
+    /// down the scalar walk from s = 0, 5.6× the CPU of the flat kernel on a 1024² DEM
+    /// (docs/peers.md), level with GRASS `r.horizon`.
+    pub fn with_curvature(mut self, curv: f64) -> Self {
+        self.curv = if curv.is_finite() && curv > 0.0 { curv } else { 0.0 };
+        self.near.curv = self.curv as f32;
+        self
+    }
+
+    fn ray(&self, x: usize, y: usize, dx: f64, dy: f64) -> Ray {
+        let mut ray = Ray::new(&self.grid, x, y, dx, dy, self.radius);
+        ray.curv = self.curv;
+        ray
+    }
+
+    /// The accelerated walk of one ray from arc length `start`, where `seed` is a value of the
+    /// ratio the ray already reaches (from the near field; 0 if none): returns tan α and the arc
+    /// length where it is reached.
+    #[inline]
+    fn walk(&self, ray: &Ray, start: f64, seed: f64) -> (f64, f64) {
+        let hs = self.grid.heights;
+        let (cols, rows, lo) = (&self.cols[..], &self.rows[..], self.lo);
+        let holes = self.holes;
+        let corners = |cx: i64, cy: i64| {
+            let (i, j) = ((cx - lo) as usize, (cy - lo) as usize);
+            let (c0, c1, r0, r1) = (cols[i], cols[i + 1], rows[j], rows[j + 1]);
+            let k =
+                [(r0 + c0) as usize, (r0 + c1) as usize, (r1 + c0) as usize, (r1 + c1) as usize];
+            if holes.is_some_and(|m| k.iter().any(|&t| m[t])) {
+                // No surface: below everything, so the walk skips the cell.
+                return [f64::NEG_INFINITY; 4];
+            }
+            k.map(|t| hs[t] as f64)
+        };
+        walk(&self.grid, ray, Some((&self.pyramid, self.hmax)), (seed, 0.0), start, corners)
+    }
+
+    /// Makes [`HorizonRows::rows`] return early (leaving the rest of its rows unspecified) once
+    /// `progress` is canceled, so a cancel lands within one texel rather than one band. The band
+    /// driver notices the cancel and discards the result.
+    pub fn with_cancel(mut self, progress: &Progress) -> Self {
+        self.progress = Some(progress.clone());
+        self
+    }
+
+    /// Exact sin α of texel (`x`, `y`) at any azimuth `phi` (radians), with this kernel's radius.
+    ///
+    /// # Panics
+    /// If (`x`, `y`) is outside the grid or `phi` is not finite (programming errors).
+    pub fn horizon_sin(&self, x: usize, y: usize, phi: f64) -> f64 {
+        assert!(x < self.grid.width && y < self.grid.height, "texel outside the grid");
+        assert!(phi.is_finite(), "azimuth must be finite");
+        let (dx, dy) = direction(phi, self.grid.row_step());
+        let ray = self.ray(x, y, dx, dy);
+        sin_of_tan(self.walk(&ray, 0.0, 0.0).0)
+    }
+
+    /// Per-bin sin α of texel (x, y) into `s` (`bins` long), one scalar walk per azimuth (the
+    /// vectorised path is [`HorizonRows::rows`]).
+    pub fn texel_bins(&self, x: usize, y: usize, s: &mut [f32]) {
+        for (o, &(dx, dy)) in s.iter_mut().zip(&self.dirs) {
+            let ray = self.ray(x, y, dx, dy);
+            *o = sin_of_tan(self.walk(&ray, 0.0, 0.0).0) as f32;
+        }
+    }
+}
+
+impl HorizonRows for ExactHorizon<'_> {
+    fn width(&self) -> usize {
+        self.grid.width
+    }
+    fn height(&self) -> usize {
+        self.grid.height
+    }
+    fn bins(&self) -> usize {
+        self.dirs.len()
+    }
+    fn rows(&self, y0: usize, channels: &mut [f32], mut bins_out: Option<&mut [f32]>) {
+        let (w, nb) = (self.grid.width, self.dirs.len());
+        let n_rows = channels.len() / (w * 8);
+        if self.holes.is_some() {
+            // With holes: the scalar exact walk for every ray.
+            let mut s = vec![0.0f32; nb];
+            for (k, out) in channels.chunks_exact_mut(8).enumerate() {
+                if k % w == 0 && self.progress.as_ref().is_some_and(Progress::is_canceled) {
+                    return;
+                }
+                self.texel_bins(k % w, y0 + k / w, &mut s);
+                reduce_into(self.reduce, &s, out);
+                if let Some(bo) = bins_out.as_deref_mut() {
+                    bo[k * nb..(k + 1) * nb].copy_from_slice(&s);
+                }
+            }
+            return;
+        }
+        // Per strip: LANES texels × bins values, texel-major.
+        let mut strip = vec![0.0f32; LANES * nb];
+        let near = &self.near;
+        let r_all = match self.grid.edge {
+            Edge::Wrap => self.radius.unwrap_or(w.max(self.grid.height) as f64),
+            Edge::None => f64::INFINITY,
+        };
+        // The near field works relative to `near.reference` (see [`StripMarch`]).
+        let reference = near.reference;
+        let hmax = (self.hmax - reference) as f32;
+        // `reduce=point` reads one bin per channel: unless the per-bin values are asked for
+        // (Fourier), the other bins are never looked at, so their rays are not cast (a quarter
+        // of the work at 32 bins, an eighth at 64).
+        let step = if self.reduce == Reduce::Point && bins_out.is_none() { nb / 8 } else { 1 };
+        for r in 0..n_rows {
+            let y = y0 + r;
+            for x in (0..w).step_by(LANES) {
+                // One relaxed load per strip: negligible, and a cancel lands within a strip
+                // rather than a band.
+                if self.progress.as_ref().is_some_and(Progress::is_canceled) {
+                    return;
+                }
+                let lanes = LANES.min(w - x);
+                let mut h0 = [f32::INFINITY; LANES];
+                for (i, v) in h0.iter_mut().enumerate().take(lanes) {
+                    *v = (f64::from(self.grid.heights[y * w + x + i]) - reference) as f32;
+                }
+                for (n, &(dx, dy)) in self.dirs.iter().enumerate().step_by(step) {
+                    // Each lane's end: shared when wrapping, at its own border otherwise.
+                    let mut s_end = [r_all; LANES];
+                    let mut count = [near.segs[n].len() as u32; LANES];
+                    if self.grid.edge == Edge::None {
+                        for i in 0..lanes {
+                            s_end[i] = Ray::new(&self.grid, x + i, y, dx, dy, self.radius).s_end;
+                            count[i] = near.count(n, s_end[i]);
+                        }
+                    }
+                    let mut best = [0.0f32; LANES];
+                    near.strip(n, (dx, dy), x, y, &h0, &count, hmax, &mut best);
+                    if s_end.iter().take(lanes).any(|&e| e > near.s_cut) {
+                        for i in 0..lanes {
+                            let t = best[i].max(0.0) as f64;
+                            // The ray goes on past the near field and something there could
+                            // still beat it: continue with the scalar walk, seeded.
+                            let rise = self.hmax - reference - f64::from(h0[i]);
+                            if s_end[i] > near.s_cut && rise > t * near.s_cut {
+                                let ray = self.ray(x + i, y, dx, dy);
+                                best[i] = self.walk(&ray, near.s_cut, t).0 as f32;
+                            }
+                        }
+                    }
+                    for i in 0..LANES {
+                        // In f64: t² overflows f32 past 1.8e19 (cliffs of 1e30 texels), and
+                        // t / √(1 + t²) would become t / ∞ = 0 instead of 1.
+                        let t = best[i].max(0.0) as f64;
+                        strip[i * nb + n] = (t / (1.0 + t * t).sqrt()) as f32;
+                    }
+                }
+                for i in 0..lanes {
+                    let k = r * w + x + i;
+                    let s = &strip[i * nb..(i + 1) * nb];
+                    reduce_into(self.reduce, s, &mut channels[k * 8..k * 8 + 8]);
+                    if let Some(bo) = bins_out.as_deref_mut() {
+                        bo[k * nb..(k + 1) * nb].copy_from_slice(s);
+                    }
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn direction_snaps_axes() {
+        assert_eq!(direction(PI, -1), (-1.0, 0.0));
+        assert_eq!(direction(PI / 2.0, -1), (0.0, -1.0));
+        assert_eq!(direction(PI / 2.0, 1), (0.0, 1.0));
+    }
+}

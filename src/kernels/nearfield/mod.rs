@@ -1,0 +1,640 @@
+//! The exact near field on its own, shared by `exact` and `sweep`.
+//!
+//! [`StripMarch`] marches [`LANES`] texels of a row along one azimuth through the pieces of their
+//! rays (between grid-line crossings), each piece's maximum of (h − h0)/s in closed form; `exact`
+//! runs it for the first 1024 texels of every ray. [`NearField`] adds what `sweep` needs to join
+//! it to a far field: a floor from the far field that culls pieces, the earth-curvature drop as
+//! a term of the closed form, and a crossing walk (each piece's exit as the lerp of two texels,
+//! the piece solved whole only where its cell's twist can lift it above the best value).
+
+mod strip;
+
+pub(crate) use strip::{StripMarch, LANES};
+
+use crate::kernels::exact::walk::Ray;
+use crate::kernels::isa::Isa;
+use crate::kernels::Grid;
+use crate::params::Edge;
+use strip::{fmax, fmin, piece, Seg};
+
+/// Texels per strip of [`NearField::strip`].
+pub(crate) const NEAR_LANES: usize = LANES;
+
+/// The vectorised exact near field on its own, for kernels that join it to another far field
+/// (`method=sweep`): tan α of §3.2 over 0 < s ≤ `cuts[n]` on each texel's own ray, with the
+/// curvature drop as a term of the per-cell quadratic, exact up to f32 rounding.
+#[derive(Debug, Clone)]
+pub(crate) struct NearField<'a> {
+    grid: Grid<'a>,
+    near: StripMarch,
+    dirs: Vec<(f64, f64)>,
+    cuts: Vec<f64>,
+    /// Highest height of the map relative to `near.reference`.
+    hmax: f32,
+    /// Per direction and piece, its exit crossing ([`Xing`]), for the crossing walk.
+    xings: Vec<Vec<Xing>>,
+    /// Per padded texel (r, c), the twist k3 − k1 − k2 + k0 of the cell it is the top left of:
+    /// the bilinear surface's only second-order term, so a piece (less the curvature drop)
+    /// bulges above its chord only where twist·dx·dy is below the drop's c.
+    twist: Vec<f32>,
+}
+
+/// Where a piece of a direction leaves its cell, as [`NearField`]'s crossing walk reads it:
+/// on a grid line, the bilinear surface there is the lerp of two texels of that line, so the
+/// piece's end value is two loads and a lerp per lane rather than the cell's four corners.
+#[derive(Debug, Clone, Copy)]
+struct Xing {
+    /// Padded offset (relative to the strip's first texel) of the first of the two texels, of
+    /// the second from it (1 along a row, `pw` down a column), and the lerp weight.
+    at: i32,
+    step: i32,
+    f: f32,
+    /// The piece's cell (cyo·pw + cxo), as [`StripMarch::culls`] has it.
+    cell: i32,
+    inv_sb: f32,
+    /// The curvature drop at the exit, curv·s_b².
+    drop: f32,
+    /// The bound on the bulge above the chord: where t = twist·`bulge` + `lift` > 0
+    /// (`bulge` = −dx·dy·len²/(4·s_a), `lift` = curv·len²/(4·s_a)), tan α inside the piece is
+    /// at most the larger end's plus t; `margin` covers the rounding of the ends.
+    bulge: f32,
+    lift: f32,
+    margin: f32,
+    /// 1/q, s_a, s_b, len, 1/len and s_b² − s_a²: for the test of the stationary point.
+    qi: f32,
+    s_a: f32,
+    s_b: f32,
+    len: f32,
+    len_inv: f32,
+    l2: f32,
+    /// False when the piece ends between grid lines (at a cut short of the next one): then it
+    /// is the direction's last and is solved whole.
+    on_grid: bool,
+}
+
+impl Xing {
+    /// The exit crossings of `segs` (a direction's pieces along (dx, dy)) in a padded layout
+    /// `pw` wide, with curvature drop `curv` per texel².
+    fn of(segs: &[Seg], (dx, dy): (f64, f64), pw: usize, curv: f32, range: f64) -> Vec<Xing> {
+        let pw = pw as i64;
+        segs.iter()
+            .map(|g| {
+                let s_b = g.s_a + g.len;
+                let q = g.len * g.len / (4.0 * g.s_a);
+                // The exit in the cell's own coordinates: one of them is 0 or 1 on a grid line.
+                let (ex, ey) = (s_b * dx - f64::from(g.cxo), s_b * dy - f64::from(g.cyo));
+                let off = |e: f64| e.abs().min((e - 1.0).abs());
+                let (cx, cy) = (i64::from(g.cxo), i64::from(g.cyo));
+                let (at, step, f) = if off(ex) <= off(ey) {
+                    ((cx + ex.round() as i64) + cy * pw, pw, ey.clamp(0.0, 1.0))
+                } else {
+                    (cx + (cy + ey.round() as i64) * pw, 1, ex.clamp(0.0, 1.0))
+                };
+                Xing {
+                    at: at as i32,
+                    step: step as i32,
+                    f: f as f32,
+                    cell: (cy * pw + cx) as i32,
+                    inv_sb: (1.0 / s_b) as f32,
+                    drop: (f64::from(curv) * s_b * s_b) as f32,
+                    bulge: (-dx * dy * q) as f32,
+                    lift: (f64::from(curv) * q) as f32,
+                    margin: (1e-6 * (1.0 + range) / g.s_a) as f32,
+                    qi: (1.0 / q) as f32,
+                    s_a: g.s_a as f32,
+                    s_b: s_b as f32,
+                    len: g.len as f32,
+                    len_inv: (1.0 / g.len) as f32,
+                    l2: (s_b * s_b - g.s_a * g.s_a) as f32,
+                    on_grid: off(ex).min(off(ey)) < 1e-9,
+                }
+            })
+            .collect()
+    }
+}
+
+impl<'a> NearField<'a> {
+    /// The near field of `grid` along image directions `dirs`, each to its own cut (texels of
+    /// arc length), with curvature drop `curv` per texel², run with `isa`'s instructions.
+    pub(crate) fn new(
+        grid: Grid<'a>,
+        dirs: &[(f64, f64)],
+        cuts: &[f64],
+        curv: f64,
+        isa: Isa,
+    ) -> Self {
+        let mut near = StripMarch::with_cuts(&grid, dirs, cuts);
+        near.curv = if curv.is_finite() && curv > 0.0 { curv as f32 } else { 0.0 };
+        near.isa = near.isa.min(isa);
+        let hmax = (f64::from(grid.range().1) - near.reference) as f32;
+        let range = f64::from(grid.range().1 - grid.range().0);
+        let xings =
+            dirs.iter().zip(&near.segs).map(|(&d, g)| Xing::of(g, d, near.pw, near.curv, range));
+        let xings = xings.collect();
+        let (pw, p) = (near.pw, &near.padded);
+        let mut twist = vec![0.0f32; p.len()];
+        for r in 0..p.len() / pw - 1 {
+            let (a, b) = (&p[r * pw..][..pw], &p[(r + 1) * pw..][..pw]);
+            for (c, t) in twist[r * pw..][..pw - 1].iter_mut().enumerate() {
+                *t = b[c + 1] - a[c + 1] - b[c] + a[c];
+            }
+        }
+        NearField { grid, near, dirs: dirs.to_vec(), cuts: cuts.to_vec(), hmax, xings, twist }
+    }
+
+    /// [`NearField::strip_from`] with the strip's heights looked up (for the tests).
+    #[cfg(test)]
+    pub(crate) fn strip_above(&self, n: usize, x: usize, y: usize, best: &mut [f32; LANES]) {
+        let h0 = self.lanes_h0(x, y);
+        self.strip_from(n, x, y, &h0, best);
+    }
+
+    /// The heights of texels `x .. x + NEAR_LANES` of row `y` as the near field takes them
+    /// (relative to its reference; +∞ past the row's end): the same for every bin of a strip,
+    /// so a caller running all bins computes them once.
+    #[inline(always)]
+    pub(crate) fn lanes_h0(&self, x: usize, y: usize) -> [f32; LANES] {
+        let w = self.grid.width;
+        let lanes = LANES.min(w - x);
+        let reference = self.near.reference;
+        let mut h0 = [f32::INFINITY; LANES];
+        for (i, v) in h0.iter_mut().enumerate().take(lanes) {
+            *v = (f64::from(self.grid.heights[y * w + x + i]) - reference) as f32;
+        }
+        h0
+    }
+
+    /// tan α over 0 < s ≤ the cut of direction `n` (and the surface's end with `edge=none`)
+    /// for texels `x .. x + NEAR_LANES` of row `y`, folded by max into `best`, which holds a
+    /// floor (≥ 0, 0 for none) on entry; lanes past the row's end are unspecified. A floor
+    /// known beforehand (`sweep`'s far field) culls every cell that cannot beat it, so the
+    /// walk skips cells where the far horizon is high; the result is max(floor, near field) up
+    /// to the f32 rounding of a cell's value, a few ulp of the height range (tested). `h0`:
+    /// the strip's heights from [`NearField::lanes_h0`]. Where every lane's ray runs to the
+    /// cut, the walk is by crossings ([`NearField::crossings_body`]); else the cell walk of
+    /// `exact`, which stops each lane at its own end. Always inlined: `sweep`'s bands call it
+    /// per strip and bin from code compiled for AVX-512.
+    #[inline(always)]
+    pub(crate) fn strip_from(
+        &self,
+        n: usize,
+        x: usize,
+        y: usize,
+        h0: &[f32; LANES],
+        best: &mut [f32; LANES],
+    ) {
+        self.walk(n, x, y, h0, best, true);
+    }
+
+    /// [`NearField::strip_above`] by the cell walk alone (for the tests of its culls).
+    #[cfg(test)]
+    fn cell_walk_above(&self, n: usize, x: usize, y: usize, best: &mut [f32; LANES]) {
+        let h0 = self.lanes_h0(x, y);
+        self.walk(n, x, y, &h0, best, false);
+    }
+
+    /// [`NearField::strip_from`], by crossings only where `crossings` allows it.
+    #[inline(always)]
+    fn walk(
+        &self,
+        n: usize,
+        x: usize,
+        y: usize,
+        h0: &[f32; LANES],
+        best: &mut [f32; LANES],
+        crossings: bool,
+    ) {
+        let w = self.grid.width;
+        let lanes = LANES.min(w - x);
+        let (dx, dy) = self.dirs[n];
+        let mut count = [self.near.segs[n].len() as u32; LANES];
+        // With `edge=none`, rays that leave the surface before the cut stop there. When the
+        // cut points of the strip's two end lanes are on the surface, every lane's is (the
+        // surface is convex) and the rays all run to the cut, as `count` already says.
+        let (cut, wm, hm) = (self.cuts[n], (w - 1) as f64, (self.grid.height - 1) as f64);
+        let inside = |xx: usize| {
+            let (px, py) = (xx as f64 + cut * dx, y as f64 + cut * dy);
+            (0.0..=wm).contains(&px) && (0.0..=hm).contains(&py)
+        };
+        let border = self.grid.edge == Edge::None && !(inside(x) && inside(x + lanes - 1));
+        if border {
+            for (i, c) in count.iter_mut().enumerate().take(lanes) {
+                let ray = Ray::new(&self.grid, x + i, y, dx, dy, Some(self.cuts[n]));
+                *c = self.near.count(n, ray.s_end);
+            }
+        }
+        // The crossing walk reads the cells' maxima, kept while the near field is short.
+        if border || !crossings || self.near.cmax.is_empty() {
+            self.near.strip(n, (dx, dy), x, y, h0, &count, self.hmax, best);
+        } else {
+            self.crossings(n, x, y, h0, best);
+        }
+        for b in best.iter_mut() {
+            *b = b.max(0.0);
+        }
+    }
+
+    /// Every lane's ray runs to the cut: [`NearField::crossings_body`] with the best
+    /// instructions the CPU has.
+    #[inline(always)]
+    fn crossings(&self, n: usize, x: usize, y: usize, h0: &[f32; LANES], best: &mut [f32; LANES]) {
+        // SAFETY: the strip march's variant is one this CPU supports.
+        unsafe { self.near.isa.run(|| self.crossings_body::<true>(n, x, y, h0, best)) }
+    }
+
+    /// The crossing walk without the pieces solved whole (the pieces' ends and the first
+    /// piece's slope alone), for the test that shows those are needed.
+    #[cfg(test)]
+    fn crossings_ends(
+        &self,
+        n: usize,
+        x: usize,
+        y: usize,
+        h0: &[f32; LANES],
+        b: &mut [f32; LANES],
+    ) {
+        self.crossings_body::<false>(n, x, y, h0, b);
+    }
+
+    /// The near field of a strip whose rays all run to the cut, by crossings. Along a piece
+    /// the surface is its chord plus a bulge −d2·t·(len − t), d2 = twist·dx·dy − c, so tan α
+    /// peaks inside a piece only where the bulge is upward (d2 < 0) and can lift a value above
+    /// the piece's larger end by up to −d2·len²/(4·s_a) (see [`piece`]). So each piece costs
+    /// its exit's value (a lerp of the two texels of the grid line it crosses, one load per
+    /// texel and lane) and that bound from the cell's twist; where the bound beats the best
+    /// value for some lane, the cell walk's own cull would not drop the piece (its highest
+    /// corner over s_a beats the best value: on exact values, so the closed form never runs
+    /// where its f32 cancellation could invent a horizon) and the stationary point lies inside
+    /// the piece, the piece is solved whole in closed form (`INTERIOR`; false only for a test).
+    /// No cull before the exit's value: with a piece this cheap, the branch a cull takes costs
+    /// more than the piece. The first piece (from the texel itself, whose limit s → 0⁺ counts)
+    /// is always solved whole. Measured at 2048² `unlimited` on fBm: 3.4 of 22.7 pieces a strip
+    /// pass the bound, 1.05 also the stationary point's test (before the cull joined it); the
+    /// cell walk solved 9.4 whole after its culls.
+    #[inline(always)]
+    fn crossings_body<const INTERIOR: bool>(
+        &self,
+        n: usize,
+        x: usize,
+        y: usize,
+        h0: &[f32; LANES],
+        best: &mut [f32; LANES],
+    ) {
+        let near = &self.near;
+        let (pw, p) = (near.pw, &near.padded[..]);
+        let base = (y + near.pad) * pw + x + near.pad;
+        let (dx, dy) = (self.dirs[n].0 as f32, self.dirs[n].1 as f32);
+        let curv = near.curv;
+        let mut out = *best;
+        // A function, not a closure: a closure is compiled apart, without the caller's target
+        // features, so it would run the cell's closed form in SSE.
+        #[inline(always)]
+        #[allow(clippy::too_many_arguments)] // the piece and the strip's lane state
+        fn whole(
+            p: &[f32],
+            (oc, pw): (usize, usize),
+            seg: &Seg,
+            (dx, dy, curv): (f32, f32, f32),
+            inv_sb: f32,
+            h0: &[f32; LANES],
+            out: &mut [f32; LANES],
+            first: bool,
+        ) {
+            let row0 = &p[oc..oc + LANES + 1];
+            let row1 = &p[oc + pw..oc + pw + LANES + 1];
+            let g = (seg.fx, seg.fy, dx, dy, curv);
+            let (s_a, len) = (seg.s_a as f32, seg.len as f32);
+            let all = |_: usize| true;
+            if first {
+                piece::<true>(row0, row1, g, s_a, len, inv_sb, h0, all, out);
+            } else {
+                piece::<false>(row0, row1, g, s_a, len, inv_sb, h0, all, out);
+            }
+        }
+        let mut prev = [0.0f32; LANES];
+        for (k, (seg, xg)) in near.segs[n].iter().zip(&self.xings[n]).enumerate() {
+            let oc = (base as isize + xg.cell as isize) as usize;
+            if k == 0 || !xg.on_grid {
+                whole(p, (oc, pw), seg, (dx, dy, curv), xg.inv_sb, h0, &mut out, k == 0);
+                if !xg.on_grid {
+                    break;
+                }
+            }
+            let oa = (base as isize + xg.at as isize) as usize;
+            let a = &p[oa..oa + LANES];
+            let b = &p[oa + xg.step as usize..][..LANES];
+            // Every field read once, before the lanes: a field read inside a condition that
+            // short-circuits was compiled as a masked gather.
+            let Xing { f, drop, inv_sb, bulge, lift, margin, qi, .. } = *xg;
+            let tw = &self.twist[oc..oc + LANES];
+            let mut v = [0.0f32; LANES];
+            let mut interior = false;
+            for i in 0..LANES {
+                // Never above the higher texel, whatever the rounding: a lerp that rounded up
+                // past it would lift a texel level with its neighbours by an ulp of heights
+                // of 1e30, a tan α of 1e22.
+                let h = fmin(a[i] + (b[i] - a[i]) * f, fmax(a[i], b[i]));
+                v[i] = (h - (h0[i] + drop)) * inv_sb;
+                out[i] = fmax(v[i], out[i]);
+                let t = tw[i] * bulge + lift;
+                interior |= (t > 0.0) & (fmax(prev[i], v[i]) + t + margin > out[i]);
+            }
+            if INTERIOR & interior & (k > 0) {
+                // The bound can beat the best somewhere: whether the stationary point of the
+                // piece's quadratic lies inside it, as `piece` asks, before solving it whole.
+                let Xing { s_a, s_b, len_inv, len, l2, .. } = *xg;
+                // And the cell walk's own cull, on exact values: the cell's highest corner
+                // over s_a must beat the best value. Without it the closed form would run on
+                // cells it never needed, where its f32 cancellation shows: a ±1e30
+                // checkerboard's diagonal gave a high texel tan α 0.23 above nothing.
+                let cm = &near.cmax[oc..oc + LANES];
+                let mut kept = false;
+                for i in 0..LANES {
+                    kept |= cm[i] - h0[i] > out[i] * s_a;
+                }
+                let mut stationary = false;
+                for i in 0..LANES {
+                    let d2 = -(tw[i] * bulge + lift) * qi;
+                    let (ha, hb) = (prev[i] * s_a, v[i] * s_b);
+                    let d1 = (hb - ha) * len_inv - d2 * len;
+                    let nn = d1 * s_a - ha;
+                    let span = l2 * -d2;
+                    stationary |= (d2 < 0.0) & (nn > -1e-3 * span) & (nn < 1.001 * span);
+                }
+                if kept & stationary {
+                    whole(p, (oc, pw), seg, (dx, dy, curv), inv_sb, h0, &mut out, false);
+                }
+            }
+            prev = v;
+        }
+        *best = out;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::kernels::exact::direction;
+    use crate::params::{Edge, YAxis};
+    use std::f64::consts::PI;
+
+    /// A seeded generator of uniform values in [0, 1) (a 64-bit LCG's high bits).
+    fn lcg(mut seed: u64) -> impl FnMut() -> f32 {
+        move || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (seed >> 40) as f32 / (1u64 << 24) as f32
+        }
+    }
+
+    /// The near-field tests' w × h maps: `kind` 0 smooth waves, 1 rough noise, 2 single-texel
+    /// spikes 24 high on 3 % of the texels.
+    fn near_map(kind: usize, w: usize, h: usize, rnd: &mut impl FnMut() -> f32) -> Vec<f32> {
+        (0..w * h)
+            .map(|i| match kind {
+                0 => ((i % w) as f32 * 0.2).sin() * 3.0 + ((i / w) as f32 * 0.13).cos() * 2.0,
+                1 => rnd() * 6.0,
+                _ => {
+                    if rnd() < 0.03 {
+                        24.0
+                    } else {
+                        rnd() * 0.5
+                    }
+                }
+            })
+            .collect()
+    }
+
+    /// `bins` image directions of `g` and near-field cuts of 16 major-axis steps, as `sweep`'s.
+    fn near_dirs(g: &Grid<'_>, bins: usize) -> (Vec<(f64, f64)>, Vec<f64>) {
+        let dirs: Vec<(f64, f64)> =
+            (0..bins).map(|n| direction(n as f64 * 2.0 * PI / bins as f64, g.row_step())).collect();
+        let cuts = dirs.iter().map(|d| 16.0 * d.0.hypot(d.1).max(1.0)).collect();
+        (dirs, cuts)
+    }
+
+    /// A floor given to the near field (`sweep` gives its far field) changes no value beyond
+    /// rounding: the result is at least the floor, bit for bit, and max(floor, the near field
+    /// without one) to within a few f32 ulp of the map's height range (a cell culled against
+    /// a different best may be one whose f32 value rounds above its bound: flat ground gives
+    /// tan α of 1e-15 rather than 0), with every ISA, on smooth, rough and spiky maps, with
+    /// floors below, at and above the near field's value.
+    #[test]
+    fn a_floor_culls_cells_but_changes_no_value() {
+        let mut rnd = lcg(4242);
+        let (w, h) = (53usize, 29usize);
+        for kind in 0..3 {
+            let heights = near_map(kind, w, h, &mut rnd);
+            for edge in [Edge::Wrap, Edge::None] {
+                let g = Grid::new(w, h, &heights, edge, YAxis::Up);
+                let range = g.range().1 - g.range().0;
+                let (dirs, cuts) = near_dirs(&g, 32);
+                for isa in [Isa::Avx512, Isa::Avx2, Isa::Baseline] {
+                    if !isa.supported() {
+                        continue;
+                    }
+                    let near = NearField::new(g, &dirs, &cuts, 0.0, isa);
+                    let mut floored = 0;
+                    for y in 0..h {
+                        for x in (0..w).step_by(LANES) {
+                            let lanes = LANES.min(w - x);
+                            for n in 0..dirs.len() {
+                                let mut plain = [0.0f32; LANES];
+                                near.strip_above(n, x, y, &mut plain);
+                                let f = rnd();
+                                for scale in [0.5f32, 1.0, 1.5, 0.0] {
+                                    let mut floor = [0.0f32; LANES];
+                                    for (i, v) in floor.iter_mut().enumerate() {
+                                        *v = if scale == 0.0 { f * 3.0 } else { plain[i] * scale };
+                                    }
+                                    let mut got = floor;
+                                    near.strip_above(n, x, y, &mut got);
+                                    for i in 0..lanes {
+                                        let want = plain[i].max(floor[i]);
+                                        floored += usize::from(floor[i] > plain[i]);
+                                        assert!(
+                                            got[i] >= floor[i]
+                                                && (got[i] - want).abs()
+                                                    <= 8.0 * f32::EPSILON * (want + range),
+                                            "kind {kind} {edge:?} {isa:?} texel ({}, {y}) bin {n} \
+                                             floor {}: {} vs {}",
+                                            x + i,
+                                            floor[i],
+                                            got[i],
+                                            want
+                                        );
+                                    }
+                                }
+                            }
+                        }
+                    }
+                    assert!(floored > 1000, "the floors were above the near field {floored} times");
+                }
+            }
+        }
+    }
+
+    /// The crossing walk ([`NearField::crossings`]: each piece's exit as a lerp of two
+    /// texels, a piece solved whole only where its bulge can beat the best) gives what the
+    /// cell walk gives ([`StripMarch::strip`], every piece in closed form) to within a few f32 ulp
+    /// of the height range: on smooth, rough and spiky maps (rough ones have saddles whose
+    /// interior maxima top a piece's ends), with and without the curvature drop, with floors
+    /// below and above, on every ISA. And the interior maxima are needed: without them the
+    /// rough maps' values drop below the cell walk's.
+    #[test]
+    fn crossings_match_the_cell_walk() {
+        let mut rnd = lcg(2712);
+        let (w, h) = (45usize, 27usize);
+        let mut compared = 0usize;
+        let mut raised = 0usize;
+        for kind in 0..3 {
+            let heights = near_map(kind, w, h, &mut rnd);
+            let g = Grid::new(w, h, &heights, Edge::Wrap, YAxis::Up);
+            let range = g.range().1 - g.range().0;
+            let (dirs, cuts) = near_dirs(&g, 32);
+            for curv in [0.0, 2e-3] {
+                for isa in [Isa::Avx512, Isa::Avx2, Isa::Baseline] {
+                    if !isa.supported() {
+                        continue;
+                    }
+                    let near = NearField::new(g, &dirs, &cuts, curv, isa);
+                    for y in 0..h {
+                        for x in (0..w).step_by(LANES) {
+                            let h0 = near.lanes_h0(x, y);
+                            for (n, &d) in dirs.iter().enumerate() {
+                                let count = [near.near.segs[n].len() as u32; LANES];
+                                let f = rnd() * 0.3;
+                                for floor in [0.0, f] {
+                                    let (mut got, mut want) = ([floor; LANES], [floor; LANES]);
+                                    near.crossings(n, x, y, &h0, &mut got);
+                                    near.near.strip(n, d, x, y, &h0, &count, near.hmax, &mut want);
+                                    // Without the pieces solved whole: the ends alone.
+                                    let mut ends = [floor; LANES];
+                                    near.crossings_ends(n, x, y, &h0, &mut ends);
+                                    for i in 0..LANES.min(w - x) {
+                                        let tol = 8.0 * f32::EPSILON * (want[i].abs() + range);
+                                        assert!(
+                                            (got[i] - want[i]).abs() <= tol,
+                                            "kind {kind} c {curv} {isa:?} ({}, {y}) bin {n} \
+                                             floor {floor}: {} vs {}",
+                                            x + i,
+                                            got[i],
+                                            want[i]
+                                        );
+                                        raised += usize::from(want[i] > ends[i] + tol);
+                                        compared += 1;
+                                    }
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        assert!(compared > 50_000, "compared {compared}");
+        assert!(raised > 100, "interior maxima above both ends of a piece: {raised}");
+        // Heights of ±1e30 in a checkerboard: a high texel has nothing above it, in every
+        // direction (the diagonals run through cells whose closed form cancels badly in f32,
+        // and a lerp rounded up by an ulp of 1e30 would be a tan α of 1e22).
+        let (w, h) = (8usize, 6usize);
+        let board: Vec<f32> =
+            (0..w * h).map(|k| if (k % w + k / w) % 2 == 0 { 1e30 } else { -1e30 }).collect();
+        let g = Grid::new(w, h, &board, Edge::Wrap, YAxis::Up);
+        let (dirs, cuts) = near_dirs(&g, 32);
+        for isa in [Isa::Avx512, Isa::Avx2, Isa::Baseline] {
+            if !isa.supported() {
+                continue;
+            }
+            let near = NearField::new(g, &dirs, &cuts, 0.0, isa);
+            for y in 0..h {
+                let h0 = near.lanes_h0(0, y);
+                for n in 0..dirs.len() {
+                    let mut got = [0.0f32; LANES];
+                    near.crossings(n, 0, y, &h0, &mut got);
+                    for (x, &v) in got.iter().enumerate().take(w) {
+                        if board[y * w + x] > 0.0 {
+                            assert!(v <= 0.0, "{isa:?} high texel ({x}, {y}) bin {n}: {v}");
+                        } else {
+                            assert!(v > 1e29, "{isa:?} low texel ({x}, {y}) bin {n}: {v}");
+                        }
+                    }
+                }
+            }
+            // Random heights of ±1e30 scale: the highest texel has nothing above it, even
+            // where the lerp towards it from a lower neighbour ends next to it.
+            for seed in 0..20u64 {
+                let mut r = lcg(seed);
+                let (w, h) = (19usize, 17usize);
+                let vals: Vec<f32> = (0..w * h).map(|_| (r() * 2.0 - 1.0) * 1e30).collect();
+                let top = vals.iter().copied().fold(f32::MIN, f32::max);
+                let t = vals.iter().position(|&v| v == top).unwrap();
+                let (tx, ty) = (t % w, t / w);
+                let g = Grid::new(w, h, &vals, Edge::Wrap, YAxis::Up);
+                let (dirs, cuts) = near_dirs(&g, 64);
+                let near = NearField::new(g, &dirs, &cuts, 0.0, isa);
+                let h0 = near.lanes_h0(tx, ty);
+                for n in 0..dirs.len() {
+                    let mut got = [0.0f32; LANES];
+                    near.crossings(n, tx, ty, &h0, &mut got);
+                    assert!(
+                        got[0] <= 0.0,
+                        "{isa:?} seed {seed} top ({tx}, {ty}) bin {n}: {}",
+                        got[0]
+                    );
+                }
+            }
+        }
+    }
+
+    /// The cells' maxima ([`StripMarch::cmax`]) cull exactly the pieces the four corners culled: a
+    /// near field with them and one without give the same bits, with and without floors, on
+    /// smooth, rough and spiky maps, both edges and every ISA; and a wide padding (`exact`'s
+    /// long near field) keeps none.
+    #[test]
+    fn cells_maxima_cull_as_the_corners_do() {
+        let mut rnd = lcg(77);
+        let (w, h) = (41usize, 23usize);
+        let mut compared = 0usize;
+        for kind in 0..3 {
+            let heights = near_map(kind, w, h, &mut rnd);
+            for edge in [Edge::Wrap, Edge::None] {
+                let g = Grid::new(w, h, &heights, edge, YAxis::Up);
+                let (dirs, cuts) = near_dirs(&g, 24);
+                for isa in [Isa::Avx512, Isa::Avx2, Isa::Baseline] {
+                    if !isa.supported() {
+                        continue;
+                    }
+                    let with = NearField::new(g, &dirs, &cuts, 0.0, isa);
+                    assert!(!with.near.cmax.is_empty(), "a near field of 16 keeps the maxima");
+                    let mut without = with.clone();
+                    without.near.cmax = Vec::new();
+                    for y in 0..h {
+                        for x in (0..w).step_by(LANES) {
+                            for n in 0..dirs.len() {
+                                let f = rnd() * 0.5;
+                                for floor in [0.0, f] {
+                                    let (mut a, mut b) = ([floor; LANES], [floor; LANES]);
+                                    with.cell_walk_above(n, x, y, &mut a);
+                                    without.cell_walk_above(n, x, y, &mut b);
+                                    for i in 0..LANES.min(w - x) {
+                                        assert_eq!(
+                                            a[i].to_bits(),
+                                            b[i].to_bits(),
+                                            "kind {kind} {edge:?} {isa:?} ({}, {y}) bin {n}",
+                                            x + i
+                                        );
+                                        compared += 1;
+                                    }
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        assert!(compared > 100_000, "compared {compared}");
+        let flat = vec![0.0; w * h];
+        let g = Grid::new(w, h, &flat, Edge::Wrap, YAxis::Up);
+        let wide = StripMarch::new(&g, &[(1.0, 0.0)], 100.0);
+        assert!(wide.cmax.is_empty(), "a padding past CELL_MAX_PAD keeps no second copy");
+    }
+}
