@@ -201,13 +201,13 @@ fn upload(dir: &tempfile::TempDir) {
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build();
     let rt = rt.unwrap();
     let store = std::sync::Arc::new(
-        horizon_bake::jobs::store::FsBlobStore::open(&dir.path().join("blobs")).unwrap(),
+        horizon_bake::jobs::blob::FsBlobStore::open(&dir.path().join("blobs")).unwrap(),
     );
     let total: usize = 512 << 20;
     let stored = rt.block_on(async {
-        use horizon_bake::jobs::store::BlobStore;
+        use horizon_bake::jobs::blob::BlobStore;
         use horizon_bake::service::upload::{Spool, SpoolWriter};
-        struct Plain(Box<dyn horizon_bake::jobs::store::BlobWriter>);
+        struct Plain(Box<dyn horizon_bake::jobs::blob::BlobWriter>);
         impl Write for Plain {
             fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
                 self.0.write(b)

@@ -11,7 +11,7 @@ use horizon_bake::encode::assemble::{self, tag, Plane, Section, TilePiece, TileR
 use horizon_bake::encode::png::{self, PngColor};
 use horizon_bake::encode::texture::{DdsHeader, TextureLayout, TexturePrecision};
 use horizon_bake::encode::{self, geotiff, Formats};
-use horizon_bake::jobs::store::{self as blobs, BlobStore, FsBlobStore};
+use horizon_bake::jobs::blob::{self as blobs, BlobStore, FsBlobStore};
 use horizon_bake::layers::HorizonLayers;
 use std::sync::Arc;
 

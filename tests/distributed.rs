@@ -432,7 +432,7 @@ async fn postgres_restart_gives_503_then_recovers() {
 async fn large_blobs_round_trip_through_s3_from_the_bake_pool() {
     let _serial = SERIAL.lock().await;
     let Some(cl) = Cluster::new("largeblob").await else { return };
-    let cfg = horizon_bake::jobs::s3::S3Config {
+    let cfg = horizon_bake::jobs::blob::S3Config {
         endpoint: cl.eng.s3_endpoint.clone(),
         bucket: cl.eng.bucket.clone(),
         region: "us-east-1".into(),
@@ -440,14 +440,14 @@ async fn large_blobs_round_trip_through_s3_from_the_bake_pool() {
         access_key: std::env::var("AWS_ACCESS_KEY_ID").ok(),
         secret_key: std::env::var("AWS_SECRET_ACCESS_KEY").ok(),
     };
-    let store = horizon_bake::jobs::s3::S3BlobStore::connect(&cfg, &cl.tmp.path().join("spool"))
+    let store = horizon_bake::jobs::blob::S3BlobStore::connect(&cfg, &cl.tmp.path().join("spool"))
         .await
         .unwrap();
     let mut rng = Rng(5);
     let data: Vec<u8> = (0..70 << 20).map(|_| (rng.next_u64() >> 56) as u8).collect();
     let want = blake3::hash(&data).to_hex().to_string();
     let (hash, back, via_put) = std::thread::spawn(move || {
-        use horizon_bake::jobs::store::BlobStore;
+        use horizon_bake::jobs::blob::BlobStore;
         use std::io::{Read, Write};
         let mut w = store.writer().unwrap();
         for chunk in data.chunks(1 << 20) {

@@ -451,18 +451,16 @@ async fn finished_bakes_are_removed_after_the_retention() {
 
 /// A blob store whose deletes take a while (an S3 round trip, a slow disk), so a retention
 /// sweep is still removing a bake's blobs when the server drains.
-struct SlowDeletes(horizon_bake::jobs::store::FsBlobStore);
+struct SlowDeletes(horizon_bake::jobs::blob::FsBlobStore);
 
-impl horizon_bake::jobs::store::BlobStore for SlowDeletes {
-    fn writer(
-        &self,
-    ) -> horizon_bake::error::Result<Box<dyn horizon_bake::jobs::store::BlobWriter>> {
+impl horizon_bake::jobs::blob::BlobStore for SlowDeletes {
+    fn writer(&self) -> horizon_bake::error::Result<Box<dyn horizon_bake::jobs::blob::BlobWriter>> {
         self.0.writer()
     }
     fn put(
         &self,
         bytes: &[u8],
-        pin: horizon_bake::jobs::store::PinHook<'_>,
+        pin: horizon_bake::jobs::blob::PinHook<'_>,
     ) -> horizon_bake::error::Result<String> {
         self.0.put(bytes, pin)
     }
@@ -493,7 +491,7 @@ impl horizon_bake::jobs::store::BlobStore for SlowDeletes {
 /// the drain returned with the blobs still there.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_drain_waits_for_a_retention_sweep_in_flight() {
-    use horizon_bake::jobs::{embedded::EmbeddedRepo, store::FsBlobStore};
+    use horizon_bake::jobs::{blob::FsBlobStore, repo::EmbeddedRepo};
     use std::sync::Arc;
     let dir = tempfile::tempdir().unwrap();
     let mut config = horizon_bake::service::config::Config::for_dir(dir.path()).unwrap();

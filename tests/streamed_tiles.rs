@@ -278,7 +278,7 @@ fn refusals_are_the_whole_decodes() {
 
 #[test]
 fn decodes_through_ranged_reads_of_a_blob_store() {
-    use horizon_bake::jobs::store::{BlobSeekReader, BlobStore, FsBlobStore};
+    use horizon_bake::jobs::blob::{BlobSeekReader, BlobStore, FsBlobStore};
     let dir = tempfile::tempdir().unwrap();
     let store: std::sync::Arc<dyn BlobStore> =
         std::sync::Arc::new(FsBlobStore::open(dir.path()).unwrap());

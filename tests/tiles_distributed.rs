@@ -318,7 +318,7 @@ async fn frozen_holder(db: &sqlx::PgPool, worker: &str) -> Option<i32> {
                  AND l.objid = 2054121986::oid)) \
          LIMIT 1",
     )
-    .bind(horizon_bake::jobs::postgres::application_name(worker))
+    .bind(horizon_bake::jobs::repo::postgres::application_name(worker))
     .fetch_optional(db)
     .await
     .unwrap()
@@ -405,7 +405,7 @@ async fn a_stalled_coordinator_gives_the_bake_back() {
                 "SELECT pid, state, query, backend_xid::text FROM pg_stat_activity \
                  WHERE application_name = $1",
             )
-            .bind(horizon_bake::jobs::postgres::application_name(&coordinator))
+            .bind(horizon_bake::jobs::repo::postgres::application_name(&coordinator))
             .fetch_all(&db)
             .await
             .unwrap();

@@ -236,7 +236,7 @@ impl ResultIndex {
 }
 
 /// Reads `len` bytes from byte `start` of the blob named `hash` (over a blob store:
-/// `jobs::store::read_range`; encode does not import the jobs core). Called from several
+/// `jobs::blob::read_range`; encode does not import the jobs core). Called from several
 /// threads at once: the tiles a band crosses are read side by side.
 pub type ReadRange = std::sync::Arc<dyn Fn(&str, u64, usize) -> Result<Vec<u8>> + Send + Sync>;
 

@@ -16,10 +16,8 @@
 //! tile.
 
 use crate::error::{Error, Result};
-use crate::jobs::store::{BakeFailure, Status};
 use crate::params::Edge;
 use serde::{Deserialize, Serialize};
-use std::collections::BTreeMap;
 
 /// A rectangle of texels in the map: columns `x .. x + w`, rows `y .. y + h`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -184,144 +182,6 @@ impl TilePlan {
     }
 }
 
-/// What the split step hands every tile beside its input: the whole map's values the kernels
-/// need so that a tile computes what the untiled bake computes (SPEC §7.1).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct TileContext {
-    pub plan: TilePlan,
-    /// The whole map's scaled height range (lo, hi), in texels.
-    pub range: (f32, f32),
-    /// The radius resolved on the whole map, and why.
-    pub radius: u32,
-    pub radius_reason: String,
-    /// The input as the split decoded it (reported with the bake).
-    #[serde(default)]
-    pub input: Option<crate::heightmap::InputInfo>,
-    /// How long the split took, ms (the bake's `decode` timing).
-    #[serde(default)]
-    pub split_ms: f64,
-    /// The whole map's decode statistics (`heightmap::stream::MapStats::to_json`: hole fill,
-    /// nodata, georeferencing), which turn a tile's raw heights into the whole decode's crop;
-    /// null when the tile heights are stored already filled.
-    #[serde(default)]
-    pub stats: serde_json::Value,
-}
-
-/// One tile as the repository keeps it: a unit of work with its own status, attempt (the
-/// fencing number of its claims) and results.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct TileRecord {
-    pub bake_id: String,
-    pub index: u32,
-    pub status: Status,
-    /// How many times a worker claimed this tile; the fencing number of the current claim.
-    pub attempts: u32,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub worker: Option<String>,
-    /// Blob of the window's heights (written by the split step).
-    pub input_blob: String,
-    /// The tile's geometry and the whole map's context, as the split step wrote them.
-    pub context: TileContext,
-    /// Result name → blob hash, once succeeded.
-    #[serde(default)]
-    pub results: BTreeMap<String, String>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub error: Option<BakeFailure>,
-}
-
-impl TileRecord {
-    /// A queued tile.
-    pub fn new(bake_id: &str, index: u32, input_blob: String, context: TileContext) -> Self {
-        TileRecord {
-            bake_id: bake_id.to_owned(),
-            index,
-            status: Status::Queued,
-            attempts: 0,
-            worker: None,
-            input_blob,
-            context,
-            results: BTreeMap::new(),
-            error: None,
-        }
-    }
-
-    /// The tile's geometry.
-    pub fn geom(&self) -> TileGeom {
-        self.context.plan.tile(self.index)
-    }
-
-    /// Every blob this tile references.
-    pub fn blobs(&self) -> impl Iterator<Item = &str> {
-        std::iter::once(self.input_blob.as_str()).chain(self.results.values().map(String::as_str))
-    }
-}
-
-/// How many tiles of a bake are done, out of how many (the bake resource's `tiles`).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-pub struct TileCount {
-    pub done: u32,
-    pub total: u32,
-}
-
-/// A worker's hold on a running tile; `attempt` is the fencing number.
-#[derive(Debug, Clone)]
-pub struct TileClaim {
-    pub bake_id: String,
-    pub index: u32,
-    pub attempt: u32,
-    pub worker: String,
-    pub tile: TileRecord,
-}
-
-impl TileClaim {
-    /// Who owns the blobs this claim writes until its tile references them.
-    pub fn owner(&self) -> String {
-        format!("{}/{}/tile{}/{}", self.worker, self.bake_id, self.index, self.attempt)
-    }
-}
-
-/// How a claimed tile ended.
-#[derive(Debug, Clone)]
-pub enum TileOutcome {
-    /// Its results (name → blob).
-    Succeeded(BTreeMap<String, String>),
-    /// Retried while attempts remain (`max_attempts`), then `failed`.
-    Failed(BakeFailure),
-    Canceled,
-    /// Handed back unfinished (shutdown, lease lost to the store): `queued` again.
-    Released,
-}
-
-impl TileOutcome {
-    /// The tile `current` (claimed by `claim`) becomes with this outcome, and the blobs it now
-    /// references. Both backends apply it.
-    pub fn apply(self, current: TileRecord, claim: &TileClaim, max_attempts: u32) -> TileRecord {
-        let mut t = current;
-        match self {
-            TileOutcome::Succeeded(results) => {
-                t.status = Status::Succeeded;
-                t.results = results;
-                t.error = None;
-            }
-            TileOutcome::Failed(f) if claim.attempt < max_attempts => {
-                t.status = Status::Queued;
-                t.error = Some(f);
-                t.worker = None;
-            }
-            TileOutcome::Failed(f) => {
-                t.status = Status::Failed;
-                t.error = Some(f);
-            }
-            TileOutcome::Canceled => t.status = Status::Canceled,
-            TileOutcome::Released => {
-                t.status = Status::Queued;
-                t.worker = None;
-            }
-        }
-        t
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -423,33 +283,5 @@ mod tests {
         assert!(!is_tiled(4096, 4096, 4096 * 4096));
         assert!(is_tiled(4097, 4096, 4096 * 4096));
         assert_eq!(halo_for(40), 41);
-    }
-
-    #[test]
-    fn failed_tiles_are_retried_until_the_last_attempt() {
-        let plan = TilePlan::new(8, 8, 4, 2, Edge::Wrap).unwrap();
-        let ctx = TileContext {
-            plan,
-            range: (0.0, 1.0),
-            radius: 1,
-            radius_reason: String::new(),
-            input: None,
-            split_ms: 0.0,
-            stats: serde_json::Value::Null,
-        };
-        let mut t = TileRecord::new("b", 1, "h".into(), ctx);
-        t.status = Status::Running;
-        let claim = |attempt| TileClaim {
-            bake_id: "b".into(),
-            index: 1,
-            attempt,
-            worker: "w".into(),
-            tile: t.clone(),
-        };
-        let f = BakeFailure { code: "x".into(), message: "y".into() };
-        let again = TileOutcome::Failed(f.clone()).apply(t.clone(), &claim(2), 3);
-        assert_eq!(again.status, Status::Queued);
-        let failed = TileOutcome::Failed(f).apply(t.clone(), &claim(3), 3);
-        assert_eq!(failed.status, Status::Failed);
     }
 }

@@ -203,7 +203,7 @@ pub enum Backend {
     /// redb + files in the data directory.
     Embedded,
     /// PostgreSQL + an S3 bucket.
-    Shared { database_url: String, s3: crate::jobs::s3::S3Config },
+    Shared { database_url: String, s3: crate::jobs::blob::S3Config },
 }
 
 /// The validated service configuration.
@@ -329,7 +329,7 @@ impl Config {
                 let env = |k: &str| std::env::var(k).ok().filter(|v| !v.is_empty());
                 Backend::Shared {
                     database_url,
-                    s3: crate::jobs::s3::S3Config {
+                    s3: crate::jobs::blob::S3Config {
                         endpoint,
                         bucket,
                         region: a.s3_region,

@@ -14,7 +14,7 @@
 //! - `horizon_renders_total{kind}`: previews (`preview`) and cube-map files (`cube`) computed,
 //!   so an operator (and a test) can see that a revalidation answered 304 computed nothing.
 
-use crate::service::store::Status;
+use crate::jobs::record::Status;
 use std::collections::BTreeMap;
 use std::fmt::Write;
 use std::sync::atomic::{AtomicU64, Ordering};

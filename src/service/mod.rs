@@ -33,13 +33,13 @@ pub mod upload;
 pub mod worker;
 
 /// The record and blob types, where they always were for the service's callers.
-pub use crate::jobs::store;
+pub use crate::jobs::record;
 pub use config::{Config, ServeArgs};
 
 use crate::error::{Error, Result};
-use crate::jobs::embedded::EmbeddedRepo;
+use crate::jobs::blob::{BlobStore, FsBlobStore};
+use crate::jobs::repo::EmbeddedRepo;
 use crate::jobs::repo::JobRepo;
-use crate::jobs::store::{BlobStore, FsBlobStore};
 use crate::jobs::{Jobs, JobsConfig};
 use axum::extract::DefaultBodyLimit;
 use axum::routing::{get, post};
@@ -131,7 +131,7 @@ impl AppState {
         match config.backend.clone() {
             Backend::Embedded => Self::open(config),
             Backend::Shared { database_url, s3 } => {
-                let repo = crate::jobs::postgres::PgRepo::connect(
+                let repo = crate::jobs::repo::postgres::PgRepo::connect(
                     &database_url,
                     Duration::from_secs(30),
                     &config.worker_id,
@@ -139,7 +139,7 @@ impl AppState {
                 )
                 .await?;
                 let spool = config.data_dir.join("spool");
-                let blobs = crate::jobs::s3::S3BlobStore::connect(&s3, &spool).await?;
+                let blobs = crate::jobs::blob::S3BlobStore::connect(&s3, &spool).await?;
                 Self::with_stores(config, Arc::new(repo), Arc::new(blobs))
             }
         }

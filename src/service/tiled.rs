@@ -20,10 +20,10 @@ use crate::encode::{png, Formats};
 use crate::error::{Error, Result};
 use crate::heightmap::stream::{self, MapStats, TileHeights, Window};
 use crate::heightmap::{self, HeightMap, Limits};
-use crate::jobs::store::{
-    now_ms, read_range, BakeRecord, BlobSeekReader, BlobStore, RadiusInfo, Status, Timings,
-};
-use crate::jobs::tiles::{self, TileContext, TilePlan, TileRecord};
+use crate::jobs::blob::{read_range, BlobSeekReader, BlobStore};
+use crate::jobs::record::{now_ms, BakeRecord, RadiusInfo, Status, Timings};
+use crate::jobs::record::{TileContext, TileRecord};
+use crate::jobs::tiles::{self, TilePlan};
 use crate::jobs::{Blobs, Tiler};
 use crate::params::{BakeParams, Radius};
 use crate::pipeline::ms;

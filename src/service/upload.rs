@@ -284,7 +284,7 @@ mod tests {
     }
 
     /// A file-store writer with nothing to pin.
-    struct Plain(Box<dyn crate::jobs::store::BlobWriter>);
+    struct Plain(Box<dyn crate::jobs::blob::BlobWriter>);
     impl std::io::Write for Plain {
         fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
             self.0.write(b)
@@ -299,15 +299,15 @@ mod tests {
         }
     }
 
-    fn opener(store: &std::sync::Arc<crate::jobs::store::FsBlobStore>) -> OpenWriter {
-        use crate::jobs::store::BlobStore;
+    fn opener(store: &std::sync::Arc<crate::jobs::blob::FsBlobStore>) -> OpenWriter {
+        use crate::jobs::blob::BlobStore;
         let s = store.clone();
         Box::new(move || Ok(Box::new(Plain(s.writer()?)) as Box<dyn SpoolWriter>))
     }
 
     #[tokio::test]
     async fn a_large_body_spills_to_the_store_a_small_one_stays_in_memory() {
-        use crate::jobs::store::{BlobStore, FsBlobStore};
+        use crate::jobs::blob::{BlobStore, FsBlobStore};
         let dir = tempfile::tempdir().unwrap();
         let store = std::sync::Arc::new(FsBlobStore::open(dir.path()).unwrap());
         let pieces: Vec<Vec<u8>> = (0..40u8).map(|k| vec![k; 1000 + k as usize]).collect();

@@ -167,16 +167,16 @@ pub fn idle_state(tweak: impl FnOnce(&mut Config)) -> (AppState, tempfile::TempD
 /// edit directly (to age a record, say).
 pub fn idle_state_with_repo(
     tweak: impl FnOnce(&mut Config),
-) -> (AppState, std::sync::Arc<horizon_bake::jobs::embedded::EmbeddedRepo>, tempfile::TempDir) {
+) -> (AppState, std::sync::Arc<horizon_bake::jobs::repo::EmbeddedRepo>, tempfile::TempDir) {
     let dir = tempfile::tempdir().unwrap();
     let mut config = Config::for_dir(dir.path()).unwrap();
     config.bake_threads = 1;
     tweak(&mut config);
     let repo = std::sync::Arc::new(
-        horizon_bake::jobs::embedded::EmbeddedRepo::open(&dir.path().join("bakes.redb")).unwrap(),
+        horizon_bake::jobs::repo::EmbeddedRepo::open(&dir.path().join("bakes.redb")).unwrap(),
     );
     let blobs = std::sync::Arc::new(
-        horizon_bake::jobs::store::FsBlobStore::open(&dir.path().join("blobs")).unwrap(),
+        horizon_bake::jobs::blob::FsBlobStore::open(&dir.path().join("blobs")).unwrap(),
     );
     (AppState::with_stores(config, repo.clone(), blobs).unwrap(), repo, dir)
 }

@@ -406,7 +406,7 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
             let store = st.0.jobs.blob_store().clone();
             blocking(move || {
                 let mut params = params;
-                let r = crate::jobs::store::BlobSeekReader::open(store, &hash)?
+                let r = crate::jobs::blob::BlobSeekReader::open(store, &hash)?
                     .ok_or_else(|| Error::Internal("the stored upload is gone".into()))?;
                 let ((f, w, h), georef) = heightmap::stream::probe_for(r, &mut params, &limits)?;
                 let f = match f {
@@ -437,7 +437,7 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
                     heightmap::stream::check_streamable(std::io::Cursor::new(b), channel, &limits)?
                 }
                 (None, Some((hash, _))) => {
-                    let r = crate::jobs::store::BlobSeekReader::open(store, hash)?
+                    let r = crate::jobs::blob::BlobSeekReader::open(store, hash)?
                         .ok_or_else(|| Error::Internal("the stored upload is gone".into()))?;
                     heightmap::stream::check_streamable(r, channel, &limits)?
                 }
@@ -563,7 +563,7 @@ pub async fn list(State(st): State<AppState>, Query(q): Query<Vec<(String, Strin
             return Err(Problem::param("cursor", "not a cursor returned by this API"));
         }
     }
-    let query = store::ListQuery { statuses: statuses.clone(), cursor, limit, newest_first };
+    let query = record::ListQuery { statuses: statuses.clone(), cursor, limit, newest_first };
     let page = st.0.jobs.list(&query).await.map_err(store_err)?;
     let retention = st.0.config.retention.as_millis() as u64;
     let items: Vec<BakeResource> =

@@ -14,13 +14,13 @@ use crate::encode::exr::ExrPrecision;
 use crate::encode::{CubeFormats, Formats, TexturePrecision};
 use crate::error::Error;
 use crate::heightmap;
+use crate::jobs::record::{self, now_ms, BakeRecord, Status};
 use crate::jobs::repo::{CancelResult, Submitted};
 use crate::params::BakeParams;
 use crate::preview::{self, PreviewParams};
 use crate::progress::{Progress, Stage};
 use crate::service::metrics::Render;
 use crate::service::problem::Problem;
-use crate::service::store::{self, now_ms, BakeRecord, Status};
 use crate::service::worker::{self, blocking, params_of};
 use crate::service::{upload, AppState};
 use axum::body::Body;
@@ -154,7 +154,7 @@ pub struct ParamsView {
     #[serde(flatten)]
     pub params: Option<BakeParams>,
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub resolved_radius: Option<store::RadiusInfo>,
+    pub resolved_radius: Option<record::RadiusInfo>,
 }
 
 /// What the API says of a bake's input (the header's view until the bake decoded it).
@@ -182,8 +182,8 @@ pub struct BakeResource {
     pub started_at: Option<String>,
     pub finished_at: Option<String>,
     pub expires_at: Option<String>,
-    pub timings_ms: Option<store::Timings>,
-    pub error: Option<store::BakeFailure>,
+    pub timings_ms: Option<record::Timings>,
+    pub error: Option<record::BakeFailure>,
     pub attempts: u32,
     pub worker: Option<String>,
     /// Result formats: what the submission asked to encode with the bake, and what is stored
@@ -194,7 +194,7 @@ pub struct BakeResource {
     pub georeferencing: Option<Value>,
     /// A tiled bake's tiles done out of total (SPEC §7.1); absent for an untiled bake.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub tiles: Option<crate::jobs::tiles::TileCount>,
+    pub tiles: Option<crate::jobs::record::TileCount>,
     pub links: std::collections::BTreeMap<String, String>,
 }
 
@@ -220,7 +220,7 @@ impl BakeResource {
             (_, Status::Succeeded) => ProgressView { fraction: 1.0, stage: Stage::Done },
             // A canceled bake keeps the fraction it had reached (and the stage it stopped in).
             (_, Status::Canceled) if rec.stopped_at.is_some() => {
-                let p = rec.stopped_at.unwrap_or(store::LiveProgress {
+                let p = rec.stopped_at.unwrap_or(record::LiveProgress {
                     stage: Stage::Queued,
                     fraction: 0.0,
                     tiles: None,

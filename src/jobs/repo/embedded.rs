@@ -13,11 +13,11 @@
 //! the same mutex, so the scan cannot miss it).
 
 use crate::error::{Error, Result};
+use crate::jobs::blob::BlobStore;
+use crate::jobs::record::{now_ms, BakeRecord, ListQuery, Listing, LiveProgress, Status};
+use crate::jobs::record::{TileClaim, TileOutcome, TileRecord};
+use crate::jobs::repo::redb::{BakeStore, RedbStore};
 use crate::jobs::repo::{Beat, CancelResult, Claim, Counts, JobRepo, Outcome, Submitted};
-use crate::jobs::store::{
-    now_ms, BakeRecord, BakeStore, BlobStore, ListQuery, Listing, LiveProgress, RedbStore, Status,
-};
-use crate::jobs::tiles::{TileClaim, TileOutcome, TileRecord};
 use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
 use std::path::Path;
 use std::sync::{Arc, Mutex, MutexGuard};

@@ -27,11 +27,12 @@
 //! - **Migrations** run at start under a session advisory lock, numbered in `horizon_schema`.
 
 use crate::error::{Error, Result};
-use crate::jobs::repo::{Beat, CancelResult, Claim, Counts, JobRepo, Outcome, Submitted};
-use crate::jobs::store::{
-    now_ms, BakeFailure, BakeRecord, BlobStore, ListQuery, Listing, LiveProgress, Status,
+use crate::jobs::blob::BlobStore;
+use crate::jobs::record::{
+    now_ms, BakeFailure, BakeRecord, ListQuery, Listing, LiveProgress, Status,
 };
-use crate::jobs::tiles::{TileClaim, TileOutcome, TileRecord};
+use crate::jobs::record::{TileClaim, TileOutcome, TileRecord};
+use crate::jobs::repo::{Beat, CancelResult, Claim, Counts, JobRepo, Outcome, Submitted};
 use sqlx::postgres::{PgListener, PgPool, PgPoolOptions, PgRow};
 use sqlx::{Postgres, Row, Transaction};
 use std::collections::HashSet;
@@ -831,7 +832,7 @@ impl JobRepo for PgRepo {
             // Deleted while the lock is held: a writer pinning this hash waits for our commit,
             // then writes the blob again.
             let (b, h) = (blobs.clone(), hash.clone());
-            super::blocking(move || b.delete(&h)).await?;
+            crate::jobs::blocking(move || b.delete(&h)).await?;
             sqlx::query("DELETE FROM blob_pins WHERE hash = $1")
                 .bind(&hash)
                 .execute(&mut *tx)

@@ -11,7 +11,7 @@
 //! by part, so no blob is ever whole in memory.
 
 use crate::error::{Error, Result};
-use crate::jobs::store::{BlobStore, BlobWriter, PinHook};
+use crate::jobs::blob::{BlobStore, BlobWriter, PinHook};
 use futures_util::StreamExt;
 use object_store::aws::{AmazonS3, AmazonS3Builder};
 use object_store::path::Path as ObjPath;
@@ -123,7 +123,7 @@ impl S3BlobStore {
 
     fn staging_key(&self) -> ObjPath {
         let mut noise = [0u8; 12];
-        let t = crate::jobs::store::now_ms();
+        let t = crate::jobs::record::now_ms();
         let h = blake3::hash(
             format!("{t}/{}/{:?}", std::process::id(), std::thread::current().id()).as_bytes(),
         );
@@ -350,7 +350,7 @@ impl BlobStore for S3BlobStore {
     }
 
     fn list(&self) -> Result<Vec<(String, u64)>> {
-        let now = crate::jobs::store::now_ms() as i64 / 1000;
+        let now = crate::jobs::record::now_ms() as i64 / 1000;
         let root = self.root();
         let metas: Vec<object_store::ObjectMeta> = self
             .rt

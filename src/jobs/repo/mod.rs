@@ -17,11 +17,17 @@
 //! The methods are async because a networked database is; the embedded backend runs its redb
 //! transactions on blocking threads.
 
+pub mod embedded;
+pub mod postgres;
+pub mod redb;
+
+pub use embedded::EmbeddedRepo;
+pub use postgres::PgRepo;
+
 use crate::error::Result;
-use crate::jobs::store::{
-    BakeFailure, BakeRecord, BlobStore, ListQuery, Listing, LiveProgress, Status,
-};
-use crate::jobs::tiles::{TileClaim, TileOutcome, TileRecord};
+use crate::jobs::blob::BlobStore;
+use crate::jobs::record::{BakeFailure, BakeRecord, ListQuery, Listing, LiveProgress, Status};
+use crate::jobs::record::{TileClaim, TileOutcome, TileRecord};
 use std::collections::HashSet;
 use std::sync::Arc;
 use std::time::Duration;
@@ -72,7 +78,7 @@ pub enum Outcome {
     Succeeded(Box<BakeRecord>),
     Failed(BakeFailure),
     /// Stopped on request, with the progress it had reached.
-    Canceled(Option<crate::jobs::store::LiveProgress>),
+    Canceled(Option<crate::jobs::record::LiveProgress>),
     /// Handed back unfinished (shutdown): `queued` again, for any worker.
     Released,
 }
@@ -83,7 +89,7 @@ impl Outcome {
     pub fn apply(self, current: BakeRecord, claim: &Claim) -> (BakeRecord, Vec<String>) {
         let mut rec = current;
         let mut results = Vec::new();
-        let now = crate::jobs::store::now_ms();
+        let now = crate::jobs::record::now_ms();
         match self {
             Outcome::Succeeded(done) => {
                 let mut done = *done;
