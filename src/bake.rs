@@ -96,6 +96,20 @@ pub fn make_kernel<'a>(
     make_kernel_for(params, grid, radius, progress, None)
 }
 
+/// Refuses a method whose storage grows with the whole map × bins (`sweep`'s far-field table,
+/// in memory or spilled to a temporary file) on a map where it would not fit even on disk
+/// ([`kernels::sweep::check_memory`]). The decode and the probes resolve the parameters; every
+/// caller then asks this before it bakes or accepts a bake.
+///
+/// # Errors
+/// [`Error::Param`] naming `method`.
+pub fn check_method_fits(params: &BakeParams, width: u32, height: u32) -> Result<()> {
+    if params.method == Method::Sweep {
+        kernels::sweep::check_memory(width, height, params.bins)?;
+    }
+    Ok(())
+}
+
 /// [`make_kernel`] for a map with nodata `holes`: `exact` skips the cells that touch a hole
 /// exactly (SPEC §2); the other methods see the holes' fill far below the map
 /// ([`crate::heightmap::HOLE_DEPTH`]), and `march` takes the exact walk within its radius of

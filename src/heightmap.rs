@@ -440,22 +440,8 @@ pub fn check_submission_for(
         report = map.terrain.georef.as_ref().map(|g| g.report(params.cell_size));
     } else {
         georef::apply_dem_defaults(params, None)?;
-        check_method_fits(params, probed.1, probed.2)?;
     }
     Ok((probed, report))
-}
-
-/// Refuses a method whose storage grows with the whole map × bins (`sweep`'s far-field table,
-/// in memory or spilled to a temporary file) on a map where it would not fit even on disk
-/// ([`crate::kernels::sweep::check_memory`]).
-///
-/// # Errors
-/// [`Error::Param`] naming `method`.
-pub fn check_method_fits(params: &BakeParams, width: u32, height: u32) -> Result<()> {
-    if params.method == crate::params::Method::Sweep {
-        crate::kernels::sweep::check_memory(width, height, params.bins)?;
-    }
-    Ok(())
 }
 
 /// Samples decoded from an image, before the channel pick.
@@ -491,7 +477,6 @@ pub fn decode_for(
 ) -> Result<(HeightMap, InputInfo)> {
     let (map, info) = decode_with(bytes, params.channel, params.nodata, limits)?;
     georef::apply_dem_defaults(params, map.terrain.georef.as_ref())?;
-    check_method_fits(params, map.width as u32, map.height as u32)?;
     Ok((map, info))
 }
 

@@ -393,7 +393,7 @@ async fn cubemap_faces_match_the_library() {
         assert_eq!(s, 200);
         let formats =
             horizon_bake::encode::CubeFormats { ktx2: true, dds: true, ..Default::default() };
-        let files = horizon_bake::encode::cube_files(8, formats).unwrap();
+        let files = horizon_bake::pipeline::cube_files(8, formats).unwrap();
         let want = files.iter().find(|f| f.name == file).unwrap();
         assert!(body == want.bytes, "{path}");
     }

@@ -118,8 +118,11 @@ async fn texture_variants_are_query_parameters_encoded_once() {
     assert_eq!(res.status(), 200);
     let texture =
         TextureOptions::from_pairs([("mips", "full"), ("supercompression", "zstd")]).unwrap();
-    let want =
-        encode::cube_files(8, CubeFormats { ktx2: true, texture, ..Default::default() }).unwrap();
+    let want = horizon_bake::pipeline::cube_files(
+        8,
+        CubeFormats { ktx2: true, texture, ..Default::default() },
+    )
+    .unwrap();
     assert_eq!(&res.bytes().await.unwrap()[..], &want[0].bytes[..]);
     let res =
         c.get(srv.url("/v1/cubemap.dds?size=8&mips=full&dds_header=legacy")).send().await.unwrap();

@@ -411,8 +411,9 @@ fn cli_bakes_with_method_sweep_close_to_exact() {
 /// spilled now. 8192² at 256 bins (64 GiB) is refused.
 #[test]
 fn only_a_far_field_too_big_even_for_the_disk_is_refused() {
+    use horizon_bake::bake::check_method_fits;
     use horizon_bake::encode::png::{encode8, PngColor};
-    use horizon_bake::heightmap::{check_method_fits, decode_for, Limits};
+    use horizon_bake::heightmap::{decode_for, Limits};
     use horizon_bake::kernels::sweep::{spills, MAX_SPILL_BYTES};
     let png = encode8(700, 700, PngColor::Gray, &vec![0u8; 700 * 700]).unwrap();
     let parse = |q: &str| {

@@ -285,7 +285,7 @@ async fn the_embedded_mode_tiles_the_2048_map_with_the_same_bytes() {
     let Some(cl) = Cluster::new("tilesemb").await else { return };
     let server = Server::start(|c| {
         c.tiles =
-            horizon_bake::service::tiled::TileSettings { tile_above: 512 * 512, tile_size: 512 };
+            horizon_bake::pipeline::tiled::TileSettings { tile_above: 512 * 512, tile_size: 512 };
     })
     .await;
     let c = client();

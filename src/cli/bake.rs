@@ -338,6 +338,7 @@ pub fn run(args: BakeArgs) -> Result<()> {
     let bytes = std::fs::read(&args.input)
         .map_err(|e| Error::InvalidInput(format!("cannot read {}: {e}", args.input.display())))?;
     let (map, info) = heightmap::decode_for(&bytes, &mut params, &args.limits())?;
+    crate::bake::check_method_fits(&params, map.width as u32, map.height as u32)?;
     drop(bytes);
     let georeferencing =
         map.terrain.georef.as_ref().filter(|g| g.is_dem()).map(|g| g.report(params.cell_size));

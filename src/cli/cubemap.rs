@@ -3,8 +3,9 @@
 //! `cubemap.ktx2` and `cubemap.dds` (SNORM8 RGBA, so a zero factor is exact). Written all or
 //! nothing, like `bake`.
 
-use crate::encode::{cube_files, CubeFormats, MAX_CUBE_SIZE};
+use crate::encode::{CubeFormats, MAX_CUBE_SIZE};
 use crate::error::{Error, Result};
+use crate::pipeline::cube_files;
 use std::path::PathBuf;
 
 /// Flags of `horizon-bake cubemap`.

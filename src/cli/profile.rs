@@ -59,6 +59,7 @@ pub fn run(args: ProfileArgs) -> Result<()> {
     let bytes = std::fs::read(&args.input)
         .map_err(|e| Error::InvalidInput(format!("cannot read {}: {e}", args.input.display())))?;
     let (map, _) = heightmap::decode_for(&bytes, &mut params, &Limits::default())?;
+    crate::bake::check_method_fits(&params, map.width as u32, map.height as u32)?;
     drop(bytes);
     let (x, y) = match (&args.at, &args.at_map) {
         (Some(at), _) => pair("at", at)?,

@@ -72,6 +72,7 @@ pub fn run(args: ShadowArgs) -> Result<()> {
     let bytes = std::fs::read(&args.input)
         .map_err(|e| Error::InvalidInput(format!("cannot read {}: {e}", args.input.display())))?;
     let (map, _) = heightmap::decode_for(&bytes, &mut params, &Limits::default())?;
+    crate::bake::check_method_fits(&params, map.width as u32, map.height as u32)?;
     drop(bytes);
     let tif = crate::pipeline::shadow_tif(&map, &params, az, el, &Progress::new())?;
     // Written beside the target and renamed: a failure leaves no half-written file.

@@ -409,14 +409,14 @@ pub struct CubeFormats {
     pub texture: TextureOptions,
 }
 
-/// The cube-map files for face size `size`: PNG faces, KTX2 and DDS as `formats` asks.
+/// The cube-map files of the channel factors `factors` (six faces of `size`² texels × 4, in
+/// the cube map's face order): PNG faces, KTX2 and DDS as `formats` asks.
 ///
 /// # Errors
 /// [`Error::Param`] for texture options the cube map does not take; an encoder failure.
-pub fn cube_files(size: usize, formats: CubeFormats) -> Result<Vec<OutFile>> {
+pub fn cube_files(size: usize, factors: &[f32], formats: CubeFormats) -> Result<Vec<OutFile>> {
     const NAMES: [&str; 6] =
         ["cube_0.png", "cube_1.png", "cube_2.png", "cube_3.png", "cube_4.png", "cube_5.png"];
-    let factors = crate::kernels::cubemap::cube_factors_shared(size);
     let face_len = size * size * 4;
     let mut out = Vec::new();
     if formats.png8 {

@@ -380,7 +380,6 @@ pub fn probe_for<R: Read + Seek>(
         None
     };
     super::georef::apply_dem_defaults(params, georef.as_ref())?;
-    super::check_method_fits(params, probed.1, probed.2)?;
     let report = georef.as_ref().map(|g| g.report(params.cell_size));
     Ok((probed, report))
 }

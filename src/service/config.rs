@@ -244,7 +244,7 @@ pub struct Config {
     /// The origin allowed to call the API from a browser (`--cors-origin`), if any.
     pub cors_origin: Option<String>,
     /// When and how maps are tiled (`--tile-above`, `--tile-size`).
-    pub tiles: crate::service::tiled::TileSettings,
+    pub tiles: crate::pipeline::tiled::TileSettings,
 }
 
 fn at_least_one(field: &str, v: u64) -> Result<()> {
@@ -424,7 +424,7 @@ impl Config {
             heartbeat: Duration::from_millis(a.heartbeat_ms),
             max_attempts: a.max_attempts,
             cors_origin,
-            tiles: crate::service::tiled::TileSettings {
+            tiles: crate::pipeline::tiled::TileSettings {
                 tile_above: a.tile_above,
                 tile_size: a.tile_size,
             },

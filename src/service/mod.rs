@@ -27,13 +27,9 @@ pub mod handlers;
 pub mod headers;
 pub mod metrics;
 pub mod problem;
-pub mod tiled;
 pub mod ui;
 pub mod upload;
-pub mod worker;
 
-/// The record and blob types, where they always were for the service's callers.
-pub use crate::jobs::record;
 pub use config::{Config, ServeArgs};
 
 use crate::error::{Error, Result};
@@ -41,6 +37,7 @@ use crate::jobs::blob::{BlobStore, FsBlobStore};
 use crate::jobs::repo::EmbeddedRepo;
 use crate::jobs::repo::JobRepo;
 use crate::jobs::{Jobs, JobsConfig};
+use crate::pipeline::{job, tiled};
 use axum::extract::DefaultBodyLimit;
 use axum::routing::{get, post};
 use axum::Router;
@@ -182,13 +179,13 @@ impl AppState {
             repo,
             blobs,
             jobs_cfg,
-            worker::runner(config.limits),
+            job::runner(config.limits),
             Some(Arc::new(move |s, secs, texels| hook_metrics.finished(s, secs, texels))),
         )?;
         // Maps above --tile-above are baked in tiles across every worker (SPEC §7.1).
         let tile_metrics = metrics.clone();
         jobs.set_tiling(crate::jobs::Tiling {
-            tiler: Arc::new(tiled::ServiceTiler {
+            tiler: Arc::new(tiled::PipelineTiler {
                 limits: config.limits,
                 settings: config.tiles,
                 store: jobs.blob_store().clone(),

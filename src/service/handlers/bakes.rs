@@ -395,6 +395,7 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
             blocking(move || {
                 let mut params = params;
                 let probed = heightmap::check_submission_for(&bytes, &mut params, &limits)?;
+                crate::bake::check_method_fits(&params, probed.0 .1, probed.0 .2)?;
                 Ok((Some(bytes), None, params, probed))
             })
             .await?
@@ -409,6 +410,7 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
                 let r = crate::jobs::blob::BlobSeekReader::open(store, &hash)?
                     .ok_or_else(|| Error::Internal("the stored upload is gone".into()))?;
                 let ((f, w, h), georef) = heightmap::stream::probe_for(r, &mut params, &limits)?;
+                crate::bake::check_method_fits(&params, w, h)?;
                 let f = match f {
                     "png" => image::ImageFormat::Png,
                     "tiff" => image::ImageFormat::Tiff,
@@ -425,7 +427,7 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
         _ => "exr",
     };
     // A map above --tile-above is baked in tiles (SPEC §7.1): refuse now what tiles cannot do.
-    crate::service::tiled::check(&params, &formats, width, height, &st.0.config.tiles)?;
+    crate::pipeline::tiled::check(&params, &formats, width, height, &st.0.config.tiles)?;
     // Its tiles are cut by the streamed decode: refuse now (415/422) an encoding it cannot
     // stream (OpenEXR, interlaced PNG, planar TIFF) rather than fail the bake at its split.
     let (bytes, stored) = if st.0.config.tiles.tiles(width, height) {
@@ -492,7 +494,7 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
         attempts: 0,
         progress: None,
         worker: None,
-        formats: Some(worker::formats_field(&formats)),
+        formats: Some(job::formats_field(&formats)),
         stopped_at: None,
         georeferencing: georef.and_then(|g| serde_json::to_value(g).ok()),
         tiles: None,

@@ -85,7 +85,7 @@ pub(super) async fn cube_answer(
     }
     st.0.metrics.rendered(Render::Cube);
     let file = blocking(move || {
-        let mut files = crate::encode::cube_files(size, formats)?;
+        let mut files = crate::pipeline::cube_files(size, formats)?;
         if pick >= files.len() {
             return Err(Error::Internal("cube map file missing".into()));
         }

@@ -48,7 +48,7 @@ pub async fn heights(
         StatusCode::NOT_MODIFIED.into_response()
     } else {
         let (w, h, bytes) = on_pool(&st, &format!("the heights of bake {id}"), move |st| {
-            let map = worker::decode_input(
+            let map = job::decode_input(
                 st.0.jobs.blob_store().as_ref(),
                 &rec,
                 &params,
@@ -125,13 +125,9 @@ pub async fn preview(
     let _cancel = CancelOnDrop(progress.clone());
     st.0.metrics.rendered(Render::Preview);
     let png = on_pool(&st, &format!("the preview of bake {id}"), move |st| {
-        let map = worker::decode_input(
-            st.0.jobs.blob_store().as_ref(),
-            &rec,
-            &params,
-            &st.0.config.limits,
-        )?
-        .0;
+        let map =
+            job::decode_input(st.0.jobs.blob_store().as_ref(), &rec, &params, &st.0.config.limits)?
+                .0;
         preview::render_baking(&map, &params, &pp, &progress)?.to_png()
     })
     .await?;
@@ -183,13 +179,9 @@ pub async fn shadow(
     let _cancel = CancelOnDrop(progress.clone());
     let tif = on_pool(&st, &format!("the shadow of bake {id}"), move |st| {
         let mut params = params;
-        let map = worker::decode_input(
-            st.0.jobs.blob_store().as_ref(),
-            &rec,
-            &params,
-            &st.0.config.limits,
-        )?
-        .0;
+        let map =
+            job::decode_input(st.0.jobs.blob_store().as_ref(), &rec, &params, &st.0.config.limits)?
+                .0;
         crate::heightmap::georef::apply_dem_defaults(&mut params, map.terrain.georef.as_ref())?;
         if as_png {
             crate::pipeline::shadow_png(&map, &params, az, el, &progress)
@@ -235,13 +227,9 @@ pub async fn profile(
     let params = params_of(&rec).map_err(store_err)?;
     let (text, ct) = on_pool(&st, &format!("the profile of bake {id}"), move |st| {
         let mut params = params;
-        let map = worker::decode_input(
-            st.0.jobs.blob_store().as_ref(),
-            &rec,
-            &params,
-            &st.0.config.limits,
-        )?
-        .0;
+        let map =
+            job::decode_input(st.0.jobs.blob_store().as_ref(), &rec, &params, &st.0.config.limits)?
+                .0;
         crate::heightmap::georef::apply_dem_defaults(&mut params, map.terrain.georef.as_ref())?;
         let (x, y) = if at.2 {
             let t = map.terrain.georef.as_ref().and_then(|g| g.transform()).ok_or_else(|| {

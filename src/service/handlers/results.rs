@@ -249,7 +249,7 @@ pub fn download_name(name: &str) -> String {
 
 /// An encode of a result group started by a download ([`result_or_encode`]), running in the
 /// background on the preview pool. Keyed in [`crate::service::Shared::encodes`] by
-/// `{bake id}/{first result name of the group}`: any variant [`worker::result_group`] knows goes
+/// `{bake id}/{first result name of the group}`: any variant [`job::result_group`] knows goes
 /// through it unchanged.
 #[derive(Debug, Clone)]
 pub struct EncodeJob {
@@ -310,7 +310,7 @@ pub(super) async fn result_or_encode(
         return Ok(Found::Stored(h.clone()));
     }
     let id = rec.id.clone();
-    let group = worker::result_group(name)
+    let group = job::result_group(name)
         .ok_or_else(|| Problem::internal(&format!("bake {id} has no result {name}")))?;
     let key = format!("{id}/{}", group[0]);
     // Running (or just failed) already?
@@ -348,7 +348,14 @@ pub(super) async fn result_or_encode(
         let progress = job.progress.clone();
         let what = format!("encoding {wanted} of {}", job.id);
         let r = on_pool(&bg, &what, move |pool| {
-            worker::encode_on_request(pool, &rec, &wanted, &progress)
+            job::encode_on_request(
+                &pool.0.jobs,
+                &pool.0.config.limits,
+                &rec,
+                &wanted,
+                &progress,
+                &|| pool.0.metrics.encoded_on_request(),
+            )
         })
         .await;
         let mut m = bg.0.encodes.lock().unwrap_or_else(|e| e.into_inner());
@@ -577,7 +584,7 @@ pub(super) async fn horizon_texture(
     if !params_of(&rec).is_ok_and(|p| p.outputs.horizon) {
         return Err(not_produced(&id, "horizon"));
     }
-    let result = worker::texture_result_name(ext, &opts, layer);
+    let result = job::texture_result_name(ext, &opts, layer);
     let file = match layer {
         Some(i) => format!("horizon_{i}.{ext}"),
         None => name.to_owned(),

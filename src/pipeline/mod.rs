@@ -9,6 +9,10 @@
 //! - Anything else (EXR, KTX2, DDS) bakes whole layers at the precisions the formats need, then
 //!   encodes them.
 //! - Fourier outputs are baked before the streamed horizon layers, which consume the map.
+//!
+//! Beside it: [`terrain`] (the GeoTIFF products), [`job`] (a stored bake record run through
+//! this pipeline into the blob store: what the jobs core runs for the service) and [`tiled`]
+//! (a map above `--tile-above`: split, a tile's bake, assembly). The service only wires them.
 
 use crate::bake::{self, LayerRows, ResolvedRadius, Sample};
 use crate::encode::{self, png, Formats, OutFile};
@@ -17,6 +21,15 @@ use crate::heightmap::HeightMap;
 use crate::params::BakeParams;
 use crate::progress::{Progress, Stage};
 use std::time::Instant;
+
+pub mod job;
+pub mod terrain;
+pub mod tiled;
+
+pub use terrain::{
+    angle_descriptions, shadow_grey, shadow_png, shadow_tif, svf_description, svf_grey, svf_png,
+    terrain_files,
+};
 
 /// Where a bake's files go.
 pub trait Sink {
@@ -54,6 +67,15 @@ pub struct Produced {
     /// What each terrain product file holds (bands, units, conventions), for bake.json;
     /// `null` without terrain outputs.
     pub products: serde_json::Value,
+}
+
+/// The cube-map files for face size `size` (SPEC §4): the channel factors from the kernel,
+/// encoded as `formats` asks.
+///
+/// # Errors
+/// As [`encode::cube_files`].
+pub fn cube_files(size: usize, formats: encode::CubeFormats) -> Result<Vec<OutFile>> {
+    encode::cube_files(size, &crate::kernels::cubemap::cube_factors_shared(size), formats)
 }
 
 /// Milliseconds since `t`, to the microsecond.
@@ -344,194 +366,4 @@ pub fn fourier_files(
         .map(|i| Ok(OutFile { name: NAMES[i], bytes: encode::fourier_png(&layers, i)? }))
         .collect::<Result<Vec<_>>>()?;
     Ok((files, radius))
-}
-
-/// Bakes the terrain products `params.outputs` asks for into GeoTIFFs (SPEC §3.7): `angles.tif`
-/// (one band per bin) and `svf.tif`, with the input's georeferencing; and what they hold, for
-/// bake.json.
-///
-/// # Errors
-/// Whatever the bake or the GeoTIFF encoder fails with.
-pub fn terrain_files(
-    map: &HeightMap,
-    params: &BakeParams,
-    progress: &Progress,
-) -> Result<(Vec<OutFile>, ResolvedRadius, serde_json::Value)> {
-    use crate::encode::geotiff;
-    let (p, radius) = bake::bake_terrain(map, params, progress)?;
-    progress.start(Stage::Encode, 1);
-    let georef = map.terrain.georef.as_ref();
-    let plane = p.width * p.height;
-    let mut files = Vec::new();
-    let mut info = serde_json::Map::new();
-    let nodata = serde_json::json!(geotiff::nodata_text(p.nodata));
-    if let Some(a) = &p.angles {
-        let (from, unit) = (azimuth_from_name(params), angle_unit_name(params));
-        let azimuths: Vec<f64> =
-            (0..p.bins).map(|n| crate::terrain::angles::band_azimuth_deg(n, p.bins)).collect();
-        let bands: Vec<geotiff::Band<'_>> = a
-            .chunks_exact(plane)
-            .zip(angle_descriptions(params, p.bins))
-            .map(|(plane, description)| geotiff::Band { plane, description })
-            .collect();
-        if progress.is_canceled() {
-            return Err(Error::Canceled);
-        }
-        let bytes = geotiff::encode(p.width, p.height, &bands, georef, p.nodata)?;
-        files.push(OutFile { name: "angles.tif", bytes });
-        info.insert(
-            "angles.tif".into(),
-            serde_json::json!({
-                "bands": bands.iter().map(|b| b.description.clone()).collect::<Vec<_>>(),
-                "azimuths_deg": azimuths,
-                "azimuth_from": from,
-                "unit": unit,
-                "nodata": nodata,
-            }),
-        );
-    }
-    if let Some(v) = &p.svf {
-        let model = svf_model_name(params);
-        let description = svf_description(params, p.bins);
-        let bands = [geotiff::Band { plane: v, description: description.clone() }];
-        let bytes = geotiff::encode(p.width, p.height, &bands, georef, p.nodata)?;
-        files.push(OutFile { name: "svf.tif", bytes });
-        info.insert(
-            "svf.tif".into(),
-            serde_json::json!({
-                "bands": [description],
-                "model": model,
-                "unit": "fraction of the sky",
-                "nodata": nodata,
-            }),
-        );
-    }
-    Ok((files, radius, serde_json::Value::Object(info)))
-}
-
-fn azimuth_from_name(params: &BakeParams) -> &'static str {
-    match params.azimuth_from {
-        crate::params::AzimuthFrom::EastCcw => "east_ccw",
-        crate::params::AzimuthFrom::NorthCw => "north_cw",
-    }
-}
-
-fn angle_unit_name(params: &BakeParams) -> &'static str {
-    match params.angle_unit {
-        crate::params::AngleUnit::Degrees => "degrees",
-        crate::params::AngleUnit::Radians => "radians",
-        crate::params::AngleUnit::Sin => "sin",
-    }
-}
-
-fn svf_model_name(params: &BakeParams) -> &'static str {
-    match params.svf_model {
-        crate::params::SvfModel::Radiative => "radiative",
-        crate::params::SvfModel::Visual => "visual",
-    }
-}
-
-/// The band descriptions of `angles.tif` at `bins` azimuths (as [`terrain_files`] writes them).
-pub fn angle_descriptions(params: &BakeParams, bins: usize) -> Vec<String> {
-    let (from, unit) = (azimuth_from_name(params), angle_unit_name(params));
-    (0..bins)
-        .map(|n| {
-            let az = crate::terrain::angles::band_azimuth_deg(n, bins);
-            format!("horizon {unit} at azimuth {az}° ({from})")
-        })
-        .collect()
-}
-
-/// The band description of `svf.tif` (as [`terrain_files`] writes it).
-pub fn svf_description(params: &BakeParams, bins: usize) -> String {
-    format!("sky-view factor ({}, {bins} azimuths)", svf_model_name(params))
-}
-
-/// The sun shadow (SPEC §3.7) of `map` as `shadow.tif`: uint8, 1 lit, 0 shadowed, 255 at holes
-/// (its GDAL_NODATA), with the input's georeferencing.
-///
-/// # Errors
-/// Whatever [`bake::shadow`] or the GeoTIFF encoder fails with.
-pub fn shadow_tif(
-    map: &HeightMap,
-    params: &BakeParams,
-    azimuth_deg: f64,
-    elevation_deg: f64,
-    progress: &Progress,
-) -> Result<Vec<u8>> {
-    let plane = bake::shadow(map, params, azimuth_deg, elevation_deg, progress)?;
-    let from = match params.azimuth_from {
-        crate::params::AzimuthFrom::EastCcw => "east_ccw",
-        crate::params::AzimuthFrom::NorthCw => "north_cw",
-    };
-    let description = format!(
-        "sun shadow at azimuth {azimuth_deg}° ({from}), elevation {elevation_deg}° (1 lit, 0 shadow)"
-    );
-    encode::geotiff::encode_u8(
-        map.width,
-        map.height,
-        &plane,
-        &description,
-        map.terrain.georef.as_ref(),
-        crate::terrain::shadow::NODATA,
-    )
-}
-
-/// The sun shadow of [`shadow_tif`] as an 8-bit grey + alpha PNG a browser can show: lit 255,
-/// shadowed 0, holes transparent (SPEC §3.7, `format=png`).
-///
-/// # Errors
-/// Whatever [`bake::shadow`] or the PNG encoder fails with.
-pub fn shadow_png(
-    map: &HeightMap,
-    params: &BakeParams,
-    azimuth_deg: f64,
-    elevation_deg: f64,
-    progress: &Progress,
-) -> Result<Vec<u8>> {
-    let plane = bake::shadow(map, params, azimuth_deg, elevation_deg, progress)?;
-    png::encode8(map.width, map.height, png::PngColor::GrayAlpha, &shadow_grey(&plane))
-}
-
-/// Grey + alpha samples of a shadow plane (1 lit, 0 shadowed, [`NODATA`](crate::terrain::shadow::NODATA)
-/// a hole): lit (255, 255), shadowed (0, 255), hole (0, 0).
-pub fn shadow_grey(plane: &[u8]) -> Vec<u8> {
-    plane
-        .iter()
-        .flat_map(|&s| match s {
-            crate::terrain::shadow::NODATA => [0, 0],
-            0 => [0, 255],
-            _ => [255, 255],
-        })
-        .collect()
-}
-
-/// A stored `svf.tif` (as [`terrain_files`] writes it) as an 8-bit grey + alpha PNG a browser
-/// can show: the sky-view factor 0..1 quantised to 0..255 as every 8-bit output is (SPEC §2),
-/// holes (the file's GDAL_NODATA) transparent (SPEC §3.7, `format=png`).
-///
-/// # Errors
-/// [`Error::Decode`] when the bytes are not a one-band float GeoTIFF; the PNG encoder's errors.
-pub fn svf_png(svf_tif: &[u8]) -> Result<Vec<u8>> {
-    let limits =
-        crate::heightmap::Limits { max_dim: u32::MAX, max_texels: u64::MAX, max_bytes: u64::MAX };
-    let (map, _) = crate::heightmap::decode(svf_tif, crate::params::Channel::Luma, &limits)?;
-    let holes = map.terrain.holes.as_deref();
-    let grey = svf_grey(&map.values, holes);
-    png::encode8(map.width, map.height, png::PngColor::GrayAlpha, &grey)
-}
-
-/// Grey + alpha samples of sky-view factors: (floor(v·255 + 0.5), 255), a hole (0, 0).
-pub fn svf_grey(values: &[f32], holes: Option<&[bool]>) -> Vec<u8> {
-    values
-        .iter()
-        .enumerate()
-        .flat_map(|(k, &v)| {
-            if holes.is_some_and(|h| h[k]) || !v.is_finite() {
-                [0, 0]
-            } else {
-                [encode::quantize8(v), 255]
-            }
-        })
-        .collect()
 }

@@ -1,4 +1,4 @@
-//! What a tiled bake computes for the service (SPEC §7.1): the [`Tiler`] the jobs core runs for
+//! What a tiled bake computes (SPEC §7.1): the [`Tiler`] the jobs core runs for
 //! each step of a bake whose map is above `--tile-above` texels, and the checks that refuse at
 //! submission what a tiled bake cannot do.
 //!
@@ -14,6 +14,8 @@
 //! in row bands, never whole) and [`crate::encode::assemble`]'s `HBR1` tile results (read back
 //! by range, one band at a time).
 
+use super::job::{formats_of, params_of, result_name, HORIZON_RESULTS};
+use super::ms;
 use crate::bake;
 use crate::encode::assemble::{self, Plane, Section, TilePiece, TileRows};
 use crate::encode::{png, Formats};
@@ -26,9 +28,7 @@ use crate::jobs::record::{TileContext, TileRecord};
 use crate::jobs::tiles::{self, TilePlan};
 use crate::jobs::{Blobs, Tiler};
 use crate::params::{BakeParams, Radius};
-use crate::pipeline::ms;
 use crate::progress::{Progress, Stage};
-use crate::service::worker::{formats_of, params_of, HORIZON_RESULTS};
 use std::collections::BTreeMap;
 use std::io::Write;
 use std::sync::Arc;
@@ -141,13 +141,13 @@ pub fn check(
 }
 
 /// The service's [`Tiler`].
-pub struct ServiceTiler {
+pub struct PipelineTiler {
     pub limits: Limits,
     pub settings: TileSettings,
     pub store: Arc<dyn BlobStore>,
 }
 
-impl Tiler for ServiceTiler {
+impl Tiler for PipelineTiler {
     fn is_tiled(&self, rec: &BakeRecord) -> bool {
         self.settings.tiles(rec.width, rec.height)
     }
@@ -361,10 +361,7 @@ impl Tiler for ServiceTiler {
                 &formats,
                 &mut |_| blobs.writer(),
                 &mut |name, writer| {
-                    kept.push((
-                        crate::service::worker::result_name(&formats, name),
-                        writer.commit()?,
-                    ));
+                    kept.push((result_name(&formats, name), writer.commit()?));
                     Ok(())
                 },
             )?;

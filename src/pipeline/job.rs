@@ -1,6 +1,7 @@
-//! What a bake computes for the service: the [`Runner`] the jobs core runs on the bake pool
-//! for each claimed bake (decode → bake → encode → store), and the results encoded on their
-//! first request.
+//! A stored bake record run through the pipeline: the [`Runner`] the jobs core runs on the bake
+//! pool for each claimed bake (decode → bake → encode → store), the results encoded on their
+//! first request, and what a record's fields mean to the pipeline (parameters, formats, result
+//! names).
 //!
 //! The jobs core owns the lifecycle (claims, heartbeats, cancel, completion, `catch_unwind`);
 //! this module only turns a record into results. Cancellation goes through
@@ -14,11 +15,11 @@ use crate::heightmap;
 use crate::heightmap::Limits;
 use crate::jobs::blob::BlobStore;
 use crate::jobs::record::{now_ms, BakeRecord, RadiusInfo, Status, Timings};
+use crate::jobs::Jobs;
 use crate::jobs::{Blobs, Runner};
 use crate::params::BakeParams;
 use crate::pipeline::ms;
 use crate::progress::{Progress, Stage};
-use crate::service::AppState;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -121,16 +122,17 @@ fn texture_variant(name: &str) -> Option<(&'static str, TextureOptions)> {
 /// # Errors
 /// Decode, bake, encode and store failures.
 pub fn encode_on_request(
-    st: &AppState,
+    jobs: &Jobs,
+    limits: &Limits,
     rec: &BakeRecord,
     name: &str,
     progress: &Progress,
+    on_stored: &dyn Fn(),
 ) -> Result<Option<String>> {
     let group = result_group(name)
         .ok_or_else(|| Error::Internal(format!("`{name}` is not an on-request result")))?;
     let params = params_of(rec)?;
-    let (map, _) =
-        decode_input(st.0.jobs.blob_store().as_ref(), rec, &params, &st.0.config.limits)?;
+    let (map, _) = decode_input(jobs.blob_store().as_ref(), rec, &params, limits)?;
     let files: Vec<Vec<u8>> = match group[0].as_str() {
         "horizon_0.png8" => {
             let (pngs, _) = crate::pipeline::stream_horizon_pngs::<u8, _>(
@@ -199,13 +201,13 @@ pub fn encode_on_request(
     // Each blob is pinned for this encode until the record references it, so a concurrent
     // removal of an identical result elsewhere cannot take it away in between.
     let owner = format!("encode/{}/{}/{}", rec.id, group[0], now_ms());
-    let blobs = st.0.jobs.blobs_for(owner.clone());
+    let blobs = jobs.blobs_for(owner.clone());
     let mut stored = Vec::with_capacity(group.len());
     for (n, bytes) in group.iter().zip(&files) {
         stored.push((n.clone(), blobs.put(bytes)?));
-        st.0.metrics.encoded_on_request();
+        on_stored();
     }
-    let added = st.0.jobs.block_on(st.0.jobs.add_results(&rec.id, &stored, &owner))?;
+    let added = jobs.block_on(jobs.add_results(&rec.id, &stored, &owner))?;
     if !added {
         return Ok(None);
     }
@@ -368,7 +370,9 @@ pub fn decode_input(
         .get(&rec.input_blob)?
         .ok_or_else(|| Error::Internal(format!("input blob {} is missing", rec.input_blob)))?;
     let mut params = params.clone();
-    heightmap::decode_for(&bytes, &mut params, limits)
+    let (map, info) = heightmap::decode_for(&bytes, &mut params, limits)?;
+    bake::check_method_fits(&params, map.width as u32, map.height as u32)?;
+    Ok((map, info))
 }
 
 /// One bake, on the bake pool: decode → bake → encode → store, then the record is committed as
@@ -388,6 +392,7 @@ fn execute(
         .get(&rec.input_blob)?
         .ok_or_else(|| Error::Internal(format!("input blob {} is missing", rec.input_blob)))?;
     let (map, info) = heightmap::decode_for(&bytes, &mut params, limits)?;
+    bake::check_method_fits(&params, map.width as u32, map.height as u32)?;
     drop(bytes);
     progress.advance(1);
     let decode_ms = ms(t);
