@@ -10,7 +10,7 @@
 //! - `horizon_bake_duration_seconds` (histogram, from a worker taking a bake to its outcome).
 //! - `horizon_texels_baked_total`.
 //! - `horizon_results_encoded_total`: result files encoded on their first request (png16, EXR,
-//!   KTX2, DDS are not encoded with the bake; see `service::worker`).
+//!   KTX2, DDS are not encoded with the bake; see `pipeline::job`).
 //! - `horizon_renders_total{kind}`: previews (`preview`) and cube-map files (`cube`) computed,
 //!   so an operator (and a test) can see that a revalidation answered 304 computed nothing.
 
