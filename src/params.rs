@@ -397,11 +397,21 @@ pub(crate) fn parse_u32(field: &str, value: &str) -> Result<u32> {
     }
 }
 
+/// Most members a `params` JSON object may have: every bake and delivery parameter fits many
+/// times over, and the bound keeps a hostile object from costing more than its first members.
+pub const MAX_JSON_MEMBERS: usize = 256;
+
+/// Most bytes of a multipart `params` part (64 KiB), read before it is parsed: a 413 beyond.
+pub const MAX_PARAMS_BYTES: usize = 64 << 10;
+
 /// The members of a JSON object in document order, refusing a key given twice (serde_json would
 /// silently keep the last one; SPEC-wise a duplicate is a 422 naming the key, as in a query).
+/// Linear in the text: keys are checked against a set, and at most [`MAX_JSON_MEMBERS`] are
+/// read.
 ///
 /// # Errors
-/// [`Error::Param`] naming `params` for text that is not a JSON object, or the duplicated key.
+/// [`Error::Param`] naming `params` for text that is not a JSON object or has more than
+/// [`MAX_JSON_MEMBERS`] members, or naming the duplicated key.
 pub fn json_object_pairs(text: &[u8]) -> Result<Vec<(String, serde_json::Value)>> {
     use serde::de::{Deserializer as _, MapAccess, Visitor};
     struct Pairs;
@@ -415,13 +425,27 @@ pub fn json_object_pairs(text: &[u8]) -> Result<Vec<(String, serde_json::Value)>
             mut map: A,
         ) -> std::result::Result<Self::Value, A::Error> {
             let mut out: Vec<(String, serde_json::Value)> = Vec::new();
-            while let Some((k, v)) = map.next_entry::<String, serde_json::Value>()? {
-                if out.iter().any(|(seen, _)| *seen == k) {
+            let mut seen = std::collections::HashSet::new();
+            while let Some(k) = map.next_key::<String>()? {
+                // Counted before the value is read, so a body of a million members stops at
+                // the first one past the bound.
+                if out.len() == MAX_JSON_MEMBERS {
+                    return Err(serde::de::Error::custom(TooMany));
+                }
+                if !seen.insert(k.clone()) {
                     return Err(serde::de::Error::custom(DuplicateKey(k)));
                 }
+                let v = map.next_value::<serde_json::Value>()?;
                 out.push((k, v));
             }
             Ok(out)
+        }
+    }
+    /// Marks the member-count refusal in serde's error text.
+    struct TooMany;
+    impl std::fmt::Display for TooMany {
+        fn fmt(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+            f.write_str("\u{2}")
         }
     }
     /// Carries the duplicated key through serde's error text.
@@ -437,6 +461,10 @@ pub fn json_object_pairs(text: &[u8]) -> Result<Vec<(String, serde_json::Value)>
         let msg = e.to_string();
         let mut parts = msg.split('\u{1}');
         match (parts.next(), parts.next()) {
+            _ if msg.contains('\u{2}') => Error::param(
+                "params",
+                format!("has more than {MAX_JSON_MEMBERS} members; a bake takes far fewer"),
+            ),
             (Some(_), Some(key)) => Error::param(key, "given more than once"),
             _ if e.is_data() => Error::param("params", "must be a JSON object"),
             _ => Error::param("params", format!("not valid JSON: {e}")),
@@ -818,6 +846,31 @@ impl BakeParams {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A `params` object is read in one pass with a bound on its members: 256 distinct keys
+    /// are read (in order), one more is a 422 naming `params` rather than a scan of every key
+    /// seen so far for each new one, and a duplicate is still named.
+    #[test]
+    fn json_members_are_bounded_and_duplicates_named() {
+        let object = |n: usize| {
+            let members: Vec<String> = (0..n).map(|i| format!("\"k{i}\": {i}")).collect();
+            format!("{{{}}}", members.join(","))
+        };
+        let pairs = json_object_pairs(object(MAX_JSON_MEMBERS).as_bytes()).unwrap();
+        assert_eq!(pairs.len(), MAX_JSON_MEMBERS);
+        assert_eq!(pairs[255].0, "k255");
+        match json_object_pairs(object(40_000).as_bytes()) {
+            Err(Error::Param { field, message }) => {
+                assert_eq!(field, "params");
+                assert!(message.contains("more than 256 members"), "{message}");
+            }
+            other => panic!("not refused: {other:?}"),
+        }
+        match json_object_pairs(br#"{"radius": 4, "bins": 16, "radius": 5}"#) {
+            Err(Error::Param { field, .. }) => assert_eq!(field, "radius"),
+            other => panic!("duplicate not named: {other:?}"),
+        }
+    }
 
     #[test]
     fn defaults_match_spec() {

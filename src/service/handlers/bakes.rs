@@ -261,8 +261,23 @@ pub(super) async fn read_multipart(
                 if params.is_some() {
                     return Err(Problem::param("params", "given more than once"));
                 }
-                let text =
-                    field.bytes().await.map_err(|e| multipart_error(&e, timeout, max_bytes))?;
+                let mut text = Vec::new();
+                while let Some(chunk) =
+                    field.chunk().await.map_err(|e| multipart_error(&e, timeout, max_bytes))?
+                {
+                    text.extend_from_slice(&chunk);
+                    if text.len() > crate::params::MAX_PARAMS_BYTES {
+                        return Err(Problem::new(
+                            StatusCode::PAYLOAD_TOO_LARGE,
+                            "payload_too_large",
+                            format!(
+                                "the `params` part is larger than {} bytes; a bake's parameters \
+                                 take a few hundred",
+                                crate::params::MAX_PARAMS_BYTES
+                            ),
+                        ));
+                    }
+                }
                 params = Some(merge_json(query.clone(), &query_keys, &text)?);
             }
             other => {
