@@ -111,7 +111,44 @@ impl Georef {
                 Some(v) => Some(v.into_string().map_err(|e| bad("GDAL_NODATA", e))?),
             },
         };
+        g.check()?;
         Ok((g != Georef::default()).then_some(g))
+    }
+
+    /// Refuses tags no reader could use: a transform with a non-finite number (it would reach
+    /// bake.json as `null` and the outputs' GeoTIFF tags as NaN), and a GDAL_NODATA that is no
+    /// number (`abc`) or overflows (`1e400`, which parses to infinity); `nan`, `inf` and `-inf`
+    /// spelled out are GDAL's own spellings and stay.
+    ///
+    /// # Errors
+    /// [`Error::Decode`] naming the tag.
+    fn check(&self) -> Result<()> {
+        let tags = [
+            ("ModelPixelScale", &self.pixel_scale),
+            ("ModelTiepoint", &self.tiepoints),
+            ("ModelTransformation", &self.transformation),
+        ];
+        for (what, values) in tags {
+            if values.iter().flatten().any(|v| !v.is_finite()) {
+                return Err(Error::Decode(format!(
+                    "the TIFF's {what} tag holds a value that is not a finite number"
+                )));
+            }
+        }
+        if let Some(raw) = &self.gdal_nodata {
+            let t = raw.trim().trim_end_matches('\0').trim();
+            let spelled = ["nan", "inf", "-inf", "+inf", "infinity", "-infinity"]
+                .iter()
+                .any(|s| t.eq_ignore_ascii_case(s));
+            if !spelled && !t.parse::<f64>().is_ok_and(f64::is_finite) {
+                return Err(Error::Decode(format!(
+                    "the TIFF's GDAL_NODATA tag `{}` is not a number this reader can use; \
+                     fix the file's nodata (gdal_edit.py -a_nodata VALUE, or -unsetnodata)",
+                    t.escape_debug()
+                )));
+            }
+        }
+        Ok(())
     }
 
     /// Whether this is a DEM by SPEC §2: a GeoKeyDirectory and a model transform.
@@ -293,4 +330,43 @@ pub fn apply_dem_defaults(params: &mut BakeParams, georef: Option<&Georef>) -> R
     }
     debug_assert!(dem.is_none() || params.edge == Edge::None || ex.has("edge"));
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn with(f: impl FnOnce(&mut Georef)) -> Result<()> {
+        let mut g = Georef {
+            pixel_scale: Some(vec![30.0, 30.0, 0.0]),
+            tiepoints: Some(vec![0.0, 0.0, 0.0, 500_000.0, 4_000_000.0, 0.0]),
+            ..Georef::default()
+        };
+        f(&mut g);
+        g.check()
+    }
+
+    /// A non-finite tie point, scale or transform, and a GDAL_NODATA that is no number or
+    /// overflows, are decode errors naming the tag; GDAL's spellings of NaN and infinity stay.
+    #[test]
+    fn unusable_tags_are_refused_by_name() {
+        assert!(with(|_| ()).is_ok());
+        let msg = |r: Result<()>| match r {
+            Err(Error::Decode(m)) => m,
+            other => panic!("not refused: {other:?}"),
+        };
+        let m = msg(with(|g| g.tiepoints.as_mut().unwrap()[3] = f64::NAN));
+        assert!(m.contains("ModelTiepoint"), "{m}");
+        let m = msg(with(|g| g.pixel_scale.as_mut().unwrap()[0] = f64::INFINITY));
+        assert!(m.contains("ModelPixelScale"), "{m}");
+        let m = msg(with(|g| g.transformation = Some(vec![f64::NAN; 16])));
+        assert!(m.contains("ModelTransformation"), "{m}");
+        for bad in ["abc", "1e400", "-1e999", ""] {
+            let m = msg(with(|g| g.gdal_nodata = Some(bad.into())));
+            assert!(m.contains("GDAL_NODATA") && m.contains("-a_nodata"), "{bad}: {m}");
+        }
+        for good in ["-32768", "nan", "-inf", "3.4028234663852886e+38", "-9999\0"] {
+            assert!(with(|g| g.gdal_nodata = Some(good.into())).is_ok(), "{good}");
+        }
+    }
 }

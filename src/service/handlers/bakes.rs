@@ -9,6 +9,19 @@ use super::*;
 pub(super) const RAW_TYPES: &[&str] =
     &["image/png", "image/tiff", "image/x-exr", "image/exr", "application/octet-stream"];
 
+/// The 413 of a body larger than `--max-body-bytes`, stating the limit.
+fn too_large(max_bytes: u64) -> Problem {
+    Problem::new(
+        StatusCode::PAYLOAD_TOO_LARGE,
+        "payload_too_large",
+        format!(
+            "the request body is larger than the server accepts: at most {max_bytes} bytes \
+             ({:.1} MiB, the server's --max-body-bytes)",
+            max_bytes as f64 / (1024.0 * 1024.0)
+        ),
+    )
+}
+
 /// The answer to a body that could not be read: too large (the detail states the limit, so a
 /// client knows what to send), stalled, or broken.
 pub(super) fn body_error(
@@ -17,15 +30,7 @@ pub(super) fn body_error(
     max_bytes: u64,
 ) -> Problem {
     match upload::fault(e) {
-        upload::BodyFault::TooLarge => Problem::new(
-            StatusCode::PAYLOAD_TOO_LARGE,
-            "payload_too_large",
-            format!(
-                "the request body is larger than the server accepts: at most {max_bytes} bytes \
-                 ({:.1} MiB, the server's --max-body-bytes)",
-                max_bytes as f64 / (1024.0 * 1024.0)
-            ),
-        ),
+        upload::BodyFault::TooLarge => too_large(max_bytes),
         upload::BodyFault::TimedOut => Problem::new(
             StatusCode::REQUEST_TIMEOUT,
             "body_timeout",
@@ -355,6 +360,22 @@ pub(super) fn retry_after(st: &AppState, waiting: u64) -> u64 {
 pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
     if st.is_draining() {
         return Err(Problem::shutting_down());
+    }
+    // A client that waits for `100 Continue` has sent nothing yet: a body announced larger than
+    // the limit is refused at once, before hyper would send the 100 (it does when the body is
+    // first read), so the client never starts sending it. Without the expectation the body is
+    // read and discarded before the 413 (see `app`), or the client would see a reset.
+    let announced = req
+        .headers()
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok()?.trim().parse::<u64>().ok());
+    let expects_continue = req
+        .headers()
+        .get(header::EXPECT)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.trim().eq_ignore_ascii_case("100-continue"));
+    if expects_continue && announced.is_some_and(|n| n > st.0.config.max_body_bytes) {
+        return Err(too_large(st.0.config.max_body_bytes));
     }
     let _upload =
         match tokio::time::timeout(st.0.config.upload_wait, st.0.uploads.clone().acquire_owned())
