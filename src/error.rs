@@ -42,6 +42,11 @@ pub enum Error {
     /// request may succeed later. Never the input's fault.
     #[error("temporarily unavailable: {0}")]
     Unavailable(String),
+    /// A store has no space left (ENOSPC or a quota: `ErrorKind::StorageFull`); `store` names
+    /// which, `cause` is the underlying error (logged, not shown to a client). Writes succeed
+    /// again once space is freed.
+    #[error("{store} is full: {cause}")]
+    StorageFull { store: &'static str, cause: String },
 }
 
 /// Which limit an input broke, with the numbers, so the message can say by how much.
@@ -87,7 +92,10 @@ impl Error {
             | Error::Param { .. }
             | Error::Limits(_) => 2,
             Error::Canceled => 130,
-            Error::Io(_) | Error::Internal(_) | Error::Unavailable(_) => 1,
+            Error::Io(_)
+            | Error::Internal(_)
+            | Error::Unavailable(_)
+            | Error::StorageFull { .. } => 1,
         }
     }
 
@@ -104,6 +112,7 @@ impl Error {
             Error::Io(_) => "io_error",
             Error::Internal(_) => "internal",
             Error::Unavailable(_) => "store_unavailable",
+            Error::StorageFull { .. } => "insufficient_storage",
         }
     }
 }
@@ -119,8 +128,20 @@ impl From<std::io::Error> for Error {
         if let Some(s) = e.get_ref().and_then(|i| i.downcast_ref::<object_store::Error>()) {
             return Error::Unavailable(format!("object storage: {s}"));
         }
+        if is_storage_full(&e) {
+            return Error::StorageFull { store: "the data directory", cause: e.to_string() };
+        }
         Error::Io(e)
     }
+}
+
+/// Whether `e` is a full disk or an exhausted quota (ENOSPC, EDQUOT).
+pub fn is_storage_full(e: &std::io::Error) -> bool {
+    const ENOSPC: i32 = 28;
+    const EDQUOT: i32 = 122;
+    e.kind() == std::io::ErrorKind::StorageFull
+        || e.kind() == std::io::ErrorKind::QuotaExceeded
+        || matches!(e.raw_os_error(), Some(ENOSPC | EDQUOT))
 }
 
 #[cfg(test)]

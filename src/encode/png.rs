@@ -898,7 +898,8 @@ mod stream_tests {
     #[test]
     fn write_errors_surface_even_from_the_final_writes() {
         // Fails on the header, in the data, and only at the very end (last IDAT / IEND, which
-        // the png crate writes in destructors): each must come back as Error::Io.
+        // the png crate writes in destructors): each must come back as the
+        // writer's error (a full disk: Error::StorageFull).
         let (w, h) = (64, 64);
         let rows = vec![7u16; w * h * 4];
         let full = {
@@ -908,7 +909,7 @@ mod stream_tests {
         };
         assert!(matches!(
             PngRowWriter::<_, u16>::new(Failing { budget: 10 }, w, h, PngColor::Rgba),
-            Err(Error::Io(_))
+            Err(Error::StorageFull { .. })
         ));
         for budget in [100, full - 20, full - 1] {
             let res = PngRowWriter::<_, u16>::new(Failing { budget }, w, h, PngColor::Rgba)
@@ -916,7 +917,7 @@ mod stream_tests {
                     wr.write_rows(&rows)?;
                     wr.finish().map(|_| ())
                 });
-            assert!(matches!(res, Err(Error::Io(_))), "budget {budget}: {:?}", res);
+            assert!(matches!(res, Err(Error::StorageFull { .. })), "budget {budget}: {:?}", res);
         }
         let ok = PngRowWriter::<_, u16>::new(Failing { budget: full }, w, h, PngColor::Rgba)
             .and_then(|mut wr| {

@@ -143,6 +143,17 @@ impl From<Error> for Problem {
             Error::Param { field, message } => Problem::param(field.clone(), message.clone()),
             Error::Canceled => Problem::new(StatusCode::CONFLICT, code, "the bake was canceled"),
             Error::Io(_) | Error::Internal(_) => Problem::internal(&e),
+            Error::StorageFull { store, cause } => {
+                tracing::error!(%store, %cause, "storage full");
+                Problem::new(
+                    StatusCode::INSUFFICIENT_STORAGE,
+                    code,
+                    format!(
+                        "the server cannot store this: {store} is full; nothing stored was lost, \
+                         retry once the operator has freed space"
+                    ),
+                )
+            }
             Error::Unavailable(cause) => {
                 tracing::warn!(%cause, "backing store unavailable");
                 let mut p = Problem::new(

@@ -80,6 +80,14 @@ impl BlobWriter for FsBlobWriter {
 }
 
 impl BlobStore for FsBlobStore {
+    fn check_writable(&self) -> Result<()> {
+        // 64 KiB, so a disk with a few blocks left (which a bake's blob would not fit) is full
+        // here too; the file is unlinked when dropped, never synced.
+        let mut probe = tempfile::NamedTempFile::new_in(self.root.join("tmp"))?;
+        probe.write_all(&[0u8; 64 << 10])?;
+        probe.flush()?;
+        Ok(())
+    }
     fn writer(&self) -> Result<Box<dyn BlobWriter>> {
         Ok(Box::new(FsBlobWriter {
             tmp: tempfile::NamedTempFile::new_in(self.root.join("tmp"))?,

@@ -53,6 +53,15 @@ pub trait BlobStore: Send + Sync + 'static {
     /// # Errors
     /// The backend's failure.
     fn delete(&self, hash: &str) -> Result<()>;
+    /// Whether a new blob can be written now (`/readyz`): a store on a local disk writes and
+    /// removes a small probe file, so a full disk is seen before a submission fails on it and
+    /// again once space is freed. Remote stores answer for themselves on each request.
+    ///
+    /// # Errors
+    /// [`Error::StorageFull`] when there is no space; the backend's other failures.
+    fn check_writable(&self) -> Result<()> {
+        Ok(())
+    }
     /// Every stored hash with its age in seconds (for sweeping orphans).
     ///
     /// # Errors

@@ -98,6 +98,28 @@ fn db_err(e: impl std::fmt::Display) -> Error {
     Error::Internal(format!("bake store: {e}"))
 }
 
+/// A redb failure as the bake's error: a full disk under `bakes.redb` is
+/// [`Error::StorageFull`] (507, retried once space is freed), anything else internal.
+fn redb_err<E: std::error::Error + 'static>(e: E) -> Error {
+    let mut source: Option<&(dyn std::error::Error + 'static)> = Some(&e);
+    while let Some(s) = source {
+        if let Some(io) = s.downcast_ref::<std::io::Error>() {
+            if crate::error::is_storage_full(io) {
+                return Error::StorageFull {
+                    store: "the bake records' disk",
+                    cause: e.to_string(),
+                };
+            }
+        }
+        source = s.source();
+    }
+    // Some of redb's errors carry the I/O error only in their text.
+    if e.to_string().contains("(os error 28)") {
+        return Error::StorageFull { store: "the bake records' disk", cause: e.to_string() };
+    }
+    db_err(e)
+}
+
 /// [`BakeStore`] on an embedded redb file.
 pub struct RedbStore {
     db: redb::Database,
@@ -134,14 +156,14 @@ fn decode_record(bytes: &[u8]) -> Result<BakeRecord> {
 impl BakeStore for RedbStore {
     fn put(&self, rec: &BakeRecord) -> Result<()> {
         let bytes = serde_json::to_vec(rec).map_err(db_err)?;
-        let tx = self.db.begin_write().map_err(db_err)?;
+        let tx = self.db.begin_write().map_err(redb_err)?;
         {
             let mut bakes = tx.open_table(BAKES).map_err(db_err)?;
-            bakes.insert(rec.id.as_str(), bytes.as_slice()).map_err(db_err)?;
+            bakes.insert(rec.id.as_str(), bytes.as_slice()).map_err(redb_err)?;
             let mut dedup = tx.open_table(DEDUP).map_err(db_err)?;
-            dedup.insert(rec.dedup_key.as_str(), rec.id.as_str()).map_err(db_err)?;
+            dedup.insert(rec.dedup_key.as_str(), rec.id.as_str()).map_err(redb_err)?;
         }
-        tx.commit().map_err(db_err)
+        tx.commit().map_err(redb_err)
     }
 
     fn get(&self, id: &str) -> Result<Option<BakeRecord>> {
@@ -190,7 +212,7 @@ impl BakeStore for RedbStore {
     }
 
     fn delete(&self, id: &str) -> Result<bool> {
-        let tx = self.db.begin_write().map_err(db_err)?;
+        let tx = self.db.begin_write().map_err(redb_err)?;
         let existed;
         {
             let mut bakes = tx.open_table(BAKES).map_err(db_err)?;
@@ -207,7 +229,7 @@ impl BakeStore for RedbStore {
                 }
             }
         }
-        tx.commit().map_err(db_err)?;
+        tx.commit().map_err(redb_err)?;
         Ok(existed)
     }
 }

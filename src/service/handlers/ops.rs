@@ -18,6 +18,9 @@ pub async fn readyz(State(st): State<AppState>) -> Answer {
     // Ready means the stores answer too: with PostgreSQL away this is 503, so a load
     // balancer stops sending work here until it is back.
     let c = st.0.jobs.counts().await.map_err(store_err)?;
+    // And that the blob store can write: on a full disk this is 507 until space is freed.
+    let blobs = st.0.jobs.blob_store().clone();
+    blocking(move || blobs.check_writable()).await?;
     let ready = Readiness {
         status: "ready",
         role: match st.0.config.role {
