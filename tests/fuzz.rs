@@ -36,6 +36,7 @@ fn clone_kind(e: &Error) -> Error {
         Error::Io(io) => Error::Io(std::io::Error::new(io.kind(), io.to_string())),
         Error::Internal(m) => Error::Internal(m.clone()),
         Error::Unavailable(m) => Error::Unavailable(m.clone()),
+        Error::StorageFull { store, cause } => Error::StorageFull { store, cause: cause.clone() },
     }
 }
 

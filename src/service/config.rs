@@ -71,6 +71,10 @@ pub struct ServeArgs {
     /// and its upload slot freed (a client that announces a body and never sends it).
     #[arg(long, env = "HORIZON_BODY_TIMEOUT_SECS", default_value_t = 30)]
     pub body_timeout_secs: u64,
+    /// Least bytes per second an upload's body must bring over each 10 s window, else 408 and
+    /// its upload slot is freed (a client dripping a byte every few seconds; 0 = no minimum).
+    #[arg(long, env = "HORIZON_MIN_UPLOAD_RATE", default_value_t = 1024)]
+    pub min_upload_rate: u64,
     /// Seconds a connection gets to send a request's complete headers before it is closed.
     #[arg(long, env = "HORIZON_HEADER_TIMEOUT_SECS", default_value_t = 30)]
     pub header_timeout_secs: u64,
@@ -153,6 +157,7 @@ impl Default for ServeArgs {
             no_ui: false,
             ui_dir: None,
             body_timeout_secs: 30,
+            min_upload_rate: 1024,
             header_timeout_secs: 30,
             preview_threads: 0,
             max_uri_bytes: 16 * 1024,
@@ -230,6 +235,8 @@ pub struct Config {
     pub ui_dir: Option<PathBuf>,
     /// Longest pause between two pieces of an upload's body.
     pub body_timeout: Duration,
+    /// Least bytes per second of an upload's body over each [`crate::service::upload::RATE_WINDOW`].
+    pub min_upload_rate: u64,
     /// Longest time to receive a request's headers.
     pub header_timeout: Duration,
     pub preview_threads: usize,
@@ -413,6 +420,7 @@ impl Config {
             no_ui: a.no_ui,
             ui_dir: a.ui_dir,
             body_timeout: Duration::from_secs(a.body_timeout_secs),
+            min_upload_rate: a.min_upload_rate,
             header_timeout: Duration::from_secs(a.header_timeout_secs),
             preview_threads,
             max_uri_bytes: a.max_uri_bytes,

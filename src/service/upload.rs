@@ -4,6 +4,9 @@
 //! - a pause: every piece of the body must arrive within `body_timeout` of the previous one (an
 //!   idle timeout, not a total one, so a large upload on a slow link still gets through), else
 //!   the stream fails with [`BodyTimedOut`] and the handler answers 408, freeing its upload slot;
+//! - a drip: over every [`RATE_WINDOW`] the body must bring at least `min_rate` bytes per second
+//!   (`--min-upload-rate`), else [`BodyTooSlow`] and a 408: a byte every few seconds never
+//!   trips the idle timeout, and a few such connections would hold every upload slot;
 //! - a body over `max_body_bytes`: the stream fails with [`BodyTooLarge`], but only after reading
 //!   and discarding the rest of the body (at most [`DRAIN_BOUND`] more bytes, each piece within
 //!   the idle timeout). Answering while the client is still sending makes the connection close
@@ -30,6 +33,14 @@ pub const DRAIN_BOUND: u64 = 64 * 1024 * 1024;
 #[error("the request body stalled: no data for {0:?}")]
 pub struct BodyTimedOut(pub Duration);
 
+/// The window over which an upload's rate is held against `--min-upload-rate`.
+pub const RATE_WINDOW: Duration = Duration::from_secs(10);
+
+/// The body arrived slower than the minimum rate over a [`RATE_WINDOW`].
+#[derive(Debug, thiserror::Error)]
+#[error("the request body arrived slower than {0} bytes per second")]
+pub struct BodyTooSlow(pub u64);
+
 /// The body is larger than the limit.
 #[derive(Debug, thiserror::Error)]
 #[error("the request body is larger than {0} bytes")]
@@ -39,6 +50,7 @@ pub struct BodyTooLarge(pub u64);
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum BodyFault {
     TimedOut,
+    TooSlow,
     TooLarge,
     Other,
 }
@@ -50,6 +62,9 @@ pub fn fault(e: &(dyn std::error::Error + 'static)) -> BodyFault {
     while let Some(c) = cur {
         if c.is::<BodyTimedOut>() {
             return BodyFault::TimedOut;
+        }
+        if c.is::<BodyTooSlow>() {
+            return BodyFault::TooSlow;
         }
         if c.is::<BodyTooLarge>() || c.is::<http_body_util::LengthLimitError>() {
             return BodyFault::TooLarge;
@@ -76,29 +91,71 @@ where
 /// A guarded body yields (is Pending once) after each this many bytes.
 pub const PACE: u64 = 1 << 20;
 
-/// `body` with the idle timeout and the size limit applied (see the module documentation),
-/// pausing once per [`PACE`] bytes so the multipart parser, which reads until its source is
-/// Pending, never gathers a large part in memory.
-pub fn guarded(body: Body, limit: u64, idle: Duration) -> Body {
-    let start = Some((body.into_data_stream(), 0u64));
+/// How a body is bounded: at most `limit` bytes, no pause longer than `idle`, and at least
+/// `min_rate` bytes per second over each [`RATE_WINDOW`] (0: no minimum).
+#[derive(Debug, Clone, Copy)]
+pub struct Bounds {
+    pub limit: u64,
+    pub idle: Duration,
+    pub min_rate: u64,
+}
+
+/// Where a guarded body stands: its stream, the bytes so far, and the current rate window's
+/// start and bytes.
+struct Guard<S> {
+    s: S,
+    seen: u64,
+    window_start: tokio::time::Instant,
+    window_seen: u64,
+}
+
+/// `body` with the idle timeout, the minimum rate and the size limit applied (see the module
+/// documentation), pausing once per [`PACE`] bytes so the multipart parser, which reads until
+/// its source is Pending, never gathers a large part in memory.
+pub fn guarded(body: Body, b: Bounds) -> Body {
+    let Bounds { limit, idle, min_rate } = b;
+    let start = Some(Guard {
+        s: body.into_data_stream(),
+        seen: 0u64,
+        window_start: tokio::time::Instant::now(),
+        window_seen: 0,
+    });
     let stream = futures_util::stream::unfold(start, move |state| async move {
-        let (mut s, seen) = state?;
-        let item: Result<Bytes, axum::BoxError> = match tokio::time::timeout(idle, s.next()).await {
-            Err(_) => Err(BodyTimedOut(idle).into()),
-            Ok(None) => return None,
-            Ok(Some(Err(e))) => Err(e.into()),
-            Ok(Some(Ok(chunk))) => {
-                let seen = seen + chunk.len() as u64;
-                if seen > limit {
-                    drain(&mut s, idle, DRAIN_BOUND).await;
-                    Err(BodyTooLarge(limit).into())
-                } else {
-                    if seen / PACE != (seen - chunk.len() as u64) / PACE {
+        let mut g = state?;
+        let last = tokio::time::Instant::now();
+        let item: Result<Bytes, axum::BoxError> = loop {
+            // Wake at the idle deadline, or at the rate window's end to judge it.
+            let window_end = g.window_start + RATE_WINDOW;
+            let idle_end = last + idle;
+            let wake = if min_rate > 0 { idle_end.min(window_end) } else { idle_end };
+            match tokio::time::timeout_at(wake, g.s.next()).await {
+                Err(_) if tokio::time::Instant::now() >= idle_end => {
+                    break Err(BodyTimedOut(idle).into());
+                }
+                Err(_) => {
+                    if let Some(e) = rate_check(&mut g, min_rate) {
+                        break Err(e.into());
+                    }
+                }
+                Ok(None) => return None,
+                Ok(Some(Err(e))) => break Err(e.into()),
+                Ok(Some(Ok(chunk))) => {
+                    let n = chunk.len() as u64;
+                    g.seen += n;
+                    g.window_seen += n;
+                    if g.seen > limit {
+                        drain(&mut g.s, idle, DRAIN_BOUND).await;
+                        break Err(BodyTooLarge(limit).into());
+                    }
+                    if let Some(e) = rate_check(&mut g, min_rate) {
+                        break Err(e.into());
+                    }
+                    if g.seen / PACE != (g.seen - n) / PACE {
                         // Pending once per PACE bytes: a reader that polls until Pending (the
                         // multipart parser does) buffers at most this much of a fast body.
                         tokio::task::yield_now().await;
                     }
-                    return Some((Ok(chunk), Some((s, seen))));
+                    return Some((Ok(chunk), Some(g)));
                 }
             }
         };
@@ -106,6 +163,22 @@ pub fn guarded(body: Body, limit: u64, idle: Duration) -> Body {
         Some((item, None))
     });
     Body::from_stream(stream)
+}
+
+/// At the end of a rate window: the body's fault when the window brought fewer than `min_rate`
+/// bytes per second, else a new window.
+fn rate_check<S>(g: &mut Guard<S>, min_rate: u64) -> Option<BodyTooSlow> {
+    let now = tokio::time::Instant::now();
+    let elapsed = now.duration_since(g.window_start);
+    if min_rate == 0 || elapsed < RATE_WINDOW {
+        return None;
+    }
+    if (g.window_seen as f64) < min_rate as f64 * elapsed.as_secs_f64() {
+        return Some(BodyTooSlow(min_rate));
+    }
+    g.window_start = now;
+    g.window_seen = 0;
+    None
 }
 
 /// Reads all of `body` into one buffer sized from `expected` (the announced Content-Length,
@@ -275,11 +348,17 @@ mod tests {
             counter.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
             Ok::<_, std::io::Error>(Bytes::from(vec![0u8; 100]))
         }));
-        let body = guarded(Body::from_stream(chunks), 250, Duration::from_secs(5));
+        let body = guarded(
+            Body::from_stream(chunks),
+            Bounds { limit: 250, idle: Duration::from_secs(5), min_rate: 0 },
+        );
         let err = axum::body::to_bytes(body, usize::MAX).await.unwrap_err();
         assert_eq!(fault(&err), BodyFault::TooLarge);
         assert_eq!(read.load(std::sync::atomic::Ordering::SeqCst), 10, "the rest was not drained");
-        let ok = guarded(Body::from(vec![1u8; 250]), 250, Duration::from_secs(5));
+        let ok = guarded(
+            Body::from(vec![1u8; 250]),
+            Bounds { limit: 250, idle: Duration::from_secs(5), min_rate: 0 },
+        );
         assert_eq!(axum::body::to_bytes(ok, usize::MAX).await.unwrap().len(), 250);
     }
 
@@ -340,8 +419,36 @@ mod tests {
     async fn a_stalled_body_times_out() {
         let chunks = futures_util::stream::iter([Ok::<_, std::io::Error>(Bytes::from("ab"))])
             .chain(futures_util::stream::pending());
-        let body = guarded(Body::from_stream(chunks), 1000, Duration::from_millis(50));
+        let body = guarded(
+            Body::from_stream(chunks),
+            Bounds { limit: 1000, idle: Duration::from_millis(50), min_rate: 0 },
+        );
         let err = axum::body::to_bytes(body, usize::MAX).await.unwrap_err();
         assert_eq!(fault(&err), BodyFault::TimedOut);
+    }
+
+    /// A drip (a byte a second: never a pause the idle timeout sees) is cut at the end of the
+    /// first rate window when the minimum is 100 bytes/s, and read whole without a minimum; a
+    /// body at a steady 2 KiB/s passes a minimum of 1 KiB/s over several windows.
+    #[tokio::test(start_paused = true)]
+    async fn a_drip_is_cut_at_the_minimum_rate() {
+        let drip = |n: usize, every: Duration, size: usize| {
+            futures_util::stream::iter(0..n).then(move |_| async move {
+                tokio::time::sleep(every).await;
+                Ok::<_, std::io::Error>(Bytes::from(vec![7u8; size]))
+            })
+        };
+        let bounds = |min_rate| Bounds { limit: 1 << 20, idle: Duration::from_secs(5), min_rate };
+        let t = tokio::time::Instant::now();
+        let body = guarded(Body::from_stream(drip(60, Duration::from_secs(1), 1)), bounds(100));
+        let err = axum::body::to_bytes(body, usize::MAX).await.unwrap_err();
+        assert_eq!(fault(&err), BodyFault::TooSlow);
+        let cut = t.elapsed();
+        assert!(cut >= RATE_WINDOW && cut < RATE_WINDOW + Duration::from_secs(2), "{cut:?}");
+        let body = guarded(Body::from_stream(drip(60, Duration::from_secs(1), 1)), bounds(0));
+        assert_eq!(axum::body::to_bytes(body, usize::MAX).await.unwrap().len(), 60);
+        let steady = drip(40, Duration::from_millis(500), 1024);
+        let body = guarded(Body::from_stream(steady), bounds(1024));
+        assert_eq!(axum::body::to_bytes(body, usize::MAX).await.unwrap().len(), 40 * 1024);
     }
 }

@@ -39,6 +39,15 @@ pub(super) fn body_error(
                 timeout.as_secs()
             ),
         ),
+        upload::BodyFault::TooSlow => Problem::new(
+            StatusCode::REQUEST_TIMEOUT,
+            "body_too_slow",
+            format!(
+                "the request body arrived slower than the server's minimum upload rate over {}s \
+                 (--min-upload-rate); send it at a steady pace",
+                upload::RATE_WINDOW.as_secs()
+            ),
+        ),
         upload::BodyFault::Other => Problem::new(
             StatusCode::BAD_REQUEST,
             "bad_request",
@@ -399,7 +408,13 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
         .unwrap_or("")
         .to_owned();
     let (parts, body) = req.into_parts();
-    let body = upload::guarded(body, st.0.config.max_body_bytes, st.0.config.body_timeout);
+    let c = &st.0.config;
+    let bounds = upload::Bounds {
+        limit: c.max_body_bytes,
+        idle: c.body_timeout,
+        min_rate: c.min_upload_rate,
+    };
+    let body = upload::guarded(body, bounds);
     let req = Request::from_parts(parts, body);
     // The id is chosen first: a large upload is stored (pinned for it) while it arrives.
     let id = new_id();
