@@ -82,6 +82,10 @@ pub struct ServeArgs {
     /// long bake (0 = half the cores, at least one).
     #[arg(long, env = "HORIZON_PREVIEW_THREADS", default_value_t = 0)]
     pub preview_threads: usize,
+    /// Seconds a preview, shadow, profile or rendered image may compute before it is canceled
+    /// and answered 503 `preview_timeout` (a 4096² relief preview with 1024 steps runs minutes).
+    #[arg(long, env = "HORIZON_PREVIEW_TIMEOUT_SECS", default_value_t = 60)]
+    pub preview_timeout_secs: u64,
     /// Longest request target (path and query) in bytes; longer ones get 414 (problem+json).
     #[arg(long, env = "HORIZON_MAX_URI_BYTES", default_value_t = 16 * 1024)]
     pub max_uri_bytes: usize,
@@ -160,6 +164,7 @@ impl Default for ServeArgs {
             min_upload_rate: 1024,
             header_timeout_secs: 30,
             preview_threads: 0,
+            preview_timeout_secs: 60,
             max_uri_bytes: 16 * 1024,
             max_header_bytes: 64 * 1024,
             role: "all".into(),
@@ -240,6 +245,8 @@ pub struct Config {
     /// Longest time to receive a request's headers.
     pub header_timeout: Duration,
     pub preview_threads: usize,
+    /// Longest a request's computation on the preview pool may take.
+    pub preview_timeout: Duration,
     pub max_uri_bytes: usize,
     pub max_header_bytes: usize,
     pub role: Role,
@@ -286,6 +293,7 @@ impl Config {
             ));
         }
         at_least_one("body_timeout_secs", a.body_timeout_secs)?;
+        at_least_one("preview_timeout_secs", a.preview_timeout_secs)?;
         // hyper answers a head over its own buffer (set to 1 MiB in `service::serve`) with a
         // bare 431, and a target over 64 KiB with a bare 414; below those, ours are problem+json.
         if !(256..=60 * 1024).contains(&a.max_uri_bytes) {
@@ -423,6 +431,7 @@ impl Config {
             min_upload_rate: a.min_upload_rate,
             header_timeout: Duration::from_secs(a.header_timeout_secs),
             preview_threads,
+            preview_timeout: Duration::from_secs(a.preview_timeout_secs),
             max_uri_bytes: a.max_uri_bytes,
             max_header_bytes: a.max_header_bytes,
             role,

@@ -82,6 +82,9 @@ pub const ROUTES: &[(&str, &[&str])] = &[
 #[derive(Clone)]
 pub struct AppState(pub Arc<Shared>);
 
+/// Requests per thread of the preview and encode pools that may wait for or run on them.
+pub const POOL_QUEUE: usize = 8;
+
 /// What [`AppState`] holds.
 pub struct Shared {
     pub config: Config,
@@ -91,6 +94,13 @@ pub struct Shared {
     /// for, and on the bake pool it would wait for the whole of a running bake (rayon workers
     /// busy in a bake's parallel loop only take new jobs when they run out of its work).
     pub preview_pool: rayon::ThreadPool,
+    /// On-request encodes (a format's first download) run here, not on the preview pool, so a
+    /// burst of them cannot hold up a preview, nor a long preview an encode.
+    pub encode_pool: rayon::ThreadPool,
+    /// Requests waiting for or running on each of those pools ([`POOL_QUEUE`] per thread): past
+    /// that, 503 with Retry-After rather than an unbounded queue of decoded maps.
+    pub preview_slots: Arc<Semaphore>,
+    pub encode_slots: Arc<Semaphore>,
     /// Uploads read at once.
     pub uploads: Arc<Semaphore>,
     pub metrics: Arc<metrics::Metrics>,
@@ -151,12 +161,17 @@ impl AppState {
         repo: Arc<dyn JobRepo>,
         blobs: Arc<dyn BlobStore>,
     ) -> Result<Self> {
-        let preview_pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(config.preview_threads)
-            .thread_name(|i| format!("preview-{i}"))
-            .panic_handler(|_| tracing::error!("a preview thread panicked outside a job"))
-            .build()
-            .map_err(|e| Error::Internal(format!("cannot start the preview pool: {e}")))?;
+        let pool = |name: &'static str| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(config.preview_threads)
+                .thread_name(move |i| format!("{name}-{i}"))
+                .panic_handler(move |_| tracing::error!("a {name} thread panicked outside a job"))
+                .build()
+                .map_err(|e| Error::Internal(format!("cannot start the {name} pool: {e}")))
+        };
+        let (preview_pool, encode_pool) = (pool("preview")?, pool("encode")?);
+        let queue = config.preview_threads * POOL_QUEUE;
+        let slots = || Arc::new(Semaphore::new(queue));
         let metrics = Arc::new(metrics::Metrics::default());
         let shared = matches!(config.backend, Backend::Shared { .. });
         let jobs_cfg = JobsConfig {
@@ -197,6 +212,9 @@ impl AppState {
             config,
             jobs,
             preview_pool,
+            encode_pool,
+            preview_slots: slots(),
+            encode_slots: slots(),
             metrics,
             draining: AtomicBool::new(false),
             encodes: Default::default(),
@@ -349,6 +367,11 @@ pub async fn serve(
             }
         });
     }
-    graceful.shutdown().await;
+    // Connections still open after the bakes' drain get the grace period again, then are
+    // closed: a request stuck in a handler cannot hold the process up for ever.
+    let grace = st.0.config.shutdown_grace.max(std::time::Duration::from_secs(1));
+    if tokio::time::timeout(grace, graceful.shutdown()).await.is_err() {
+        tracing::warn!(?grace, "connections still open after the drain's deadline: closing them");
+    }
     Ok(())
 }

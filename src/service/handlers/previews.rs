@@ -5,23 +5,78 @@
 
 use super::*;
 
-/// Runs `f` on the preview pool (never the async workers, and never behind a long bake: the
-/// work a request waits for), panics caught, the result sent back over a oneshot; `what` names
-/// the work in the 500 a panic becomes.
+/// The pools a request's CPU work runs on, apart from the bake pool.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Pool {
+    /// Previews, shadows, profiles, rendered images, heights: a request someone waits for,
+    /// under `--preview-timeout-secs`.
+    Preview,
+    /// On-request encodes, which run in the background of the request that asked.
+    Encode,
+}
+
+/// Runs `f` on the preview pool under its deadline (see [`run_on`]).
 pub(super) async fn on_pool<T, F>(st: &AppState, what: &str, f: F) -> Result<T, Problem>
 where
     T: Send + 'static,
     F: FnOnce(&AppState) -> crate::Result<T> + Send + 'static,
 {
+    run_on(st, Pool::Preview, what, f).await
+}
+
+/// Runs `f` on `pool` (never the async workers, and never behind a long bake: the work a
+/// request waits for), panics caught, the result sent back over a oneshot; `what` names the
+/// work in the 500 a panic becomes. A pool takes [`crate::service::POOL_QUEUE`] requests per
+/// thread at once (a 503 with Retry-After beyond: each holds a decoded map). On the preview
+/// pool the answer is a 503 `preview_timeout` once `--preview-timeout-secs` pass; the caller's
+/// [`CancelOnDrop`] then stops the computation at its next row, and its slot is free when it
+/// has stopped.
+pub(super) async fn run_on<T, F>(st: &AppState, pool: Pool, what: &str, f: F) -> Result<T, Problem>
+where
+    T: Send + 'static,
+    F: FnOnce(&AppState) -> crate::Result<T> + Send + 'static,
+{
+    let (threads, slots) = match pool {
+        Pool::Preview => (&st.0.preview_pool, &st.0.preview_slots),
+        Pool::Encode => (&st.0.encode_pool, &st.0.encode_slots),
+    };
+    let Ok(slot) = slots.clone().try_acquire_owned() else {
+        let mut p = Problem::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "pool_busy",
+            format!("too many requests are computing on the {pool:?} pool; retry shortly")
+                .to_lowercase(),
+        );
+        p.retry_after = Some(1);
+        return Err(p);
+    };
     let (tx, rx) = tokio::sync::oneshot::channel();
     let pool_state = st.clone();
-    st.0.preview_pool.spawn(move || {
+    threads.spawn(move || {
+        let _slot = slot;
         let _ = tx.send(catch_unwind(AssertUnwindSafe(|| f(&pool_state))));
     });
-    match rx.await {
-        Ok(Ok(r)) => r.map_err(Problem::from),
-        Ok(Err(_)) | Err(_) => Err(Problem::internal(&format!("{what} panicked"))),
+    let answer = async {
+        match rx.await {
+            Ok(Ok(r)) => r.map_err(Problem::from),
+            Ok(Err(_)) | Err(_) => Err(Problem::internal(&format!("{what} panicked"))),
+        }
+    };
+    if pool == Pool::Encode {
+        return answer.await;
     }
+    let limit = st.0.config.preview_timeout;
+    tokio::time::timeout(limit, answer).await.unwrap_or_else(|_| {
+        Err(Problem::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "preview_timeout",
+            format!(
+                "{what} took longer than the server allows ({}s, --preview-timeout-secs); ask \
+                 for a smaller size or fewer steps",
+                limit.as_secs()
+            ),
+        ))
+    })
 }
 
 /// `GET /v1/bakes/{id}/heights`: the heights the bake used, in texels (channel picked,

@@ -347,7 +347,7 @@ pub(super) async fn result_or_encode(
     tokio::spawn(async move {
         let progress = job.progress.clone();
         let what = format!("encoding {wanted} of {}", job.id);
-        let r = on_pool(&bg, &what, move |pool| {
+        let r = previews::run_on(&bg, previews::Pool::Encode, &what, move |pool| {
             job::encode_on_request(
                 &pool.0.jobs,
                 &pool.0.config.limits,
