@@ -3,14 +3,10 @@
 //! input exits non-zero with one line on stderr that names the problem, leaving the output
 //! directory as it was. Output is piped here, so there must be no progress bar either.
 
-use crate::support;
+use crate::support::{self, bin, terrain_png16};
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
-
-fn bin() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
-}
 
 fn run(args: &[&str]) -> Output {
     bin().args(args).output().expect("the binary runs")
@@ -490,4 +486,24 @@ fn preview_output_mode_missing_dir_and_stdout() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert_eq!(o.stdout, std::fs::read(&out).unwrap(), "`-o -` is not the same PNG");
     assert!(!std::path::Path::new("-").exists(), "`-o -` wrote a file named -");
+}
+
+/// `--reduce point` means nothing to Lengyel's splat (the service's 422 is in the service binary's
+/// `submissions`): the CLI refuses it with exit code 2 and one line naming `reduce`. From
+/// tests/edges.rs (issue 25).
+#[test]
+fn cli_refuses_point_reduction_with_lengyel() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("h.png");
+    std::fs::write(&input, terrain_png16(16, 16, 3)).unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
+        .args(["bake", input.to_str().unwrap(), "-o"])
+        .arg(dir.path().join("out"))
+        .args(["--reduce", "point"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("reduce") && err.trim().lines().count() == 1, "{err}");
+    assert!(!dir.path().join("out").exists());
 }

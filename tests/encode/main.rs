@@ -7,6 +7,7 @@ mod support;
 
 mod assembled;
 mod encode;
+mod png_sizes;
 mod shaders;
 mod stream;
 mod textures;

@@ -13,7 +13,7 @@
 //! by the unit tests in src/shaders/mod.rs. Under `CI=true` a missing glslangValidator fails
 //! these tests instead of skipping them.
 
-use crate::support::idle_state;
+use crate::support::{bin, idle_state};
 use axum::body::Body;
 use axum::http::{Request, StatusCode};
 use horizon_bake::service;
@@ -22,10 +22,6 @@ use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use tower::ServiceExt;
-
-fn bin() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
-}
 
 /// `horizon-bake shaders -o DIR` into a fresh directory.
 fn written() -> (tempfile::TempDir, PathBuf) {

@@ -137,12 +137,6 @@ async fn submit_poll_download_is_byte_identical_to_the_library() {
     assert_eq!(files.len(), 1 + 2, "{files:?}");
 }
 
-async fn problem(res: reqwest::Response) -> (u16, Value) {
-    let status = res.status().as_u16();
-    assert_eq!(res.headers()["content-type"], "application/problem+json");
-    (status, res.json().await.unwrap())
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn every_rejection_is_a_problem_and_leaves_nothing_behind() {
     let srv = Server::start(|c| c.max_body_bytes = 64 * 1024).await;

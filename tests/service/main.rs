@@ -9,9 +9,14 @@
 mod support;
 
 mod api;
-mod edges;
+mod cancel;
+mod docs;
 mod fuzz;
+mod http;
+mod previews;
 mod process;
-mod service_defects;
+mod records;
+mod results;
+mod submissions;
 mod textures;
 mod uploads;

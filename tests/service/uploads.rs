@@ -2,15 +2,19 @@
 //! 16-bit PNG sent in 64 KiB pieces to the service's router is accepted (202) with the input's
 //! size and hash, stored whole, and the process's peak resident memory grows by far less than
 //! the body. Plus a multipart upload of the same kind, and a small upload still in memory.
+//! And uploads that misbehave (from tests/service_defects.rs, issue 14): stalled bodies and
+//! unfinished headers do not hold upload slots, an oversized multipart body gets its 413.
 //!
-//! The memory test is ignored by default (it moves 384 MiB twice): run it with
-//! `cargo test --test upload_stream -- --ignored --nocapture --test-threads 1` (alone: the
-//! peak is the process's).
+//! The memory test is ignored by default (it moves 384 MiB twice): run it alone, so that the
+//! peak is the process's, with `cargo test --test service -- --ignored --exact --nocapture
+//! uploads::a_large_upload_does_not_raise_memory_by_its_size`.
 
 use crate::support::*;
 use axum::body::Body;
 use axum::http::Request;
 use horizon_bake::service;
+use std::time::Duration;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tower::ServiceExt;
 
 fn status(key: &str) -> u64 {
@@ -151,4 +155,72 @@ async fn a_spooled_upload_is_probed_from_the_store() {
     assert_eq!(v["input"]["content_hash"], hash, "{v}");
     assert_eq!(v["input"]["width"], 512, "{v}");
     assert_eq!(v["input"]["height"], 256, "{v}");
+}
+
+/// Connections that announce a body and never send it, or never finish their headers, must not
+/// keep upload slots (or connections) forever: after the body timeout a real submission works.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn stalled_uploads_do_not_hold_upload_slots() {
+    let srv = Server::start(|c| {
+        c.max_inflight_uploads = 2;
+        c.upload_wait = Duration::from_secs(4);
+        c.body_timeout = Duration::from_millis(800);
+        c.header_timeout = Duration::from_millis(800);
+    })
+    .await;
+    let addr = srv.base.trim_start_matches("http://").to_owned();
+    let mut stalled = Vec::new();
+    for _ in 0..2 {
+        let mut s = tokio::net::TcpStream::connect(&addr).await.unwrap();
+        s.write_all(
+            b"POST /v1/bakes HTTP/1.1\r\nhost: x\r\ncontent-type: image/png\r\n\
+              content-length: 100000\r\n\r\n\x89PNG",
+        )
+        .await
+        .unwrap();
+        stalled.push(s);
+    }
+    // Headers that never end.
+    let mut slow_headers = tokio::net::TcpStream::connect(&addr).await.unwrap();
+    slow_headers.write_all(b"POST /v1/bakes HTTP/1.1\r\nhost: x\r\n").await.unwrap();
+    tokio::time::sleep(Duration::from_millis(200)).await;
+
+    let c = client();
+    let loc = submit_ok(&c, &srv, &terrain_png16(8, 8, 11), "?radius=2").await;
+    let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
+    assert_eq!(v["status"], "succeeded", "{v}");
+
+    // The stalled uploads were answered 408 (problem+json) and the slow headers were cut off.
+    for mut s in stalled {
+        let mut buf = Vec::new();
+        let _ = tokio::time::timeout(Duration::from_secs(10), s.read_to_end(&mut buf)).await;
+        let text = String::from_utf8_lossy(&buf);
+        assert!(text.starts_with("HTTP/1.1 408"), "stalled upload got: {text}");
+        assert!(text.contains("application/problem+json"), "{text}");
+    }
+    let mut buf = Vec::new();
+    let closed =
+        tokio::time::timeout(Duration::from_secs(10), slow_headers.read_to_end(&mut buf)).await;
+    assert!(closed.is_ok(), "a connection with unfinished headers was kept open");
+    srv.stop().await;
+}
+
+/// An oversized multipart upload is answered 413, every time (the server reads and discards a
+/// bounded amount so the client sees the answer instead of a reset).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn oversized_multipart_upload_gets_413_every_time() {
+    let srv = Server::start(|c| c.max_body_bytes = 64 * 1024).await;
+    let c = client();
+    // 16 MiB: far more than the socket buffers hold, so a server that answers without reading
+    // closes the connection while the client is still sending.
+    for round in 0..6 {
+        let form = reqwest::multipart::Form::new()
+            .part("heightmap", reqwest::multipart::Part::bytes(vec![7u8; 16 << 20]))
+            .text("params", "{}");
+        let res = c.post(srv.url("/v1/bakes")).multipart(form).send().await;
+        let res = res.unwrap_or_else(|e| panic!("round {round}: no answer: {e}"));
+        let (s, p) = problem(res).await;
+        assert_eq!((s, p["code"].as_str()), (413, Some("payload_too_large")), "round {round}");
+    }
+    srv.stop().await;
 }

@@ -401,3 +401,45 @@ fn crc32(data: &[u8]) -> u32 {
     }
     !crc
 }
+
+/// The binary under test, as a command.
+pub fn bin() -> std::process::Command {
+    std::process::Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
+}
+
+/// POSTs `png` as a raw `image/png` body to `/v1/bakes{query}`, expects 202, returns `Location`.
+pub async fn submit_ok(c: &reqwest::Client, srv: &Server, png: &[u8], query: &str) -> String {
+    let res = c
+        .post(srv.url(&format!("/v1/bakes{query}")))
+        .header("content-type", "image/png")
+        .body(png.to_vec())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(res.status(), 202);
+    res.headers()["location"].to_str().unwrap().to_owned()
+}
+
+/// A raw `image/png` submission of `png` to `/v1/bakes{query}`, for `oneshot`.
+pub fn raw_submit(png: &[u8], query: &str) -> axum::http::Request<axum::body::Body> {
+    axum::http::Request::post(format!("/v1/bakes{query}"))
+        .header("content-type", "image/png")
+        .body(axum::body::Body::from(png.to_vec()))
+        .unwrap()
+}
+
+/// The status and body of a problem+json answer (asserting its content type).
+pub async fn problem(res: reqwest::Response) -> (u16, Value) {
+    let status = res.status().as_u16();
+    assert_eq!(res.headers()["content-type"], "application/problem+json");
+    (status, res.json().await.unwrap())
+}
+
+/// The value of the counter line `series` (name and labels, as exposed) in the server's
+/// /metrics; panics if the server does not expose it.
+pub async fn counter(c: &reqwest::Client, srv: &Server, series: &str) -> u64 {
+    let text = c.get(srv.url("/metrics")).send().await.unwrap().text().await.unwrap();
+    let key = format!("{series} ");
+    let line = text.lines().find(|l| l.starts_with(&key)).unwrap_or_else(|| panic!("{series}"));
+    line[key.len()..].parse().unwrap()
+}
