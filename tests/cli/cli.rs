@@ -21,7 +21,7 @@ fn case(name: &str) -> Value {
     cases()["horizon_cases"].as_array().unwrap().iter().find(|c| c["name"] == name).unwrap().clone()
 }
 
-/// The golden case's parameters as `--kebab-case` flags (the same keys tests/golden.rs sets).
+/// The golden case's parameters as `--kebab-case` flags (the same keys tests/kernels/golden.rs sets).
 fn flags_of(case: &Value) -> Vec<String> {
     let mut out = Vec::new();
     for key in ["height_scale", "radius", "edge", "y_axis", "channel", "method", "bins"] {

@@ -273,7 +273,7 @@ fn outputs_fourier_alone_bakes_no_horizon_layers() {
             .unwrap(),
     )
     .unwrap();
-    // (`--format png16,exr` with `--outputs fourier` alone is refused: see tests/cli.rs.)
+    // (`--format png16,exr` with `--outputs fourier` alone is refused: see tests/cli/cli.rs.)
     let run = |outputs: &str, format: &str, out: &std::path::Path| {
         let st = std::process::Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
             .arg("bake")

@@ -1,5 +1,5 @@
 //! Tiled bakes (SPEC §7.1) across real processes on the real engines (PostgreSQL and an S3
-//! server started by `scripts/engines.sh`, as tests/distributed.rs does): one API node and two
+//! server started by `scripts/engines.sh`, as tests/cluster/distributed.rs does): one API node and two
 //! workers bake the tiles of one map; a killed worker's tiles are taken over; DELETE stops every
 //! tile; a stalled worker cannot overwrite a tile another wrote; a stalled coordinator gives the
 //! bake back; the results are the CLI's untiled bytes. Without the engines these tests say so

@@ -63,7 +63,7 @@ fn tiled_layers_are_byte_identical_to_the_untiled_bake() {
 
 /// Nodata holes across tile seams (march and exact, both edges): each window gets the hole
 /// mask and fill of the whole map's decode, and a texel near a hole takes the exact walk with
-/// the holes wherever its window starts (`tests/march.rs` checks the march's choice texel by
+/// the holes wherever its window starts (`tests/kernels/march.rs` checks the march's choice texel by
 /// texel in f32), so the tiled layers are the untiled bake's.
 #[test]
 fn holes_across_tile_seams_give_the_untiled_bytes() {

@@ -405,8 +405,8 @@ fn bad_texture_flags_name_the_option() {
     }
 }
 
-/// Issue 21's measurement, one run (`cargo test --release --test textures -- --ignored
-/// --nocapture measure_2048`): a 2048² bake (default parameters), then each texture variant's
+/// Issue 21's measurement, one run (`cargo test --release --test encode -- --ignored
+/// --nocapture textures::measure_2048`): a 2048² bake (default parameters), then each texture variant's
 /// encode time, size and PSNR of level 0 against the 8-bit layers, on a smooth and a noise-like
 /// map. PSNR is decoded with the `dds` crate's own decoder (a measurement, not a test).
 #[test]
@@ -497,8 +497,8 @@ fn dds_decode(blocks: &[u8], n: usize, format: dds::Format) -> Vec<u8> {
     out
 }
 
-/// SPEC §8's mip truth, measured (`cargo test --locked --test textures mip_filter_truth --
-/// --ignored --nocapture`): for levels 1–3 of a 256² bake (default parameters), the shadow
+/// SPEC §8's mip truth, measured (`cargo test --locked --test encode textures::mip_filter_truth
+/// -- --ignored --nocapture`): for levels 1–3 of a 256² bake (default parameters), the shadow
 /// error (§4's 144 lights, `hardness` 8: a texel is lit when F ≥ ½) and the mean |ΔF| of the F
 /// each filter's level decodes, against the truth of that level: the mean over the level
 /// texel's footprint of the full-resolution F. docs/accuracy.md quotes the table.

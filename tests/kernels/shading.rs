@@ -3,7 +3,7 @@
 //! - The ground-truth shadow ray against an independent brute-force march.
 //! - A single bump lit from +x / +y: where the shadow falls, how it grows, that it vanishes.
 //! - Flat maps are uniform; no NaN or speckles at the awkward light directions.
-//! - Golden PNG previews (regenerate with `HORIZON_BLESS=1 cargo test --test shading`).
+//! - Golden PNG previews (regenerate with `HORIZON_BLESS=1 cargo test --test kernels shading::`).
 
 use crate::support::Rng;
 use horizon_bake::bake::{self, Precisions};

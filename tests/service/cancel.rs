@@ -1,6 +1,6 @@
 //! DELETE of a running bake stops it soon, wherever it is: late in the kernel, or in the encode
-//! stage between encoders. Regression tests from tests/service_defects.rs (issue 14's service defects),
-//! each written to fail before its fix.
+//! stage between encoders. Regression tests from tests/service_defects.rs (issue 14's service
+//! defects), each written to fail before its fix.
 
 use crate::support::*;
 use serde_json::Value;

@@ -149,7 +149,7 @@ async fn sigterm_drains_then_requeues_and_the_next_start_finishes() {
     let c = client();
     let big = terrain_png16(2048, 2048, 5);
     // Grace 0: the bake running at SIGTERM goes straight back to the queue. (The 503s while
-    // draining are checked in-process by tests/service.rs, where the drain can be held open.)
+    // draining are checked in-process by tests/service/api.rs, where the drain can be held open.)
     let p = spawn(&data, &["--shutdown-grace-secs", "0"]);
     let (s, v) = submit(&c, &p.base, &big, "radius=16").await;
     assert_eq!(s, 202);

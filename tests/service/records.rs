@@ -1,7 +1,7 @@
 //! The bake records: a deduplicated submission renews the retention (and the resource says when
 //! it expires), listing newest first with several statuses and a total, malformed cursors a 422.
-//! Regression tests from tests/service_defects.rs (issue 14's service defects), each written to fail before
-//! its fix.
+//! Regression tests from tests/service_defects.rs (issue 14's service defects), each written to
+//! fail before its fix.
 
 use crate::support::*;
 use axum::body::Body;

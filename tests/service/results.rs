@@ -1,8 +1,8 @@
 //! Results and their downloads: byte ranges, file names, cache busters ignored on immutable
 //! results, formats named at submission encoded with the bake, other formats encoded once on
 //! their first request (answered 202 at once) and half-float EXR. Regression tests from
-//! tests/edges.rs (issue 25's sharp edges) and tests/service_defects.rs (issue 14's service defects),
-//! each written to fail before its fix.
+//! tests/edges.rs (issue 25's sharp edges) and tests/service_defects.rs (issue 14's service
+//! defects), each written to fail before its fix.
 
 use crate::support::*;
 use serde_json::Value;

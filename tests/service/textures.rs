@@ -153,7 +153,7 @@ fn pipeline_file(
 
 /// `?mips=full&mip_filter=rebake` on the texture routes: the bytes the library's pipeline
 /// writes (each level a bake of the box-filtered heights at the halved radius, proven level by
-/// level in tests/textures.rs), distinct from the box chain, encoded once.
+/// level in tests/encode/textures.rs), distinct from the box chain, encoded once.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn rebake_variants_over_http() {
     let srv = Server::start(|_| {}).await;
