@@ -30,10 +30,10 @@ async fn dedup_hit_extends_retention_and_shows_expires_at() {
     assert!(v["expires_at"].is_null(), "a queued bake does not expire: {v}");
     let id = v["id"].as_str().unwrap().to_owned();
     // Make it a bake that finished two hours ago: past the retention.
-    use horizon_bake::service::store::BakeStore;
+    use horizon_bake::jobs::repo::redb::BakeStore;
     let mut rec = repo.store().get(&id).unwrap().unwrap();
-    rec.status = horizon_bake::service::store::Status::Succeeded;
-    let two_hours_ago = horizon_bake::service::store::now_ms() - 2 * 3600 * 1000;
+    rec.status = horizon_bake::jobs::record::Status::Succeeded;
+    let two_hours_ago = horizon_bake::jobs::record::now_ms() - 2 * 3600 * 1000;
     rec.finished_ms = Some(two_hours_ago);
     repo.store().put(&rec).unwrap();
     let (s, v) =
@@ -44,7 +44,7 @@ async fn dedup_hit_extends_retention_and_shows_expires_at() {
     let (s, v) = oneshot(&app, raw_submit(&png, "")).await;
     assert_eq!((s, v["id"].as_str().unwrap()), (StatusCode::OK, id.as_str()));
     let renewed = v["expires_at"].as_str().unwrap().to_owned();
-    assert!(renewed > handlers::rfc3339(horizon_bake::service::store::now_ms()), "{renewed}");
+    assert!(renewed > handlers::rfc3339(horizon_bake::jobs::record::now_ms()), "{renewed}");
     let removed = handlers::sweep(&st).await;
     assert_eq!(removed.unwrap(), 0, "the sweep removed a bake that was just asked for again");
     assert!(repo.store().get(&id).unwrap().is_some());
