@@ -177,7 +177,7 @@ fn main() {
     {
         // The same bake with its far field in a temporary file, as a map whose table passes
         // `MAX_TABLE_BYTES` gets it: the cost of the disk's round trip (the values are the same
-        // bits, `tests/sweep.rs`).
+        // bits, `tests/kernels/sweep.rs`).
         let t = Instant::now();
         let spill = Some(Arc::new(FileSpill::new(n * n)) as Arc<dyn FarSpill>);
         let opt = Options { spill, ..Options::default() };

@@ -8,7 +8,7 @@ Workflows `horizon_angle`, on the same map. This script measures both against ou
 sweep's mean |Δα| is not below Whitebox's on every map. CI runs it at a small size; the table in
 docs/peers.md ("`method=sweep` on the maps no terrain has") comes from a run at 512².
 
-Maps (the recipes of tests/sweep.rs, drawn with numpy's default_rng(seed)):
+Maps (the recipes of tests/kernels/sweep.rs, drawn with numpy's default_rng(seed)):
 - **white noise**: heights uniform in 0..12 texels (slopes up to 12);
 - **spikes**: 1 % of texels are spikes 4–24 texels tall on a flat plane.
 horizon-bake reads a 16-bit PNG (value / 65535 × height_scale texels); Whitebox reads a float32

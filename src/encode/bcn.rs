@@ -7,7 +7,7 @@
 //! Same BC7 speed and quality; `intel_tex_2` links only with a build.rs that links `stdc++` and
 //! ships opaque object files, `dds` is 100% safe Rust and builds wherever `cargo` does, so `dds`.
 //! Its BC5 is slower, but small beside a bake. Measured again here, both layers of a 2048² bake
-//! (`cargo test --locked --test textures measure_2048 -- --ignored --nocapture`, test profile,
+//! (`cargo test --locked --test encode textures::measure_2048 -- --ignored --nocapture`, test profile,
 //! one run on a machine shared with three other builds, so times are high): bake 0.44 s; BC7
 //! 3.9 s at 51.1 dB on rolling hills, 5.3 s at 23.9 dB on white noise; BC5 0.86 s at 57.8 dB /
 //! 3.2 s at 31.0 dB; RGBA8 + zstd 3 0.39 s. BC7 spends its 128 bits on four independent

@@ -3,7 +3,7 @@
 //!
 //! No Rust crate both writes KTX2 and builds offline (NOTES.md), and the container is small, so
 //! it is written here by hand: identifier, header, the level index, a basic data format descriptor
-//! (DFD), no key/value data, then the levels smallest first. `tests/encode.rs` proves it by reading
+//! (DFD), no key/value data, then the levels smallest first. `tests/encode/encode.rs` proves it by reading
 //! every texel back with the independent `ktx2` crate and comparing the DFD with the one that
 //! crate generates for the same format.
 //!

@@ -23,7 +23,7 @@
 //!
 //! The far field only samples grid lines up to 1/SUB of a texel beside the ray: on terrain that
 //! moves the horizon by hundredths of a degree, on fields of single-texel spikes by degrees (the
-//! stated worst case, `tests/sweep.rs`). Maps with nodata holes are baked by `exact` instead
+//! stated worst case, `tests/kernels/sweep.rs`). Maps with nodata holes are baked by `exact` instead
 //! (see `bake::make_kernel_for`). docs/sweep.md holds the whole account: how each part works,
 //! the measurements behind each constant, what was tried and dropped.
 
