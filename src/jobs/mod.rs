@@ -12,13 +12,11 @@
 //!   machine; [`blob::S3BlobStore`] across many.
 //!
 //! The record model is [`record`]; the pure tile plan [`tiles`]; the coordination of a tiled
-//! bake (split, tiles claimed like bakes, assemble) `coordinate`.
+//! bake (split, tiles claimed like bakes, assemble) `coordinate`. What a bake computes is not
+//! this module's business: the service hands it a [`Runner`] (decode, bake, encode, store
+//! through [`Blobs`]), run on the bake pool, never on the async runtime, inside `catch_unwind`.
 //!
-//! What a bake computes is not this module's business: the service hands it a [`Runner`] (decode,
-//! bake, encode, store through [`Blobs`]), run on the bake pool, never on the async runtime,
-//! inside `catch_unwind`.
-//!
-//! # Guarantees, and what each rests on
+//! # Guarantees, and what each rests on (on PostgreSQL and S3 in detail: docs/service.md)
 //! - An accepted bake is never lost: its input blob and `queued` record are durable before the
 //!   submission is answered; a claim that stops heartbeating loses its lease and the reaper
 //!   queues the bake again (embedded: the restart does).

@@ -5,58 +5,26 @@
 //! elevation at azimuth φ) is a periodic waveform, so a few Fourier bands describe it; the shader
 //! evaluates them at the light's azimuth with polynomials in (x, y) instead of trigonometry.
 //!
-//! # Exact formulas
-//! With (x, y) = (cos φ, sin φ) (SPEC convention; the write-up names them the other way round,
-//! which only permutes the basis) the basis functions are
-//!
-//! | k | b_k(φ)              | band          |
-//! |---|---------------------|---------------|
-//! | 0 | 1                   | constant      |
-//! | 1 | x                   | cos φ         |
-//! | 2 | y                   | sin φ         |
-//! | 3 | 2xy                 | sin 2φ        |
-//! | 4 | y² − x²             | −cos 2φ       |
-//! | 5 | x³ − 3xy²           | cos 3φ        |
-//! | 6 | 3x²y − y³           | sin 3φ        |
-//! | 7 | 4xy(x² − y²)        | sin 4φ        |
-//! | 8 | (x² − y²)² − 4x²y²  | cos 4φ        |
-//!
+//! With (x, y) = (cos φ, sin φ), the basis b_0..b_8 ([`basis`]) is 1, x, y, 2xy, y² − x²,
+//! x³ − 3xy², 3x²y − y³, 4xy(x² − y²), (x² − y²)² − 4x²y² (the bands up to 4φ), and
 //! `fourier_terms` = 3, 5, 7, 9 keeps k < terms. The coefficients are the projections over the
-//! B = `bins` uniformly spaced samples φ_n = n·2π/B of the bake:
-//!   C_0 = (1/B) Σ s_n,   C_k = 2 · (1/B) Σ s_n b_k(φ_n)  (k ≥ 1, "premultiplied by 2"),
-//! which for B ≥ 16 equals the least-squares fit (the sampled basis is orthogonal below band B/2),
-//! and the decoder is simply s(φ) = Σ_k C_k b_k(φ).
+//! bake's `bins` samples, premultiplied by 2 for k ≥ 1 ([`Projector`]): for 16 bins or more
+//! that is the least-squares fit, and the decoder is simply s(φ) = Σ_k C_k b_k(φ)
+//! ([`evaluate_xy`]).
 //!
-//! Storage (8-bit UNORM, byte = floor(t·255 + 0.5) as everywhere in the crate) is what the
-//! write-up's shader decodes unchanged (SPEC §3.4):
+//! They are stored in 8-bit UNORM so that the write-up's shader decodes them unchanged (SPEC
+//! §3.4): a sign-preserving square root ([`compand`]) around ½, t = ½ + ¼·v with
+//! `fourier_range=standard` (the default), which uses only about 0.2 of the byte range on each
+//! side since |C_k| ≤ [`COEFF_BOUND`] = 2/π; `expanded` divides by that bound first and stores
+//! t = ½ + ½·v, for a shader changed in two lines.
 //!
-//! ```glsl
-//! vec4  lq = texture(fourier0, uv) * 4.0 - 2.0;   lq = lq * abs(lq);
-//! float c  = texture(fourier1, uv).r * 2.0 - 1.0; c  = c * abs(c);
-//! float s  = c + dot(lq, vec4(x, y, 2.0 * x * y, y * y - x * x));
-//! ```
-//!
-//! - `fourier_range=standard` (default): t_k = ½ + ¼·sign(C_k)·√|C_k| for k ≥ 1 and
-//!   t_0 = ½ + ½·√C_0;
-//! - `expanded`, for a shader changed in two lines (`* 2.0 - 1.0` and `* 2/π` for the bands,
-//!   `c = t * t` for the constant): t_k = ½ + ½·sign(C_k)·√(|C_k|·π/2) and t_0 = √C_0.
-//!
-//! For s ∈ [0, 1] and a unit sinusoid b_k, |C_k| = 2|mean(s·b_k)| ≤ 2·mean(max(b_k, 0)) = 2/π,
-//! so the standard range uses only ¼·√(2/π) ≈ 0.2 of the byte range on each side of ½ (about
-//! 102 of 255 codes), and half of the constant's; `expanded` divides by that bound first and
-//! uses all of it (values past it, possible only by sampling error, saturate).
-//!
-//! Decoding (what a shader does after bilinear filtering the UNORM textures to t ∈ [0, 1]):
-//! standard C_k = v·|v| with v = 4t − 2, C_0 = c·|c| with c = 2t − 1; expanded C_k = v·|v|·2/π
-//! with v = 2t − 1, C_0 = t². Note the UNORM zero offset: a stored 128 decodes to v = 2/255
-//! (standard), C = 6e-5, not 0.
-//!
-//! # Layout
+//! Layout ([`FourierLayers`]):
 //! - `fourier_0`: RGBA8 = C_1, C_2, C_3, C_4 (with 3 terms, B and A hold the encoded zero, 128);
-//! - `fourier_1`: one channel = √C_0;
+//! - `fourier_1`: one channel = √C_0 (stored as ½ + ½·√C_0 with `standard`);
 //! - `fourier_2` (7 and 9 terms only): RGBA8 = C_5, C_6, C_7, C_8 (B, A = 128 with 7 terms).
 //!
 //! So a 5-term bake is exactly what SPEC §3.4 names, and higher orders only add a layer.
+//! docs/fourier.md has the full account: the exact formulas, the shader's decode, the ranges.
 
 use crate::params::FourierRange;
 use std::f64::consts::PI;
@@ -67,7 +35,7 @@ pub const COEFF_BOUND: f64 = 2.0 / PI;
 /// Most terms supported.
 pub const MAX_TERMS: usize = 9;
 
-/// The 9 basis functions at (x, y) = (cos φ, sin φ), in the order of the module table.
+/// The 9 basis functions at (x, y) = (cos φ, sin φ), in the order of the module doc's list.
 #[inline]
 pub fn basis(x: f64, y: f64) -> [f64; MAX_TERMS] {
     let (x2, y2) = (x * x, y * y);

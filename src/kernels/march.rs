@@ -1,53 +1,30 @@
 //! `method=march` (SPEC §3.2a): the line-of-sight horizon of §3.2 for a finite radius, sampled
 //! instead of solved, vectorised across texels.
 //!
-//! # What is sampled
 //! Along a ray from a texel centre the bilinear surface h̃ is piecewise quadratic, with a knee
-//! wherever the ray crosses a grid line (a row or column of texel centres). For one azimuth the
-//! crossings fall at the same offsets from every texel centre, so the pieces between them, their
-//! cells and all their constants are the same for every texel: the hot loop runs over a strip of
-//! consecutive texels, over contiguous memory, and LLVM vectorises it. Per piece, from s_a to
-//! s_b = s_a + L inside one cell:
-//! - the end, a crossing: h̃ is a linear interpolation of two texels there, (h̃ − h0)/s_b;
-//! - K interior points: inside a cell h̃ along the ray is its chord minus twist·dx·dy·t·(L − t)
-//!   (t from s_a; twist = h00 − h10 − h01 + h11 of the cell, kept in a second tile), so an
-//!   interior point costs two multiply-adds from values already at hand and one twist load.
-//!   The chord misses a bulge of up to ¼·|twist·dx·dy|·L²; K points cut what is missed to about
-//!   1/(K+1)² of it. K = [`K_NEAR`] up to s = [`K_NEAR_UNTIL`], where that bulge is worth degrees (a
-//!   single-texel spike has twist = its height), and [`K_FAR`] beyond, where it falls as 1/s;
-//! - at s → 0 the slope of the first piece (part of the supremum of §3.2: on a ramp every s
-//!   gives it), and the point s = R, so the radius is honoured exactly at its end.
+//! wherever the ray crosses a grid line. For one azimuth the crossings fall at the same offsets
+//! from every texel centre, so the pieces between them, their cells and all their constants are
+//! the same for every texel: the hot loop runs over a strip of consecutive texels, over
+//! contiguous memory, and LLVM vectorises it. Per piece it samples the end (a crossing, where h̃
+//! is a lerp of two texels) and K interior points (the chord minus twist·dx·dy·t·(L − t), the
+//! cell's twist kept in a second tile): K = [`K_NEAR`] up to s = [`K_NEAR_UNTIL`], where the
+//! bulge the chord misses is worth degrees, [`K_FAR`] beyond; plus the slope at s → 0 and the
+//! point s = R, so the radius is honoured exactly. The earth's curvature costs one more
+//! constant per sample ([`March::with_curvature`]).
 //!
-//! Every sample is a real point of the ray within R, so the march never overshoots §3.2; what
-//! it misses is the top of a bulge between samples. `tests/march.rs` checks the kernel against a
-//! scalar f64 oracle of the same samples and against [`super::exact`] for its tolerance.
+//! A segment of pieces is skipped when a bound from the largest height of the windows its cells
+//! lie in (a third tile) beats no lane's best so far: the same f32 result as without the skip.
+//! The layout mirrors the fast Lengyel kernel: a padded tile per band of rows (wrapped, or
+//! `f32::MIN` for `edge=none`), heights relative to the middle of their range, the hot function
+//! compiled per [`Isa`]. A tile larger than [`MAX_TILE`] falls back to the exact kernel.
 //!
-//! # Earth curvature
-//! With [`March::with_curvature`] a point at arc length s is lowered by c·s² texels (SPEC §3.7,
-//! c as [`ExactHorizon::with_curvature`] takes it), so a sample's ratio (h̃ − h0)/s loses c·s:
-//! one more constant per sample, the same for every lane, folded into the multiply by 1/s as a
-//! fused multiply-add (with c = 0 it adds −0, and the result is the same f32 as without it).
-//!
-//! # Skipping what cannot count
-//! The horizon of a bin is a maximum, so a sample no larger than the best so far changes
-//! nothing. The pieces of a ray are grouped into segments of a few pieces whose cells one or two
-//! 4×4 windows cover; a band keeps a third tile with each window's largest height. A bilinear
-//! value is a convex combination of its cell's corners, so every sample of a segment starting
-//! at s_start has a ratio ≤ (window max − h0) / s_start. Samples run from near to far, and a
-//! segment whose bound (plus a margin for f32 rounding) is no larger than the best so far in
-//! every lane of the strip is skipped. The result is the same f32 for f32 as without the skip
-//! (checked on the frontier bench map at R = 16, 32, 64). It pays where rays run downhill
-//! (about a fifth of the pieces at R = 16 on the bench's fBm map, half at R = 64); on a rising
-//! ray every sample's ratio is near the best and no bound from the heights can prune it.
-//!
-//! # Why the layout mirrors the fast Lengyel kernel
-//! Each band of rows is copied into a padded tile (wrapped, or filled with `f32::MIN` for
-//! `edge=none`, whose weighted sum is so negative that a sample off the surface never counts),
-//! relative to the middle of the height range so that f32 differences of large absolute
-//! heights (DEMs in metres) keep their precision. The hot function is compiled for AVX-512,
-//! AVX2+FMA and the baseline and picked at run time ([`Isa`]). A tile larger than
-//! [`MAX_TILE`] (radii of thousands of texels) falls back to the exact kernel: slower, but
-//! within any tolerance and bounded in memory.
+//! Precision: every sample is a real point of the ray within R, so the march never overshoots
+//! §3.2 (sin α ≤ `exact`'s up to f32 rounding); what it misses is the top of a bulge between
+//! samples. `tests/kernels/march.rs` checks it against a scalar f64 oracle of the same samples and
+//! against [`super::exact`] at the same radius: mean ≤ 0.1° and p99 ≤ 0.5° of |Δα| per bin on
+//! the corpus, real terrain, white noise and smooth maps; dense fields of tall single-texel
+//! spikes are the stated worst case (p99 ≤ 1.5°). docs/march.md has the full account and the
+//! measurements.
 
 use super::exact::{self, ExactHorizon};
 use super::isa::Isa;
@@ -257,7 +234,7 @@ impl<'a> March<'a> {
     /// the samples that lerp a hole corner low, but not the rest of such a cell: its twist is
     /// enormous, so the interior points of a piece through it rise far above the surface, and
     /// an edge between two such cells is no surface either. The march measured 25° p99 over
-    /// `exact` near 6 % random holes (`tests/march.rs`). So a texel with a hole within R + 1
+    /// `exact` near 6 % random holes (`tests/kernels/march.rs`). So a texel with a hole within R + 1
     /// (the farthest corner its rays can read) takes [`ExactHorizon`]'s walk with the holes
     /// instead; the rest of the map keeps the vectorised march. A DEM
     /// whose nodata is a border pays the exact kernel's price only within R of it.

@@ -14,31 +14,15 @@
 //!
 //! # One source
 //! The functions take sampled values, not textures, so the same code serves every texture
-//! layout (array or separate layers, KTX2, DDS or PNG) and every binding model (Unity's Custom
-//! Function node and Unreal's Custom expression pass values). They are hand-written per
-//! language, because the four syntaxes differ in more than type names (WGSL's `select`, `let`
-//! and braces; HLSL's `fmod`, `atan2`), and held equal by the tests below, not generated:
-//! - `horizon.glsl` is valid GLSL ES 3.00 *and* GLSL 4.50 (the common subset: no `#version`, no
-//!   precision statements, explicit float literals), so both dialects share one file; each has
-//!   its example (`horizon_es300_example.frag`, `horizon_450_example.frag`);
-//! - `horizon.gdshaderinc` is byte-for-byte the GLSL decode after its own header (Godot's
-//!   shading language accepts that subset), checked by a test;
-//! - `horizon.hlsl` is the GLSL decode statement for statement: with HLSL's spellings mapped
-//!   back (`float4` → `vec4`, `atan2` → `atan`, `fmod` → `mod` on a positive operand, a scalar
-//!   for a splatted vector) and comments and whitespace removed, the two texts are equal;
-//! - `horizon.wgsl` is the GLSL decode statement for statement too: with both brought to one
-//!   normal form (untyped signatures, constants and locals, `select(a, b, c)` as `(c ? b : a)`,
-//!   WGSL's `%` for the one `mod`), the texts are equal; naga reads its function list in
-//!   tests/shaders.rs. (So every ternary in the GLSL is parenthesised and every `if` braced.)
-//! - tests/shaders.rs compiles every file with real compilers (glslangValidator for GLSL and
-//!   HLSL, naga for WGSL). Godot's language has no offline compiler here, so the Godot files are
-//!   held to the GLSL text instead.
-//!
-//! The numbers are proven in GLSL: the viewer renders through [`GLSL`] and the browser test
-//! compares it with the CPU preview (src/kernels/shade.rs), which also proves Godot's copy and,
-//! through the statement-for-statement tests, HLSL's and WGSL's. `horizon_factors_analytic`, which the
-//! viewer does not use, is checked by a port of its expressions against the cube map's
-//! definition (`cubemap::factors_for_azimuth`) below.
+//! layout and every binding model. They are hand-written per language, because the syntaxes
+//! differ in more than type names, and held equal by the tests below, not generated:
+//! `horizon.glsl` is valid GLSL ES 3.00 and GLSL 4.50 alike, `horizon.gdshaderinc` is its
+//! decode byte for byte after its own header, and `horizon.hlsl` and `horizon.wgsl` are its
+//! decode statement for statement once both texts are brought to one normal form.
+//! tests/encode/shaders.rs compiles every file but Godot's with real compilers (Godot's has
+//! none here). The numbers are proven in GLSL by the browser test, and through these equalities for
+//! the other languages; `horizon_factors_analytic` by a port checked against the cube map's
+//! definition below. docs/reference.md (§16, "How the includes are kept equal") has each rule.
 
 use crate::encode::OutFile;
 

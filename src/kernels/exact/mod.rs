@@ -6,68 +6,27 @@
 //! where h̃ is the bilinear surface through the texel centres, and the stored value is
 //! sin α = tan α / √(1 + tan² α).
 //!
-//! # Why per-cell analysis instead of a fine march
-//! Along a straight line, the bilinear surface inside one cell (the square between four texel
-//! centres) is a quadratic in s: h(t) = d0 + d1·t + d2·t², t = s − s_entry. The ratio
-//! g(t) = (h(t) − h0)/(s_entry + t) on that segment has at most one interior critical point,
-//! the root of d2·t² + 2·d2·s_entry·t + (d1·s_entry − (d0 − h0)) = 0, so its maximum over the
-//! segment is found exactly from the exit point and that root. A ray therefore costs one small
-//! closed-form evaluation per cell it crosses, and the result is exact up to f64 rounding:
-//! every candidate is g evaluated at a real point of the ray, so the kernel never overshoots the
-//! definition, and no maximum between samples is missed. A fine-step march (the test oracle in
-//! `tests/exact.rs`) can only approach this value from below.
+//! Along a straight line the bilinear surface inside one cell is a quadratic in s, so the
+//! ratio's maximum over the ray's piece in that cell has a closed form (its exit point and at
+//! most one interior critical point): a ray costs one small evaluation per cell it crosses,
+//! every candidate is a real point of the ray, and no maximum between samples is missed. At
+//! s → 0 the ratio tends to the first cell's slope, which counts. A convex-hull sweep would be
+//! O(1) per texel, but its lines miss the texel centres, so [`ExactHorizon`] keeps every ray
+//! texel-centred and exact and makes rays cheap instead:
+//! - near field (s ≤ `NEAR_ARC` texels or R): 16 texels of a row in lockstep (`StripMarch`),
+//!   whose rays cross the same pieces at one azimuth; a piece, and beyond 32 texels a whole span
+//!   of pieces, is culled when no lane could beat its best value there;
+//! - far field (longer rays): a scalar walk seeded with the near-field value that skips every
+//!   block of a max pyramid which cannot beat the best so far, and stops once the map's highest
+//!   point cannot.
+//! Culling and skipping are conservative, so the result is that of visiting every cell, which
+//! [`ExactMarch`] (the plain oracle) does; the tests compare the two.
 //!
-//! At s → 0 the ratio tends to the directional slope d1 of the first cell (p is a corner of it),
-//! which is part of the supremum: on a linear ramp every s gives the same ratio.
-//!
-//! # How the production kernel is fast without leaving the definition
-//! A convex-hull sweep (Timonen & Westerholm 2010) is O(1) per texel and direction, but its lines
-//! do not pass through texel centres, and the definition is texel-centred: measured, 9–22 % of
-//! 8-bit outputs came out more than 1 LSB low. A hard radius breaks a plain hull as well. So
-//! [`ExactHorizon`] keeps every ray texel-centred and exact, and makes rays cheap instead:
-//! - **Near field, vectorised** (s ≤ 1024 texels or R): the grid-line crossings of a ray from an
-//!   integer texel centre fall at s = k/|dx| and s = k/|dy| whatever the texel, so the rays of 16
-//!   consecutive texels of a row along one azimuth cross the same pieces at the same local
-//!   positions, in cells one column apart. The pieces are listed once per azimuth; per piece the
-//!   16 lanes load contiguous corner heights from a padded copy of the map (no wrapping or
-//!   clamping in the loop), cull the piece when no lane's (max corner − h0)/s_entry beats its
-//!   best value (the four corners' maximum read from a second padded copy of every cell's when
-//!   the padding is narrow, as `sweep`'s near field of 16 steps: one load instead of four and
-//!   three maxima, at an offset per piece listed with its s_entry, the corner rows sliced only
-//!   for the pieces that pass; measured at 2048² `sweep` unlimited, the bands' CPU time 10–20 %
-//!   lower with the maxima, then 8–10 % lower again with the listed offsets),
-//!   and otherwise evaluate the per-cell closed form in f32 lanes (the divisions and
-//!   square root only when some lane can have an interior maximum). The strip stops when no
-//!   lane can still be raised by the highest point of the map. Beyond 32 texels the pieces are
-//!   also grouped into spans (about s/2 of arc, split into spans of s/8 beyond 96), each culled
-//!   in one step against the maximum of the box its cells cover for all 16 lanes, read from a
-//!   4^k block pyramid of the padded copy. A culled span is one whose every piece its own cull
-//!   would drop, so the output is bit-identical to culling piece by piece; on flat terrain at
-//!   `unlimited` (fBm, 1024²) it made the kernel 1.6× faster. Fine spans stop being checked
-//!   after two misses in a row: on rough ground every box holds something above the
-//!   lowest-horizon lane, and the checks would only add to the pieces' own culls.
-//! - **Far field, skipping** (rays longer than that, `unlimited` on big maps): a scalar walk
-//!   seeded with the near-field value and a max pyramid of the surface (4×4, 16×16, 64×64, …
-//!   cells) that bounds (h − h0)/s ≤ (M − h0)/s_entry over a whole block, so a block that cannot
-//!   beat the best value so far is skipped in one step (the "maximum mipmap" traversal of
-//!   height-field ray casting), and the ray stops once the global maximum cannot beat it.
-//!
-//! Culling and skipping are conservative, so the result is the same as visiting every cell;
-//! [`ExactMarch`] (the plain oracle) does exactly that and the tests compare the two. The f32
-//! near field differs from the f64 oracle by ≤ 1e-5 in sin α (asserted).
-//!
-//! # Edges
-//! - `edge=wrap`: the surface tiles; blocks are laid out in unwrapped coordinates (a ray may cross
-//!   the period more than once) and their maxima are read from the wrapped heights, so map sizes
-//!   need not be powers of two.
-//! - `edge=none`: the surface exists on the convex hull of the texel centres,
-//!   [0, W−1] × [0, H−1] in image coordinates; a ray ends where it leaves it. The outer half
-//!   texel beyond the border centres is *not* part of the surface (nothing outside the map
-//!   occludes, and extrapolating the border would invent terrain). A ray running exactly along a
-//!   border row or column stays on the surface and sees it. A 1-texel-wide map is a single line.
-//! - `radius`: `Some(R)` clips every ray at s = R exactly (a cell straddling R is analysed on
-//!   [s_entry, R]); `None` (unlimited) runs to the map edge with `edge=none` and max(W, H) texels
-//!   with `edge=wrap` (SPEC §3.2).
+//! Precision: exact up to f64 rounding; the f32 near field is within 1e-5 in sin α of the f64
+//! oracle (asserted). `edge=none` ends a ray where it leaves [0, W−1] × [0, H−1] (the outer half
+//! texel is not surface); `radius` clips it at s = R exactly, and `unlimited` runs to the map's
+//! edge (`none`) or max(W, H) texels (`wrap`). docs/exact.md has the full account: each part's
+//! working, the edges, and the measurements behind the constants.
 
 mod oracle;
 pub(crate) mod walk;
@@ -110,11 +69,8 @@ pub(crate) fn sin_of_tan(t: f64) -> f64 {
     }
 }
 
-/// Arc length the vectorised near-field march covers; longer rays continue with the scalar,
-/// pyramid-skipping [`walk`] from there, seeded with the near-field value. The strip beats the
-/// walk per texel of ray even though the walk skips blocks (measured, `unlimited` on fBm:
-/// 1.5–1.7× faster at 1024 than at 256, the same on white noise; 2× slower at 64). The cost is
-/// padding: an 8192² map's padded copy grows from 0.30 to 0.42 GB.
+/// Arc length the vectorised near field covers before the seeded, pyramid-skipping [`walk`];
+/// chosen by measurement (docs/exact.md, "Constants").
 const NEAR_ARC: f64 = 1024.0;
 
 /// The production exact kernel: the same rays as [`ExactMarch`], with empty space skipped

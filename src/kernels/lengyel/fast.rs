@@ -1,44 +1,29 @@
 //! The Lengyel/Max horizon map, fast: the same function as the oracle in [`super::oracle`],
 //! vectorised across texels (SPEC §3.1).
 //!
-//! The oracle loops texel → neighbour → bin, which is branchy scalar work (≈0.4 Mtexel/s).
-//! Here the loop is turned inside out so that the hot loop is "load, subtract, multiply, max"
-//! over contiguous memory, which LLVM vectorises:
-//!
-//! - Once per kernel, every neighbour offset (i, j) is assigned the bins it touches, with
-//!   θ, δ and the bin range floor((θ−δ)·B/2π) ..= ceil((θ+δ)·B/2π) computed in f64 exactly as
-//!   the oracle does, so both kernels agree on which neighbour feeds which bin. Offsets with the
-//!   same range (first bin, number of bins) form a group, stored as a list of (linear offset
-//!   into the padded tile, 1/r).
-//! - Each band of rows is first copied into a padded tile (wrapped, or filled with `f32::MIN`
-//!   for `edge=none`, which never occludes), so the hot loop never clamps or wraps, even when the
-//!   radius exceeds the map (the padding then wraps several times).
-//! - For a strip of consecutive texels (128 with AVX-512, 64 AVX2, 16 SSE2; see
-//!   [`lanes`]): group → offset → lane, keeping max(tan) with tan = (h − h0)/r and the
-//!   maximum starting at 0. Each neighbour is thus evaluated once, not once per bin it touches
-//!   (2.2–3.6× on average; R=16, B=32: 792 offsets in 104 groups instead of 2200 bin entries).
-//!   Since the oracle skips h < h0 and keeps the largest tan² ≥ 0, max(tan, 0)² is exactly its
-//!   value, without a sign branch, and a max is the same in any merge order.
-//! - Groups sharing a first bin form a run, widest first; one running maximum goes through the
-//!   run and is snapshotted after each group, so a bin merges one snapshot per run covering it
-//!   (164 merges per strip instead of 368 at the defaults). Bins are finished in order, each
-//!   right after the runs it is the first to need, so snapshots are read while still in L1
-//!   and their slots are reused.
-//! - Where the ISA has a 32-bit integer max, maxima compare the f32 bits as integers (see
-//!   [`raise`]): on Zen 4 a float max competes with the subtraction for the two add pipes.
-//! - The finalize is vectorised too (done scalar it would cost more than the accumulation):
-//!   s = t/√(t²+1) (with AVX-512, t·rsqrt14 plus a Newton step), the B/8+1-bin averages from
-//!   a table, and the channel-major → texel-major packing with 8×8 AVX transposes.
+//! The oracle loops texel → neighbour → bin, which is branchy scalar work. Here the loop is
+//! turned inside out so that the hot loop is "load, subtract, multiply, max" over contiguous
+//! memory, which LLVM vectorises:
+//! - once per kernel, every neighbour offset is assigned the bins it touches, computed in f64
+//!   exactly as the oracle does (so both agree on which neighbour feeds which bin), and offsets
+//!   with the same range of bins form a group;
+//! - each band of rows is copied into a padded tile (wrapped, or filled with `f32::MIN` for
+//!   `edge=none`, which never occludes), so the hot loop never clamps or wraps;
+//! - for a strip of consecutive texels ([`lanes`]): group → offset → lane, keeping max(tan) with
+//!   tan = (h − h0)/r from 0, so each neighbour is evaluated once, not once per bin it touches;
+//!   max(tan, 0)² is exactly the oracle's value, in any merge order;
+//! - groups sharing a first bin form a run with one running maximum, snapshotted after each
+//!   group, and bins are finished in order while their snapshots are still in L1; the finish
+//!   (sin α, the channel averages, the packing) is vectorised too.
 //!
 //! The hot function is compiled three times (AVX-512, AVX2+FMA, baseline) and the variant is
-//! chosen once per kernel with `is_x86_feature_detected!`, so the release binary needs no
-//! `-C target-cpu` and still runs on CPUs without AVX-512; other architectures use the baseline.
+//! chosen once per kernel at run time, so the release binary needs no `-C target-cpu`.
 //!
 //! Precision: tan is computed in f32 (relative error a few ulp), the oracle works in f64; the
 //! results agree within ~1e-6, so the 8-bit outputs only differ where the oracle's value sits
 //! on a rounding tie. When the padded tile would exceed [`MAX_TILE`] floats (a radius of
-//! thousands of texels) the kernel falls back to the oracle: such bakes cost O(R²) per texel and
-//! are impractical either way, but they stay correct and bounded in memory.
+//! thousands of texels) the kernel falls back to the oracle, correct and bounded in memory.
+//! docs/lengyel.md has the full account and the measurements behind each step.
 
 use super::LengyelNaive;
 use crate::kernels::isa::Isa;
@@ -59,13 +44,8 @@ pub const MAX_TILE: usize = 1 << 24;
 /// raises a bin, and it never makes NaN (unlike −∞ − −∞ in the discarded lanes).
 const LOW: f32 = f32::MIN;
 
-/// Texels per strip in this variant's hot loop. Wider strips spread the per-group and
-/// per-strip work (table walking, snapshots, the finish) over more texels, up to what the
-/// registers hold: AVX-512 keeps h0 and the running maximum of 128 lanes in 16 of its 32
-/// vector registers (~10% faster than 64 lanes with two interleaved maxima, ~25% than 32).
-/// AVX2 has 16: 64 lanes with one maximum (h0 then comes from memory operands) measured
-/// ~1.4× faster than 32 lanes with two, and than 128; SSE2 (whose arithmetic takes only
-/// aligned memory operands) stays at 16 lanes with two maxima.
+/// Texels per strip in this variant's hot loop; chosen by measurement (docs/lengyel.md,
+/// "Constants").
 const fn lanes(isa: Isa) -> usize {
     match isa {
         Isa::Avx512 => 128,
