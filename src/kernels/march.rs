@@ -234,10 +234,10 @@ impl<'a> March<'a> {
     /// the samples that lerp a hole corner low, but not the rest of such a cell: its twist is
     /// enormous, so the interior points of a piece through it rise far above the surface, and
     /// an edge between two such cells is no surface either. The march measured 25° p99 over
-    /// `exact` near 6 % random holes (`tests/kernels/march.rs`). So a texel with a hole within R + 1
-    /// (the farthest corner its rays can read) takes [`ExactHorizon`]'s walk with the holes
-    /// instead; the rest of the map keeps the vectorised march. A DEM
-    /// whose nodata is a border pays the exact kernel's price only within R of it.
+    /// `exact` near 6 % random holes (`tests/kernels/march.rs`). So a texel with a hole within
+    /// R + 1 (the farthest corner its rays can read) takes [`ExactHorizon`]'s walk with the
+    /// holes instead; the rest of the map keeps the vectorised march. A DEM whose nodata is a
+    /// border pays the exact kernel's price only within R of it.
     pub fn with_holes(mut self, holes: Option<&'a [bool]>) -> Self {
         let (w, h) = (self.grid.width, self.grid.height);
         let holes = holes.filter(|m| m.len() == w * h && m.iter().any(|&o| o));
