@@ -89,7 +89,7 @@ pub(crate) struct Span {
 }
 
 /// A direction's spans, two deep: coarse spans of about s/2 of arc, each made of fine spans
-/// of about s/16. A coarse span is tried first; when it cannot be culled, its fine spans are;
+/// of about s/8. A coarse span is tried first; when it cannot be culled, its fine spans are;
 /// pieces before [`SPAN_FROM`] run one by one.
 #[derive(Debug, Clone, Default)]
 pub(crate) struct Spans {
