@@ -6,9 +6,11 @@
 //! once, when it is built ([`Isa::detect`]). Tests and benches can ask for a variant
 //! ([`Isa::supported`] says whether this CPU can run it) and compare the variants' outputs.
 //!
-//! [`Isa::run`] is the one `#[target_feature]` wrapper every kernel uses: it calls a closure
-//! from inside a function compiled for the variant, so the `#[inline(always)]` body the closure
-//! calls is compiled for that instruction set. Other architectures run the baseline only.
+//! Each kernel has its own two small `#[target_feature]` wrappers that call its
+//! `#[inline(always)]` hot loop, so LLVM compiles the loop for that instruction set. One generic
+//! wrapper taking a closure was tried: LLVM did not always inline the closure into it, and the
+//! loop then ran as baseline code (`march` 40× slower, docs/architecture.md). Other
+//! architectures run the baseline only.
 
 /// Which compiled variant of the hot loops this CPU runs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -62,35 +64,4 @@ impl Isa {
             other
         }
     }
-
-    /// Runs `f` inside a function compiled with this variant's features, so what `f` inlines
-    /// (an `#[inline(always)]` hot loop) is compiled for them.
-    ///
-    /// # Safety
-    /// The running CPU must support this variant ([`Isa::supported`]); kernels only hold a
-    /// variant they checked.
-    #[inline(always)]
-    pub unsafe fn run<R>(self, f: impl FnOnce() -> R) -> R {
-        #[cfg(target_arch = "x86_64")]
-        match self {
-            // SAFETY: the caller guarantees the CPU has the variant's features.
-            Isa::Avx512 => unsafe { with_avx512(f) },
-            Isa::Avx2 => unsafe { with_avx2(f) },
-            Isa::Baseline => f(),
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        f()
-    }
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx2,fma")]
-unsafe fn with_avx512<R>(f: impl FnOnce() -> R) -> R {
-    f()
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn with_avx2<R>(f: impl FnOnce() -> R) -> R {
-    f()
 }

@@ -665,16 +665,27 @@ impl March<'_> {
 
     fn strip(&self, t: Tiles<'_>, base: usize, cast: &[bool], sbuf: &mut [f32]) {
         let rays = &self.rays;
-        let isa = self.isa;
-        // SAFETY: `Isa::detect`/`with_isa` only select a variant the CPU supports.
-        unsafe {
-            match isa {
-                Isa::Avx512 => isa.run(|| strip_body::<32, true>(t, base, rays, cast, sbuf)),
-                Isa::Avx2 => isa.run(|| strip_body::<16, true>(t, base, rays, cast, sbuf)),
-                Isa::Baseline => strip_body::<8, false>(t, base, rays, cast, sbuf),
-            }
+        match self.isa {
+            // SAFETY: `Isa::detect`/`with_isa` only select a variant the CPU supports.
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => unsafe { strip_avx512(t, base, rays, cast, sbuf) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { strip_avx2(t, base, rays, cast, sbuf) },
+            _ => strip_body::<8, false>(t, base, rays, cast, sbuf),
         }
     }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2,fma")]
+unsafe fn strip_avx512(t: Tiles<'_>, base: usize, rays: &[Ray], cast: &[bool], sbuf: &mut [f32]) {
+    strip_body::<32, true>(t, base, rays, cast, sbuf)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn strip_avx2(t: Tiles<'_>, base: usize, rays: &[Ray], cast: &[bool], sbuf: &mut [f32]) {
+    strip_body::<16, true>(t, base, rays, cast, sbuf)
 }
 
 impl HorizonRows for March<'_> {

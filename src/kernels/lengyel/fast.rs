@@ -436,22 +436,34 @@ fn run_job(
     channels: &mut [f32],
     bins_out: Option<&mut [f32]>,
 ) {
-    // SAFETY: a kernel holds Avx512 / Avx2 only when `Isa::supported` saw those features on
-    // this CPU (`with_isa` replaces anything else), which is all `Isa::run` and the variants'
-    // intrinsics need; `Portable` uses no CPU feature beyond the compile target's.
-    unsafe {
+    #[cfg(target_arch = "x86_64")]
+    {
         match isa {
-            #[cfg(target_arch = "x86_64")]
-            Isa::Avx512 => {
-                isa.run(|| job_body::<{ lanes(Isa::Avx512) }, Avx512>(job, acc, channels, bins_out))
-            }
-            #[cfg(target_arch = "x86_64")]
-            Isa::Avx2 => {
-                isa.run(|| job_body::<{ lanes(Isa::Avx2) }, Avx2>(job, acc, channels, bins_out))
-            }
-            _ => job_body::<{ lanes(Isa::Baseline) }, Portable>(job, acc, channels, bins_out),
+            // SAFETY: a kernel holds Avx512 / Avx2 only when `Isa::supported` saw those features
+            // on this CPU (`with_isa` replaces anything else), which is the one requirement of
+            // calling a `#[target_feature]` function.
+            Isa::Avx512 => return unsafe { job_avx512(job, acc, channels, bins_out) },
+            Isa::Avx2 => return unsafe { job_avx2(job, acc, channels, bins_out) },
+            Isa::Baseline => {}
         }
     }
+    let _ = isa;
+    // SAFETY: `Portable` uses no CPU feature beyond the compile target's.
+    unsafe { job_body::<{ lanes(Isa::Baseline) }, Portable>(job, acc, channels, bins_out) }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+fn job_avx512(job: &Job<'_>, acc: &mut [f32], channels: &mut [f32], bins_out: Option<&mut [f32]>) {
+    // SAFETY: this function only runs where avx512f is present, which `Avx512` needs.
+    unsafe { job_body::<{ lanes(Isa::Avx512) }, Avx512>(job, acc, channels, bins_out) }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn job_avx2(job: &Job<'_>, acc: &mut [f32], channels: &mut [f32], bins_out: Option<&mut [f32]>) {
+    // SAFETY: `Avx2` uses no CPU feature beyond those of `job_avx2`.
+    unsafe { job_body::<{ lanes(Isa::Avx2) }, Avx2>(job, acc, channels, bins_out) }
 }
 
 /// What differs between the compiled variants besides the instruction set LLVM targets.

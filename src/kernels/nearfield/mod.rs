@@ -238,8 +238,40 @@ impl<'a> NearField<'a> {
     /// instructions the CPU has.
     #[inline(always)]
     fn crossings(&self, n: usize, x: usize, y: usize, h0: &[f32; LANES], best: &mut [f32; LANES]) {
-        // SAFETY: the strip march's variant is one this CPU supports.
-        unsafe { self.near.isa.run(|| self.crossings_body::<true>(n, x, y, h0, best)) }
+        match self.near.isa {
+            // SAFETY: the strip march's variant is one this CPU supports.
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => unsafe { self.crossings_avx512(n, x, y, h0, best) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { self.crossings_avx2(n, x, y, h0, best) },
+            _ => self.crossings_body::<true>(n, x, y, h0, best),
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,avx2,fma")]
+    unsafe fn crossings_avx512(
+        &self,
+        n: usize,
+        x: usize,
+        y: usize,
+        h0: &[f32; LANES],
+        best: &mut [f32; LANES],
+    ) {
+        self.crossings_body::<true>(n, x, y, h0, best);
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn crossings_avx2(
+        &self,
+        n: usize,
+        x: usize,
+        y: usize,
+        h0: &[f32; LANES],
+        best: &mut [f32; LANES],
+    ) {
+        self.crossings_body::<true>(n, x, y, h0, best);
     }
 
     /// The crossing walk without the pieces solved whole (the pieces' ends and the first

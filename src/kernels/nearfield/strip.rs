@@ -334,8 +334,49 @@ impl StripMarch {
         hmax: f32,
         best: &mut [f32; LANES],
     ) {
-        // SAFETY: `isa` is a variant this CPU supports (detected at construction, or narrower).
-        unsafe { self.isa.run(|| self.strip_body(n, d, x, y, h0, count, hmax, best)) }
+        match self.isa {
+            // SAFETY: `isa` is a variant this CPU supports (detected at construction, or
+            // narrower), the one requirement of calling a `#[target_feature]` function.
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => unsafe { self.strip_avx512(n, d, x, y, h0, count, hmax, best) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { self.strip_avx2(n, d, x, y, h0, count, hmax, best) },
+            _ => self.strip_body(n, d, x, y, h0, count, hmax, best),
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,avx2,fma")]
+    #[allow(clippy::too_many_arguments)] // the strip's place and lane state, hot path
+    unsafe fn strip_avx512(
+        &self,
+        n: usize,
+        d: (f64, f64),
+        x: usize,
+        y: usize,
+        h0: &[f32; LANES],
+        count: &[u32; LANES],
+        hmax: f32,
+        best: &mut [f32; LANES],
+    ) {
+        self.strip_body(n, d, x, y, h0, count, hmax, best);
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    #[allow(clippy::too_many_arguments)] // the strip's place and lane state, hot path
+    unsafe fn strip_avx2(
+        &self,
+        n: usize,
+        d: (f64, f64),
+        x: usize,
+        y: usize,
+        h0: &[f32; LANES],
+        count: &[u32; LANES],
+        hmax: f32,
+        best: &mut [f32; LANES],
+    ) {
+        self.strip_body(n, d, x, y, h0, count, hmax, best);
     }
 
     /// The vectorised body: per piece, four contiguous loads per lane, a cheap cull against the

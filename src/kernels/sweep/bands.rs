@@ -26,13 +26,23 @@ impl HorizonRows for Sweep<'_> {
         // The join's per-strip loops over 16 lanes (the point at R, the max, sin α, the channel
         // sums) are one or two AVX-512 instructions each rather than four SSE ones (measured:
         // the join's own time was about a tenth of a bake); AVX2 gains nothing there.
-        let isa = if self.wide { Isa::Avx512 } else { Isa::Baseline };
-        // SAFETY: `wide` only where the CPU has AVX-512F (see `Sweep::with_options`).
-        unsafe { isa.run(|| self.join(y0, channels, bins_out)) }
+        #[cfg(target_arch = "x86_64")]
+        if self.wide {
+            // SAFETY: `wide` only where the CPU has AVX-512F (see `Sweep::with_options`).
+            return unsafe { self.rows_avx512(y0, channels, bins_out) };
+        }
+        self.join(y0, channels, bins_out);
     }
 }
 
 impl Sweep<'_> {
+    /// [`Sweep::join`] compiled for AVX-512.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f")]
+    unsafe fn rows_avx512(&self, y0: usize, channels: &mut [f32], bins_out: Option<&mut [f32]>) {
+        self.join(y0, channels, bins_out);
+    }
+
     /// The bands: per row, bin and strip of 16 texels, the far field and the point at R as a
     /// floor for the near field, then sin α; then per strip its bins to the channels (see the
     /// module doc).
