@@ -47,7 +47,7 @@ pub struct BakeArgs {
     pub texture_precision: String,
     /// The KTX2/DDS delivery options of SPEC §8 (mips, supercompression, layout, DDS header).
     #[command(flatten)]
-    pub texture: TextureFlags,
+    pub texture: LayerTextureFlags,
     /// Sample type of horizon_0.exr / horizon_1.exr: float (default, bit-exact) or half (half
     /// the size). Both uncompressed: no EXR compression pays for itself on horizon layers.
     #[arg(long, default_value = "float")]
@@ -72,7 +72,8 @@ pub struct TextureFlags {
     #[arg(long)]
     pub mips: Option<String>,
     /// How a level is made (with --mips full): box (default), min or max of the level above, or
-    /// rebake (baked again from the box-filtered heights at the halved radius).
+    /// rebake (baked again from the box-filtered heights at the halved radius; horizon layers
+    /// only).
     #[arg(long)]
     pub mip_filter: Option<String>,
     /// KTX2 supercompression: none (default) or zstd (each level on its own).
@@ -81,45 +82,73 @@ pub struct TextureFlags {
     /// Zstandard level, 1..=19 (default 3; with --supercompression zstd).
     #[arg(long, allow_hyphen_values = true)]
     pub zstd_level: Option<String>,
-    /// array (default: one array texture) or separate (horizon_0.ktx2, horizon_1.ktx2, …).
-    #[arg(long)]
-    pub texture_layout: Option<String>,
     /// dx10 (default) or legacy (FourCC ATI2 / RGBA masks, no DX10 header; one 2D texture).
     #[arg(long)]
     pub dds_header: Option<String>,
 }
 
+/// [`TextureFlags`] and the layout of the horizon layers' files, which only `bake` has (the
+/// cube map is always one cube texture).
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct LayerTextureFlags {
+    #[command(flatten)]
+    pub common: TextureFlags,
+    /// array (default: one array texture) or separate (horizon_0.ktx2, horizon_1.ktx2, …).
+    #[arg(long)]
+    pub texture_layout: Option<String>,
+}
+
 impl TextureFlags {
+    fn pairs(&self) -> [(&'static str, Option<&str>); 5] {
+        [
+            ("mips", self.mips.as_deref()),
+            ("mip_filter", self.mip_filter.as_deref()),
+            ("supercompression", self.supercompression.as_deref()),
+            ("zstd_level", self.zstd_level.as_deref()),
+            ("dds_header", self.dds_header.as_deref()),
+        ]
+    }
+
     /// The options these flags (and `precision`, when given) set.
     ///
     /// # Errors
     /// [`Error::Param`] naming the first invalid option.
     pub fn options(&self, precision: Option<&str>) -> Result<TextureOptions> {
-        let pairs = [
-            ("texture_precision", precision),
-            ("mips", self.mips.as_deref()),
-            ("mip_filter", self.mip_filter.as_deref()),
-            ("supercompression", self.supercompression.as_deref()),
-            ("zstd_level", self.zstd_level.as_deref()),
-            ("texture_layout", self.texture_layout.as_deref()),
-            ("dds_header", self.dds_header.as_deref()),
-        ];
-        TextureOptions::from_pairs(pairs.iter().filter_map(|(k, v)| v.map(|v| (*k, v))))
+        options_of(std::iter::once(("texture_precision", precision)).chain(self.pairs()))
     }
 
     /// The first option given, if any (for "applies only to KTX2/DDS" errors).
     pub fn first_given(&self) -> Option<&'static str> {
-        [
-            ("mips", &self.mips),
-            ("mip_filter", &self.mip_filter),
-            ("supercompression", &self.supercompression),
-            ("zstd_level", &self.zstd_level),
-            ("texture_layout", &self.texture_layout),
-            ("dds_header", &self.dds_header),
-        ]
-        .into_iter()
-        .find_map(|(k, v)| v.is_some().then_some(k))
+        self.pairs().into_iter().find_map(|(k, v)| v.is_some().then_some(k))
     }
+}
+
+impl LayerTextureFlags {
+    /// The options these flags (and `precision`, when given) set.
+    ///
+    /// # Errors
+    /// [`Error::Param`] naming the first invalid option.
+    pub fn options(&self, precision: Option<&str>) -> Result<TextureOptions> {
+        options_of(std::iter::once(("texture_precision", precision)).chain(self.pairs()))
+    }
+
+    /// The first option given, if any (for "applies only to KTX2/DDS" errors).
+    pub fn first_given(&self) -> Option<&'static str> {
+        self.pairs().into_iter().find_map(|(k, v)| v.is_some().then_some(k))
+    }
+
+    /// The common options with the layout in its place (before the DDS header, as SPEC §8
+    /// lists them, so the first invalid one named is the same as over HTTP).
+    fn pairs(&self) -> [(&'static str, Option<&str>); 6] {
+        let [mips, filter, sc, level, dds] = self.common.pairs();
+        [mips, filter, sc, level, ("texture_layout", self.texture_layout.as_deref()), dds]
+    }
+}
+
+fn options_of<'a>(
+    pairs: impl IntoIterator<Item = (&'static str, Option<&'a str>)>,
+) -> Result<TextureOptions> {
+    TextureOptions::from_pairs(pairs.into_iter().filter_map(|(k, v)| v.map(|v| (k, v))))
 }
 
 /// Every SPEC §5 parameter as a `--kebab-case` flag, as text.
@@ -405,11 +434,23 @@ impl BakeReport<'_> {
             obj.insert("path".into(), self.input_path.display().to_string().into());
         }
         let [decode, bake, encode, total] = self.timings;
+        // What was written: without `horizon` in --outputs no layer format was (the png8 of the
+        // Formats value is only its default), and `geotiff` is the terrain products' format.
+        let mut formats = serde_json::to_value(self.formats)
+            .map_err(|e| Error::Internal(format!("bake.json: {e}")))?;
+        if let Some(obj) = formats.as_object_mut() {
+            if !self.params.outputs.horizon {
+                for layer_format in ["png8", "png16", "exr", "ktx2", "dds"] {
+                    obj.insert(layer_format.into(), false.into());
+                }
+            }
+            obj.insert("geotiff".into(), self.params.outputs.terrain().into());
+        }
         let v = serde_json::json!({
             "params": params,
             "input": input,
             "output": {
-                "formats": self.formats,
+                "formats": formats,
                 "width": self.size.map(|s| s.0),
                 "height": self.size.map(|s| s.1),
                 "files": self.files,

@@ -20,9 +20,9 @@ pub struct CubemapArgs {
     /// Comma list of png8 (default), ktx2, dds.
     #[arg(long, default_value = "png8")]
     pub format: String,
-    /// The SPEC §8 options of cubemap.ktx2 / cubemap.dds: --mips, --mip-filter,
-    /// --supercompression, --zstd-level, --dds-header (the cube map stays one RGBA8 SNORM cube:
-    /// --texture-layout is refused).
+    /// The SPEC §8 options of cubemap.ktx2 / cubemap.dds: --mips, --mip-filter (box, min or
+    /// max), --supercompression, --zstd-level, --dds-header (the cube map stays one RGBA8 SNORM
+    /// cube).
     #[command(flatten)]
     pub texture: super::bake::TextureFlags,
 }

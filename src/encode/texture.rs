@@ -418,6 +418,13 @@ impl TextureOptions {
         if cube && self.layout != TextureLayout::Array {
             return Err(Error::param("texture_layout", "the cube map is always one cube texture"));
         }
+        if cube && self.mip_filter == MipFilter::Rebake {
+            return Err(Error::param(
+                "mip_filter",
+                "rebake bakes horizon levels again from the heights, which the cube map has \
+                 none of; use box, min or max",
+            ));
+        }
         if dds && self.dds_header == DdsHeader::Legacy {
             if self.precision == TexturePrecision::Bc7 {
                 return Err(Error::param(

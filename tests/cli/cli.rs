@@ -507,3 +507,48 @@ fn cli_refuses_point_reduction_with_lengyel() {
     assert!(err.contains("reduce") && err.trim().lines().count() == 1, "{err}");
     assert!(!dir.path().join("out").exists());
 }
+
+/// The cube map's flags are what it takes: `cubemap --help` offers no `--texture-layout`
+/// (`bake --help` does), and `--mip-filter rebake`, which bakes horizon levels again from the
+/// heights, is refused for the cube map instead of silently being `box`.
+#[test]
+fn cubemap_offers_and_takes_only_its_own_texture_options() {
+    let help = |cmd: &str| String::from_utf8(run(&[cmd, "--help"]).stdout).unwrap();
+    assert!(!help("cubemap").contains("--texture-layout"), "{}", help("cubemap"));
+    assert!(help("cubemap").contains("--mip-filter"));
+    assert!(help("bake").contains("--texture-layout"));
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("cube");
+    std::fs::create_dir(&dir).unwrap();
+    let d = dir.to_str().unwrap();
+    let args = ["cubemap", "-o", d, "--format", "ktx2", "--mips", "full", "--mip-filter", "rebake"];
+    assert_fails_cleanly(&args, &dir, "mip_filter", 2);
+    let box_filter = ["cubemap", "-o", d, "--format", "ktx2", "--mips", "full", "--mip-filter"];
+    let o = run(&[&box_filter[..], &["max"]].concat());
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+/// `--supercompression zstd` with both containers compresses the KTX2 (supercompressionScheme
+/// 2) and leaves the DDS as DDS is (it has no supercompression), as over HTTP; with `dds` alone
+/// it is refused naming the option.
+#[test]
+fn zstd_with_both_containers_applies_to_the_ktx2_only() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("out");
+    let input = support::golden_dir().join("inputs/bump64.png");
+    let (i, o) = (input.to_str().unwrap(), out.to_str().unwrap());
+    let both = ["bake", i, "-o", o, "--format", "ktx2,dds", "--supercompression", "zstd"];
+    let r = run(&both);
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    let ktx2 = std::fs::read(out.join("horizon.ktx2")).unwrap();
+    assert_eq!(u32::from_le_bytes(ktx2[44..48].try_into().unwrap()), 2, "KTX2 not zstd");
+    let dds = std::fs::read(out.join("horizon.dds")).unwrap();
+    assert_eq!(&dds[..4], b"DDS ");
+    // Uncompressed R8G8B8A8 layers: 64² texels × 4 bytes × 2 layers after the DX10 header.
+    assert_eq!(dds.len(), 4 + 124 + 20 + 64 * 64 * 4 * 2);
+    let dir = tmp.path().join("dds");
+    std::fs::create_dir(&dir).unwrap();
+    let d = dir.to_str().unwrap();
+    let alone = ["bake", i, "-o", d, "--format", "dds", "--supercompression", "zstd"];
+    assert_fails_cleanly(&alone, &dir, "supercompression", 2);
+}

@@ -152,6 +152,9 @@ check(g.get("epsg") == 32632 and g.get("units") == "metre"
       and np.allclose(g.get("transform"), list(tr.to_gdal()), rtol=0, atol=1e-6),
       f"bake.json georeferencing {g}")
 check(len(bake["products"]["angles.tif"]["bands"]) == BINS, "bake.json lists 32 angle bands")
+fmts = bake["output"]["formats"]
+check(fmts["geotiff"] is True and not any(fmts[k] for k in ("png8", "png16", "exr", "ktx2", "dds")),
+      f"bake.json formats say what a GeoTIFF-only bake wrote: {fmts}")
 
 with rasterio.open(UTM) as s:
     dem = s.read(1).astype(np.float64)
