@@ -3,14 +3,17 @@
 //!
 //! No Rust crate both writes KTX2 and builds offline (NOTES.md), and the container is small, so
 //! it is written here by hand: identifier, header, the level index, a basic data format descriptor
-//! (DFD), no key/value data, then the levels smallest first. `tests/encode/encode.rs` proves it by reading
+//! (DFD), the key/value data ([`key_values`]: `KTXorientation` and `KTXwriter`, which engines'
+//! loaders and `ktx validate` read), then the levels smallest first. `tests/encode/encode.rs` proves it by reading
 //! every texel back with the independent `ktx2` crate and comparing the DFD with the one that
 //! crate generates for the same format.
 //!
 //! Layout (all little-endian): 12-byte identifier, 9 × u32 header, the index (DFD and KVD offset
 //! and length as u32, SGD offset and length as u64), the level index (offset, length,
-//! uncompressed length as u64, level 0 first), the DFD, then the level data, smallest level
-//! first, each aligned to lcm(texel or block size, 4) (to 1 when supercompressed).
+//! uncompressed length as u64, level 0 first), the DFD, the KVD, then the level data, smallest
+//! level first, each aligned to lcm(texel or block size, 4) (to 1 when supercompressed). One
+//! image (a layer of `texture_layout=separate`) is a 2D texture, layerCount 0: libktx and
+//! Godot's loader take layerCount 1 for an array.
 //! Within the level, images follow in layer order, then face order (+X, −X, +Y, −Y, +Z, −Z),
 //! each row-major from the top row.
 
@@ -37,6 +40,25 @@ pub const VK_FORMAT_BC5_UNORM_BLOCK: u32 = 141;
 pub const VK_FORMAT_BC7_UNORM_BLOCK: u32 = 145;
 /// supercompressionScheme of Zstandard.
 pub const SUPERCOMPRESSION_ZSTD: u32 = 2;
+
+/// The key/value data every file carries, sorted by key as KTX2 §3.11 requires: the data's
+/// orientation (rows from the top, texels left to right: "rd", which three.js and engines read
+/// to decide whether to flip) and who wrote it. Each entry: its byte length (u32), the key, NUL,
+/// the value with its NUL, padded to 4 bytes.
+pub fn key_values() -> Vec<u8> {
+    let writer = format!("horizon-bake {}", env!("CARGO_PKG_VERSION"));
+    let mut out = Vec::new();
+    for (key, value) in [("KTXorientation", "rd"), ("KTXwriter", writer.as_str())] {
+        let len = key.len() + 1 + value.len() + 1;
+        out.extend((len as u32).to_le_bytes());
+        out.extend(key.as_bytes());
+        out.push(0);
+        out.extend(value.as_bytes());
+        out.push(0);
+        out.resize(out.len().div_ceil(4) * 4, 0);
+    }
+    out
+}
 
 /// (vkFormat, typeSize, sample flags, lower, upper) of a pixel format.
 fn describe(f: PixelFormat) -> (u32, u32, u8, u32, u32) {
@@ -92,7 +114,8 @@ fn dfd(f: PixelFormat) -> Vec<u8> {
     d
 }
 
-/// Writes `t` as KTX2: `Shape::Array(n)` as layerCount = n, `Shape::Cube` as faceCount = 6
+/// Writes `t` as KTX2: `Shape::Array(n)` as layerCount = n (0 for one image: a 2D texture),
+/// `Shape::Cube` as faceCount = 6
 /// (layerCount 0); every level of `t`; with `zstd_level`, supercompressionScheme 2 (Zstandard),
 /// each level compressed on its own as KTX-Software's `ktxTexture2_DeflateZstd` does (level
 /// alignment then 1, the DFD unchanged, uncompressedByteLength the raw level size).
@@ -142,17 +165,22 @@ pub(crate) fn prefix(
 ) -> (Vec<u8>, Vec<usize>) {
     let (vk_format, type_size, ..) = describe(t.format);
     let (layer_count, face_count) = match t.shape {
+        // One image is a 2D texture, not an array of one (see the module doc).
+        Shape::Array(1) => (0, 1u32),
         Shape::Array(n) => (n, 1u32),
         Shape::Cube => (0, 6),
     };
     let levels = lens.len();
     let dfd = dfd(t.format);
+    let kvd = key_values();
     let header_len = 12 + 9 * 4 + 4 * 4 + 2 * 8;
     let dfd_offset = header_len + levels * 3 * 8;
+    // The DFD's length is a multiple of 4, so the KVD that follows it is 4-aligned.
+    let kvd_offset = dfd_offset + dfd.len();
     // Levels are stored smallest first (KTX2 §3.9), each aligned to lcm(block size, 4) when not
     // supercompressed (block sizes here are 4, 8 or 16: multiples of 4).
     let mut offsets = vec![0usize; levels];
-    let mut end = dfd_offset + dfd.len();
+    let mut end = kvd_offset + kvd.len();
     for l in (0..levels).rev() {
         end = end.div_ceil(align) * align;
         offsets[l] = end;
@@ -175,8 +203,8 @@ pub(crate) fn prefix(
     }
     out.extend((dfd_offset as u32).to_le_bytes());
     out.extend((dfd.len() as u32).to_le_bytes());
-    out.extend(0u32.to_le_bytes()); // kvdByteOffset
-    out.extend(0u32.to_le_bytes()); // kvdByteLength
+    out.extend((kvd_offset as u32).to_le_bytes());
+    out.extend((kvd.len() as u32).to_le_bytes());
     out.extend(0u64.to_le_bytes()); // sgdByteOffset
     out.extend(0u64.to_le_bytes()); // sgdByteLength
     for l in 0..levels {
@@ -185,6 +213,7 @@ pub(crate) fn prefix(
         out.extend((lens[l].1 as u64).to_le_bytes());
     }
     out.extend(&dfd);
+    out.extend(&kvd);
     (out, offsets)
 }
 
@@ -219,5 +248,33 @@ mod tests {
         assert_eq!(bytes.len(), off + 2 * 2 * 3 * 16);
         assert_eq!(f32::from_le_bytes(bytes[off..off + 4].try_into().unwrap()), 0.25);
         assert!(encode(2, 3, Shape::Cube, &[Texels::Float32(&a)]).is_err());
+    }
+
+    /// One image is a 2D texture (layerCount 0), two an array of 2, a cube layerCount 0 with six
+    /// faces; every file's key/value data holds the orientation and the writer, sorted by key,
+    /// as the independent `ktx2` reader parses them.
+    #[test]
+    fn one_image_is_2d_and_every_file_says_its_orientation_and_writer() {
+        let a = [0.5f32; 2 * 2 * 4];
+        let one = encode(2, 2, Shape::Array(1), &[Texels::Float32(&a)]).unwrap();
+        let two = encode(2, 2, Shape::Array(2), &[Texels::Float32(&a), Texels::Float32(&a)]);
+        let cube = encode(2, 2, Shape::Cube, &[Texels::Float32(&a); 6]).unwrap();
+        for (bytes, layers, faces) in [(&one, 0, 1), (&two.unwrap(), 2, 1), (&cube, 0, 6)] {
+            let r = ktx2::Reader::new(&bytes[..]).unwrap();
+            let h = r.header();
+            assert_eq!((h.layer_count, h.face_count), (layers, faces));
+            let kv: Vec<(String, Vec<u8>)> =
+                r.key_value_data().map(|(k, v)| (k.to_owned(), v.to_vec())).collect();
+            let writer = format!("horizon-bake {}\0", env!("CARGO_PKG_VERSION"));
+            assert_eq!(
+                kv,
+                [
+                    ("KTXorientation".to_owned(), b"rd\0".to_vec()),
+                    ("KTXwriter".to_owned(), writer.into_bytes())
+                ]
+            );
+            let level = r.levels().next().unwrap();
+            assert_eq!(f32::from_le_bytes(level.data[..4].try_into().unwrap()), 0.5);
+        }
     }
 }
