@@ -19,6 +19,7 @@
 //! - far field (longer rays): a scalar walk seeded with the near-field value that skips every
 //!   block of a max pyramid which cannot beat the best so far, and stops once the map's highest
 //!   point cannot.
+//!
 //! Culling and skipping are conservative, so the result is that of visiting every cell, which
 //! [`ExactMarch`] (the plain oracle) does; the tests compare the two.
 //!
