@@ -15,7 +15,8 @@ use std::io::Cursor;
 
 /// Small limits: a mutated header may claim anything, and the limits must catch it before a
 /// decoder allocates.
-const LIMITS: Limits = Limits { max_dim: 512, max_texels: 64 * 1024, max_bytes: 1 << 20 };
+const LIMITS: Limits =
+    Limits { max_dim: 512, max_texels: 64 * 1024, max_bytes: 1 << 20, max_decode_bytes: u64::MAX };
 
 /// A decoder failure must be the input's fault (4xx), never ours.
 fn client_fault(e: &Error) -> Result<(), TestCaseError> {
