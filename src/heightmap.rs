@@ -443,13 +443,49 @@ pub fn check_submission_for(
     params: &mut BakeParams,
     limits: &Limits,
 ) -> Result<((image::ImageFormat, u32, u32), Option<georef::GeorefReport>)> {
+    check_submission_for_in(bytes, params, limits, None)
+}
+
+/// [`check_submission_for`] with the decode's memory reserved from `admit`'s budget (and
+/// given back before it returns).
+///
+/// # Errors
+/// As [`decode_for_in`].
+pub fn check_submission_for_in(
+    bytes: &[u8],
+    params: &mut BakeParams,
+    limits: &Limits,
+    admit: Option<budget::Admit<'_>>,
+) -> Result<((image::ImageFormat, u32, u32), Option<georef::GeorefReport>)> {
     let probed = probe(bytes, limits)?;
     let mut report = None;
     if probed.0 != image::ImageFormat::Png || !matches!(params.nodata, NoData::Auto) {
-        let (map, _) = decode_for(bytes, params, limits)?;
+        let (map, _, _held) = decode_for_in(bytes, params, limits, admit)?;
         report = map.terrain.georef.as_ref().map(|g| g.report(params.cell_size));
     } else {
         georef::apply_dem_defaults(params, None)?;
+    }
+    Ok((probed, report))
+}
+
+/// [`check_submission_for`] for a map that will be baked in tiles (above `--tile-above`),
+/// which no process decodes whole: the values are checked by the band decoder of the tiled
+/// bake's split ([`stream::decode_tiles`] with no window), so the refusals are the same and
+/// the memory is one band, not the map (nor its share of the decode budgets).
+///
+/// # Errors
+/// As [`stream::decode_tiles`] and [`stream::probe_for`].
+pub fn check_submission_streamed(
+    bytes: &[u8],
+    params: &mut BakeParams,
+    limits: &Limits,
+) -> Result<((image::ImageFormat, u32, u32), Option<georef::GeorefReport>)> {
+    let probed = probe(bytes, limits)?;
+    let (_, report) = stream::probe_for(Cursor::new(bytes), params, limits)?;
+    if probed.0 != image::ImageFormat::Png || !matches!(params.nodata, NoData::Auto) {
+        let (channel, nodata) = (params.channel, params.nodata);
+        let mut none = |_: usize, _: Vec<u8>| Ok(());
+        stream::decode_tiles(Cursor::new(bytes), "", channel, nodata, limits, &[], &mut none)?;
     }
     Ok((probed, report))
 }

@@ -38,6 +38,9 @@ fn clone_kind(e: &Error) -> Error {
         Error::Internal(m) => Error::Internal(m.clone()),
         Error::Unavailable(m) => Error::Unavailable(m.clone()),
         Error::StorageFull { store, cause } => Error::StorageFull { store, cause: cause.clone() },
+        Error::MemoryBusy { needed, in_use, budget } => {
+            Error::MemoryBusy { needed: *needed, in_use: *in_use, budget: *budget }
+        }
     }
 }
 
