@@ -58,6 +58,9 @@ pub fn tiff_estimate(
     tiled: bool,
     holes: bool,
 ) -> Estimate {
+    // In u128: a hostile header's sizes must saturate, not overflow.
+    let (width, height, n, bits, cw, ch) =
+        (width as u128, height as u128, n as u128, bits as u128, cw as u128, ch as u128);
     let texels = width * height;
     let heights = 4 * texels;
     let sample = n * bits.div_ceil(8);
@@ -76,16 +79,20 @@ pub fn tiff_estimate(
         (true, false) => heights + 4 * width * rows + convert,
     };
     let mask = if holes { texels } else { 0 };
-    Estimate { peak: peak + mask + SLACK, kept: heights + mask }
+    Estimate { peak: sat(peak + mask + SLACK as u128), kept: sat(heights + mask) }
+}
+
+fn sat(v: u128) -> u64 {
+    u64::try_from(v).unwrap_or(u64::MAX)
 }
 
 /// The estimate of a PNG decoded whole by the `image` crate: `n` samples of `bits` per texel as
 /// the decoder expands them (palette to RGB(A), low bit depths to 8).
 pub fn png_estimate((width, height): (u64, u64), n: u64, bits: u64, holes: bool) -> Estimate {
-    let texels = width * height;
+    let (texels, n) = (width as u128 * height as u128, n as u128);
     let raw = texels * n * if bits == 16 { 2 } else { 1 };
     let mask = if holes { texels } else { 0 };
-    Estimate { peak: raw + 4 * texels + mask + SLACK, kept: 4 * texels + mask }
+    Estimate { peak: sat(raw + 4 * texels + mask + SLACK as u128), kept: sat(4 * texels + mask) }
 }
 
 /// The estimate of an OpenEXR decoded by the `exr` crate: `stored` bytes a texel over all its
@@ -98,11 +105,12 @@ pub fn exr_estimate(
     rgb: bool,
     holes: bool,
 ) -> Estimate {
-    let texels = width * height;
+    let texels = width as u128 * height as u128;
     let heights = 4 * texels;
-    let converted = 4 * picked * texels + if rgb { heights } else { 0 };
+    let converted = 4 * picked as u128 * texels + if rgb { heights } else { 0 };
     let mask = if holes { texels } else { 0 };
-    Estimate { peak: stored * texels + converted + mask + SLACK, kept: heights + mask }
+    let peak = stored as u128 * texels + converted + mask + SLACK as u128;
+    Estimate { peak: sat(peak), kept: sat(heights + mask) }
 }
 
 /// The bytes decoding `bytes` with [`super::decode_with`] holds (see the module docs), from the
@@ -115,7 +123,9 @@ pub fn estimate(bytes: &[u8], nodata: NoData) -> Result<Estimate> {
     match sniff(bytes)? {
         Format::Png => {
             let (w, h) = super::png_dimensions(bytes)?;
-            let (bits, color) = (bytes[24], bytes[25]);
+            let (Some(&bits), Some(&color)) = (bytes.get(24), bytes.get(25)) else {
+                return Err(Error::Decode("the PNG is truncated in its IHDR header chunk".into()));
+            };
             let trns = png_has_trns(bytes);
             let n = match color {
                 0 => 1 + u64::from(trns),
@@ -329,6 +339,17 @@ mod tests {
         drop(first);
         drop(second);
         assert_eq!(b.in_use(), 0);
+    }
+
+    /// Found by tests/service/fuzz.rs: a PNG cut inside its IHDR (after the dimensions, before
+    /// the bit depth) panicked the estimate instead of being refused; and a hostile header's
+    /// sizes saturate instead of overflowing.
+    #[test]
+    fn a_truncated_header_is_refused_and_huge_sizes_saturate() {
+        let png = gray16_png(4, 4);
+        assert!(matches!(estimate(&png[..24], NoData::None), Err(Error::Decode(_))));
+        let e = tiff_estimate((u32::MAX as u64, u32::MAX as u64), 4, 64, (1, 1), true, true);
+        assert_eq!(e.peak, u64::MAX);
     }
 
     /// A deflated float TIFF of one value: small on disk, `w`×`h`×4 bytes decoded.
