@@ -128,7 +128,12 @@ fn decode(size: usize, dir: &tempfile::TempDir) {
             });
         }
     }
-    let limits = Limits { max_dim: 65536, max_texels: 65536 * 65536, max_bytes: u64::MAX };
+    let limits = Limits {
+        max_dim: 65536,
+        max_texels: 65536 * 65536,
+        max_bytes: u64::MAX,
+        max_decode_bytes: u64::MAX,
+    };
     let mut blobs = 0usize;
     let mut blob_bytes = 0u64;
     let mut hasher = blake3::Hasher::new();

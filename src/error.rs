@@ -47,6 +47,20 @@ pub enum Error {
     /// again once space is freed.
     #[error("{store} is full: {cause}")]
     StorageFull { store: &'static str, cause: String },
+    /// A decode could not reserve its estimated peak memory from the process-wide decode budget
+    /// within its wait: other decodes hold it. Retrying shortly succeeds once they finish.
+    #[error(
+        "the server's decode memory is busy: this input needs about {} MiB to decode, and \
+         {} MiB of the {} MiB decode budget (--decode-memory-bytes) are held by other decodes; \
+         retry shortly",
+        mib(*needed), mib(*in_use), mib(*budget)
+    )]
+    MemoryBusy { needed: u64, in_use: u64, budget: u64 },
+}
+
+/// `bytes` in MiB with one decimal, for messages.
+pub fn mib(bytes: u64) -> String {
+    format!("{:.1}", bytes as f64 / (1024.0 * 1024.0))
 }
 
 /// Which limit an input broke, with the numbers, so the message can say by how much.
@@ -58,6 +72,9 @@ pub enum LimitError {
     Texels { texels: u64, max_texels: u64 },
     /// Encoded input larger than allowed.
     Bytes { bytes: u64, max_bytes: u64 },
+    /// The memory a decode would hold at its peak (estimated from the header) over the
+    /// per-request decode budget.
+    DecodeBytes { estimate: u64, max_decode_bytes: u64 },
 }
 
 impl fmt::Display for LimitError {
@@ -72,6 +89,13 @@ impl fmt::Display for LimitError {
             LimitError::Bytes { bytes, max_bytes } => {
                 write!(f, "input is {bytes} bytes, at most {max_bytes} are allowed")
             }
+            LimitError::DecodeBytes { estimate, max_decode_bytes } => write!(
+                f,
+                "decoding this image would hold about {} MiB, over the decode budget of {} MiB \
+                 per request (--max-decode-bytes)",
+                mib(*estimate),
+                mib(*max_decode_bytes)
+            ),
         }
     }
 }
@@ -95,7 +119,8 @@ impl Error {
             Error::Io(_)
             | Error::Internal(_)
             | Error::Unavailable(_)
-            | Error::StorageFull { .. } => 1,
+            | Error::StorageFull { .. }
+            | Error::MemoryBusy { .. } => 1,
         }
     }
 
@@ -113,6 +138,7 @@ impl Error {
             Error::Internal(_) => "internal",
             Error::Unavailable(_) => "store_unavailable",
             Error::StorageFull { .. } => "insufficient_storage",
+            Error::MemoryBusy { .. } => "decode_memory_busy",
         }
     }
 }

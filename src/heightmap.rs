@@ -15,6 +15,7 @@
 //! texel of its valid edges, so a hole occludes nothing. Every output of a hole texel is masked
 //! to nodata by the bake.
 
+pub mod budget;
 pub mod georef;
 pub mod stream;
 
@@ -32,11 +33,20 @@ pub struct Limits {
     pub max_texels: u64,
     /// Largest encoded input in bytes.
     pub max_bytes: u64,
+    /// Most bytes one decode may hold at its peak, as [`budget::estimate`] reads it from the
+    /// header (the service's `--max-decode-bytes`; unbounded for the CLI, which decodes one
+    /// input and would rather try than refuse).
+    pub max_decode_bytes: u64,
 }
 
 impl Default for Limits {
     fn default() -> Self {
-        Limits { max_dim: 16384, max_texels: 8192 * 8192, max_bytes: 512 * 1024 * 1024 }
+        Limits {
+            max_dim: 16384,
+            max_texels: 8192 * 8192,
+            max_bytes: 512 * 1024 * 1024,
+            max_decode_bytes: u64::MAX,
+        }
     }
 }
 
@@ -433,13 +443,49 @@ pub fn check_submission_for(
     params: &mut BakeParams,
     limits: &Limits,
 ) -> Result<((image::ImageFormat, u32, u32), Option<georef::GeorefReport>)> {
+    check_submission_for_in(bytes, params, limits, None)
+}
+
+/// [`check_submission_for`] with the decode's memory reserved from `admit`'s budget (and
+/// given back before it returns).
+///
+/// # Errors
+/// As [`decode_for_in`].
+pub fn check_submission_for_in(
+    bytes: &[u8],
+    params: &mut BakeParams,
+    limits: &Limits,
+    admit: Option<budget::Admit<'_>>,
+) -> Result<((image::ImageFormat, u32, u32), Option<georef::GeorefReport>)> {
     let probed = probe(bytes, limits)?;
     let mut report = None;
     if probed.0 != image::ImageFormat::Png || !matches!(params.nodata, NoData::Auto) {
-        let (map, _) = decode_for(bytes, params, limits)?;
+        let (map, _, _held) = decode_for_in(bytes, params, limits, admit)?;
         report = map.terrain.georef.as_ref().map(|g| g.report(params.cell_size));
     } else {
         georef::apply_dem_defaults(params, None)?;
+    }
+    Ok((probed, report))
+}
+
+/// [`check_submission_for`] for a map that will be baked in tiles (above `--tile-above`),
+/// which no process decodes whole: the values are checked by the band decoder of the tiled
+/// bake's split ([`stream::decode_tiles`] with no window), so the refusals are the same and
+/// the memory is one band, not the map (nor its share of the decode budgets).
+///
+/// # Errors
+/// As [`stream::decode_tiles`] and [`stream::probe_for`].
+pub fn check_submission_streamed(
+    bytes: &[u8],
+    params: &mut BakeParams,
+    limits: &Limits,
+) -> Result<((image::ImageFormat, u32, u32), Option<georef::GeorefReport>)> {
+    let probed = probe(bytes, limits)?;
+    let (_, report) = stream::probe_for(Cursor::new(bytes), params, limits)?;
+    if probed.0 != image::ImageFormat::Png || !matches!(params.nodata, NoData::Auto) {
+        let (channel, nodata) = (params.channel, params.nodata);
+        let mut none = |_: usize, _: Vec<u8>| Ok(());
+        stream::decode_tiles(Cursor::new(bytes), "", channel, nodata, limits, &[], &mut none)?;
     }
     Ok((probed, report))
 }
@@ -475,9 +521,24 @@ pub fn decode_for(
     params: &mut BakeParams,
     limits: &Limits,
 ) -> Result<(HeightMap, InputInfo)> {
-    let (map, info) = decode_with(bytes, params.channel, params.nodata, limits)?;
-    georef::apply_dem_defaults(params, map.terrain.georef.as_ref())?;
+    let (map, info, _) = decode_for_in(bytes, params, limits, None)?;
     Ok((map, info))
+}
+
+/// [`decode_for`] with its memory reserved from `admit`'s budget first (see
+/// [`decode_with_in`]); the reservation, holding what the map keeps, is returned beside it.
+///
+/// # Errors
+/// As [`decode_with_in`], and the refusals of the DEM defaults.
+pub fn decode_for_in(
+    bytes: &[u8],
+    params: &mut BakeParams,
+    limits: &Limits,
+    admit: Option<budget::Admit<'_>>,
+) -> Result<(HeightMap, InputInfo, budget::Reservation)> {
+    let (map, info, held) = decode_with_in(bytes, params.channel, params.nodata, limits, admit)?;
+    georef::apply_dem_defaults(params, map.terrain.georef.as_ref())?;
+    Ok((map, info, held))
 }
 
 /// [`decode`] with a nodata declaration: texels equal to it (as stored in the file) are holes.
@@ -491,12 +552,38 @@ pub fn decode_with(
     nodata: NoData,
     limits: &Limits,
 ) -> Result<(HeightMap, InputInfo)> {
+    let (map, info, _) = decode_with_in(bytes, channel, nodata, limits, None)?;
+    Ok((map, info))
+}
+
+/// [`decode_with`] under memory budgets: the peak the decode will hold is estimated from the
+/// header ([`budget::estimate`]) and refused over `limits.max_decode_bytes`, then reserved from
+/// `admit`'s process-wide budget (waiting as it says) before any pixel buffer is allocated. The
+/// returned reservation is shrunk to what the map keeps (its heights and hole mask); drop it
+/// with the map.
+///
+/// # Errors
+/// As [`decode_with`]; [`Error::Limits`] over the per-request budget, [`Error::MemoryBusy`]
+/// when the process budget stays taken for `admit`'s wait.
+pub fn decode_with_in(
+    bytes: &[u8],
+    channel: Channel,
+    nodata: NoData,
+    limits: &Limits,
+    admit: Option<budget::Admit<'_>>,
+) -> Result<(HeightMap, InputInfo, budget::Reservation)> {
     let (fmt, w, h) = probe_format(bytes, limits)?;
+    let est = budget::estimate(bytes, nodata)?;
+    budget::check(&est, limits.max_decode_bytes)?;
+    let mut held = match admit {
+        Some(a) => a.budget.reserve(est.peak, a.wait)?,
+        None => budget::Reservation::none(),
+    };
     // Room for the decoded image at up to 4 × f32 per texel plus the decoders' own buffers.
     let max_alloc = limits.max_texels.saturating_mul(16).saturating_add(64 << 20);
     let d = match fmt {
         Format::Png => contained("PNG", || decode_png(bytes, channel, limits, max_alloc))?,
-        Format::Tiff => contained("TIFF", || decode_tiff(bytes, channel, max_alloc))?,
+        Format::Tiff => contained("TIFF", || decode_tiff(bytes, channel, limits, max_alloc))?,
         Format::Exr => contained("OpenEXR", || decode_exr(bytes, channel))?,
     };
     if d.values.len() != w as usize * h as usize {
@@ -530,7 +617,9 @@ pub fn decode_with(
         content_hash: blake3::hash(bytes).to_hex().to_string(),
     };
     let terrain = Terrain { georef: d.georef, nodata, holes };
-    Ok((HeightMap { width: w as usize, height: h as usize, values: d.values, terrain }, info))
+    held.shrink_to(est.kept);
+    let map = HeightMap { width: w as usize, height: h as usize, values: d.values, terrain };
+    Ok((map, info, held))
 }
 
 /// The hole mask for nodata value `nd` (NaN: NaN texels), `None` when no texel is a hole.
@@ -607,16 +696,42 @@ fn compression_name(c: u16) -> String {
 /// TIFF through the `tiff` crate directly: `image` has no gray-f32 type, and 32-bit float gray
 /// is exactly what terrain tools export. Signed integers are used as they are (DEM convention),
 /// and a georeferenced DEM keeps every sample type as it is (heights in metres).
-fn decode_tiff(bytes: &[u8], channel: Channel, max_alloc: u64) -> Result<Decoded> {
-    let mut tl = tiff::decoder::Limits::default();
-    let cap = usize::try_from(max_alloc).unwrap_or(usize::MAX);
-    tl.decoding_buffer_size = cap;
-    tl.intermediate_buffer_size = cap;
-    let mut dec = tiff_decoder(bytes)?.with_limits(tl);
-    let meta = tiff_meta(&mut dec)?;
-    let img = dec.read_image().map_err(tiff_error)?;
-    let (values, bit_depth, float, stored) = tiff_values(&img, &meta, channel)?;
-    Ok(Decoded { values, color: meta.color, bit_depth, float, stored, georef: meta.georef })
+///
+/// Read strip by strip (or one row of tiles at a time) by [`stream`]'s band reader, each band
+/// appended to the heights as it is converted: the decode holds the heights and one chunk,
+/// not the whole image's raw samples besides them (a float TIFF peaked at twice its decoded
+/// size when read whole). The values are the whole image's, converted by the same
+/// [`tiff_values`].
+fn decode_tiff(bytes: &[u8], channel: Channel, limits: &Limits, max_alloc: u64) -> Result<Decoded> {
+    let (mut rows, georef) = stream::TiffRows::open_with(Cursor::new(bytes), limits, max_alloc)?;
+    rows.channel = channel;
+    let texels = rows.width * rows.height;
+    let mut values: Vec<f32> = Vec::new();
+    let mut kind = None;
+    loop {
+        let mut band = Vec::new();
+        let (n, k) = rows.band(&mut band)?;
+        if n == 0 {
+            break;
+        }
+        kind = kind.or(k);
+        if values.len() + band.len() > texels {
+            return Err(Error::Decode(format!(
+                "the TIFF holds more than the {texels} samples of its {}×{} image",
+                rows.width, rows.height
+            )));
+        }
+        if values.is_empty() && band.len() == texels {
+            // One strip (or one row of tiles) is the whole image: it is the heights.
+            values = band;
+        } else {
+            values.reserve_exact(texels - values.len());
+            values.extend_from_slice(&band);
+        }
+    }
+    let (bit_depth, float, stored) =
+        kind.ok_or_else(|| Error::Decode("the TIFF holds no image data".into()))?;
+    Ok(Decoded { values, color: rows.meta.color, bit_depth, float, stored, georef })
 }
 
 /// What a TIFF's header says about its samples (shared by the whole decode and the streamed

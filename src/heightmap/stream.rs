@@ -508,13 +508,14 @@ type SampleKind = (u8, bool, f64);
 const MAX_CHUNK_BYTES: u64 = 512 << 20;
 
 /// A TIFF read strip by strip, or one row of tiles at a time, each chunk converted by
-/// [`tiff_values`] as the whole decode converts the whole image.
-struct TiffRows<R: Read + Seek> {
+/// [`tiff_values`]: the streamed decode's reader, and the whole decode's
+/// ([`super::decode_tiff`]), which appends the bands to the map's heights.
+pub(super) struct TiffRows<R: Read + Seek> {
     dec: tiff::decoder::Decoder<R>,
-    meta: TiffMeta,
-    channel: Channel,
-    width: usize,
-    height: usize,
+    pub(super) meta: TiffMeta,
+    pub(super) channel: Channel,
+    pub(super) width: usize,
+    pub(super) height: usize,
     tiled: bool,
     chunk: (usize, usize),
     /// The next strip, or the next row of tiles.
@@ -524,9 +525,20 @@ struct TiffRows<R: Read + Seek> {
 
 impl<R: Read + Seek> TiffRows<R> {
     fn open(input: R, limits: &Limits) -> Result<(Self, Option<Georef>)> {
+        Self::open_with(input, limits, MAX_CHUNK_BYTES)
+    }
+
+    /// [`TiffRows::open`] with chunks of up to `max_chunk` bytes (at 8 bytes a sample): the
+    /// whole decode takes a file written as one strip, which its memory estimate counts.
+    pub(super) fn open_with(
+        input: R,
+        limits: &Limits,
+        max_chunk: u64,
+    ) -> Result<(Self, Option<Georef>)> {
         let mut tl = tiff::decoder::Limits::default();
-        tl.decoding_buffer_size = MAX_CHUNK_BYTES as usize;
-        tl.intermediate_buffer_size = MAX_CHUNK_BYTES as usize;
+        let cap = usize::try_from(max_chunk).unwrap_or(usize::MAX);
+        tl.decoding_buffer_size = cap;
+        tl.intermediate_buffer_size = cap;
         let mut dec = tiff::decoder::Decoder::new(input).map_err(tiff_error)?.with_limits(tl);
         let (w, h) = dec.dimensions().map_err(tiff_error)?;
         check_dimensions(w as u64, h as u64, limits)?;
@@ -545,7 +557,7 @@ impl<R: Read + Seek> TiffRows<R> {
         let tiled = dec.get_chunk_type() == tiff::decoder::ChunkType::Tile;
         let (cw, ch) = dec.chunk_dimensions();
         let chunk_bytes = cw as u64 * ch as u64 * meta.n as u64 * 8;
-        if chunk_bytes > MAX_CHUNK_BYTES {
+        if chunk_bytes > max_chunk {
             return Err(Error::InvalidInput(format!(
                 "the TIFF's {} are {cw}×{ch} texels, too large to decode in bands; rewrite it \
                  tiled (`gdal_translate -co TILED=YES in.tif out.tif`)",
@@ -568,7 +580,7 @@ impl<R: Read + Seek> TiffRows<R> {
     }
 
     /// The next band and the sample kind of its chunks.
-    fn band(&mut self, out: &mut Vec<f32>) -> Result<(usize, Option<SampleKind>)> {
+    pub(super) fn band(&mut self, out: &mut Vec<f32>) -> Result<(usize, Option<SampleKind>)> {
         if self.rows_done >= self.height {
             return Ok((0, None));
         }

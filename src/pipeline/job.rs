@@ -12,6 +12,7 @@ use crate::encode::exr::ExrPrecision;
 use crate::encode::{Formats, TextureLayout, TextureOptions, TexturePrecision};
 use crate::error::{Error, Result};
 use crate::heightmap;
+use crate::heightmap::budget::{Admit, MemoryBudget, Reservation};
 use crate::heightmap::Limits;
 use crate::jobs::blob::BlobStore;
 use crate::jobs::record::{now_ms, BakeRecord, RadiusInfo, Status, Timings};
@@ -124,6 +125,7 @@ fn texture_variant(name: &str) -> Option<(&'static str, TextureOptions)> {
 pub fn encode_on_request(
     jobs: &Jobs,
     limits: &Limits,
+    admit: Option<Admit<'_>>,
     rec: &BakeRecord,
     name: &str,
     progress: &Progress,
@@ -132,7 +134,7 @@ pub fn encode_on_request(
     let group = result_group(name)
         .ok_or_else(|| Error::Internal(format!("`{name}` is not an on-request result")))?;
     let params = params_of(rec)?;
-    let (map, _) = decode_input(jobs.blob_store().as_ref(), rec, &params, limits)?;
+    let (map, _, _held) = decode_input(jobs.blob_store().as_ref(), rec, &params, limits, admit)?;
     let files: Vec<Vec<u8>> = match group[0].as_str() {
         "horizon_0.png8" => {
             let (pngs, _) = crate::pipeline::stream_horizon_pngs::<u8, _>(
@@ -271,10 +273,13 @@ pub fn params_of(rec: &BakeRecord) -> Result<BakeParams> {
     BakeParams::from_pairs(rec.params.iter().map(|(k, v)| (k.as_str(), v.as_str())))
 }
 
-/// The runner the jobs core calls for each claimed bake, with the service's input limits.
-pub fn runner(limits: Limits) -> Runner {
+/// The runner the jobs core calls for each claimed bake, with the service's input limits and
+/// its decode budget (a bake waits for its share as long as it takes: it was accepted, and
+/// the decodes ahead of it finish).
+pub fn runner(limits: Limits, budget: Arc<MemoryBudget>) -> Runner {
     Arc::new(move |rec: &BakeRecord, progress: &Progress, blobs: &Blobs| {
-        execute(&limits, rec.clone(), progress, blobs)
+        let admit = Admit { budget: &budget, wait: None };
+        execute(&limits, Some(admit), rec.clone(), progress, blobs)
     })
 }
 
@@ -347,7 +352,8 @@ impl crate::pipeline::Sink for BlobSink<'_> {
 
 /// The bake's stored input, decoded with its `channel` (unscaled heights): what a bake, an
 /// on-request encode, a preview and the heights route all start from. The encoded bytes are
-/// dropped before the caller allocates anything else.
+/// dropped before the caller allocates anything else. The decode's memory is reserved from
+/// `admit`'s budget; keep the returned reservation as long as the map.
 ///
 /// # Errors
 /// A missing input blob ([`Error::Internal`]), store and decode failures.
@@ -356,7 +362,8 @@ pub fn decode_input(
     rec: &BakeRecord,
     params: &BakeParams,
     limits: &Limits,
-) -> Result<(heightmap::HeightMap, heightmap::InputInfo)> {
+    admit: Option<Admit<'_>>,
+) -> Result<(heightmap::HeightMap, heightmap::InputInfo, Reservation)> {
     if rec.tiles.is_some() {
         // Its map is above --tile-above: no process decodes it whole (SPEC §7.1).
         return Err(Error::InvalidInput(
@@ -370,15 +377,16 @@ pub fn decode_input(
         .get(&rec.input_blob)?
         .ok_or_else(|| Error::Internal(format!("input blob {} is missing", rec.input_blob)))?;
     let mut params = params.clone();
-    let (map, info) = heightmap::decode_for(&bytes, &mut params, limits)?;
+    let (map, info, held) = heightmap::decode_for_in(&bytes, &mut params, limits, admit)?;
     bake::check_method_fits(&params, map.width as u32, map.height as u32)?;
-    Ok((map, info))
+    Ok((map, info, held))
 }
 
 /// One bake, on the bake pool: decode → bake → encode → store, then the record is committed as
 /// `succeeded`. Returns the stored record.
 fn execute(
     limits: &Limits,
+    admit: Option<Admit<'_>>,
     mut rec: BakeRecord,
     progress: &Progress,
     blobs: &Blobs,
@@ -391,7 +399,8 @@ fn execute(
     let bytes = blobs
         .get(&rec.input_blob)?
         .ok_or_else(|| Error::Internal(format!("input blob {} is missing", rec.input_blob)))?;
-    let (map, info) = heightmap::decode_for(&bytes, &mut params, limits)?;
+    // Held until the bake is done with the heights (the end of this function).
+    let (map, info, _held) = heightmap::decode_for_in(&bytes, &mut params, limits, admit)?;
     bake::check_method_fits(&params, map.width as u32, map.height as u32)?;
     drop(bytes);
     progress.advance(1);

@@ -171,8 +171,12 @@ pub fn shadow_grey(plane: &[u8]) -> Vec<u8> {
 /// # Errors
 /// [`Error::Decode`] when the bytes are not a one-band float GeoTIFF; the PNG encoder's errors.
 pub fn svf_png(svf_tif: &[u8]) -> Result<Vec<u8>> {
-    let limits =
-        crate::heightmap::Limits { max_dim: u32::MAX, max_texels: u64::MAX, max_bytes: u64::MAX };
+    let limits = crate::heightmap::Limits {
+        max_dim: u32::MAX,
+        max_texels: u64::MAX,
+        max_bytes: u64::MAX,
+        max_decode_bytes: u64::MAX,
+    };
     let (map, _) = crate::heightmap::decode(svf_tif, crate::params::Channel::Luma, &limits)?;
     let holes = map.terrain.holes.as_deref();
     let grey = svf_grey(&map.values, holes);

@@ -9,6 +9,11 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
 
+/// `--max-decode-bytes` when not given (see its doc).
+pub const DEFAULT_MAX_DECODE_BYTES: u64 = 1536 << 20;
+/// `--decode-memory-bytes` when not given (see its doc).
+pub const DEFAULT_DECODE_MEMORY_BYTES: u64 = 4 << 30;
+
 /// Raw flags of `horizon-bake serve` (each also read from a `HORIZON_*` environment variable).
 #[derive(Debug, Clone, clap::Args)]
 pub struct ServeArgs {
@@ -30,6 +35,20 @@ pub struct ServeArgs {
     /// Largest width × height of an input (maps above --tile-above are tiled).
     #[arg(long, env = "HORIZON_MAX_TEXELS", default_value_t = 65536 * 65536)]
     pub max_texels: u64,
+    /// Most bytes one decode of an input may hold at its peak, estimated from the header before
+    /// anything is allocated (a deflated TIFF of 261 KB can decode to 256 MiB); over it, the
+    /// submission is a 422. The default, 1.5 GiB, fits the largest ordinary input whole: a
+    /// 16384² float32 TIFF holds its 1 GiB of heights, a strip, and with nodata a 256 MiB hole
+    /// mask (1.25 GiB); maps above --tile-above are checked streamed at submission, never whole.
+    #[arg(long, env = "HORIZON_MAX_DECODE_BYTES", default_value_t = DEFAULT_MAX_DECODE_BYTES)]
+    pub max_decode_bytes: u64,
+    /// Bytes every decode of this process shares (submissions, previews, heights, on-request
+    /// encodes, bakes): a decode reserves its estimate first, and waits up to upload_wait_ms
+    /// for it (bakes as long as it takes), else 503 with Retry-After. The default, 4 GiB, is a
+    /// fixed size rather than a share of the machine's memory, which a container misreports:
+    /// two of the largest decodes --max-decode-bytes allows, with room for the smaller ones.
+    #[arg(long, env = "HORIZON_DECODE_MEMORY_BYTES", default_value_t = DEFAULT_DECODE_MEMORY_BYTES)]
+    pub decode_memory_bytes: u64,
     /// Threads of the dedicated bake pool (0 = one per core).
     #[arg(long, env = "HORIZON_BAKE_THREADS", default_value_t = 0)]
     pub bake_threads: usize,
@@ -148,6 +167,8 @@ impl Default for ServeArgs {
             max_body_bytes: 256 * 1024 * 1024,
             max_dim: 65536,
             max_texels: 65536 * 65536,
+            max_decode_bytes: DEFAULT_MAX_DECODE_BYTES,
+            decode_memory_bytes: DEFAULT_DECODE_MEMORY_BYTES,
             bake_threads: 0,
             max_concurrent_bakes: 1,
             queue_capacity: 64,
@@ -224,6 +245,8 @@ pub struct Config {
     pub addr_file: Option<PathBuf>,
     pub max_body_bytes: u64,
     pub limits: Limits,
+    /// The process-wide decode budget in bytes (`--decode-memory-bytes`).
+    pub decode_memory_bytes: u64,
     pub bake_threads: usize,
     pub max_concurrent_bakes: usize,
     pub queue_capacity: usize,
@@ -281,6 +304,15 @@ impl Config {
         at_least_one("max_body_bytes", a.max_body_bytes)?;
         at_least_one("max_dim", a.max_dim as u64)?;
         at_least_one("max_texels", a.max_texels)?;
+        at_least_one("max_decode_bytes", a.max_decode_bytes)?;
+        if a.max_decode_bytes > a.decode_memory_bytes {
+            // A decode the per-request budget lets through must fit the shared one, or it would
+            // wait for memory that never comes.
+            return Err(Error::param(
+                "max_decode_bytes",
+                format!("must be at most --decode-memory-bytes ({})", a.decode_memory_bytes),
+            ));
+        }
         at_least_one("max_concurrent_bakes", a.max_concurrent_bakes as u64)?;
         at_least_one("queue_capacity", a.queue_capacity as u64)?;
         at_least_one("max_inflight_uploads", a.max_inflight_uploads as u64)?;
@@ -414,7 +446,9 @@ impl Config {
                 max_dim: a.max_dim,
                 max_texels: a.max_texels,
                 max_bytes: a.max_body_bytes,
+                max_decode_bytes: a.max_decode_bytes,
             },
+            decode_memory_bytes: a.decode_memory_bytes,
             bake_threads,
             max_concurrent_bakes: a.max_concurrent_bakes,
             queue_capacity: a.queue_capacity,
@@ -480,6 +514,12 @@ mod tests {
         let a = ServeArgs { queue_capacity: 0, ..Default::default() };
         match Config::from_args(a) {
             Err(Error::Param { field, .. }) => assert_eq!(field, "queue_capacity"),
+            other => panic!("expected a parameter error, got {other:?}"),
+        }
+        assert_eq!((c.limits.max_decode_bytes, c.decode_memory_bytes), (1536 << 20, 4 << 30));
+        let a = ServeArgs { max_decode_bytes: 5 << 30, ..Default::default() };
+        match Config::from_args(a) {
+            Err(Error::Param { field, .. }) => assert_eq!(field, "max_decode_bytes"),
             other => panic!("expected a parameter error, got {other:?}"),
         }
         let a = ServeArgs { addr: "nowhere".into(), ..Default::default() };

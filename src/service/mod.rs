@@ -103,6 +103,8 @@ pub struct Shared {
     pub encode_slots: Arc<Semaphore>,
     /// Uploads read at once.
     pub uploads: Arc<Semaphore>,
+    /// The bytes every decode of this process reserves from (`--decode-memory-bytes`).
+    pub decode_budget: Arc<crate::heightmap::budget::MemoryBudget>,
     pub metrics: Arc<metrics::Metrics>,
     /// Set on shutdown: readyz and submissions answer 503.
     pub draining: AtomicBool,
@@ -113,6 +115,15 @@ pub struct Shared {
 }
 
 impl AppState {
+    /// How a request's decode reserves its memory: from the process budget, waiting up to
+    /// `upload_wait` (as an upload waits for its slot), else 503 `decode_memory_busy`.
+    pub fn admit(&self) -> crate::heightmap::budget::Admit<'_> {
+        crate::heightmap::budget::Admit {
+            budget: &self.0.decode_budget,
+            wait: Some(self.0.config.upload_wait),
+        }
+    }
+
     /// Opens the embedded stores in the data directory. Call inside a tokio runtime.
     ///
     /// # Errors
@@ -189,12 +200,13 @@ impl AppState {
             // (a database restart). The embedded queue lives in this process and never misses.
             poll: if shared { Duration::from_secs(2) } else { Duration::from_secs(30) },
         };
+        let decode_budget = crate::heightmap::budget::MemoryBudget::new(config.decode_memory_bytes);
         let hook_metrics = metrics.clone();
         let jobs = Jobs::new(
             repo,
             blobs,
             jobs_cfg,
-            job::runner(config.limits),
+            job::runner(config.limits, decode_budget.clone()),
             Some(Arc::new(move |s, secs, texels| hook_metrics.finished(s, secs, texels))),
         )?;
         // Maps above --tile-above are baked in tiles across every worker (SPEC §7.1).
@@ -209,6 +221,7 @@ impl AppState {
         });
         Ok(AppState(Arc::new(Shared {
             uploads: Arc::new(Semaphore::new(config.max_inflight_uploads)),
+            decode_budget,
             config,
             jobs,
             preview_pool,

@@ -154,6 +154,13 @@ impl From<Error> for Problem {
                     ),
                 )
             }
+            Error::MemoryBusy { .. } => {
+                // Decodes finish in seconds (an 8192² float TIFF decodes in about one), and each
+                // frees its share of the budget when it does.
+                let mut p = Problem::new(StatusCode::SERVICE_UNAVAILABLE, code, e.to_string());
+                p.retry_after = Some(2);
+                p
+            }
             Error::Unavailable(cause) => {
                 tracing::warn!(%cause, "backing store unavailable");
                 let mut p = Problem::new(
@@ -252,6 +259,12 @@ mod tests {
                 422,
                 "dimensions_too_large",
             ),
+            (
+                Error::Limits(LimitError::DecodeBytes { estimate: 9, max_decode_bytes: 4 }),
+                422,
+                "dimensions_too_large",
+            ),
+            (Error::MemoryBusy { needed: 9, in_use: 4, budget: 10 }, 503, "decode_memory_busy"),
             (Error::Decode("truncated".into()), 422, "decode_failed"),
             (Error::InvalidInput("NaN".into()), 422, "invalid_input"),
             (Error::param("bins", "bad"), 422, "invalid_parameter"),

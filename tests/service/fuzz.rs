@@ -15,7 +15,8 @@ use std::io::Cursor;
 
 /// Small limits: a mutated header may claim anything, and the limits must catch it before a
 /// decoder allocates.
-const LIMITS: Limits = Limits { max_dim: 512, max_texels: 64 * 1024, max_bytes: 1 << 20 };
+const LIMITS: Limits =
+    Limits { max_dim: 512, max_texels: 64 * 1024, max_bytes: 1 << 20, max_decode_bytes: u64::MAX };
 
 /// A decoder failure must be the input's fault (4xx), never ours.
 fn client_fault(e: &Error) -> Result<(), TestCaseError> {
@@ -37,6 +38,9 @@ fn clone_kind(e: &Error) -> Error {
         Error::Internal(m) => Error::Internal(m.clone()),
         Error::Unavailable(m) => Error::Unavailable(m.clone()),
         Error::StorageFull { store, cause } => Error::StorageFull { store, cause: cause.clone() },
+        Error::MemoryBusy { needed, in_use, budget } => {
+            Error::MemoryBusy { needed: *needed, in_use: *in_use, budget: *budget }
+        }
     }
 }
 

@@ -10,6 +10,7 @@ mod support;
 
 mod api;
 mod cancel;
+mod decode_budget;
 mod docs;
 mod fuzz;
 mod hostile;

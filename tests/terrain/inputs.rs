@@ -330,7 +330,8 @@ fn broken_inputs_each_get_a_clear_error() {
     messages.push(e.to_string());
 
     // Within each side's limit but over the texel budget.
-    let small = Limits { max_dim: 1000, max_texels: 10_000, max_bytes: 1 << 20 };
+    let small =
+        Limits { max_dim: 1000, max_texels: 10_000, max_bytes: 1 << 20, ..Limits::default() };
     let e = decode(&png_header(200, 100), Channel::Luma, &small).unwrap_err();
     assert!(matches!(e, Error::Limits(LimitError::Texels { texels: 20_000, .. })), "{e:?}");
     messages.push(e.to_string());

@@ -443,9 +443,19 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
     // The bytes when in memory, or the stored blob (hash, length) of a large upload.
     let (bytes, stored, params, ((fmt, width, height), georef)) = match upload {
         upload::Upload::Memory(bytes) => {
+            let (budget, wait, tiles) =
+                (st.0.decode_budget.clone(), st.0.config.upload_wait, st.0.config.tiles);
             blocking(move || {
                 let mut params = params;
-                let probed = heightmap::check_submission_for(&bytes, &mut params, &limits)?;
+                let (_, w, h) = heightmap::probe(&bytes, &limits)?;
+                let probed = if tiles.tiles(w, h) {
+                    heightmap::check_submission_streamed(&bytes, &mut params, &limits)?
+                } else {
+                    // Reserved from the process's decode budget before the decode allocates,
+                    // given back when it returns.
+                    let admit = heightmap::budget::Admit { budget: &budget, wait: Some(wait) };
+                    heightmap::check_submission_for_in(&bytes, &mut params, &limits, Some(admit))?
+                };
                 crate::bake::check_method_fits(&params, probed.0 .1, probed.0 .2)?;
                 Ok((Some(bytes), None, params, probed))
             })

@@ -103,13 +103,13 @@ pub async fn heights(
         StatusCode::NOT_MODIFIED.into_response()
     } else {
         let (w, h, bytes) = on_pool(&st, &format!("the heights of bake {id}"), move |st| {
-            let map = job::decode_input(
+            let (map, _, _held) = job::decode_input(
                 st.0.jobs.blob_store().as_ref(),
                 &rec,
                 &params,
                 &st.0.config.limits,
-            )?
-            .0;
+                Some(st.admit()),
+            )?;
             let (w, h) = (map.width, map.height);
             let bytes: Vec<u8> =
                 map.into_scaled(params.height_scale).iter().flat_map(|v| v.to_le_bytes()).collect();
@@ -180,9 +180,13 @@ pub async fn preview(
     let _cancel = CancelOnDrop(progress.clone());
     st.0.metrics.rendered(Render::Preview);
     let png = on_pool(&st, &format!("the preview of bake {id}"), move |st| {
-        let map =
-            job::decode_input(st.0.jobs.blob_store().as_ref(), &rec, &params, &st.0.config.limits)?
-                .0;
+        let (map, _, _held) = job::decode_input(
+            st.0.jobs.blob_store().as_ref(),
+            &rec,
+            &params,
+            &st.0.config.limits,
+            Some(st.admit()),
+        )?;
         preview::render_baking(&map, &params, &pp, &progress)?.to_png()
     })
     .await?;
@@ -234,9 +238,13 @@ pub async fn shadow(
     let _cancel = CancelOnDrop(progress.clone());
     let tif = on_pool(&st, &format!("the shadow of bake {id}"), move |st| {
         let mut params = params;
-        let map =
-            job::decode_input(st.0.jobs.blob_store().as_ref(), &rec, &params, &st.0.config.limits)?
-                .0;
+        let (map, _, _held) = job::decode_input(
+            st.0.jobs.blob_store().as_ref(),
+            &rec,
+            &params,
+            &st.0.config.limits,
+            Some(st.admit()),
+        )?;
         crate::heightmap::georef::apply_dem_defaults(&mut params, map.terrain.georef.as_ref())?;
         if as_png {
             crate::pipeline::shadow_png(&map, &params, az, el, &progress)
@@ -282,9 +290,13 @@ pub async fn profile(
     let params = params_of(&rec).map_err(store_err)?;
     let (text, ct) = on_pool(&st, &format!("the profile of bake {id}"), move |st| {
         let mut params = params;
-        let map =
-            job::decode_input(st.0.jobs.blob_store().as_ref(), &rec, &params, &st.0.config.limits)?
-                .0;
+        let (map, _, _held) = job::decode_input(
+            st.0.jobs.blob_store().as_ref(),
+            &rec,
+            &params,
+            &st.0.config.limits,
+            Some(st.admit()),
+        )?;
         crate::heightmap::georef::apply_dem_defaults(&mut params, map.terrain.georef.as_ref())?;
         let (x, y) = if at.2 {
             let t = map.terrain.georef.as_ref().and_then(|g| g.transform()).ok_or_else(|| {

@@ -348,9 +348,12 @@ pub(super) async fn result_or_encode(
         let progress = job.progress.clone();
         let what = format!("encoding {wanted} of {}", job.id);
         let r = previews::run_on(&bg, previews::Pool::Encode, &what, move |pool| {
+            // In the background, for a request already answered 202: it waits its turn.
+            let admit = heightmap::budget::Admit { budget: &pool.0.decode_budget, wait: None };
             job::encode_on_request(
                 &pool.0.jobs,
                 &pool.0.config.limits,
+                Some(admit),
                 &rec,
                 &wanted,
                 &progress,
