@@ -8,6 +8,10 @@ use serde_json::Value;
 use std::time::{Duration, Instant};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
+// The time bounds below are loose on purpose (the machines are shared): each only separates
+// "answered by the mechanism" from what happened before the fix (a 30 s body timeout, a render
+// of minutes, a drain that never ends).
+
 /// Reads what the server sends on `s` within `limit` (until it closes, or the time is up).
 async fn read_for(s: &mut tokio::net::TcpStream, limit: Duration) -> String {
     let mut buf = Vec::new();
@@ -29,11 +33,11 @@ async fn expect_continue_over_the_limit_is_413_before_any_100() {
     .await
     .unwrap();
     let t = Instant::now();
-    let text = read_for(&mut s, Duration::from_secs(5)).await;
+    let text = read_for(&mut s, Duration::from_secs(15)).await;
     assert!(text.starts_with("HTTP/1.1 413"), "got: {text}");
     assert!(!text.contains("100 Continue"), "{text}");
     assert!(text.contains("payload_too_large") && text.contains("1048576"), "{text}");
-    assert!(t.elapsed() < Duration::from_secs(3), "answered after {:?}", t.elapsed());
+    assert!(t.elapsed() < Duration::from_secs(20), "answered after {:?}", t.elapsed());
     srv.stop().await;
 }
 
@@ -66,7 +70,7 @@ async fn an_oversized_params_part_is_refused_before_it_is_parsed() {
     assert_eq!(res.status(), 422);
     let v: Value = res.json().await.unwrap();
     assert_eq!(v["field"], "params", "{v}");
-    assert!(t.elapsed() < Duration::from_secs(5), "{:?}", t.elapsed());
+    assert!(t.elapsed() < Duration::from_secs(20), "{:?}", t.elapsed());
     let h = c.get(srv.url("/healthz")).send().await.unwrap();
     assert_eq!(h.status(), 200);
     // A real submission with a params part still works.
@@ -117,7 +121,7 @@ async fn a_dripping_upload_is_cut_at_the_minimum_rate() {
     let cut = t.elapsed();
     assert!(text.starts_with("HTTP/1.1 408"), "dripping upload got: {text:?}");
     assert!(text.contains("body_too_slow"), "{text}");
-    assert!(cut < Duration::from_secs(16), "cut after {cut:?}");
+    assert!(cut < Duration::from_secs(25), "cut after {cut:?}");
     let c = client();
     let loc = submit_png_done(&c, &srv, "radius=2", &terrain_png16(8, 8, 5)).await;
     assert!(loc.starts_with("/v1/bakes/"), "{loc}");
@@ -214,11 +218,11 @@ async fn a_preview_past_its_deadline_is_503_and_stops() {
     assert_eq!(res.status(), 503);
     let v: Value = res.json().await.unwrap();
     assert_eq!(v["code"], "preview_timeout", "{v}");
-    assert!(t.elapsed() < Duration::from_secs(5), "{:?}", t.elapsed());
+    assert!(t.elapsed() < Duration::from_secs(30), "{:?}", t.elapsed());
     let t = Instant::now();
     let res = c.get(srv.url(&format!("{loc}/preview?size=32"))).send().await.unwrap();
     assert_eq!(res.status(), 200);
-    assert!(t.elapsed() < Duration::from_secs(4), "the canceled render held the pool");
+    assert!(t.elapsed() < Duration::from_secs(20), "the canceled render held the pool");
     srv.stop().await;
 }
 
@@ -241,7 +245,7 @@ async fn the_drain_closes_connections_after_its_deadline() {
     tokio::time::timeout(Duration::from_secs(20), srv.stop())
         .await
         .expect("the drain waited for a connection that never finishes");
-    assert!(t.elapsed() < Duration::from_secs(10), "{:?}", t.elapsed());
+    assert!(t.elapsed() < Duration::from_secs(20), "{:?}", t.elapsed());
     drop(s);
 }
 

@@ -79,6 +79,26 @@ where
     })
 }
 
+/// The bake's stored input decoded on a pool thread (its `channel`, unscaled), with its decode
+/// reserved from the process's budget for as long as the map lives.
+fn decode_stored(
+    st: &AppState,
+    rec: &crate::jobs::record::BakeRecord,
+    params: &crate::params::BakeParams,
+) -> crate::Result<(
+    crate::heightmap::HeightMap,
+    crate::heightmap::InputInfo,
+    crate::heightmap::budget::Reservation,
+)> {
+    job::decode_input(
+        st.0.jobs.blob_store().as_ref(),
+        rec,
+        params,
+        &st.0.config.limits,
+        Some(st.admit()),
+    )
+}
+
 /// `GET /v1/bakes/{id}/heights`: the heights the bake used, in texels (channel picked,
 /// `height_scale` applied), little-endian f32, row 0 first, with the size in `x-width` and
 /// `x-height`. A browser decodes 16-bit PNGs to 8 bits, so this is how a viewer rebuilds the
@@ -103,13 +123,7 @@ pub async fn heights(
         StatusCode::NOT_MODIFIED.into_response()
     } else {
         let (w, h, bytes) = on_pool(&st, &format!("the heights of bake {id}"), move |st| {
-            let (map, _, _held) = job::decode_input(
-                st.0.jobs.blob_store().as_ref(),
-                &rec,
-                &params,
-                &st.0.config.limits,
-                Some(st.admit()),
-            )?;
+            let (map, _, _held) = decode_stored(st, &rec, &params)?;
             let (w, h) = (map.width, map.height);
             let bytes: Vec<u8> =
                 map.into_scaled(params.height_scale).iter().flat_map(|v| v.to_le_bytes()).collect();
@@ -180,13 +194,7 @@ pub async fn preview(
     let _cancel = CancelOnDrop(progress.clone());
     st.0.metrics.rendered(Render::Preview);
     let png = on_pool(&st, &format!("the preview of bake {id}"), move |st| {
-        let (map, _, _held) = job::decode_input(
-            st.0.jobs.blob_store().as_ref(),
-            &rec,
-            &params,
-            &st.0.config.limits,
-            Some(st.admit()),
-        )?;
+        let (map, _, _held) = decode_stored(st, &rec, &params)?;
         preview::render_baking(&map, &params, &pp, &progress)?.to_png()
     })
     .await?;
@@ -238,13 +246,7 @@ pub async fn shadow(
     let _cancel = CancelOnDrop(progress.clone());
     let tif = on_pool(&st, &format!("the shadow of bake {id}"), move |st| {
         let mut params = params;
-        let (map, _, _held) = job::decode_input(
-            st.0.jobs.blob_store().as_ref(),
-            &rec,
-            &params,
-            &st.0.config.limits,
-            Some(st.admit()),
-        )?;
+        let (map, _, _held) = decode_stored(st, &rec, &params)?;
         crate::heightmap::georef::apply_dem_defaults(&mut params, map.terrain.georef.as_ref())?;
         if as_png {
             crate::pipeline::shadow_png(&map, &params, az, el, &progress)
@@ -290,13 +292,7 @@ pub async fn profile(
     let params = params_of(&rec).map_err(store_err)?;
     let (text, ct) = on_pool(&st, &format!("the profile of bake {id}"), move |st| {
         let mut params = params;
-        let (map, _, _held) = job::decode_input(
-            st.0.jobs.blob_store().as_ref(),
-            &rec,
-            &params,
-            &st.0.config.limits,
-            Some(st.admit()),
-        )?;
+        let (map, _, _held) = decode_stored(st, &rec, &params)?;
         crate::heightmap::georef::apply_dem_defaults(&mut params, map.terrain.georef.as_ref())?;
         let (x, y) = if at.2 {
             let t = map.terrain.georef.as_ref().and_then(|g| g.transform()).ok_or_else(|| {
