@@ -463,7 +463,7 @@ impl horizon_bake::jobs::blob::BlobStore for SlowDeletes {
         self.0.contains(hash)
     }
     fn delete(&self, hash: &str) -> horizon_bake::error::Result<()> {
-        std::thread::sleep(Duration::from_millis(300));
+        std::thread::sleep(Duration::from_millis(1000));
         self.0.delete(hash)
     }
     fn list(&self) -> horizon_bake::error::Result<Vec<(String, u64)>> {
@@ -507,7 +507,8 @@ async fn a_drain_waits_for_a_retention_sweep_in_flight() {
         assert!(t.elapsed() < Duration::from_secs(30), "not removed");
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
-    // The record is gone and its blobs are being deleted, 300 ms each.
+    // The record is gone and its blobs are being deleted, a second each (long enough that the
+    // 404 is seen first even when the whole service binary runs beside it).
     let left = blob_files(dir.path()).len();
     assert!(left > 1, "the sweep should still be deleting: {left} blob files left");
     st.drain().await;

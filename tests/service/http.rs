@@ -5,30 +5,10 @@
 
 use crate::support::*;
 use axum::body::Body;
-use axum::http::{Request, StatusCode};
+use axum::http::Request;
 use horizon_bake::service::{self, Config, ServeArgs};
 use serde_json::Value;
 use std::time::Duration;
-use tower::ServiceExt;
-
-async fn oneshot(app: &axum::Router, req: Request<Body>) -> (StatusCode, Value) {
-    let res = app.clone().oneshot(req).await.unwrap();
-    let (parts, body) = res.into_parts();
-    let bytes = axum::body::to_bytes(body, usize::MAX).await.unwrap();
-    (parts.status, serde_json::from_slice(&bytes).unwrap_or(Value::Null))
-}
-
-/// `oneshot` of tests/edges.rs, which kept the headers; the one without them is [`oneshot`].
-async fn oneshot_with_headers(
-    app: &axum::Router,
-    req: axum::http::Request<axum::body::Body>,
-) -> (u16, axum::http::HeaderMap, Value) {
-    use tower::ServiceExt;
-    let res = app.clone().oneshot(req).await.unwrap();
-    let (parts, body) = res.into_parts();
-    let bytes = axum::body::to_bytes(body, usize::MAX).await.unwrap();
-    (parts.status.as_u16(), parts.headers, serde_json::from_slice(&bytes).unwrap_or(Value::Null))
-}
 
 fn get(path: &str) -> axum::http::Request<axum::body::Body> {
     axum::http::Request::get(path).body(axum::body::Body::empty()).unwrap()

@@ -9,14 +9,6 @@ use axum::http::{Request, StatusCode};
 use horizon_bake::service::{self, handlers};
 use serde_json::Value;
 use std::time::Duration;
-use tower::ServiceExt;
-
-async fn oneshot(app: &axum::Router, req: Request<Body>) -> (StatusCode, Value) {
-    let res = app.clone().oneshot(req).await.unwrap();
-    let (parts, body) = res.into_parts();
-    let bytes = axum::body::to_bytes(body, usize::MAX).await.unwrap();
-    (parts.status, serde_json::from_slice(&bytes).unwrap_or(Value::Null))
-}
 
 /// A deduplicated submission (answered 200) renews the bake's retention, and the resource says
 /// when it expires.

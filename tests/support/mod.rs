@@ -443,3 +443,25 @@ pub async fn counter(c: &reqwest::Client, srv: &Server, series: &str) -> u64 {
     let line = text.lines().find(|l| l.starts_with(&key)).unwrap_or_else(|| panic!("{series}"));
     line[key.len()..].parse().unwrap()
 }
+
+/// Sends `req` to the router in this process: the status and the body as JSON (null if none).
+pub async fn oneshot(
+    app: &axum::Router,
+    req: axum::http::Request<axum::body::Body>,
+) -> (axum::http::StatusCode, serde_json::Value) {
+    let (status, _, v) = oneshot_with_headers(app, req).await;
+    (axum::http::StatusCode::from_u16(status).unwrap(), v)
+}
+
+/// [`oneshot`] with the response's headers too.
+pub async fn oneshot_with_headers(
+    app: &axum::Router,
+    req: axum::http::Request<axum::body::Body>,
+) -> (u16, axum::http::HeaderMap, serde_json::Value) {
+    use tower::ServiceExt;
+    let res = app.clone().oneshot(req).await.unwrap();
+    let (parts, body) = res.into_parts();
+    let bytes = axum::body::to_bytes(body, usize::MAX).await.unwrap();
+    let v = serde_json::from_slice(&bytes).unwrap_or(serde_json::Value::Null);
+    (parts.status.as_u16(), parts.headers, v)
+}
