@@ -250,61 +250,134 @@ pub(super) async fn read_multipart(
     })?;
     let mut image: Option<upload::Upload> = None;
     let mut params: Option<(BakeParams, Delivery)> = None;
+    // A part refused mid-body is answered only once the rest of the body is read (and thrown
+    // away): a server that answers and closes with bytes unread resets the connection, and the
+    // client, still writing, sees a broken pipe instead of the answer. The drain costs what the
+    // body limits already bound (`--max-body-bytes`, `--min-upload-rate`), no memory.
+    let mut refused: Option<Problem> = None;
     loop {
         let mut field = match mp.next_field().await {
             Ok(Some(f)) => f,
             Ok(None) => break,
-            Err(e) => return Err(multipart_error(&e, timeout, max_bytes)),
+            Err(e) => {
+                return Err(refused.unwrap_or_else(|| multipart_error(&e, timeout, max_bytes)))
+            }
         };
-        let name = field.name().unwrap_or("").to_owned();
-        match name.as_str() {
-            "heightmap" => {
-                if image.is_some() {
-                    return Err(Problem::param("heightmap", "given more than once"));
-                }
-                // Read piece by piece: a large image goes to the blob store as it arrives.
-                let mut spool = spool_for(st, id, announced);
-                while let Some(chunk) =
-                    field.chunk().await.map_err(|e| multipart_error(&e, timeout, max_bytes))?
-                {
-                    spool.push(chunk).await.map_err(store_err)?;
-                }
-                image = Some(spool.finish().await.map_err(store_err)?);
-            }
-            "params" => {
-                if params.is_some() {
-                    return Err(Problem::param("params", "given more than once"));
-                }
-                let mut text = Vec::new();
-                while let Some(chunk) =
-                    field.chunk().await.map_err(|e| multipart_error(&e, timeout, max_bytes))?
-                {
-                    text.extend_from_slice(&chunk);
-                    if text.len() > crate::params::MAX_PARAMS_BYTES {
-                        return Err(Problem::new(
-                            StatusCode::PAYLOAD_TOO_LARGE,
-                            "payload_too_large",
-                            format!(
-                                "the `params` part is larger than {} bytes; a bake's parameters \
-                                 take a few hundred",
-                                crate::params::MAX_PARAMS_BYTES
-                            ),
-                        ));
-                    }
-                }
-                params = Some(merge_json(query.clone(), &query_keys, &text)?);
-            }
-            other => {
-                return Err(Problem::param(
-                    if other.is_empty() { "multipart" } else { other },
-                    "unknown multipart part; expected `heightmap` and optionally `params`",
-                ))
+        if refused.is_none() {
+            let read = read_part(
+                st,
+                id,
+                announced,
+                &query,
+                &query_keys,
+                &mut field,
+                &mut image,
+                &mut params,
+            );
+            match read.await {
+                Ok(()) => {}
+                // The body itself failed: nothing more can be read from it.
+                Err(Refusal::Body(p)) => return Err(p),
+                Err(Refusal::Part(p)) => refused = Some(p),
             }
         }
+        if refused.is_some() {
+            loop {
+                match field.chunk().await {
+                    Ok(Some(_)) => {}
+                    Ok(None) => break,
+                    Err(_) => return Err(refused.unwrap()),
+                }
+            }
+        }
+    }
+    if let Some(p) = refused {
+        return Err(p);
     }
     let image = image
         .ok_or_else(|| Problem::param("heightmap", "the multipart body has no `heightmap` part"))?;
     Ok((image, params.unwrap_or(query)))
+}
+
+/// Why a part was not taken: its body could not be read (answered at once), or what it holds
+/// is refused (answered once the rest of the body is drained).
+enum Refusal {
+    Body(Problem),
+    Part(Problem),
+}
+
+impl From<Problem> for Refusal {
+    fn from(p: Problem) -> Self {
+        Refusal::Part(p)
+    }
+}
+
+/// Reads one part of a multipart submission into `image` or `params`.
+#[allow(clippy::too_many_arguments)]
+async fn read_part(
+    st: &AppState,
+    id: &str,
+    announced: usize,
+    query: &(BakeParams, Delivery),
+    query_keys: &[String],
+    field: &mut axum::extract::multipart::Field<'_>,
+    image: &mut Option<upload::Upload>,
+    params: &mut Option<(BakeParams, Delivery)>,
+) -> Result<(), Refusal> {
+    let timeout = st.0.config.body_timeout;
+    let max_bytes = st.0.config.max_body_bytes;
+    let name = field.name().unwrap_or("").to_owned();
+    match name.as_str() {
+        "heightmap" => {
+            if image.is_some() {
+                return Err(Problem::param("heightmap", "given more than once").into());
+            }
+            // Read piece by piece: a large image goes to the blob store as it arrives.
+            let mut spool = spool_for(st, id, announced);
+            while let Some(chunk) = field
+                .chunk()
+                .await
+                .map_err(|e| Refusal::Body(multipart_error(&e, timeout, max_bytes)))?
+            {
+                spool.push(chunk).await.map_err(store_err)?;
+            }
+            *image = Some(spool.finish().await.map_err(store_err)?);
+        }
+        "params" => {
+            if params.is_some() {
+                return Err(Problem::param("params", "given more than once").into());
+            }
+            let mut text = Vec::new();
+            while let Some(chunk) = field
+                .chunk()
+                .await
+                .map_err(|e| Refusal::Body(multipart_error(&e, timeout, max_bytes)))?
+            {
+                text.extend_from_slice(&chunk);
+                if text.len() > crate::params::MAX_PARAMS_BYTES {
+                    return Err(Problem::new(
+                        StatusCode::PAYLOAD_TOO_LARGE,
+                        "payload_too_large",
+                        format!(
+                            "the `params` part is larger than {} bytes; a bake's parameters \
+                             take a few hundred",
+                            crate::params::MAX_PARAMS_BYTES
+                        ),
+                    )
+                    .into());
+                }
+            }
+            *params = Some(merge_json(query.clone(), query_keys, &text)?);
+        }
+        other => {
+            return Err(Problem::param(
+                if other.is_empty() { "multipart" } else { other },
+                "unknown multipart part; expected `heightmap` and optionally `params`",
+            )
+            .into())
+        }
+    }
+    Ok(())
 }
 
 pub(super) fn multipart_error(
