@@ -281,12 +281,12 @@ pub(super) async fn read_multipart(
                 Err(Refusal::Part(p)) => refused = Some(p),
             }
         }
-        if refused.is_some() {
+        if let Some(p) = &refused {
             loop {
                 match field.chunk().await {
                     Ok(Some(_)) => {}
                     Ok(None) => break,
-                    Err(_) => return Err(refused.unwrap()),
+                    Err(_) => return Err(p.clone()),
                 }
             }
         }
