@@ -112,8 +112,9 @@ pub fn check_method_fits(params: &BakeParams, width: u32, height: u32) -> Result
 
 /// [`make_kernel`] for a map with nodata `holes`: `exact` skips the cells that touch a hole
 /// exactly (SPEC §2); the other methods see the holes' fill far below the map
-/// ([`crate::heightmap::HOLE_DEPTH`]), and `march` takes the exact walk within its radius of
-/// one ([`kernels::march::March::with_holes`]). Outputs at holes are masked by the callers.
+/// ([`crate::heightmap::HOLE_DEPTH`]), and `march` and `sweep` take the exact walk within
+/// their near reach of one ([`kernels::march::March::with_holes`],
+/// [`kernels::sweep::Sweep::with_holes`]). Outputs at holes are masked by the callers.
 pub fn make_kernel_for<'a>(
     params: &BakeParams,
     grid: Grid<'a>,
@@ -128,17 +129,6 @@ pub fn make_kernel_for<'a>(
         Method::Exact => {
             // Unlimited means "to the map edge" with edge=none, which can be longer than
             // max(W, H) on a diagonal; the kernel resolves it itself.
-            let r = (params.radius != Radius::Unlimited || params.max_distance.is_some())
-                .then_some(radius);
-            Box::new(
-                kernels::exact::ExactHorizon::new(grid, r, params.bins, params.reduce)
-                    .with_cancel(progress)
-                    .with_curvature(curvature(params))
-                    .with_holes(holes),
-            )
-        }
-        // Holes: the sweep's lines do not skip hole cells yet, so `exact` bakes such maps.
-        Method::Sweep if holes.is_some() => {
             let r = (params.radius != Radius::Unlimited || params.max_distance.is_some())
                 .then_some(radius);
             Box::new(
@@ -163,7 +153,10 @@ pub fn make_kernel_for<'a>(
                 progress: Some(progress.clone()),
                 spill,
             };
-            Box::new(kernels::sweep::Sweep::with_options(grid, r, params.bins, params.reduce, opt))
+            Box::new(
+                kernels::sweep::Sweep::with_options(grid, r, params.bins, params.reduce, opt)
+                    .with_holes(holes),
+            )
         }
         // `unlimited` is max(W, H) texels here, as for Lengyel: a march's cost grows with R.
         Method::March => Box::new(

@@ -334,6 +334,55 @@ pub fn reduce_point(bins: &[f32], out: &mut [f32; 8]) {
     }
 }
 
+/// Per texel: whether a hole lies within Chebyshev distance `r` (wrapped or clipped at the
+/// map's sides): a row pass and a column pass of sliding-window counts, O(W·H) whatever `r`.
+pub(crate) fn near_holes(holes: &[bool], w: usize, h: usize, r: usize, wrap: bool) -> Vec<bool> {
+    // One line of `len` flags, `stride` apart from `start`, dilated by `r` into `out`.
+    fn dilate(
+        src: &[bool],
+        out: &mut [bool],
+        len: usize,
+        start: usize,
+        stride: usize,
+        r: usize,
+        wrap: bool,
+    ) {
+        let at = |i: usize| src[start + i * stride];
+        let mut prefix = vec![0u32; len + 1];
+        for i in 0..len {
+            prefix[i + 1] = prefix[i] + u32::from(at(i));
+        }
+        let count = |a: usize, b: usize| prefix[b] - prefix[a]; // flags in a..b
+        for i in 0..len {
+            let any = if wrap && 2 * r + 1 >= len {
+                prefix[len] > 0
+            } else if wrap {
+                let (a, b) = (i as i64 - r as i64, i as i64 + r as i64 + 1);
+                let n = len as i64;
+                if a < 0 {
+                    count(0, b as usize) + count((a + n) as usize, len) > 0
+                } else if b > n {
+                    count(a as usize, len) + count(0, (b - n) as usize) > 0
+                } else {
+                    count(a as usize, b as usize) > 0
+                }
+            } else {
+                count(i.saturating_sub(r), (i + r + 1).min(len)) > 0
+            };
+            out[start + i * stride] = any;
+        }
+    }
+    let mut across = vec![false; w * h];
+    for y in 0..h {
+        dilate(holes, &mut across, w, y * w, 1, r, wrap);
+    }
+    let mut near = vec![false; w * h];
+    for x in 0..w {
+        dilate(&across, &mut near, h, x, w, r, wrap);
+    }
+    near
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -621,3 +621,47 @@ fn curvature_in_the_vectorised_kernel_matches_brute_force_and_the_scalar_walk() 
         assert!(worst_deg <= TOL_DEG, "{edge:?} R={radius:?}: {worst_deg}° from brute force");
     }
 }
+
+/// A ray along a grid line runs on the edge of the cells on both sides of it: with holes on
+/// one side only, that edge is still surface (SPEC §2: only the cells touching a hole are no
+/// surface), so a peak on the texel's own row occludes, whichever side holds the holes, at the
+/// four axis azimuths. The walk used to look at one side's cell only and lost the peak when
+/// that side's cells touched a hole (found against `sweep` on a reprojected DEM's rim).
+#[test]
+fn a_ray_along_a_grid_line_beside_holes_keeps_the_edge() {
+    let (w, h) = (21usize, 21usize);
+    let (c, peak) = (10usize, 6.0f32);
+    for side in [-1i64, 1] {
+        // Peaks 6 texels west, east, north and south of the centre; the line of holes beside
+        // each ray, on one side.
+        let mut heights = vec![0.0f32; w * h];
+        let mut holes = vec![false; w * h];
+        for (px, py) in [(c - 6, c), (c + 6, c), (c, c - 6), (c, c + 6)] {
+            heights[py * w + px] = peak;
+        }
+        for k in 0..w {
+            if k.abs_diff(c) >= 2 {
+                let r = (c as i64 + side) as usize;
+                holes[r * w + k] = true;
+                holes[k * w + r] = true;
+            }
+        }
+        for (v, &o) in heights.iter_mut().zip(&holes) {
+            if o {
+                *v = -6000.0;
+            }
+        }
+        for edge in [Edge::None, Edge::Wrap] {
+            let g = Grid::new(w, h, &heights, edge, YAxis::Up);
+            let k = ExactHorizon::new(g, None, 32, Reduce::Average).with_holes(Some(&holes));
+            let want = (6.0f64 / 6.0).atan().sin();
+            for phi_deg in [0.0f64, 90.0, 180.0, 270.0] {
+                let got = k.horizon_sin(c, c, phi_deg.to_radians());
+                assert!(
+                    (got - want).abs() < 1e-6,
+                    "side {side} {edge:?} azimuth {phi_deg}: {got}, want {want}"
+                );
+            }
+        }
+    }
+}

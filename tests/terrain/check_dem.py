@@ -185,7 +185,8 @@ check(np.all(ang[:, ~holes] >= 0) and np.all(ang[:, ~holes] <= 90)
 # --- the independent reference: bilinear line of sight in metres, curvature drop, holes ---
 H, W = dem.shape
 cell = 250.0
-# Cells (i, j) = square between texel centres (i..i+1, j..j+1); not surface if a corner is a hole.
+# Cells (i, j) = square between texel centres (i..i+1, j..j+1), closed; not surface if a corner
+# is a hole.
 bad = holes[:-1, :-1] | holes[1:, :-1] | holes[:-1, 1:] | holes[1:, 1:]
 
 
@@ -213,7 +214,13 @@ def horizon_deg(col, row, phi, curvature=True, radius=math.inf):
              + dem[j + 1, i] * (1 - fx) * fy + dem[j + 1, i + 1] * fx * fy)
         d = s * cell
         r = (z - h0 - (d * d / (2 * R_E) if curvature else 0.0)) / d
-        return np.where(bad[j, i], -np.inf, r)
+        # On a grid line the point is on the edge of the cells on both sides: surface if
+        # either has no hole corner (a ray along a row or column beside a hole).
+        on_x, on_y = (fx == 0) & (i > 0), (fy == 0) & (j > 0)
+        i1, j1 = np.maximum(i - 1, 0), np.maximum(j - 1, 0)
+        no = (bad[j, i] & (~on_x | bad[j, i1]) & (~on_y | bad[j1, i])
+              & (~(on_x & on_y) | bad[j1, i1]))
+        return np.where(no, -np.inf, r)
 
     s = np.arange(1, int(s_end / 0.02) + 1) * 0.02
     s = np.append(s[s < s_end], s_end)

@@ -190,14 +190,42 @@ impl<'a> ExactHorizon<'a> {
         let hs = self.grid.heights;
         let (cols, rows, lo) = (&self.cols[..], &self.rows[..], self.lo);
         let holes = self.holes;
+        let (w, h) = (self.grid.width as i64, self.grid.height as i64);
+        let wrap = self.grid.edge == Edge::Wrap;
+        // Texel indices of cell (cx, cy)'s corners [top left, top right, bottom left, bottom
+        // right]; `None` for a cell off the map with `edge=none`.
+        let cell = |cx: i64, cy: i64| -> Option<[usize; 4]> {
+            let inside = (0..(w - 1).max(1)).contains(&cx) && (0..(h - 1).max(1)).contains(&cy);
+            if !wrap && !inside {
+                return None;
+            }
+            let (i, j) = ((cx - lo) as usize, (cy - lo) as usize);
+            let (c0, c1, r0, r1) = (cols[i], cols[i + 1], rows[j], rows[j + 1]);
+            Some([(r0 + c0) as usize, (r0 + c1) as usize, (r1 + c0) as usize, (r1 + c1) as usize])
+        };
         let corners = |cx: i64, cy: i64| {
             let (i, j) = ((cx - lo) as usize, (cy - lo) as usize);
             let (c0, c1, r0, r1) = (cols[i], cols[i + 1], rows[j], rows[j + 1]);
             let k =
                 [(r0 + c0) as usize, (r0 + c1) as usize, (r1 + c0) as usize, (r1 + c1) as usize];
-            if holes.is_some_and(|m| k.iter().any(|&t| m[t])) {
+            if let Some(m) = holes.filter(|m| k.iter().any(|&t| m[t])) {
+                // A ray along a grid line walks the cells on one side of it, but the line is
+                // the edge of the cells on both: surface if the cell across has no hole. The
+                // cell is then given that edge on both sides, so along the ray it is the edge.
+                let clear = |c: Option<[usize; 4]>| c.is_some_and(|c| !c.iter().any(|&t| m[t]));
+                let edge = if ray.dy == 0.0 && ray.y0 == cy as f64 && clear(cell(cx, cy - 1)) {
+                    Some([k[0], k[1], k[0], k[1]])
+                } else if ray.dy == 0.0 && ray.y0 == (cy + 1) as f64 && clear(cell(cx, cy + 1)) {
+                    Some([k[2], k[3], k[2], k[3]])
+                } else if ray.dx == 0.0 && ray.x0 == cx as f64 && clear(cell(cx - 1, cy)) {
+                    Some([k[0], k[0], k[2], k[2]])
+                } else if ray.dx == 0.0 && ray.x0 == (cx + 1) as f64 && clear(cell(cx + 1, cy)) {
+                    Some([k[1], k[1], k[3], k[3]])
+                } else {
+                    None
+                };
                 // No surface: below everything, so the walk skips the cell.
-                return [f64::NEG_INFINITY; 4];
+                return edge.map_or([f64::NEG_INFINITY; 4], |e| e.map(|t| hs[t] as f64));
             }
             k.map(|t| hs[t] as f64)
         };
@@ -222,6 +250,15 @@ impl<'a> ExactHorizon<'a> {
         let (dx, dy) = direction(phi, self.grid.row_step());
         let ray = self.ray(x, y, dx, dy);
         sin_of_tan(self.walk(&ray, 0.0, 0.0).0)
+    }
+
+    /// tan α of texel (`x`, `y`) at bin `n`, at least `seed` (a value the ray is known to reach,
+    /// which lets the walk skip what cannot beat it): the scalar walk, holes included. The near
+    /// field of `sweep` around holes ([`crate::kernels::sweep::Sweep::with_holes`]).
+    pub(crate) fn tan_at(&self, x: usize, y: usize, n: usize, seed: f64) -> f64 {
+        let (dx, dy) = self.dirs[n];
+        let ray = self.ray(x, y, dx, dy);
+        self.walk(&ray, 0.0, seed).0.max(seed)
     }
 
     /// Per-bin sin α of texel (x, y) into `s` (`bins` long), one scalar walk per azimuth (the

@@ -118,7 +118,23 @@ impl Sweep<'_> {
                             best[i] = best[i].max(fb[i]).max(ep[i]);
                         }
                     }
+                    let floor = best;
                     self.near.strip_from(n, x, y, &h0[j], &mut best);
+                    if let Some(hl) = &self.holes {
+                        let k = y * w + x;
+                        if hl.near[k..k + lanes].contains(&true) {
+                            for i in 0..lanes {
+                                best[i] = if hl.mask[k + i] {
+                                    0.0
+                                } else if hl.near[k + i] {
+                                    let seed = f64::from(floor[i]);
+                                    hl.exact.tan_at(x + i, y, n, seed) as f32
+                                } else {
+                                    best[i]
+                                };
+                            }
+                        }
+                    }
                     for i in 0..NEAR_LANES {
                         // sin α in f32 (tan α ≥ 0; a vertical horizon, ∞, gives 1).
                         let t = best[i].min(1e15);

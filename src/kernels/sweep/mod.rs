@@ -23,8 +23,7 @@
 //!
 //! The far field only samples grid lines up to 1/SUB of a texel beside the ray: on terrain that
 //! moves the horizon by hundredths of a degree, on fields of single-texel spikes by degrees (the
-//! stated worst case, `tests/kernels/sweep.rs`). Maps with nodata holes are baked by `exact` instead
-//! (see `bake::make_kernel_for`). docs/sweep.md holds the whole account: how each part works,
+//! stated worst case, `tests/kernels/sweep.rs`). Nodata holes: [`Sweep::with_holes`]. docs/sweep.md holds the whole account: how each part works,
 //! the measurements behind each constant, what was tried and dropped.
 
 use super::exact;
@@ -84,6 +83,16 @@ pub struct Sweep<'a> {
     curv: f64,
     /// The CPU has AVX-512: the bands' join is compiled for it ([`Sweep::join`]).
     wide: bool,
+    /// With nodata holes (see [`Sweep::with_holes`]).
+    holes: Option<Holes<'a>>,
+}
+
+/// What the bands need near nodata holes: the exact walk over the near field's reach, which
+/// skips the cells touching a hole, and per texel whether its near field can reach one.
+struct Holes<'a> {
+    exact: exact::ExactHorizon<'a>,
+    near: Vec<bool>,
+    mask: &'a [bool],
 }
 
 /// Where the far field waits between the sweeps and the bands.
@@ -330,7 +339,35 @@ impl<'a> Sweep<'a> {
             dirs,
             curv,
             wide: fast,
+            holes: None,
         }
+    }
+
+    /// Nodata holes (SPEC §2), one flag per texel: the cells that touch a hole are no surface.
+    /// The bake fills holes far below the map ([`crate::heightmap::HOLE_DEPTH`]), which is all
+    /// the far field needs: its samples lie on grid lines, a lerp of two texels, so one that
+    /// touches a hole is lowered below every observer (but within 1/`HOLE_DEPTH` of a texel's
+    /// end). The near field solves whole cells, whose bilinear twist the fill makes enormous,
+    /// so a texel whose near field can reach a hole (Chebyshev distance ≤ the near field's
+    /// reach + 1) takes it from the exact walk with the holes instead, over the same reach,
+    /// seeded with the far field; every other texel keeps the vector near field.
+    pub fn with_holes(mut self, holes: Option<&'a [bool]>) -> Self {
+        let (w, h) = (self.grid.width, self.grid.height);
+        let Some(mask) = holes.filter(|m| m.len() == w * h && m.iter().any(|&o| o)) else {
+            return self;
+        };
+        let reach = self.cuts.iter().copied().fold(0.0, f64::max).ceil().max(1.0);
+        let exact =
+            exact::ExactHorizon::new(self.grid, Some(reach as u32), self.bins as u32, self.reduce)
+                .with_curvature(self.curv)
+                .with_holes(Some(mask));
+        let exact = match &self.progress {
+            Some(p) => exact.with_cancel(p),
+            None => exact,
+        };
+        let near = super::near_holes(mask, w, h, reach as usize + 1, self.grid.edge == Edge::Wrap);
+        self.holes = Some(Holes { exact, near, mask });
+        self
     }
 
     /// tan of the point at exactly s = R on the texel's own ray, when R ends the far field
