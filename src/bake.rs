@@ -144,7 +144,7 @@ pub fn make_kernel_for<'a>(
                 .then_some(radius);
             let (w, h) = (grid.width as u32, grid.height as u32);
             let spill = kernels::sweep::spills(w, h, params.bins).then(|| {
-                Arc::new(FileSpill::new(grid.width * grid.height))
+                Arc::new(FileSpill::new(grid.width * grid.height, progress.scratch_dir()))
                     as Arc<dyn kernels::sweep::FarSpill>
             });
             let opt = kernels::sweep::Options {
@@ -168,22 +168,6 @@ pub fn make_kernel_for<'a>(
     }
 }
 
-/// Where `sweep` spills its far field (see [`FileSpill`]); unset, the system's temporary
-/// directory (`TMPDIR`).
-static SPILL_DIR: std::sync::OnceLock<std::path::PathBuf> = std::sync::OnceLock::new();
-
-/// Makes `dir` the directory of `sweep`'s spill files for this process (the service's data
-/// directory's `tmp`, where the operator put the disk for the service's files). Only the first
-/// call counts.
-pub fn set_spill_dir(dir: std::path::PathBuf) {
-    let _ = SPILL_DIR.set(dir);
-}
-
-/// The directory spill files go to.
-pub fn spill_dir() -> std::path::PathBuf {
-    SPILL_DIR.get().cloned().unwrap_or_else(std::env::temp_dir)
-}
-
 /// `sweep`'s far field in a temporary file, one plane of `plane` f32 per bin at offset
 /// `n · plane · 4` (native byte order: the file never leaves the process). The file is created
 /// unlinked on first use ([`tempfile::tempfile_in`]), so it is gone when the kernel is dropped
@@ -191,20 +175,21 @@ pub fn spill_dir() -> std::path::PathBuf {
 /// azimuths and the bands of several threads use it at once without a lock.
 pub struct FileSpill {
     plane: usize,
+    dir: std::path::PathBuf,
     file: std::sync::OnceLock<std::result::Result<std::fs::File, String>>,
 }
 
 impl FileSpill {
-    /// A spill for planes of `plane` values, in [`spill_dir`].
-    pub fn new(plane: usize) -> FileSpill {
-        FileSpill { plane, file: std::sync::OnceLock::new() }
+    /// A spill for planes of `plane` values, in a file in `dir` (made on first use).
+    pub fn new(plane: usize, dir: std::path::PathBuf) -> FileSpill {
+        FileSpill { plane, dir, file: std::sync::OnceLock::new() }
     }
 
     fn file(&self) -> std::io::Result<&std::fs::File> {
         let made = self.file.get_or_init(|| {
-            let dir = spill_dir();
-            std::fs::create_dir_all(&dir)
-                .and_then(|()| tempfile::tempfile_in(&dir))
+            let dir = &self.dir;
+            std::fs::create_dir_all(dir)
+                .and_then(|()| tempfile::tempfile_in(dir))
                 .map_err(|e| format!("cannot create a temporary file in {}: {e}", dir.display()))
         });
         made.as_ref().map_err(|e| std::io::Error::other(e.clone()))

@@ -3,6 +3,10 @@
 //! Kernels run on rayon threads and must not know about HTTP or terminals, so they only bump an
 //! atomic counter between bands of rows and poll an atomic flag. The service reads the counter for
 //! `progress` and SSE; the CLI drives a progress bar from it; `DELETE` sets the flag.
+//!
+//! It also carries where the bake may put scratch files (`sweep`'s spilled far field): the
+//! runner that starts a bake knows that place (the service's data directory), the kernel that
+//! needs it does not, and the handle is the one thing that travels from one to the other.
 
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicU8, Ordering};
 use std::sync::Arc;
@@ -44,11 +48,24 @@ struct Inner {
     total: AtomicU64,
     stage: AtomicU8,
     cancel: AtomicBool,
+    /// Where scratch files go; `None`: the system's temporary directory.
+    scratch: Option<std::path::PathBuf>,
 }
 
 impl Progress {
     pub fn new() -> Self {
         Self::default()
+    }
+
+    /// A handle whose bake puts its scratch files in `dir` (`None`: the system's temporary
+    /// directory, `TMPDIR`).
+    pub fn with_scratch_dir(dir: Option<std::path::PathBuf>) -> Self {
+        Progress { inner: Arc::new(Inner { scratch: dir, ..Inner::default() }) }
+    }
+
+    /// The directory this bake's scratch files go to.
+    pub fn scratch_dir(&self) -> std::path::PathBuf {
+        self.inner.scratch.clone().unwrap_or_else(std::env::temp_dir)
     }
 
     /// Enters `stage` with `total` units of work to do.
@@ -108,5 +125,12 @@ mod tests {
         assert!(!p.is_canceled());
         p.clone().cancel();
         assert!(p.is_canceled());
+    }
+
+    #[test]
+    fn scratch_dir_is_the_one_given_and_travels_with_clones() {
+        assert_eq!(Progress::new().scratch_dir(), std::env::temp_dir());
+        let p = Progress::with_scratch_dir(Some("/srv/hb/tmp".into()));
+        assert_eq!(p.clone().scratch_dir(), std::path::PathBuf::from("/srv/hb/tmp"));
     }
 }

@@ -55,11 +55,6 @@ pub fn run(args: ServeArgs) -> Result<()> {
         .map_err(|e| Error::Internal(format!("cannot start the async runtime: {e}")))?;
     rt.block_on(async move {
         let data_dir = config.data_dir.clone();
-        // `sweep` spills big far fields next to the service's own files (embedded mode; a
-        // shared-mode node keeps none, so the system's temporary directory).
-        if matches!(config.backend, crate::service::config::Backend::Embedded) {
-            crate::bake::set_spill_dir(data_dir.join("tmp"));
-        }
         let addr_file = config.addr_file.clone();
         let st = crate::service::AppState::connect(config).await?;
         let listener = tokio::net::TcpListener::bind(st.0.config.addr).await.map_err(|e| {

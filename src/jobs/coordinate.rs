@@ -213,7 +213,7 @@ impl Jobs {
     /// (refused when the claim went stale meanwhile).
     pub(super) async fn run_tile(&self, claim: TileClaim) {
         let key = format!("{}/tile{}", claim.bake_id, claim.index);
-        let run = LocalRun::new();
+        let run = LocalRun::new(self.0.cfg.scratch_dir.clone());
         self.local().insert(key.clone(), run.clone());
         let lost = Arc::new(AtomicBool::new(false));
         let beat = {

@@ -94,6 +94,9 @@ pub struct JobsConfig {
     pub orphan_age: Duration,
     /// How often an idle worker looks for work when no change notification woke it.
     pub poll: Duration,
+    /// Where this node's bakes put scratch files (`sweep`'s spilled far field); `None`: the
+    /// system's temporary directory.
+    pub scratch_dir: Option<std::path::PathBuf>,
 }
 
 /// A bake this node runs.
@@ -107,9 +110,9 @@ struct LocalRun {
 }
 
 impl LocalRun {
-    fn new() -> Self {
+    fn new(scratch_dir: Option<std::path::PathBuf>) -> Self {
         LocalRun {
-            progress: Progress::new(),
+            progress: Progress::with_scratch_dir(scratch_dir),
             requeue: Arc::new(AtomicBool::new(false)),
             tiles: Default::default(),
         }
@@ -657,7 +660,7 @@ impl Jobs {
 
     async fn run_claim(&self, claim: Claim, permit: tokio::sync::OwnedSemaphorePermit) {
         let id = claim.id.clone();
-        let run = LocalRun::new();
+        let run = LocalRun::new(self.0.cfg.scratch_dir.clone());
         self.local().insert(id.clone(), run.clone());
         let _ = self.0.changes.send(id.clone());
         let lost = Arc::new(AtomicBool::new(false));

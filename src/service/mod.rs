@@ -199,6 +199,10 @@ impl AppState {
             // Change notifications wake idle workers; polling only covers a lost notification
             // (a database restart). The embedded queue lives in this process and never misses.
             poll: if shared { Duration::from_secs(2) } else { Duration::from_secs(30) },
+            // `sweep` spills big far fields next to the service's own files, where the operator
+            // put the disk for them (embedded mode; a shared-mode node keeps none, so the
+            // system's temporary directory).
+            scratch_dir: (!shared).then(|| config.data_dir.join("tmp")),
         };
         let decode_budget = crate::heightmap::budget::MemoryBudget::new(config.decode_memory_bytes);
         let hook_metrics = metrics.clone();

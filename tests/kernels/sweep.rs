@@ -595,11 +595,31 @@ fn a_spilled_far_field_gives_the_bits_of_the_table_in_memory() {
             let got = run(Some(mem.clone()), band);
             assert_eq!(mem.planes.lock().unwrap().len(), bins as usize, "every plane stored");
             assert!(got == want, "{w}×{h} {edge:?} R {radius:?}: memory spill, band {band}");
-            let file = Arc::new(FileSpill::new(w * h));
+            let file = Arc::new(FileSpill::new(w * h, std::env::temp_dir()));
             let got = run(Some(file), band);
             assert!(got == want, "{w}×{h} {edge:?} R {radius:?}: file spill, band {band}");
         }
     }
+}
+
+/// A file spill goes to the directory it is given (the service hands it its data directory's
+/// `tmp`, not a process-wide setting): one that cannot be made fails the put with its name.
+#[test]
+fn a_file_spill_uses_the_directory_it_is_given() {
+    use horizon_bake::bake::FileSpill;
+    use horizon_bake::kernels::sweep::FarSpill;
+    let root = tempfile::tempdir().unwrap();
+    let blocker = root.path().join("not-a-dir");
+    std::fs::write(&blocker, b"x").unwrap();
+    let bad = FileSpill::new(4, blocker.join("tmp"));
+    let err = bad.put(0, 0, &[1.0; 4]).unwrap_err().to_string();
+    assert!(err.contains("not-a-dir"), "{err}");
+    let good = FileSpill::new(4, root.path().join("tmp"));
+    good.put(1, 0, &[1.0, 2.0, 3.0, 4.0]).unwrap();
+    let mut back = [0.0; 4];
+    good.get(1, 0, &mut back).unwrap();
+    assert_eq!(back, [1.0, 2.0, 3.0, 4.0]);
+    assert!(root.path().join("tmp").is_dir(), "the directory is made on first use");
 }
 
 /// A spill store that fails makes the bake fail with the store's error, never hands on a band

@@ -190,7 +190,7 @@ pub async fn preview(
         return Ok(res);
     }
     let params = params_of(&rec).map_err(store_err)?;
-    let progress = Progress::new();
+    let progress = Progress::with_scratch_dir(st.0.jobs.config().scratch_dir.clone());
     let _cancel = CancelOnDrop(progress.clone());
     st.0.metrics.rendered(Render::Preview);
     let png = on_pool(&st, &format!("the preview of bake {id}"), move |st| {
@@ -242,7 +242,7 @@ pub async fn shadow(
         cache_headers(&mut res, &etag, SHADOW_CACHE);
         return Ok(res);
     }
-    let progress = Progress::new();
+    let progress = Progress::with_scratch_dir(st.0.jobs.config().scratch_dir.clone());
     let _cancel = CancelOnDrop(progress.clone());
     let tif = on_pool(&st, &format!("the shadow of bake {id}"), move |st| {
         let mut params = params;
