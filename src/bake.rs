@@ -110,6 +110,22 @@ pub fn check_method_fits(params: &BakeParams, width: u32, height: u32) -> Result
     Ok(())
 }
 
+/// Settles the method of a bake of a `width`×`height` map, `tiled` when it is above
+/// `--tile-above`: a `sweep` the DEM defaults chose (SPEC §2; not given by the user) becomes
+/// `exact` where `sweep` cannot run (its far field would not fit even on disk, or the map is
+/// baked in tiles), then [`check_method_fits`]. The method is then marked given, so the
+/// parameters the bake stores replay to the same choice.
+///
+/// # Errors
+/// As [`check_method_fits`].
+pub fn fit_method(params: &mut BakeParams, width: u32, height: u32, tiled: bool) -> Result<()> {
+    if params.method == Method::Sweep && !params.explicit.has("method") {
+        let fits = !tiled && kernels::sweep::check_memory(width, height, params.bins).is_ok();
+        params.set("method", if fits { "sweep" } else { "exact" })?;
+    }
+    check_method_fits(params, width, height)
+}
+
 /// [`make_kernel`] for a map with nodata `holes`: `exact` skips the cells that touch a hole
 /// exactly (SPEC §2); the other methods see the holes' fill far below the map
 /// ([`crate::heightmap::HOLE_DEPTH`]), and `march` and `sweep` take the exact walk within

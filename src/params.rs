@@ -718,8 +718,23 @@ impl BakeParams {
     /// # Errors
     /// [`Error::Param`] naming the field to change.
     pub fn check(&self) -> Result<()> {
+        self.check_with(true)
+    }
+
+    /// [`BakeParams::check`] before the input is read: a method not given may still become a
+    /// ray method by the DEM defaults (SPEC §2, [`crate::heightmap::georef::apply_dem_defaults`],
+    /// which checks again once it has resolved them), so the rules of `lengyel` wait for it.
+    ///
+    /// # Errors
+    /// [`Error::Param`] naming the field to change.
+    pub fn check_before_input(&self) -> Result<()> {
+        self.check_with(false)
+    }
+
+    fn check_with(&self, settled: bool) -> Result<()> {
         let b = self.bins;
-        let ray = matches!(self.method, Method::Exact | Method::March | Method::Sweep);
+        let ray = matches!(self.method, Method::Exact | Method::March | Method::Sweep)
+            || !(settled || self.explicit.has("method"));
         let layers = self.outputs.horizon || self.outputs.fourier;
         if (layers || !ray) && (b < 16 || !b.is_multiple_of(16) || b > MAX_BINS) {
             let why =
@@ -745,7 +760,7 @@ impl BakeParams {
         }
         // `lengyel` splats and always averages 5 bins (SPEC §3.1), so `reduce=point` with it
         // would be a separate bake with the same bytes: refused, naming `reduce`.
-        if self.method == Method::Lengyel && self.reduce == Reduce::Point {
+        if !ray && self.reduce == Reduce::Point {
             return Err(Error::param(
                 "reduce",
                 "`point` applies to the ray methods (exact, march, sweep); method=lengyel always \

@@ -166,14 +166,16 @@ pub struct ParamFlags {
     /// up (default, OpenGL) or down (DirectX).
     #[arg(long)]
     pub y_axis: Option<String>,
-    /// lengyel (default), exact, march or sweep.
+    /// lengyel, exact, march or sweep (default: lengyel for a plain image; for a GeoTIFF DEM
+    /// sweep, or exact where sweep cannot run).
     #[arg(long)]
     pub method: Option<String>,
-    /// Search radius in texels (default 16), `unlimited` or `auto`.
+    /// Search radius in texels, `unlimited` or `auto` (default 16; unlimited for a GeoTIFF DEM
+    /// without --method).
     #[arg(long, allow_hyphen_values = true)]
     pub radius: Option<String>,
-    /// Azimuth bins, a multiple of 16 (default 32); 1..720 for --outputs angles,svf alone with
-    /// method exact, march or sweep.
+    /// Azimuth bins (default 32): a multiple of 16 up to 256; any 1..720 for --outputs
+    /// angles,svf alone with method exact, march or sweep.
     #[arg(long, allow_hyphen_values = true)]
     pub bins: Option<String>,
     /// average (default) or point (method=exact).
@@ -185,7 +187,8 @@ pub struct ParamFlags {
     /// linear (default) or sqrt.
     #[arg(long)]
     pub encoding: Option<String>,
-    /// Comma list of horizon (default), fourier.
+    /// Comma list of horizon (default), fourier, angles, svf (angles and svf: GeoTIFF terrain
+    /// products).
     #[arg(long)]
     pub outputs: Option<String>,
     /// 3, 5 (default), 7 or 9.
@@ -203,7 +206,7 @@ pub struct ParamFlags {
     /// Radius in map units (needs a cell size); replaces --radius.
     #[arg(long, allow_hyphen_values = true)]
     pub max_distance: Option<String>,
-    /// on or off (default: on for a GeoTIFF DEM with method=exact or march).
+    /// on or off (default: on for a GeoTIFF DEM with method exact, march or sweep).
     #[arg(long)]
     pub earth_curvature: Option<String>,
     /// Refraction coefficient of the curvature drop (default 0).
@@ -250,10 +253,11 @@ impl ParamFlags {
             ("azimuth_from", &self.azimuth_from),
             ("svf_model", &self.svf_model),
         ];
-        let p = BakeParams::from_pairs(
+        let p = BakeParams::from_pairs_unchecked(
             pairs.iter().filter_map(|(k, v)| v.as_deref().map(|v| (*k, v))),
         )?;
-        p.check()?;
+        // The full check runs with the DEM defaults, once the input is read.
+        p.check_before_input()?;
         Ok(p)
     }
 }
@@ -367,7 +371,7 @@ pub fn run(args: BakeArgs) -> Result<()> {
     let bytes = std::fs::read(&args.input)
         .map_err(|e| Error::InvalidInput(format!("cannot read {}: {e}", args.input.display())))?;
     let (map, info) = heightmap::decode_for(&bytes, &mut params, &args.limits())?;
-    crate::bake::check_method_fits(&params, map.width as u32, map.height as u32)?;
+    crate::bake::fit_method(&mut params, map.width as u32, map.height as u32, false)?;
     drop(bytes);
     let georeferencing =
         map.terrain.georef.as_ref().filter(|g| g.is_dem()).map(|g| g.report(params.cell_size));

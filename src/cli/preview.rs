@@ -151,7 +151,7 @@ pub fn run(args: PreviewArgs) -> Result<()> {
         Error::Io(std::io::Error::new(e.kind(), format!("{}: {e}", args.input.display())))
     })?;
     let (map, _info) = heightmap::decode_for(&bytes, &mut bake, &Limits::default())?;
-    crate::bake::check_method_fits(&bake, map.width as u32, map.height as u32)?;
+    crate::bake::fit_method(&mut bake, map.width as u32, map.height as u32, false)?;
     let image = preview::render_baking(&map, &bake, &params, &Progress::new())?;
     let png = image.to_png()?;
     if to_stdout {

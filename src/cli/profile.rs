@@ -9,6 +9,11 @@ use std::path::PathBuf;
 
 /// Flags of `horizon-bake profile`.
 #[derive(Debug, Clone, clap::Args)]
+#[command(
+    mut_arg("method", |a| a.help("Ignored: a profile is always cast by exact rays")),
+    mut_arg("radius", |a| a.help("Reach of the rays in texels, `unlimited` (default) or `auto`")),
+    mut_arg("bins", |a| a.help("Azimuths of the profile, 1..3600 (default 360)")),
+)]
 pub struct ProfileArgs {
     /// The height map (a GeoTIFF DEM gets the DEM defaults).
     pub input: PathBuf,

@@ -10,6 +10,11 @@ use std::path::PathBuf;
 
 /// Flags of `horizon-bake shadow`.
 #[derive(Debug, Clone, clap::Args)]
+#[command(
+    mut_arg("method", |a| a.help("exact (default: one exact ray per texel at the sun's azimuth) \
+        or lengyel (its baked layers decoded); march and sweep cast the same exact ray")),
+    mut_arg("radius", |a| a.help("Reach of the ray in texels, `unlimited` (default) or `auto`")),
+)]
 pub struct ShadowArgs {
     /// The height map (a GeoTIFF DEM gets the DEM defaults).
     pub input: PathBuf,

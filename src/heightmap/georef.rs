@@ -271,8 +271,10 @@ impl Georef {
     }
 }
 
-/// Applies the DEM defaults of SPEC §2 to the parameters not given explicitly: `cell_size` =
-/// the pixel scale, `height_scale` = 1 / `cell_size`, `edge=none`, `earth_curvature=on`. For a
+/// Applies the DEM defaults of SPEC §2 to the parameters not given explicitly: `method=sweep`
+/// (and, with it, `radius=unlimited` unless `radius` or `max_distance` is given), `cell_size` =
+/// the pixel scale, `height_scale` = 1 / `cell_size`, `edge=none`, `earth_curvature=on` (with a
+/// ray method). Then the full [`BakeParams::check`]. For a
 /// plain image only `cell_size` given by hand makes `max_distance` and the curvature usable.
 /// Idempotent: parameters already resolved (and so explicit) stay as they are.
 ///
@@ -280,13 +282,20 @@ impl Georef {
 /// The refusals of [`Georef::cell_size`] (unless `cell_size` is given, which overrides the
 /// georeferencing); `max_distance` or `earth_curvature=on` without a cell size.
 pub fn apply_dem_defaults(params: &mut BakeParams, georef: Option<&Georef>) -> Result<()> {
+    use crate::params::{Method, Radius};
     let ex = params.explicit;
-    // The methods that cast rays, and so can lower far points (lengyel has no ray).
-    let rays = matches!(
-        params.method,
-        crate::params::Method::Exact | crate::params::Method::March | crate::params::Method::Sweep
-    );
     let dem = georef.filter(|g| g.is_dem());
+    if dem.is_some() && !ex.has("method") {
+        // A line of sight, to the edge unless a reach is given (SPEC §2). Left unmarked, so
+        // [`crate::bake::fit_method`] may still trade `sweep` for `exact` on a map `sweep`
+        // cannot take, and the resolved pair is what the bake stores.
+        params.method = Method::Sweep;
+        if !ex.has("radius") && !ex.has("max_distance") {
+            params.radius = Radius::Unlimited;
+        }
+    }
+    // The methods that cast rays, and so can lower far points (lengyel has no ray).
+    let rays = matches!(params.method, Method::Exact | Method::March | Method::Sweep);
     if let Some(g) = dem {
         let cell = match params.cell_size {
             Some(c) => c,
@@ -329,7 +338,8 @@ pub fn apply_dem_defaults(params: &mut BakeParams, georef: Option<&Georef>) -> R
         }
     }
     debug_assert!(dem.is_none() || params.edge == Edge::None || ex.has("edge"));
-    Ok(())
+    // The rules that waited for the method (`bins` and `reduce` with `lengyel`).
+    params.check()
 }
 
 #[cfg(test)]

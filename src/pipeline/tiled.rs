@@ -79,6 +79,19 @@ pub fn check(
         ));
     }
     let by_distance = params.max_distance.is_some() && params.cell_size.is_some();
+    if params.radius == Radius::Unlimited && !by_distance && !params.explicit.has("radius") {
+        // The DEM defaults' unlimited reach (SPEC §2) on a map that tiles cannot take whole.
+        return Err(Error::param(
+            "radius",
+            format!(
+                "a DEM without `radius` is baked to the map's edge (radius=unlimited), which \
+                 needs the whole map, and this {width}×{height} map is above --tile-above ({} \
+                 texels), so it is baked in tiles that each read only their neighbourhood; \
+                 give the reach: max_distance (map units, e.g. max_distance=10000) or radius",
+                s.tile_above
+            ),
+        ));
+    }
     if params.radius == Radius::Unlimited && !by_distance {
         return Err(Error::param(
             "radius",

@@ -944,6 +944,72 @@ async fn terrain_products_over_http() {
     srv.stop().await;
 }
 
+/// SPEC §2: a DEM posted without `method` and `radius` is baked by a line of sight to the edge
+/// (`sweep`, curvature on), and `bins` for angles alone may be any count, as for every ray
+/// method; a PNG keeps `lengyel` at 16 texels, and its `bins` must then be a multiple of 16
+/// (a 422 naming `bins`). Before, the DEM was baked by `lengyel` at 16 texels.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_dem_without_method_bakes_a_line_of_sight() {
+    use horizon_bake::encode::geotiff;
+    use horizon_bake::heightmap::georef::Georef;
+    let srv = Server::start(|_| {}).await;
+    let c = client();
+    let (w, h) = (24usize, 20usize);
+    let dem: Vec<f32> = (0..w * h)
+        .map(|k| {
+            let (x, y) = ((k % w) as f32, (k / w) as f32);
+            400.0 + 300.0 * (-(x - 12.0).powi(2) / 8.0).exp() + 2.0 * y
+        })
+        .collect();
+    let g = Georef {
+        pixel_scale: Some(vec![30.0, 30.0, 0.0]),
+        tiepoints: Some(vec![0.0, 0.0, 0.0, 500000.0, 5500000.0, 0.0]),
+        geo_keys: Some(vec![1, 1, 0, 3, 1024, 0, 1, 1, 3072, 0, 1, 32632, 3076, 0, 1, 9001]),
+        ..Georef::default()
+    };
+    let band = [geotiff::Band { plane: &dem, description: "dem".into() }];
+    let tif = geotiff::encode(w, h, &band, Some(&g), -9999.0).unwrap();
+    let post = |q: &'static str, body: Vec<u8>, ty: &'static str| {
+        let c = c.clone();
+        let url = srv.url(&format!("/v1/bakes?{q}"));
+        async move { c.post(url).header("content-type", ty).body(body).send().await.unwrap() }
+    };
+    let res = post("outputs=angles,svf&bins=36", tif, "image/tiff").await;
+    assert_eq!(res.status(), 202);
+    let loc = res.headers()["location"].to_str().unwrap().to_owned();
+    let v: Value = res.json().await.unwrap();
+    let p = &v["params"];
+    assert_eq!(
+        (&p["method"], &p["radius"]),
+        (&serde_json::json!("sweep"), &serde_json::json!("unlimited")),
+        "{v}"
+    );
+    assert_eq!(p["earth_curvature"], "on", "{v}");
+    let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
+    assert_eq!(v["status"], "succeeded", "{v}");
+    assert_eq!(v["params"]["method"], "sweep", "{v}");
+    // The resource links what it holds: the terrain products, no horizon layers.
+    assert_eq!(v["links"]["angles"], format!("{loc}/angles"), "{v}");
+    assert_eq!(v["links"]["svf"], format!("{loc}/svf"), "{v}");
+    assert!(v["links"].get("horizon_0").is_none(), "{v}");
+    let angles = c.get(srv.url(&format!("{loc}/angles"))).send().await.unwrap();
+    assert_eq!(angles.status(), 200);
+
+    let png = terrain_png16(32, 32, 5);
+    let res = post("", png.clone(), "image/png").await;
+    assert_eq!(res.status(), 202);
+    let v: Value = res.json().await.unwrap();
+    assert_eq!(
+        (&v["params"]["method"], &v["params"]["radius"]),
+        (&serde_json::json!("lengyel"), &serde_json::json!(16)),
+        "{v}"
+    );
+    let res = post("outputs=angles&bins=36", png, "image/png").await;
+    assert_eq!(res.status(), 422);
+    let p: Value = res.json().await.unwrap();
+    assert_eq!(p["field"], "bins", "{p}");
+}
+
 /// Issue 24, the page's part: a GeoTIFF DEM's resource shows its georeferencing and the DEM
 /// defaults from submission on; `format=png` renders the SVF and the shadow as grey + alpha PNGs
 /// with the GeoTIFF's values (SVF quantised to 8 bits, shadow 0/255, holes transparent).

@@ -182,6 +182,30 @@ check(np.all(ang[:, holes] == -9999) and np.all(svf[holes] == -9999),
 check(np.all(ang[:, ~holes] >= 0) and np.all(ang[:, ~holes] <= 90)
       and np.all((svf[~holes] >= 0) & (svf[~holes] <= 1)), "no valid texel is nodata")
 
+# --- SPEC 2: without --method and --radius a DEM is baked by a line of sight to the edge ---
+OUTD = os.path.join(WORK, "utm_defaults")
+code, err = run("bake", UTM, "-o", OUTD, "--format", "geotiff", "--outputs", "angles,svf",
+                "--bins", str(BINS))
+check(code == 0, f"UTM DEM bakes without --method (exit {code} {err[:200]})")
+if code == 0:
+    pd = json.load(open(os.path.join(OUTD, "bake.json")))["params"]
+    check(pd["method"] == "sweep" and pd["radius"] == "unlimited"
+          and pd["earth_curvature"] == "on",
+          f"a DEM without --method: sweep, radius unlimited, curvature on "
+          f"({pd['method']}, {pd['radius']}, {pd['earth_curvature']})")
+    with rasterio.open(os.path.join(OUTD, "angles.tif")) as a:
+        dflt = a.read().astype(np.float64)
+    d = np.abs(dflt[:, ~holes] - ang[:, ~holes])
+    print(f"DEM defaults (sweep, unlimited) vs exact unlimited: mean |d| {d.mean():.5f} deg, "
+          f"p99 {np.percentile(d, 99):.5f}, max {d.max():.4f}")
+    check(np.all(dflt[:, holes] == -9999) and d.mean() <= 0.05 and np.percentile(d, 99) <= 0.25,
+          "the default bake is within sweep's tolerance of exact at unlimited radius "
+          "(not lengyel at 16 texels)")
+# ... and --bins 36 (not a multiple of 16) is taken for the terrain products, as for any ray method.
+code, err = run("bake", UTM, "-o", os.path.join(WORK, "utm_b36"), "--format", "geotiff",
+                "--outputs", "angles", "--bins", "36")
+check(code == 0, f"a DEM without --method takes --bins 36 for angles (exit {code} {err[:200]})")
+
 # --- the independent reference: bilinear line of sight in metres, curvature drop, holes ---
 H, W = dem.shape
 cell = 250.0

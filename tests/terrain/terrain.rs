@@ -29,8 +29,12 @@ fn tiff_i16(w: u32, h: u32, values: &[i16]) -> Vec<u8> {
     buf.into_inner()
 }
 
+/// Parameters as a submission reads them, before the input: the rules a DEM's defaults may
+/// change wait for [`apply_dem_defaults`].
 fn params(pairs: &[(&str, &str)]) -> BakeParams {
-    BakeParams::from_pairs(pairs.iter().copied()).unwrap()
+    let p = BakeParams::from_pairs_unchecked(pairs.iter().copied()).unwrap();
+    p.check_before_input().unwrap();
+    p
 }
 
 #[test]
@@ -95,10 +99,10 @@ fn dem_defaults_apply_unless_given() {
     apply_dem_defaults(&mut p, Some(&g)).unwrap();
     assert_eq!((p.height_scale, p.edge), (2.0, Edge::Wrap));
     // Lengyel does not model the curvature: off by default, refused when asked.
-    let mut p = params(&[]);
+    let mut p = params(&[("method", "lengyel")]);
     apply_dem_defaults(&mut p, Some(&g)).unwrap();
     assert_eq!(p.earth_curvature, horizon_bake::params::EarthCurvature::Off);
-    let mut p = params(&[("earth_curvature", "on")]);
+    let mut p = params(&[("method", "lengyel"), ("earth_curvature", "on")]);
     let e = apply_dem_defaults(&mut p, Some(&g)).unwrap_err();
     assert!(matches!(&e, Error::Param { field, .. } if field == "earth_curvature"), "{e}");
     // The march casts rays: on by default for a DEM, as for exact.
@@ -117,6 +121,106 @@ fn dem_defaults_apply_unless_given() {
     // max_distance needs a cell size.
     let e = apply_dem_defaults(&mut params(&[("max_distance", "100")]), None).unwrap_err();
     assert!(matches!(&e, Error::Param { field, .. } if field == "max_distance"), "{e}");
+}
+
+/// SPEC §2: without `method` and `radius` a DEM is baked by a line of sight to the map's edge
+/// (`sweep`, `exact` where `sweep` cannot run), curvature on; a plain image keeps `lengyel` at
+/// 16 texels. Before this, a DEM without flags was baked by `lengyel` at 16 texels (degrees off
+/// by 2–4° on average on real DEMs).
+#[test]
+fn a_dem_without_method_is_a_line_of_sight_to_the_edge() {
+    use horizon_bake::params::{EarthCurvature, Method, Radius};
+    let g = utm_georef(30.0, 30.0, 1);
+    let mut p = params(&[]);
+    apply_dem_defaults(&mut p, Some(&g)).unwrap();
+    assert_eq!(
+        (p.method, p.radius, p.earth_curvature),
+        (Method::Sweep, Radius::Unlimited, EarthCurvature::On)
+    );
+    // A reach given is kept, with the line of sight.
+    let mut p = params(&[("radius", "40")]);
+    apply_dem_defaults(&mut p, Some(&g)).unwrap();
+    assert_eq!((p.method, p.radius), (Method::Sweep, Radius::Texels(40)));
+    let mut p = params(&[("max_distance", "3000")]);
+    apply_dem_defaults(&mut p, Some(&g)).unwrap();
+    assert_eq!(p.method, Method::Sweep);
+    // A method given is kept, with its radius.
+    let mut p = params(&[("method", "exact")]);
+    apply_dem_defaults(&mut p, Some(&g)).unwrap();
+    assert_eq!((p.method, p.radius), (Method::Exact, Radius::Texels(16)));
+    // A plain image: today's defaults.
+    let mut p = params(&[]);
+    apply_dem_defaults(&mut p, None).unwrap();
+    assert_eq!(
+        (p.method, p.radius, p.earth_curvature),
+        (Method::Lengyel, Radius::Texels(16), EarthCurvature::Off)
+    );
+    // `bins` for angles alone waits for the method: any count on a DEM (a ray method), a
+    // multiple of 16 on a plain image (lengyel), refused naming `bins`.
+    let b36 = || {
+        let p = BakeParams::from_pairs_unchecked([("bins", "36"), ("outputs", "angles")]).unwrap();
+        p.check_before_input().unwrap();
+        p
+    };
+    let mut p = b36();
+    apply_dem_defaults(&mut p, Some(&g)).unwrap();
+    assert_eq!(p.bins, 36);
+    let e = apply_dem_defaults(&mut b36(), None).unwrap_err();
+    assert!(matches!(&e, Error::Param { field, .. } if field == "bins"), "{e}");
+    // Given, lengyel's rules hold at once.
+    let p = BakeParams::from_pairs_unchecked([
+        ("bins", "36"),
+        ("outputs", "angles"),
+        ("method", "lengyel"),
+    ])
+    .unwrap();
+    assert!(p.check_before_input().is_err());
+}
+
+/// The DEM defaults' `sweep` becomes `exact` where `sweep` cannot run: a far field too large
+/// even for the disk, or a map baked in tiles; the choice is then marked given, so the stored
+/// parameters replay to it. A `sweep` the user asked for is refused instead.
+#[test]
+fn the_default_sweep_gives_way_to_exact_where_it_cannot_run() {
+    use horizon_bake::params::Method;
+    let g = utm_georef(30.0, 30.0, 1);
+    let dem = || {
+        let mut p = params(&[("bins", "720"), ("outputs", "angles")]);
+        apply_dem_defaults(&mut p, Some(&g)).unwrap();
+        p
+    };
+    let mut p = dem();
+    bake::fit_method(&mut p, 500, 400, false).unwrap();
+    assert_eq!(p.method, Method::Sweep);
+    assert!(p.explicit.has("method"));
+    let huge = 60_000;
+    assert!(horizon_bake::kernels::sweep::check_memory(huge, huge, 720).is_err());
+    let mut p = dem();
+    bake::fit_method(&mut p, huge, huge, false).unwrap();
+    assert_eq!(p.method, Method::Exact);
+    let mut p = dem();
+    bake::fit_method(&mut p, 500, 400, true).unwrap();
+    assert_eq!(p.method, Method::Exact);
+    let mut asked = params(&[("bins", "720"), ("outputs", "angles"), ("method", "sweep")]);
+    apply_dem_defaults(&mut asked, Some(&g)).unwrap();
+    let e = bake::fit_method(&mut asked, huge, huge, false).unwrap_err();
+    assert!(matches!(&e, Error::Param { field, .. } if field == "method"), "{e}");
+    // In tiles, the default reach (to the edge) is refused naming what to give.
+    let s = horizon_bake::pipeline::tiled::TileSettings { tile_above: 1 << 20, tile_size: 512 };
+    let mut p = params(&[("outputs", "angles,svf")]);
+    apply_dem_defaults(&mut p, Some(&g)).unwrap();
+    bake::fit_method(&mut p, 2048, 2048, true).unwrap();
+    let f = horizon_bake::encode::Formats::default();
+    let e = horizon_bake::pipeline::tiled::check(&p, &f, 2048, 2048, &s).unwrap_err();
+    assert!(
+        matches!(&e, Error::Param { field, message } if field == "radius" && message.contains("max_distance")),
+        "{e}"
+    );
+    let mut p = params(&[("outputs", "angles,svf"), ("max_distance", "5000")]);
+    apply_dem_defaults(&mut p, Some(&g)).unwrap();
+    bake::fit_method(&mut p, 2048, 2048, true).unwrap();
+    assert_eq!(p.method, Method::Exact);
+    horizon_bake::pipeline::tiled::check(&p, &f, 2048, 2048, &s).unwrap();
 }
 
 /// Parameters from pairs with the rules joining several keys checked, as a submission or the

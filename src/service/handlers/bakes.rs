@@ -498,7 +498,8 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
         read_raw(&st, req, &ct, &id).await?
     };
     // Rules joining several parameters (bins against method and outputs), once all are merged.
-    params.check().map_err(Problem::from)?;
+    // (Those a DEM's defaults may change wait for them: the decode checks again.)
+    params.check_before_input().map_err(Problem::from)?;
     let formats = delivery.resolve()?;
     if !params.outputs.horizon && formats != Formats::default() {
         // As the CLI: a format of horizon layers that a Fourier-only bake would never write.
@@ -529,7 +530,7 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
                     let admit = heightmap::budget::Admit { budget: &budget, wait: Some(wait) };
                     heightmap::check_submission_for_in(&bytes, &mut params, &limits, Some(admit))?
                 };
-                crate::bake::check_method_fits(&params, probed.0 .1, probed.0 .2)?;
+                crate::bake::fit_method(&mut params, w, h, tiles.tiles(w, h))?;
                 Ok((Some(bytes), None, params, probed))
             })
             .await?
@@ -538,13 +539,13 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
             // Too large to hold: its header (format, dimensions, georeferencing and the DEM
             // defaults) is read from the store by ranged reads; its values are checked by the
             // decode when the bake runs.
-            let store = st.0.jobs.blob_store().clone();
+            let (store, tiles) = (st.0.jobs.blob_store().clone(), st.0.config.tiles);
             blocking(move || {
                 let mut params = params;
                 let r = crate::jobs::blob::BlobSeekReader::open(store, &hash)?
                     .ok_or_else(|| Error::Internal("the stored upload is gone".into()))?;
                 let ((f, w, h), georef) = heightmap::stream::probe_for(r, &mut params, &limits)?;
-                crate::bake::check_method_fits(&params, w, h)?;
+                crate::bake::fit_method(&mut params, w, h, tiles.tiles(w, h))?;
                 let f = match f {
                     "png" => image::ImageFormat::Png,
                     "tiff" => image::ImageFormat::Tiff,
