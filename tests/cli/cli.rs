@@ -552,3 +552,63 @@ fn zstd_with_both_containers_applies_to_the_ktx2_only() {
     let alone = ["bake", i, "-o", d, "--format", "dds", "--supercompression", "zstd"];
     assert_fails_cleanly(&alone, &dir, "supercompression", 2);
 }
+
+/// The flags' help says what the parser takes and the reference documents every flag (issue 44
+/// item 8: `--outputs` omitted angles and svf, `--earth-curvature` named only exact and march,
+/// `--method` called lengyel the default for a DEM too, `profile --bins` said "multiple of 16").
+#[test]
+fn every_flag_s_help_agrees_with_the_parser_and_the_reference() {
+    let help = |cmd: &str| {
+        let out = run(&[cmd, "--help"]);
+        assert!(out.status.success());
+        String::from_utf8(out.stdout).unwrap()
+    };
+    // The help text of one flag: from its line to the next flag's.
+    fn of<'a>(help: &'a str, flag: &str) -> &'a str {
+        let at = help
+            .find(&format!("\n      --{flag} "))
+            .or_else(|| help.find(&format!(", --{flag} ")))
+            .unwrap_or_else(|| panic!("--{flag} missing"));
+        let rest = &help[at + 1..];
+        let rest = &rest[rest.find('\n').unwrap_or(0)..];
+        let end = rest.find("\n      --").or_else(|| rest.find("\n  -")).unwrap_or(rest.len());
+        &rest[..end]
+    }
+    let bake = help("bake");
+    let words = |flag: &str, want: &[&str]| {
+        let text = of(&bake, flag);
+        for w in want {
+            assert!(text.contains(w), "--{flag}'s help lacks `{w}`: {text}");
+        }
+    };
+    words("method", &["lengyel", "exact", "march", "sweep", "DEM"]);
+    words("outputs", &["horizon", "fourier", "angles", "svf"]);
+    words("earth-curvature", &["exact", "march", "sweep"]);
+    words("radius", &["unlimited", "auto", "16", "DEM"]);
+    words("bins", &["16", "256", "720"]);
+    // Every value the parser names in its refusals is in the help of its flag.
+    for (flag, key) in [("method", "method"), ("outputs", "outputs"), ("edge", "edge")] {
+        let out = run(&["bake", "x.png", "-o", "o", &format!("--{flag}"), "bogus"]);
+        let err = String::from_utf8_lossy(&out.stderr).to_string();
+        assert_eq!(out.status.code(), Some(2), "{err}");
+        assert!(err.contains(key), "{err}");
+    }
+    let shadow = help("shadow");
+    assert!(of(&shadow, "method").contains("exact ray"), "{}", of(&shadow, "method"));
+    assert!(of(&shadow, "radius").contains("unlimited` (default)"), "{}", of(&shadow, "radius"));
+    let profile = help("profile");
+    let bins = of(&profile, "bins");
+    assert!(bins.contains("3600") && !bins.contains("multiple of 16"), "{bins}");
+    // The reference's flag tables name every flag of bake, shadow and profile.
+    let reference =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/docs/reference.md")).unwrap();
+    for text in [&bake, &shadow, &profile] {
+        for line in text.lines().map(str::trim_start).filter(|l| l.starts_with("--")) {
+            let flag = line.split([' ', ',']).next().unwrap();
+            if flag == "--help" || flag == "--version" {
+                continue;
+            }
+            assert!(reference.contains(&format!("`{flag}")), "docs/reference.md lacks `{flag}`");
+        }
+    }
+}

@@ -262,7 +262,16 @@ impl BakeResource {
                     links.insert(format!("fourier_{k}"), format!("{base}/fourier/{k}"));
                 }
             }
-            if params_of(rec).is_ok_and(|p| p.outputs.horizon) {
+            let outputs = params_of(rec).ok().map(|p| p.outputs);
+            // The terrain products (SPEC §3.7): the GeoTIFFs; the shadow and the profile are
+            // asked with their own query (sun, point), so they have no fixed link.
+            if outputs.is_some_and(|o| o.angles) {
+                links.insert("angles".to_owned(), format!("{base}/angles"));
+            }
+            if outputs.is_some_and(|o| o.svf) {
+                links.insert("svf".to_owned(), format!("{base}/svf"));
+            }
+            if outputs.is_some_and(|o| o.horizon) {
                 for (k, path) in [
                     ("horizon_0", "/horizon/0"),
                     ("horizon_1", "/horizon/1"),
