@@ -59,6 +59,9 @@ pub fn run(args: ProfileArgs) -> Result<()> {
     }
     let mut params = flags.params()?;
     if params.method != crate::params::Method::Exact {
+        if let Some(m) = flags.method.as_deref() {
+            eprintln!("note: a profile casts exact rays; --method {m} is not used");
+        }
         params.set("method", "exact")?;
     }
     let bytes = std::fs::read(&args.input)

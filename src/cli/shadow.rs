@@ -57,6 +57,9 @@ pub fn run(args: ShadowArgs) -> Result<()> {
     }
     let mut params = flags.params()?;
     if !lengyel && params.method != crate::params::Method::Exact {
+        if let Some(m) = flags.method.as_deref() {
+            eprintln!("note: a shadow casts one exact ray per texel; --method {m} is not used");
+        }
         params.set("method", "exact")?;
     }
     let (az, el, sun) = crate::terrain::sun::resolve(

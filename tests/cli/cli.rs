@@ -612,3 +612,45 @@ fn every_flag_s_help_agrees_with_the_parser_and_the_reference() {
         }
     }
 }
+
+/// `shadow` and `profile` always cast exact rays: another ray method asked is named as not
+/// used on stderr, and the output is the exact one's, byte for byte (issue 41: a user asking
+/// `--method sweep` was not told).
+#[test]
+fn shadow_and_profile_say_a_method_they_do_not_use() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("h.png");
+    std::fs::write(&input, terrain_png16(40, 32, 9)).unwrap();
+    let inp = input.to_str().unwrap();
+    let shadow = |m: &str, name: &str| {
+        let out = dir.path().join(name);
+        let o = run(&[
+            "shadow",
+            inp,
+            "-o",
+            out.to_str().unwrap(),
+            "--method",
+            m,
+            "--sun-azimuth",
+            "30",
+            "--sun-elevation",
+            "8",
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        (String::from_utf8_lossy(&o.stderr).to_string(), std::fs::read(out).unwrap())
+    };
+    let (note, swept) = shadow("sweep", "s.tif");
+    let (quiet, exact) = shadow("exact", "e.tif");
+    assert!(note.contains("--method sweep is not used"), "{note}");
+    assert!(!quiet.contains("not used"), "{quiet}");
+    assert!(swept == exact, "the shadow is the exact ray's whatever --method says");
+    let profile = |m: &str| {
+        let o = run(&["profile", inp, "--at", "20,16", "--bins", "24", "--method", m]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        (String::from_utf8_lossy(&o.stderr).to_string(), o.stdout)
+    };
+    let (note, marched) = profile("march");
+    let (_, exact) = profile("exact");
+    assert!(note.contains("--method march is not used"), "{note}");
+    assert_eq!(marched, exact);
+}
