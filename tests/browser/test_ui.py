@@ -867,6 +867,25 @@ def test_dem_gets_its_defaults_crs_svf_and_shadow(browser, srv):
     assert "DEM: defaults from the file" in page.text_content("#dem-info")
     assert page.is_checked("#p-dem")
     assert page.is_disabled("#p-height_scale") and page.is_disabled("#p-edge")
+    # Issue 44: the form shows the DEM defaults (a line of sight to the edge, the terrain
+    # products) and sends neither method nor radius, so the server's resolution (sweep,
+    # unlimited) is what bakes; the details read as a person writes numbers.
+    assert page.input_value("#p-method") == "sweep"
+    assert page.input_value("#p-radius-mode") == "unlimited"
+    assert page.is_checked("#p-out-terrain")
+    with page.expect_response(lambda r: r.request.method == "POST" and "/v1/bakes" in r.url) as info:
+        page.click("#bake")
+    res = info.value
+    assert res.status == 202, res.text()
+    query = res.request.url.split("?", 1)[-1]
+    assert "method" not in query and "radius" not in query, query
+    first = srv.json(f"/v1/bakes/{bake_id_of(res)}")[1]
+    assert (first["params"]["method"], first["params"]["radius"]) == ("sweep", "unlimited"), first
+    page.wait_for_function(
+        "() => document.getElementById('dem-info').dataset.epsg === '32632'", timeout=60_000)
+    first_text = page.text_content("#dem-info")
+    assert "cell size 30 m;" in first_text and "height_scale 0.03333333333," in first_text, first_text
+    assert "sweep, radius unlimited" in first_text, first_text
     set_params(page, {"method": "exact", "radius": "unlimited"})
     page.set_checked("#p-out-terrain", True)
     with page.expect_response(lambda r: r.request.method == "POST" and "/v1/bakes" in r.url) as info:
@@ -886,10 +905,10 @@ def test_dem_gets_its_defaults_crs_svf_and_shadow(browser, srv):
     page.wait_for_function(
         "() => document.getElementById('dem-info').dataset.epsg === '32632'", timeout=60_000)
     dem_text = page.text_content("#dem-info")
-    assert "EPSG:32632" in dem_text and "cell size 30 metre" in dem_text, dem_text
+    assert "EPSG:32632" in dem_text and "cell size 30 m;" in dem_text, dem_text
     assert "edge none" in dem_text, dem_text
     meta = page.text_content("#meta")
-    assert "EPSG:32632" in meta and "30 metre" in meta, meta
+    assert "EPSG:32632" in meta and "30 m" in meta, meta
 
     # The SVF appears once the bake succeeded; its pixels are the GeoTIFF's values on 8 bits.
     page.wait_for_selector("#svf-image[data-query]", state="visible", timeout=600_000)

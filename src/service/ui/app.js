@@ -42,6 +42,29 @@ const DEFAULT_PARAMS = {
   fourier_range: 'standard',
 };
 const FIELDS = Object.keys(DEFAULT_PARAMS);
+/**
+ * A DEM's defaults (SPEC §2): a line of sight to the map's edge, which the server resolves
+ * (`sweep`, or `exact` where `sweep` cannot run); the form shows them and sends neither.
+ */
+const DEM_PARAMS = { ...DEFAULT_PARAMS, method: 'sweep', radius: 'unlimited' };
+
+/** The defaults of what the form holds: a DEM's when the DEM box is ticked. */
+function defaultsNow() {
+  return $('p-dem').checked ? DEM_PARAMS : DEFAULT_PARAMS;
+}
+
+const UNIT_SYMBOLS = { metre: 'm', foot: 'ft', us_survey_foot: 'US ft' };
+
+/** A number as a person writes it: 0.005, not 0.004999999999999976; 200, not 200.00000000000097. */
+function fmtNum(x) {
+  const n = Number(x);
+  return Number.isFinite(n) ? String(Number(n.toPrecision(10))) : String(x);
+}
+
+/** A cell size with its unit's symbol: "30 m". */
+function fmtCell(g) {
+  return `${fmtNum(g.cell_size)} ${UNIT_SYMBOLS[g.units] || g.units || 'map units'}`;
+}
 const TERMINAL = new Set(['succeeded', 'failed', 'canceled']);
 const CUBE_SIZE = DEFAULTS.cubeSize;
 
@@ -175,8 +198,34 @@ function syncForm() {
 /** Shows the DEM row of the form, ticked, for a TIFF (a DEM until the server says otherwise). */
 function showDemRow(show, checked) {
   for (const e of document.querySelectorAll('.dem-row')) e.hidden = !show;
+  const was = $('p-dem').checked;
   $('p-dem').checked = show && checked;
+  if ($('p-dem').checked !== was) showKindDefaults(was);
   syncForm();
+}
+
+/**
+ * The method, radius and terrain outputs of the kind of input the form now holds (a DEM or a
+ * plain image), where they still show the other kind's defaults (a choice the user made stays).
+ */
+function showKindDefaults(wasDem) {
+  const [from, to] = wasDem ? [DEM_PARAMS, DEFAULT_PARAMS] : [DEFAULT_PARAMS, DEM_PARAMS];
+  const sel = $('p-method');
+  if (sel.value === from.method && [...sel.options].some((o) => o.value === to.method)) {
+    sel.value = to.method;
+  }
+  const mode = $('p-radius-mode');
+  const radius = mode.value === 'texels' ? $('p-radius').value.trim() : mode.value;
+  if (radius === from.radius) {
+    if (to.radius === 'unlimited' || to.radius === 'auto') {
+      mode.value = to.radius;
+    } else {
+      mode.value = 'texels';
+      $('p-radius').value = to.radius;
+    }
+  }
+  // A DEM is baked for its terrain products (angles, svf) by default in the form.
+  $('p-out-terrain').checked = !wasDem;
 }
 
 /** The form's parameters as strings, only the enabled fields. */
@@ -200,16 +249,19 @@ function formParams() {
 /** The query string of the non-default parameters. */
 function paramQuery(p) {
   const q = new URLSearchParams();
+  const d = defaultsNow();
   for (const f of FIELDS) {
-    if (p[f] !== undefined && p[f] !== DEFAULT_PARAMS[f]) q.set(f, p[f]);
+    if (p[f] !== undefined && p[f] !== d[f]) q.set(f, p[f]);
   }
   const s = q.toString();
   return s ? `?${s}` : '';
 }
 
 function resetForm() {
-  $('p-method').value = DEFAULT_PARAMS.method;
-  $('p-radius-mode').value = 'texels';
+  $('p-dem').checked = !$('dem-l').hidden;
+  const d = defaultsNow();
+  $('p-method').value = d.method;
+  $('p-radius-mode').value = d.radius === 'unlimited' ? 'unlimited' : 'texels';
   $('p-radius').value = DEFAULT_PARAMS.radius;
   for (const f of ['min_elevation_deg', 'bins', 'reduce', 'height_scale', 'channel', 'edge', 'y_axis',
     'encoding', 'fourier_terms', 'fourier_range']) {
@@ -217,8 +269,7 @@ function resetForm() {
   }
   $('p-out-horizon').checked = true;
   $('p-out-fourier').checked = false;
-  $('p-out-terrain').checked = false;
-  $('p-dem').checked = !$('dem-l').hidden;
+  $('p-out-terrain').checked = $('p-dem').checked;
   syncForm();
   clearErrors();
 }
@@ -255,6 +306,11 @@ function loadForm(p) {
 for (const id of ['p-radius-mode', 'p-method', 'p-out-fourier', 'p-out-horizon', 'p-dem']) {
   $(id).addEventListener('change', syncForm);
 }
+// Ticking or unticking "DEM" by hand shows that kind's defaults too.
+$('p-dem').addEventListener('change', () => {
+  showKindDefaults(!$('p-dem').checked);
+  syncForm();
+});
 $('reset').addEventListener('click', resetForm);
 
 // The kernels this server offers, when its configuration lists them (else the form's own).
@@ -586,12 +642,12 @@ function showMeta(res) {
   row('method', `${p.method || '?'}, bins ${p.bins ?? '?'}, reduce ${p.reduce ?? '?'}`);
   const rr = p.resolved_radius;
   row('radius', rr ? `${rr.texels} texels (asked: ${p.radius}) — ${rr.reason}` : String(p.radius ?? '?'));
-  row('surface', `height_scale ${p.height_scale}, channel ${p.channel}, edge ${p.edge}, y_axis ${p.y_axis}`);
+  row('surface', `height_scale ${fmtNum(p.height_scale)}, channel ${p.channel}, edge ${p.edge}, y_axis ${p.y_axis}`);
   row('encoding', `${p.encoding}, outputs ${outputsOf(p).join(', ')}`);
   const g = res.georeferencing;
   if (g) {
     row('CRS', `${crsName(g)} (${g.model})`);
-    row('cell size', g.cell_size ? `${g.cell_size} ${g.units || 'map units'}` : '—');
+    row('cell size', g.cell_size ? fmtCell(g) : '—');
   }
   if (res.timings_ms) {
     row('timings', Object.entries(res.timings_ms).map(([k, v]) => `${k} ${Number(v).toFixed(1)} ms`).join(', '));
@@ -724,8 +780,8 @@ function showDem(res) {
   out.hidden = false;
   out.dataset.epsg = g.epsg ? String(g.epsg) : '';
   out.dataset.cellSize = g.cell_size ? String(g.cell_size) : '';
-  const cell = g.cell_size ? `cell size ${g.cell_size} ${g.units || 'map units'}` : 'no cell size';
-  out.textContent = `DEM: ${crsName(g)} (${g.model}), ${cell}; height_scale ${p.height_scale}, edge ${p.edge}.`;
+  const cell = g.cell_size ? `cell size ${fmtCell(g)}` : 'no cell size';
+  out.textContent = `DEM: ${crsName(g)} (${g.model}), ${cell}; height_scale ${fmtNum(p.height_scale)}, edge ${p.edge}; ${p.method}, radius ${p.radius}.`;
   // A DEM bake opened by #id: re-baking it keeps the file's defaults.
   if ($('dem-l').hidden) showDemRow(true, true);
 }
