@@ -5,9 +5,10 @@
 //!
 //! Tags (GeoTIFF 1.1, GDAL): ModelPixelScale 33550, ModelTiepoint 33922, ModelTransformation
 //! 34264, GeoKeyDirectory 34735 (+ GeoDoubleParams 34736, GeoAsciiParams 34737) and GDAL's
-//! GDAL_NODATA 42113 (ASCII). Only what the defaults and bake.json need is interpreted: the
-//! model type, the EPSG code, the linear unit and the affine transform; everything else travels
-//! verbatim.
+//! GDAL_NODATA 42113 (ASCII), and GDAL_METADATA 42112 for the band's scale and offset. Only what
+//! the defaults and bake.json need is interpreted: the model type, the EPSG code, the linear and
+//! vertical units, the band scale and the affine transform; everything else travels verbatim
+//! (GDAL_METADATA excepted: the outputs' values are not the input's scaled heights).
 
 use crate::error::{Error, Result};
 use crate::params::{BakeParams, EarthCurvature, Edge};
@@ -20,6 +21,7 @@ pub const TAG_GEO_KEY_DIRECTORY: u16 = 34735;
 pub const TAG_GEO_DOUBLE_PARAMS: u16 = 34736;
 pub const TAG_GEO_ASCII_PARAMS: u16 = 34737;
 pub const TAG_GDAL_NODATA: u16 = 42113;
+pub const TAG_GDAL_METADATA: u16 = 42112;
 
 /// GeoKeys this module reads.
 const KEY_MODEL_TYPE: u16 = 1024;
@@ -27,6 +29,16 @@ const KEY_RASTER_TYPE: u16 = 1025;
 const KEY_GEOGRAPHIC_TYPE: u16 = 2048;
 const KEY_PROJECTED_CS_TYPE: u16 = 3072;
 const KEY_PROJ_LINEAR_UNITS: u16 = 3076;
+const KEY_VERTICAL_CS_TYPE: u16 = 4096;
+const KEY_VERTICAL_UNITS: u16 = 4099;
+
+/// Vertical CRSs whose heights are in metres (EPSG), the ones DEMs are shipped in: EGM96,
+/// EGM2008, NAVD88, MSL, ODN, DHHN92, DHHN2016, LN02, LHN95, NN2000, AHD, Baltic 1977.
+const VERTICAL_METRE_CRS: [u16; 12] =
+    [5773, 3855, 5703, 5714, 5701, 5783, 7837, 5728, 5729, 5941, 5711, 5705];
+/// Vertical CRSs in international feet, and in US survey feet (EPSG).
+const VERTICAL_FOOT_CRS: [u16; 2] = [8228, 8051];
+const VERTICAL_US_FOOT_CRS: [u16; 3] = [6360, 5702, 6357];
 
 /// The georeferencing tags of a TIFF, as stored.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -39,6 +51,9 @@ pub struct Georef {
     pub geo_ascii: Option<String>,
     /// GDAL_NODATA as written (ASCII, e.g. "-32768" or "nan").
     pub gdal_nodata: Option<String>,
+    /// GDAL_METADATA (XML) as written: read for the band's scale and offset, never copied to
+    /// outputs (their values are angles, not the input's scaled heights).
+    pub gdal_metadata: Option<String>,
 }
 
 /// What bake.json (and the service's bake resource) reports of the georeferencing.
@@ -110,6 +125,12 @@ impl Georef {
                 None => None,
                 Some(v) => Some(v.into_string().map_err(|e| bad("GDAL_NODATA", e))?),
             },
+            // Unreadable metadata is only metadata: the heights decode without it.
+            gdal_metadata: dec
+                .find_tag(Tag::Unknown(TAG_GDAL_METADATA))
+                .ok()
+                .flatten()
+                .and_then(|v| v.into_string().ok()),
         };
         g.check()?;
         Ok((g != Georef::default()).then_some(g))
@@ -177,6 +198,51 @@ impl Georef {
         t.parse().ok()
     }
 
+    /// The band's GDAL scale (`<Item name="SCALE" sample="0" role="scale">`), when given.
+    pub fn band_scale(&self) -> Option<f64> {
+        self.metadata_item("scale")
+    }
+
+    /// The band's GDAL offset, when given.
+    pub fn band_offset(&self) -> Option<f64> {
+        self.metadata_item("offset")
+    }
+
+    fn metadata_item(&self, role: &str) -> Option<f64> {
+        let xml = self.gdal_metadata.as_deref()?;
+        let tag = format!("role=\"{role}\"");
+        xml.split("<Item").find_map(|item| {
+            let (head, rest) = item.split_once('>')?;
+            let first_band = !head.contains("sample=") || head.contains("sample=\"0\"");
+            if !head.contains(&tag) || !first_band {
+                return None;
+            }
+            rest.split('<').next()?.trim().parse().ok()
+        })
+    }
+
+    /// The unit of the heights when the keys say (VerticalUnitsGeoKey, or a vertical CRS this
+    /// reader knows), as `(name, metres per unit)`; `Err(code)` for a vertical CRS it does not
+    /// know; `Ok(None)` when the keys are silent (heights in the CRS's linear unit).
+    pub fn vertical_unit(&self) -> std::result::Result<Option<(&'static str, f64)>, u16> {
+        let unit = |code: u16| match code {
+            9001 => Some(("metre", 1.0)),
+            9002 => Some(("foot", 0.3048)),
+            9003 => Some(("us_survey_foot", 1200.0 / 3937.0)),
+            _ => None,
+        };
+        if let Some(u) = self.key(KEY_VERTICAL_UNITS).filter(|&u| u != 0 && u != 32767) {
+            return unit(u).map(Some).ok_or(u);
+        }
+        match self.key(KEY_VERTICAL_CS_TYPE).filter(|&c| c != 0 && c != 32767) {
+            None => Ok(None),
+            Some(c) if VERTICAL_METRE_CRS.contains(&c) => Ok(unit(9001)),
+            Some(c) if VERTICAL_FOOT_CRS.contains(&c) => Ok(unit(9002)),
+            Some(c) if VERTICAL_US_FOOT_CRS.contains(&c) => Ok(unit(9003)),
+            Some(c) => Err(c),
+        }
+    }
+
     /// `projected`, `geographic` or `unknown`.
     pub fn model(&self) -> &'static str {
         match self.key(KEY_MODEL_TYPE) {
@@ -194,6 +260,77 @@ impl Georef {
             _ => self.key(KEY_PROJECTED_CS_TYPE).or_else(|| self.key(KEY_GEOGRAPHIC_TYPE)),
         }?;
         (code != 0 && code != 32767).then_some(code)
+    }
+
+    /// Metres per map unit of a projected CRS (ProjLinearUnitsGeoKey; silent keys: metre, as
+    /// GeoTIFF 1.1 writers leave it to the EPSG code).
+    fn linear_unit_m(&self) -> f64 {
+        match self.key(KEY_PROJ_LINEAR_UNITS) {
+            Some(9002) => 0.3048,
+            Some(9003) => 1200.0 / 3937.0,
+            _ => 1.0,
+        }
+    }
+
+    /// Refuses a DEM whose stored values are not heights in its map unit, unless `height_scale`
+    /// says how to read them (SPEC §2 "Units of a DEM"): a GDAL band scale other than 1, or
+    /// heights in another unit than the cells (a compound CRS with heights in feet over metres).
+    /// The drop of `earth_curvature=on` assumes heights in the cells' unit, so a given
+    /// `height_scale` needs it off. A band offset moves every height alike and is ignored.
+    ///
+    /// # Errors
+    /// [`Error::InvalidInput`] naming the fix, or [`Error::Param`] naming `earth_curvature`.
+    fn check_units(&self, given: crate::params::Explicit, curved: bool, cell: f64) -> Result<()> {
+        let scale = self.band_scale().unwrap_or(1.0);
+        let lin = self.linear_unit_m();
+        let (what, ratio) = match self.vertical_unit() {
+            Ok(None) => (None, scale),
+            Ok(Some((name, m))) => ((m != lin).then(|| name.to_string()), scale * m / lin),
+            Err(code) => {
+                if given.has("height_scale") {
+                    (Some(format!("the unit of vertical CRS EPSG:{code}")), f64::NAN)
+                } else {
+                    return Err(Error::InvalidInput(format!(
+                        "the DEM's heights are in vertical CRS EPSG:{code}, whose unit this \
+                         reader does not know; convert them to the cells' unit (`gdalwarp \
+                         -t_srs` to a CRS with heights in metres) or give height_scale (texels \
+                         per stored height unit = metres per unit / cell size) with \
+                         earth_curvature=off"
+                    )));
+                }
+            }
+        };
+        if what.is_none() && scale == 1.0 {
+            return Ok(());
+        }
+        if given.has("height_scale") {
+            if curved {
+                return Err(Error::param(
+                    "earth_curvature",
+                    "the DEM's stored values are not heights in its map unit (a band scale or \
+                     a vertical unit of their own) and height_scale reads them: give \
+                     earth_curvature=off with it, or convert the file so the drop is in metres",
+                ));
+            }
+            return Ok(());
+        }
+        let suggest = ratio / cell;
+        Err(Error::InvalidInput(match what {
+            Some(unit) => format!(
+                "the DEM's heights are in {unit} and its cells in metre (or the CRS's unit); \
+                 convert the heights (`gdal_calc.py -A in.tif --outfile out.tif --calc \
+                 \"A*{m}\"`) or give height_scale={suggest} (metres per height unit {m} × \
+                 band scale {scale} / cell size {cell}) with earth_curvature=off",
+                m = ratio / scale * lin
+            ),
+            None => format!(
+                "the DEM's band has a GDAL scale of {scale} (offset {}), so its stored values \
+                 are not heights; apply it (`gdal_translate -unscale -ot Float32 in.tif \
+                 out.tif`) or give height_scale={suggest} (scale {scale} / cell size {cell}) \
+                 with earth_curvature=off",
+                self.band_offset().unwrap_or(0.0)
+            ),
+        }))
     }
 
     fn units(&self) -> Option<String> {
@@ -284,7 +421,20 @@ impl Georef {
 pub fn apply_dem_defaults(params: &mut BakeParams, georef: Option<&Georef>) -> Result<()> {
     use crate::params::{Method, Radius};
     let ex = params.explicit;
-    let dem = georef.filter(|g| g.is_dem());
+    if let Some(t) = georef.filter(|g| !g.is_dem()).and_then(Georef::transform) {
+        // A map transform without a CRS: GIS data whose cell size and units are unknown, not a
+        // texture; with `cell_size` it is baked as a DEM.
+        if !ex.has("cell_size") {
+            return Err(Error::InvalidInput(format!(
+                "the TIFF has a map transform but no CRS (no GeoKeyDirectory), so its cell size \
+                 and units are unknown; give cell_size (the transform says {} map units per \
+                 texel) to bake it as a DEM, or assign its CRS (`gdal_edit.py -a_srs EPSG:XXXX \
+                 in.tif`)",
+                t[1].abs()
+            )));
+        }
+    }
+    let dem = georef.filter(|g| g.is_dem() || (g.transform().is_some() && ex.has("cell_size")));
     if dem.is_some() && !ex.has("method") {
         // A line of sight, to the edge unless a reach is given (SPEC §2). Left unmarked, so
         // [`crate::bake::fit_method`] may still trade `sweep` for `exact` on a map `sweep`
@@ -315,6 +465,7 @@ pub fn apply_dem_defaults(params: &mut BakeParams, georef: Option<&Georef>) -> R
         if rays {
             set("earth_curvature", "on".into())?;
         }
+        g.check_units(ex, params.earth_curvature == EarthCurvature::On, cell)?;
     }
     if params.earth_curvature == EarthCurvature::On && !rays {
         return Err(Error::param(
@@ -378,5 +529,33 @@ mod tests {
         for good in ["-32768", "nan", "-inf", "3.4028234663852886e+38", "-9999\0"] {
             assert!(with(|g| g.gdal_nodata = Some(good.into())).is_ok(), "{good}");
         }
+    }
+
+    /// GDAL's band scale and offset are read from GDAL_METADATA for the first band only; the
+    /// vertical unit comes from VerticalUnitsGeoKey, else a vertical CRS this reader knows, and
+    /// an unknown one is named by code.
+    #[test]
+    fn band_scale_and_vertical_units_are_read_from_the_tags() {
+        let xml = r#"<GDALMetadata>
+  <Item name="STATISTICS_MEAN" sample="0">12.5</Item>
+  <Item name="OFFSET" sample="0" role="offset">10</Item>
+  <Item name="SCALE" sample="1" role="scale">7</Item>
+  <Item name="SCALE" sample="0" role="scale">0.20000000000000001</Item>
+</GDALMetadata>"#;
+        let g = Georef { gdal_metadata: Some(xml.into()), ..Georef::default() };
+        assert_eq!((g.band_scale(), g.band_offset()), (Some(0.2), Some(10.0)));
+        assert_eq!(Georef::default().band_scale(), None);
+        let keys = |extra: &[u16]| {
+            let mut k = vec![1, 1, 1, 2, 1024, 0, 1, 1, 3072, 0, 1, 2056];
+            k.extend_from_slice(extra);
+            k[3] = ((k.len() - 4) / 4) as u16;
+            Georef { geo_keys: Some(k), ..Georef::default() }
+        };
+        assert_eq!(keys(&[]).vertical_unit(), Ok(None));
+        assert_eq!(keys(&[4096, 0, 1, 8228]).vertical_unit(), Ok(Some(("foot", 0.3048))));
+        assert_eq!(keys(&[4096, 0, 1, 5703]).vertical_unit(), Ok(Some(("metre", 1.0))));
+        let us = keys(&[4096, 0, 1, 5703, 4099, 0, 1, 9003]).vertical_unit();
+        assert_eq!(us, Ok(Some(("us_survey_foot", 1200.0 / 3937.0))));
+        assert_eq!(keys(&[4096, 0, 1, 1234]).vertical_unit(), Err(1234));
     }
 }

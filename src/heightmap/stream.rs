@@ -82,6 +82,7 @@ impl MapStats {
             geo_doubles: g.geo_doubles.clone(),
             geo_ascii: g.geo_ascii.clone(),
             gdal_nodata: g.gdal_nodata.clone(),
+            gdal_metadata: g.gdal_metadata.clone(),
         });
         serde_json::json!({
             "info": self.info,
@@ -113,6 +114,7 @@ impl MapStats {
                     geo_doubles: w.geo_doubles,
                     geo_ascii: w.geo_ascii,
                     gdal_nodata: w.gdal_nodata,
+                    gdal_metadata: w.gdal_metadata,
                 })
             }
         };
@@ -144,6 +146,8 @@ struct GeorefWire {
     geo_doubles: Option<Vec<f64>>,
     geo_ascii: Option<String>,
     gdal_nodata: Option<String>,
+    #[serde(default)]
+    gdal_metadata: Option<String>,
 }
 
 /// The heights of one window, as a tile blob carries them (see [`TileHeights::encode`]).

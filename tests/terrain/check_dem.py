@@ -206,6 +206,57 @@ code, err = run("bake", UTM, "-o", os.path.join(WORK, "utm_b36"), "--format", "g
                 "--outputs", "angles", "--bins", "36")
 check(code == 0, f"a DEM without --method takes --bins 36 for angles (exit {code} {err[:200]})")
 
+# --- SPEC 2 "Units of a DEM": values that are not heights in the map unit are never baked
+# as if they were: a GDAL band scale, heights in feet over metre cells (a compound CRS), a
+# transform without a CRS. Each is refused naming the fix; the fix given is right. ---
+r0, c0 = dem.shape[0] // 2 - 32, dem.shape[1] // 2 - 32
+piece = dem[r0:r0 + 64, c0:c0 + 64].astype(np.float32)
+piece[piece == -9999] = 0
+ptr = tr * Affine.translation(c0, r0)
+SCALED = os.path.join(WORK, "scaled.tif")
+with rasterio.open(SCALED, "w", driver="GTiff", dtype="float32", width=64, height=64, count=1,
+                   crs="EPSG:32632", transform=ptr) as d:
+    d.write(piece / 0.2, 1)
+    d.scales = (0.2,)
+    d.offsets = (10.0,)
+refused(SCALED, ["GDAL scale of 0.2", "gdal_translate -unscale", "height_scale=0.0008"])
+PLAIN = write(os.path.join(WORK, "unscaled.tif"), piece, crs="EPSG:32632", transform=ptr)
+FEET = os.path.join(WORK, "feet.tif")
+with rasterio.open(FEET, "w", driver="GTiff", dtype="float32", width=64, height=64, count=1,
+                   crs="EPSG:2056+8228", transform=ptr) as d:
+    d.write(piece / 0.3048, 1)
+refused(FEET, ["in foot", "gdal_calc.py", "A*0.3048"])
+NOCRS = write(os.path.join(WORK, "nocrs.tif"), piece, transform=ptr)
+refused(NOCRS, ["no CRS", "cell_size", "250", "gdal_edit.py -a_srs"])
+
+
+def angles_of(path, name, *extra):
+    out = os.path.join(WORK, name)
+    code, err = run("bake", path, "-o", out, "--format", "geotiff", "--outputs", "angles",
+                    "--method", "exact", "--radius", "unlimited", "--bins", "16",
+                    "--earth-curvature", "off", *extra)
+    check(code == 0, f"{name} bakes (exit {code} {err[:200]})")
+    with rasterio.open(os.path.join(out, "angles.tif")) as a:
+        return a.read().astype(np.float64), json.load(open(os.path.join(out, "bake.json")))
+
+
+want, _ = angles_of(PLAIN, "u_plain")
+got, _ = angles_of(SCALED, "u_scaled", "--height-scale", str(0.2 / 250))
+check(np.abs(got - want).max() < 1e-3,
+      f"a scaled band with the height_scale the refusal names = the unscaled DEM "
+      f"(max {np.abs(got - want).max():.2e} deg)")
+got, _ = angles_of(FEET, "u_feet", "--height-scale", str(0.3048 / 250))
+check(np.abs(got - want).max() < 1e-3,
+      f"heights in feet with the height_scale the refusal names = the metre DEM "
+      f"(max {np.abs(got - want).max():.2e} deg)")
+got, b = angles_of(NOCRS, "u_nocrs", "--cell-size", "250")
+check(np.abs(got - want).max() < 1e-9 and b["params"]["edge"] == "none"
+      and abs(b["params"]["height_scale"] - 1 / 250) < 1e-15,
+      "a transform without a CRS and --cell-size bakes as the DEM it is (edge none, 1/cell)")
+code, err = run("bake", SCALED, "-o", os.path.join(WORK, "u_curved"), "--format", "geotiff",
+                "--outputs", "angles", "--method", "exact", "--height-scale", "0.0008")
+check(code == 2 and "earth_curvature" in err, f"a read scale with the drop on is refused ({err[:160]})")
+
 # --- the independent reference: bilinear line of sight in metres, curvature drop, holes ---
 H, W = dem.shape
 cell = 250.0
