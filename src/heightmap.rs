@@ -93,6 +93,22 @@ pub struct Terrain {
 pub const HOLE_DEPTH: f32 = 1000.0;
 
 impl HeightMap {
+    /// A value that looks like an undeclared nodata on a DEM with none declared: one of the
+    /// sentinels GIS tools write (−9999, −32768, ±3.4028235e38 as f32::MAX) on the map's
+    /// border, where warps and clips leave them (SPEC §2: baked as it is, with a warning).
+    pub fn suspected_nodata(&self) -> Option<f32> {
+        let dem = self.terrain.georef.as_ref().is_some_and(|g| g.is_dem());
+        if !dem || self.terrain.nodata.is_some() || self.values.is_empty() {
+            return None;
+        }
+        let (w, h) = (self.width, self.height);
+        let border = (0..w)
+            .flat_map(|x| [x, (h - 1) * w + x])
+            .chain((0..h).flat_map(|y| [y * w, y * w + w - 1]));
+        const SENTINELS: [f32; 4] = [-9999.0, -32768.0, f32::MAX, -f32::MAX];
+        border.map(|i| self.values[i]).find(|v| SENTINELS.contains(v))
+    }
+
     /// Heights in texel units: value × `height_scale`.
     pub fn scaled(&self, height_scale: f64) -> Vec<f32> {
         self.values.iter().map(|&v| (v as f64 * height_scale) as f32).collect()
@@ -483,7 +499,7 @@ pub fn check_submission_streamed(
     let probed = probe(bytes, limits)?;
     let (_, report) = stream::probe_for(Cursor::new(bytes), params, limits)?;
     if probed.0 != image::ImageFormat::Png || !matches!(params.nodata, NoData::Auto) {
-        let (channel, nodata) = (params.channel, params.nodata);
+        let (channel, nodata) = (params.decode_channel(), params.nodata);
         let mut none = |_: usize, _: Vec<u8>| Ok(());
         stream::decode_tiles(Cursor::new(bytes), "", channel, nodata, limits, &[], &mut none)?;
     }
@@ -536,7 +552,8 @@ pub fn decode_for_in(
     limits: &Limits,
     admit: Option<budget::Admit<'_>>,
 ) -> Result<(HeightMap, InputInfo, budget::Reservation)> {
-    let (map, info, held) = decode_with_in(bytes, params.channel, params.nodata, limits, admit)?;
+    let (map, info, held) =
+        decode_with_in(bytes, params.decode_channel(), params.nodata, limits, admit)?;
     georef::apply_dem_defaults(params, map.terrain.georef.as_ref())?;
     Ok((map, info, held))
 }
@@ -793,15 +810,17 @@ fn tiff_values(
     let n8 = |v: u8| if dem { v as f32 } else { v as f32 / 255.0 };
     let n16 = |v: u16| (v as f64 / s16) as f32;
     let id = |v: f32| v;
+    // A DEM's samples are bands of heights, not colours: one is read, by `band` (SPEC §2).
+    let band = if dem && n > 1 { Some(dem_band(n, meta.color, channel)?) } else { None };
     Ok(match img {
-        R::U8(b) => (samples(b, n, channel, n8), 8, false, s8),
-        R::U16(b) => (samples(b, n, channel, n16), 16, false, s16),
-        R::I8(b) => (samples(b, n, channel, |v: i8| v as f32), 8, false, 1.0),
-        R::I16(b) => (samples(b, n, channel, |v: i16| v as f32), 16, false, 1.0),
-        R::I32(b) => (samples(b, n, channel, |v: i32| v as f32), 32, false, 1.0),
-        R::U32(b) if dem => (samples(b, n, channel, |v: u32| v as f32), 32, false, 1.0),
-        R::F32(b) => (samples(b, n, channel, id), 32, true, 1.0),
-        R::F64(b) => (samples(b, n, channel, |v: f64| v as f32), 64, true, 1.0),
+        R::U8(b) => (take(b, n, channel, band, n8), 8, false, s8),
+        R::U16(b) => (take(b, n, channel, band, n16), 16, false, s16),
+        R::I8(b) => (take(b, n, channel, band, |v: i8| v as f32), 8, false, 1.0),
+        R::I16(b) => (take(b, n, channel, band, |v: i16| v as f32), 16, false, 1.0),
+        R::I32(b) => (take(b, n, channel, band, |v: i32| v as f32), 32, false, 1.0),
+        R::U32(b) if dem => (take(b, n, channel, band, |v: u32| v as f32), 32, false, 1.0),
+        R::F32(b) => (take(b, n, channel, band, id), 32, true, 1.0),
+        R::F64(b) => (take(b, n, channel, band, |v: f64| v as f32), 64, true, 1.0),
         _ => {
             return Err(Error::Unsupported(format!(
                 "TIFF sample type of a {}-bit {} image; use 8/16-bit unsigned, \
@@ -894,6 +913,52 @@ fn decode_exr(bytes: &[u8], channel: Channel) -> Result<Decoded> {
 
 /// Picks the height from interleaved samples with `n` channels per texel (1 gray, 2 gray+alpha,
 /// 3 RGB, 4 RGBA), after normalising each sample with `f`.
+/// [`samples`], or sample `band` of each texel when one is picked.
+fn take<T: Copy>(
+    buf: &[T],
+    n: usize,
+    channel: Channel,
+    band: Option<usize>,
+    f: impl Fn(T) -> f32,
+) -> Vec<f32> {
+    match band {
+        Some(i) => buf.iter().skip(i).step_by(n).map(|&v| f(v)).collect(),
+        None => samples(buf, n, channel, f),
+    }
+}
+
+/// The sample (0-based) a DEM with `n` bands per texel is read from: `band` N (which reaches
+/// the decoder as channel r, g, b or a); without it a 422 naming `band`, as reading colour
+/// channels of heights (luma, or band 1 of two) would bake something no band holds.
+///
+/// # Errors
+/// [`Error::Param`] naming `band`.
+fn dem_band(n: usize, color: &str, channel: Channel) -> Result<usize> {
+    let i = match channel {
+        Channel::R => 0,
+        Channel::G => 1,
+        Channel::B => 2,
+        Channel::A => 3,
+        Channel::Luma => {
+            return Err(Error::param(
+                "band",
+                format!(
+                    "the DEM has {n} bands per texel ({color}) and heights are read from one: \
+                     give band=1..{n} (`--band`), or extract it (`gdal_translate -b 1 in.tif \
+                     dem.tif`)"
+                ),
+            ))
+        }
+    };
+    if i >= n {
+        return Err(Error::param(
+            "band",
+            format!("band {} asked, but the DEM has {n} bands per texel", i + 1),
+        ));
+    }
+    Ok(i)
+}
+
 fn samples<T: Copy>(buf: &[T], n: usize, channel: Channel, f: impl Fn(T) -> f32) -> Vec<f32> {
     match n {
         1 | 2 => buf.iter().step_by(n).map(|&v| f(v)).collect(),

@@ -305,6 +305,9 @@ pub struct BakeParams {
     pub angle_unit: AngleUnit,
     pub azimuth_from: AzimuthFrom,
     pub svf_model: SvfModel,
+    /// The band (sample) of a multi-band TIFF the heights are read from, 1-based; `None`:
+    /// `channel` decides (a DEM with several bands then needs it, SPEC §2).
+    pub band: Option<u8>,
     /// Which of the above were given (the rest may take the DEM defaults).
     #[serde(skip)]
     pub explicit: Explicit,
@@ -334,6 +337,7 @@ impl Default for BakeParams {
             angle_unit: AngleUnit::Degrees,
             azimuth_from: AzimuthFrom::EastCcw,
             svf_model: SvfModel::Radiative,
+            band: None,
             explicit: Explicit::default(),
         }
     }
@@ -362,6 +366,7 @@ pub const PARAM_NAMES: &[&str] = &[
     "angle_unit",
     "azimuth_from",
     "svf_model",
+    "band",
 ];
 
 pub(crate) fn parse_enum<T: Copy>(field: &str, value: &str, options: &[(&str, T)]) -> Result<T> {
@@ -630,6 +635,20 @@ impl BakeParams {
                     &[("standard", FourierRange::Standard), ("expanded", FourierRange::Expanded)],
                 )?
             }
+            "band" => {
+                self.band = match value.trim().to_ascii_lowercase().as_str() {
+                    "auto" | "" => None,
+                    v => match v.parse::<u8>() {
+                        Ok(b @ 1..=4) => Some(b),
+                        _ => {
+                            return Err(Error::param(
+                                key,
+                                format!("`{value}` is not a band of a TIFF: 1 to 4, or auto"),
+                            ))
+                        }
+                    },
+                }
+            }
             "nodata" => {
                 self.nodata = match value.trim().to_ascii_lowercase().as_str() {
                     "auto" | "" => NoData::Auto,
@@ -711,6 +730,17 @@ impl BakeParams {
         }
         self.explicit.mark(key);
         Ok(())
+    }
+
+    /// The channel the decoder reads: `band` N as the N-th sample of a texel, else `channel`.
+    pub fn decode_channel(&self) -> Channel {
+        match self.band {
+            Some(1) => Channel::R,
+            Some(2) => Channel::G,
+            Some(3) => Channel::B,
+            Some(4) => Channel::A,
+            _ => self.channel,
+        }
     }
 
     /// Rules that join several parameters, checked once all are set.
@@ -854,6 +884,7 @@ impl BakeParams {
             ("angle_unit", name(&self.angle_unit)),
             ("azimuth_from", name(&self.azimuth_from)),
             ("svf_model", name(&self.svf_model)),
+            ("band", self.band.map_or("auto".into(), |b| b.to_string())),
         ]
     }
 }

@@ -221,6 +221,10 @@ pub struct ParamFlags {
     /// Sky-view factor: radiative (default, mean cos² α) or visual (1 − mean sin α).
     #[arg(long)]
     pub svf_model: Option<String>,
+    /// The band of a multi-band TIFF the heights are in, 1..4 (a DEM with several bands needs
+    /// it; default auto: --channel decides).
+    #[arg(long)]
+    pub band: Option<String>,
 }
 
 impl ParamFlags {
@@ -252,6 +256,7 @@ impl ParamFlags {
             ("angle_unit", &self.angle_unit),
             ("azimuth_from", &self.azimuth_from),
             ("svf_model", &self.svf_model),
+            ("band", &self.band),
         ];
         let p = BakeParams::from_pairs_unchecked(
             pairs.iter().filter_map(|(k, v)| v.as_deref().map(|v| (*k, v))),
@@ -371,6 +376,12 @@ pub fn run(args: BakeArgs) -> Result<()> {
     let bytes = std::fs::read(&args.input)
         .map_err(|e| Error::InvalidInput(format!("cannot read {}: {e}", args.input.display())))?;
     let (map, info) = heightmap::decode_for(&bytes, &mut params, &args.limits())?;
+    if let Some(v) = map.suspected_nodata() {
+        eprintln!(
+            "warning: the DEM declares no nodata, and {v} on its border looks like one; it is \
+             baked as a height (give --nodata {v} to make it a hole)"
+        );
+    }
     crate::bake::fit_method(&mut params, map.width as u32, map.height as u32, false)?;
     drop(bytes);
     let georeferencing =

@@ -182,7 +182,7 @@ impl Tiler for PipelineTiler {
             stream::decode_tiles(
                 input,
                 &rec.input_blob,
-                params.channel,
+                params.decode_channel(),
                 params.nodata,
                 &self.limits,
                 windows,

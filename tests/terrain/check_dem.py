@@ -253,6 +253,33 @@ got, b = angles_of(NOCRS, "u_nocrs", "--cell-size", "250")
 check(np.abs(got - want).max() < 1e-9 and b["params"]["edge"] == "none"
       and abs(b["params"]["height_scale"] - 1 / 250) < 1e-15,
       "a transform without a CRS and --cell-size bakes as the DEM it is (edge none, 1/cell)")
+# Several bands: heights are one of them, named by --band; without it, refused naming band
+# (before: band 1 read as grey, band 2 as alpha). Band-interleaved files name their rewrite.
+two = np.stack([np.full_like(piece, 7.0), piece])
+for inter in ("pixel", "band"):
+    path = os.path.join(WORK, f"two_{inter}.tif")
+    with rasterio.open(path, "w", driver="GTiff", dtype="float32", width=64, height=64, count=2,
+                       crs="EPSG:32632", transform=ptr, interleave=inter) as d:
+        d.write(two)
+    if inter == "pixel":
+        refused(path, ["2 bands", "band=1..2", "gdal_translate -b 1"])
+        got, _ = angles_of(path, "u_band2", "--band", "2")
+        check(np.abs(got - want).max() < 1e-9, "--band 2 reads the heights of band 2 exactly")
+        refused(path, ["band 3", "2 bands"], "--band", "3")
+    else:
+        refused(path, ["separate colour planes", "INTERLEAVE=PIXEL"])
+# An undeclared -9999 on the border (a warp without -dstnodata) is baked as a height, with a
+# warning naming --nodata; declared, no warning.
+edged = piece.copy()
+edged[:, :3] = -9999
+UNDECL = write(os.path.join(WORK, "undeclared.tif"), edged, crs="EPSG:32632", transform=ptr)
+code, err = run("bake", UNDECL, "-o", os.path.join(WORK, "u_undecl"), "--format", "geotiff",
+                "--outputs", "svf", "--method", "exact", "--radius", "8")
+check(code == 0 and "warning" in err and "--nodata -9999" in err,
+      f"an undeclared -9999 on the border is warned about, naming --nodata ({err[:200]})")
+code, err = run("bake", UNDECL, "-o", os.path.join(WORK, "u_decl"), "--format", "geotiff",
+                "--outputs", "svf", "--method", "exact", "--radius", "8", "--nodata", "-9999")
+check(code == 0 and "warning" not in err, f"declared, no warning ({err[:200]})")
 code, err = run("bake", SCALED, "-o", os.path.join(WORK, "u_curved"), "--format", "geotiff",
                 "--outputs", "angles", "--method", "exact", "--height-scale", "0.0008")
 check(code == 2 and "earth_curvature" in err, f"a read scale with the drop on is refused ({err[:160]})")

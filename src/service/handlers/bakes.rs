@@ -567,7 +567,7 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
     // stream (OpenEXR, interlaced PNG, planar TIFF) rather than fail the bake at its split.
     let (bytes, stored) = if st.0.config.tiles.tiles(width, height) {
         let store = st.0.jobs.blob_store().clone();
-        let channel = params.channel;
+        let channel = params.decode_channel();
         blocking(move || {
             match (&bytes, &stored) {
                 (Some(b), _) => {

@@ -114,8 +114,13 @@ pub async fn heights(
     let etag = format!(
         "\"{}\"",
         blake3::hash(
-            format!("heights|{}|{:?}|{}", rec.input_blob, params.channel, params.height_scale)
-                .as_bytes()
+            format!(
+                "heights|{}|{:?}|{}",
+                rec.input_blob,
+                params.decode_channel(),
+                params.height_scale
+            )
+            .as_bytes()
         )
         .to_hex()
     );
