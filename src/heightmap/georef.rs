@@ -345,6 +345,19 @@ impl Georef {
         })
     }
 
+    /// For a geographic DEM of `height` rows: the latitude of its centre row and the ratio of
+    /// a cell's east–west to its north–south extent there (cos φ for square degree cells),
+    /// which a single `cell_size` cannot hold.
+    pub fn geographic_squeeze(&self, height: usize) -> Option<(f64, f64)> {
+        if self.model() != "geographic" {
+            return None;
+        }
+        let t = self.transform()?;
+        let lat = t[3] + t[5] * height as f64 / 2.0;
+        let ratio = lat.to_radians().cos() * (t[1] / t[5]).abs();
+        (lat.abs() <= 90.0).then_some((lat, ratio))
+    }
+
     /// The GDAL geotransform (PixelIsPoint shifted by half a texel, as GDAL does).
     pub fn transform(&self) -> Option<[f64; 6]> {
         let mut t = if let Some(m) = self.transformation.as_ref().filter(|m| m.len() >= 8) {

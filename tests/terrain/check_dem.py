@@ -125,6 +125,8 @@ code, err = run("bake", SRC, "-o", os.path.join(WORK, "geo"), "--format", "geoti
                 "--outputs", "svf", "--method", "exact", "--radius", "unlimited",
                 "--cell-size", "750")
 check(code == 0, f"elev.tif bakes with --cell-size 750 (exit {code} {err[:200]})")
+check("0.64" in err and "as wide as" in err and "gdalwarp -t_srs" in err,
+      f"... with a warning that its cells are cos(49.7 deg) = 0.64x as wide as tall ({err[:200]})")
 if code == 0:
     with rasterio.open(os.path.join(WORK, "geo", "svf.tif")) as o, rasterio.open(SRC) as s:
         check(o.crs == s.crs and o.transform.almost_equals(s.transform, 1e-12),
