@@ -944,23 +944,19 @@ async fn terrain_products_over_http() {
     srv.stop().await;
 }
 
-/// SPEC §2: a DEM posted without `method` and `radius` is baked by a line of sight to the edge
-/// (`sweep`, curvature on), and `bins` for angles alone may be any count, as for every ray
-/// method; a PNG keeps `lengyel` at 16 texels, and its `bins` must then be a multiple of 16
-/// (a 422 naming `bins`). Before, the DEM was baked by `lengyel` at 16 texels.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_dem_without_method_bakes_a_line_of_sight() {
+/// A 24×20 float32 GeoTIFF DEM in EPSG:32632 with 30 m cells: a ridge running north-south in
+/// metres, nodata -9999, its heights first passed to `edit`.
+fn ridge_geotiff(edit: impl FnOnce(&mut [f32])) -> Vec<u8> {
     use horizon_bake::encode::geotiff;
     use horizon_bake::heightmap::georef::Georef;
-    let srv = Server::start(|_| {}).await;
-    let c = client();
     let (w, h) = (24usize, 20usize);
-    let dem: Vec<f32> = (0..w * h)
+    let mut dem: Vec<f32> = (0..w * h)
         .map(|k| {
             let (x, y) = ((k % w) as f32, (k / w) as f32);
             400.0 + 300.0 * (-(x - 12.0).powi(2) / 8.0).exp() + 2.0 * y
         })
         .collect();
+    edit(&mut dem);
     let g = Georef {
         pixel_scale: Some(vec![30.0, 30.0, 0.0]),
         tiepoints: Some(vec![0.0, 0.0, 0.0, 500000.0, 5500000.0, 0.0]),
@@ -968,7 +964,18 @@ async fn a_dem_without_method_bakes_a_line_of_sight() {
         ..Georef::default()
     };
     let band = [geotiff::Band { plane: &dem, description: "dem".into() }];
-    let tif = geotiff::encode(w, h, &band, Some(&g), -9999.0).unwrap();
+    geotiff::encode(w, h, &band, Some(&g), -9999.0).unwrap()
+}
+
+/// SPEC §2: a DEM posted without `method` and `radius` is baked by a line of sight to the edge
+/// (`sweep`, curvature on), and `bins` for angles alone may be any count, as for every ray
+/// method; a PNG keeps `lengyel` at 16 texels, and its `bins` must then be a multiple of 16
+/// (a 422 naming `bins`). Before, the DEM was baked by `lengyel` at 16 texels.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_dem_without_method_bakes_a_line_of_sight() {
+    let srv = Server::start(|_| {}).await;
+    let c = client();
+    let tif = ridge_geotiff(|_| ());
     let post = |q: &'static str, body: Vec<u8>, ty: &'static str| {
         let c = c.clone();
         let url = srv.url(&format!("/v1/bakes?{q}"));
@@ -1015,28 +1022,11 @@ async fn a_dem_without_method_bakes_a_line_of_sight() {
 /// with the GeoTIFF's values (SVF quantised to 8 bits, shadow 0/255, holes transparent).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn dem_resource_and_png_renderings() {
-    use horizon_bake::encode::geotiff;
-    use horizon_bake::heightmap::georef::Georef;
     let srv = Server::start(|_| {}).await;
     let c = client();
+    // A hole in one corner (nodata -9999).
     let (w, h) = (24usize, 20usize);
-    // A ridge running north-south in metres, a hole in one corner (nodata -9999).
-    let mut dem: Vec<f32> = (0..w * h)
-        .map(|k| {
-            let (x, y) = ((k % w) as f32, (k / w) as f32);
-            400.0 + 300.0 * (-(x - 12.0).powi(2) / 8.0).exp() + 2.0 * y
-        })
-        .collect();
-    dem[0] = -9999.0;
-    dem[1] = -9999.0;
-    let g = Georef {
-        pixel_scale: Some(vec![30.0, 30.0, 0.0]),
-        tiepoints: Some(vec![0.0, 0.0, 0.0, 500000.0, 5500000.0, 0.0]),
-        geo_keys: Some(vec![1, 1, 0, 3, 1024, 0, 1, 1, 3072, 0, 1, 32632, 3076, 0, 1, 9001]),
-        ..Georef::default()
-    };
-    let band = [geotiff::Band { plane: &dem, description: "dem".into() }];
-    let tif = geotiff::encode(w, h, &band, Some(&g), -9999.0).unwrap();
+    let tif = ridge_geotiff(|dem| dem[..2].fill(-9999.0));
     let q = "method=exact&radius=unlimited&outputs=horizon,angles,svf";
     let res = c
         .post(srv.url(&format!("/v1/bakes?{q}")))
