@@ -249,13 +249,14 @@ impl kernels::sweep::FarSpill for FileSpill {
 pub const EARTH_RADIUS_M: f64 = 6_371_000.0;
 
 /// The earth-curvature drop per texel² in texels (0 when off or without a cell size): a point s
-/// texels away is s·cell metres away and drops (s·cell)² / (2 R_e) metres, which is that times
-/// `height_scale` texels, R_e = 6 371 km / (1 − refraction).
+/// texels away is s·cell·u metres away (u metres per map unit) and drops (s·cell·u)² / (2 R_e)
+/// metres, which is that / u map units of height, times `height_scale` texels, R_e = 6 371 km /
+/// (1 − refraction).
 pub fn curvature(params: &BakeParams) -> f64 {
     match (params.earth_curvature, params.cell_size) {
         (crate::params::EarthCurvature::On, Some(cell)) => {
             let re = EARTH_RADIUS_M / (1.0 - params.refraction);
-            cell * cell * params.height_scale / (2.0 * re)
+            cell * cell * params.linear_unit_m * params.height_scale / (2.0 * re)
         }
         _ => 0.0,
     }

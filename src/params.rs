@@ -308,6 +308,11 @@ pub struct BakeParams {
     /// The band (sample) of a multi-band TIFF the heights are read from, 1-based; `None`:
     /// `channel` decides (a DEM with several bands then needs it, SPEC §2).
     pub band: Option<u8>,
+    /// Metres per map unit of the input's CRS (1 for metre CRSs, cell sizes given in metres and
+    /// plain images): read from the input with the DEM defaults, never a parameter; the
+    /// curvature drop is in metres.
+    #[serde(skip)]
+    pub linear_unit_m: f64,
     /// Which of the above were given (the rest may take the DEM defaults).
     #[serde(skip)]
     pub explicit: Explicit,
@@ -338,6 +343,7 @@ impl Default for BakeParams {
             azimuth_from: AzimuthFrom::EastCcw,
             svf_model: SvfModel::Radiative,
             band: None,
+            linear_unit_m: 1.0,
             explicit: Explicit::default(),
         }
     }

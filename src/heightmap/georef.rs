@@ -263,8 +263,12 @@ impl Georef {
     }
 
     /// Metres per map unit of a projected CRS (ProjLinearUnitsGeoKey; silent keys: metre, as
-    /// GeoTIFF 1.1 writers leave it to the EPSG code).
-    fn linear_unit_m(&self) -> f64 {
+    /// GeoTIFF 1.1 writers leave it to the EPSG code; 1 for any other model, whose `cell_size`
+    /// is given in metres).
+    pub fn linear_unit_m(&self) -> f64 {
+        if self.model() != "projected" {
+            return 1.0;
+        }
         match self.key(KEY_PROJ_LINEAR_UNITS) {
             Some(9002) => 0.3048,
             Some(9003) => 1200.0 / 3937.0,
@@ -457,6 +461,9 @@ pub fn apply_dem_defaults(params: &mut BakeParams, georef: Option<&Georef>) -> R
             params.radius = Radius::Unlimited;
         }
     }
+    // The drop is in metres, the map in its CRS's unit (SPEC §2): always from the input, as
+    // it is no parameter the stored pairs could carry.
+    params.linear_unit_m = dem.map_or(1.0, Georef::linear_unit_m);
     // The methods that cast rays, and so can lower far points (lengyel has no ray).
     let rays = matches!(params.method, Method::Exact | Method::March | Method::Sweep);
     if let Some(g) = dem {

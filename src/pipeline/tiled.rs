@@ -258,7 +258,7 @@ impl Tiler for PipelineTiler {
         progress: &Progress,
         blobs: &Blobs,
     ) -> Result<BTreeMap<String, String>> {
-        let params = params_of(rec)?;
+        let mut params = params_of(rec)?;
         let formats = formats_of(rec)?;
         let bytes = blobs
             .get(&tile.input_blob)?
@@ -268,7 +268,11 @@ impl Tiler for PipelineTiler {
         let window = if tile.context.stats.is_null() {
             raw_window(heights)
         } else {
-            heights.into_map(&MapStats::from_json(&tile.context.stats)?)
+            let stats = MapStats::from_json(&tile.context.stats)?;
+            // What the untiled bake reads from the input with the DEM defaults.
+            let dem = stats.georef.as_ref().filter(|g| g.is_dem());
+            params.linear_unit_m = dem.map_or(1.0, |g| g.linear_unit_m());
+            heights.into_map(&stats)
         };
         let mut w = blobs.writer()?;
         bake_tile_into(window, &params, &formats, &tile.context, tile.index, progress, &mut w)?;

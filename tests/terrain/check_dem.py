@@ -255,6 +255,34 @@ got, b = angles_of(NOCRS, "u_nocrs", "--cell-size", "250")
 check(np.abs(got - want).max() < 1e-9 and b["params"]["edge"] == "none"
       and abs(b["params"]["height_scale"] - 1 / 250) < 1e-15,
       "a transform without a CRS and --cell-size bakes as the DEM it is (edge none, 1/cell)")
+# A CRS in US survey feet (heights in the same unit): the curvature drop is computed in metres
+# (before, d^2/(2 R_e) took feet for metres: 3.28x the drop).
+FT = 1200.0 / 3937.0
+USFT = os.path.join(WORK, "usft.tif")
+with rasterio.open(USFT, "w", driver="GTiff", dtype="float32", width=64, height=64, count=1,
+                   crs="EPSG:2227", transform=Affine(250 / FT, 0, 6e6, 0, -250 / FT, 2e6)) as d:
+    d.write((piece / FT).astype(np.float32), 1)
+
+
+def curved_angles(path, name):
+    out = os.path.join(WORK, name)
+    code, err = run("bake", path, "-o", out, "--format", "geotiff", "--outputs", "angles",
+                    "--method", "exact", "--radius", "unlimited", "--bins", "16")
+    check(code == 0, f"{name} bakes with the drop (exit {code} {err[:200]})")
+    with rasterio.open(os.path.join(out, "angles.tif")) as a:
+        return a.read().astype(np.float64), json.load(open(os.path.join(out, "bake.json")))
+
+
+m_curved, _ = curved_angles(PLAIN, "c_metre")
+f_curved, bf = curved_angles(USFT, "c_usft")
+drop = np.abs(m_curved - want).max()
+off = np.abs(f_curved - m_curved).max()
+check(bf["georeferencing"]["units"] == "us_survey_foot" and bf["params"]["earth_curvature"] == "on",
+      f"EPSG:2227 is read in US survey feet ({bf['georeferencing']['units']})")
+check(drop > 0.01 and off < 1e-3,
+      f"in US survey feet the drop is the metre DEM's: max {off:.2e} deg apart (the drop "
+      f"itself moves angles by up to {drop:.3f} deg)")
+
 # Several bands: heights are one of them, named by --band; without it, refused naming band
 # (before: band 1 read as grey, band 2 as alpha). Band-interleaved files name their rewrite.
 two = np.stack([np.full_like(piece, 7.0), piece])
