@@ -718,6 +718,13 @@ impl Jobs {
                     "store unavailable during the bake: handing it back to the queue");
                 Outcome::Released
             }
+            // Fenced off meanwhile: what this run met (its tiles gone with the bake another
+            // worker finished, say) is no failure of the bake, and its outcome is not recorded.
+            Ended::Done(Err(e)) if lost.load(Ordering::SeqCst) => {
+                tracing::info!(bake = %id, error = %e,
+                    "lost the claim during the run: another worker has the bake; dropped");
+                Outcome::Released
+            }
             Ended::Done(Err(e)) => Outcome::Failed(failure_of(&id, &e)),
             Ended::TileFailed(f) => {
                 tracing::warn!(bake = %id, code = %f.code, error = %f.message, "tiled bake failed");

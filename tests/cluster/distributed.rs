@@ -275,6 +275,8 @@ async fn a_stalled_worker_cannot_overwrite_the_takeover() {
         log.contains("lease lost") || log.contains("claim is stale"),
         "the stalled worker did not notice it was fenced off:\n{log}"
     );
+    let errors: Vec<&str> = log.lines().filter(|l| l.contains("ERROR")).collect();
+    assert!(errors.is_empty(), "the fenced worker logged errors: {errors:#?}");
 }
 
 /// SIGTERM of a worker hands its bake back and another finishes it.
