@@ -119,10 +119,19 @@ impl Sweep<'_> {
                         }
                     }
                     let floor = best;
-                    self.near.strip_from(n, x, y, &h0[j], &mut best);
+                    let k = y * w + x;
+                    // A strip whose every texel is a hole or within reach of one takes the
+                    // exact walk (or 0) below for each lane: its vector near field would be
+                    // computed only to be replaced.
+                    let replaced = self
+                        .holes
+                        .as_ref()
+                        .is_some_and(|hl| (k..k + lanes).all(|t| hl.near[t] || hl.mask[t]));
+                    if !replaced {
+                        self.near.strip_from(n, x, y, &h0[j], &mut best);
+                    }
                     if let Some(hl) = &self.holes {
-                        let k = y * w + x;
-                        if hl.near[k..k + lanes].contains(&true) {
+                        if replaced || hl.near[k..k + lanes].contains(&true) {
                             for i in 0..lanes {
                                 best[i] = if hl.mask[k + i] {
                                     0.0
