@@ -350,6 +350,10 @@ pub fn run(args: BakeArgs) -> Result<()> {
     formats.texture = args.texture.options(Some(&args.texture_precision))?;
     if formats.ktx2 || formats.dds {
         formats.texture.check_for(formats.ktx2, formats.dds, false)?;
+        if formats.dds && formats.texture.zstd_level.is_some() {
+            // As the service's downloads: each container takes the options it has.
+            eprintln!("note: --supercompression zstd applies to the KTX2 files; DDS has none");
+        }
     } else if let Some(option) = args.texture.first_given() {
         return Err(Error::param(option, "applies only with --format ktx2 or dds"));
     }

@@ -75,6 +75,10 @@ pub fn run(args: CubemapArgs) -> Result<()> {
     formats.texture = args.texture.options(None)?;
     if formats.ktx2 || formats.dds {
         formats.texture.check_for(formats.ktx2, formats.dds, true)?;
+        if formats.dds && formats.texture.zstd_level.is_some() {
+            // As the service's downloads: each container takes the options it has.
+            eprintln!("note: --supercompression zstd applies to the KTX2 files; DDS has none");
+        }
     } else if let Some(option) = args.texture.first_given() {
         return Err(Error::param(option, "applies only with --format ktx2 or dds"));
     }

@@ -654,3 +654,36 @@ fn shadow_and_profile_say_a_method_they_do_not_use() {
     assert!(note.contains("--method march is not used"), "{note}");
     assert_eq!(marched, exact);
 }
+
+/// zstd with `dds` alone is refused naming `supercompression`; with `ktx2,dds` the KTX2 files
+/// take it and the DDS files (which have none) are written as without it, and stderr says so
+/// (issue 45: it exited 0 silently while the reference said exit 2).
+#[test]
+fn zstd_is_for_the_ktx2_files_and_says_so_beside_dds() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("h.png");
+    std::fs::write(&input, terrain_png16(32, 32, 3)).unwrap();
+    let inp = input.to_str().unwrap();
+    let bake = |out: &str, format: &str, zstd: bool| {
+        let out = dir.path().join(out);
+        let mut args = vec!["bake", inp, "-o", out.to_str().unwrap(), "--format", format];
+        if zstd {
+            args.extend(["--supercompression", "zstd"]);
+        }
+        let o = run(&args);
+        (o.status.code(), String::from_utf8_lossy(&o.stderr).to_string(), out)
+    };
+    let (code, err, _) = bake("a", "dds", true);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("supercompression"), "{err}");
+    let (code, err, both) = bake("b", "ktx2,dds", true);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(err.contains("applies to the KTX2 files; DDS has none"), "{err}");
+    let (_, quiet, plain) = bake("c", "ktx2,dds", false);
+    assert!(!quiet.contains("note"), "{quiet}");
+    let file = |d: &PathBuf, n: &str| std::fs::read(d.join(n)).unwrap();
+    assert_eq!(file(&both, "horizon.dds"), file(&plain, "horizon.dds"));
+    // The KTX2 is supercompressed: supercompressionScheme (offset 44) is 2, zstd.
+    assert_eq!(file(&both, "horizon.ktx2")[44..48], 2u32.to_le_bytes());
+    assert_eq!(file(&plain, "horizon.ktx2")[44..48], 0u32.to_le_bytes());
+}
