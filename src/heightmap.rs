@@ -93,6 +93,29 @@ pub struct Terrain {
 pub const HOLE_DEPTH: f32 = 1000.0;
 
 impl HeightMap {
+    /// The warnings of SPEC §2 for this map as decoded: an undeclared nodata (see
+    /// [`HeightMap::suspected_nodata`]) and a geographic grid's cells, cos φ as wide as tall,
+    /// given one cell size.
+    pub fn dem_warnings(&self) -> Vec<String> {
+        let mut out = Vec::new();
+        let g = self.terrain.georef.as_ref();
+        let squeeze = g.and_then(|g| g.geographic_squeeze(self.height));
+        if let Some((lat, ratio)) = squeeze.filter(|(_, r)| (r - 1.0).abs() > 0.01) {
+            out.push(format!(
+                "the DEM is in degrees: at {lat:.2}° its cells are {ratio:.3}× as wide as they \
+                 are tall, which one cell_size cannot hold (angles off east–west); reproject \
+                 it (`gdalwarp -t_srs EPSG:<UTM zone> -r bilinear in.tif out.tif`)"
+            ));
+        }
+        if let Some(v) = self.suspected_nodata() {
+            out.push(format!(
+                "the DEM declares no nodata, and {v} on its border looks like one; it is baked \
+                 as a height (give nodata={v} to make it a hole)"
+            ));
+        }
+        out
+    }
+
     /// A value that looks like an undeclared nodata on a DEM with none declared: one of the
     /// sentinels GIS tools write (−9999, −32768, ±3.4028235e38 as f32::MAX) on the map's
     /// border, where warps and clips leave them (SPEC §2: baked as it is, with a warning).
@@ -478,6 +501,9 @@ pub fn check_submission_for_in(
     if probed.0 != image::ImageFormat::Png || !matches!(params.nodata, NoData::Auto) {
         let (map, _, _held) = decode_for_in(bytes, params, limits, admit)?;
         report = map.terrain.georef.as_ref().map(|g| g.report(params.cell_size));
+        if let Some(r) = &mut report {
+            r.warnings = map.dem_warnings();
+        }
     } else {
         georef::apply_dem_defaults(params, None)?;
     }

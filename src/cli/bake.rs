@@ -380,24 +380,21 @@ pub fn run(args: BakeArgs) -> Result<()> {
     let bytes = std::fs::read(&args.input)
         .map_err(|e| Error::InvalidInput(format!("cannot read {}: {e}", args.input.display())))?;
     let (map, info) = heightmap::decode_for(&bytes, &mut params, &args.limits())?;
-    let squeeze = map.terrain.georef.as_ref().and_then(|g| g.geographic_squeeze(map.height));
-    if let Some((lat, ratio)) = squeeze.filter(|(_, r)| (r - 1.0).abs() > 0.01) {
+    let warnings = map.dem_warnings();
+    for w in &warnings {
         eprintln!(
-            "warning: the DEM is in degrees: at {lat:.2}° its cells are {ratio:.3}× as wide as \
-             they are tall, which one --cell-size cannot hold (angles off east–west); \
-             reproject it (`gdalwarp -t_srs EPSG:<UTM zone> -r bilinear in.tif out.tif`)"
-        );
-    }
-    if let Some(v) = map.suspected_nodata() {
-        eprintln!(
-            "warning: the DEM declares no nodata, and {v} on its border looks like one; it is \
-             baked as a height (give --nodata {v} to make it a hole)"
+            "warning: {}",
+            w.replace("nodata=", "--nodata ").replace("one cell_size", "one --cell-size")
         );
     }
     crate::bake::fit_method(&mut params, map.width as u32, map.height as u32, false)?;
     drop(bytes);
-    let georeferencing =
-        map.terrain.georef.as_ref().filter(|g| g.is_dem()).map(|g| g.report(params.cell_size));
+    let georeferencing = map
+        .terrain
+        .georef
+        .as_ref()
+        .filter(|g| g.is_dem())
+        .map(|g| heightmap::georef::GeorefReport { warnings, ..g.report(params.cell_size) });
     let decode_ms = ms(t.elapsed());
 
     // One pipeline with the service's worker (crate::pipeline): PNG-only horizon outputs

@@ -72,6 +72,10 @@ pub struct GeorefReport {
     pub cell_size: Option<f64>,
     /// `metre`, `foot`, `us_survey_foot`, `degree` or the EPSG unit code.
     pub units: Option<String>,
+    /// What the input looks like it means but does not say (SPEC §2: an undeclared nodata, a
+    /// degree grid given one cell size): baked as it is, said here and on the CLI's stderr.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
 }
 
 impl Georef {
@@ -387,6 +391,7 @@ impl Georef {
             transform: self.transform(),
             cell_size,
             units: self.units(),
+            warnings: Vec::new(),
         }
     }
 

@@ -1002,6 +1002,14 @@ async fn a_dem_without_method_bakes_a_line_of_sight() {
     let angles = c.get(srv.url(&format!("{loc}/angles"))).send().await.unwrap();
     assert_eq!(angles.status(), 200);
 
+    // A -9999 border baked as heights (no nodata in effect) is said in the resource (SPEC §2).
+    let edged = ridge_geotiff(|dem| dem.chunks_mut(24).for_each(|row| row[0] = -9999.0));
+    let res = post("nodata=none&method=exact&radius=4", edged, "image/tiff").await;
+    assert_eq!(res.status(), 202);
+    let v: Value = res.json().await.unwrap();
+    let warnings = v["georeferencing"]["warnings"].as_array().cloned().unwrap_or_default();
+    assert!(warnings.iter().any(|w| w.as_str().is_some_and(|w| w.contains("nodata=-9999"))), "{v}");
+
     let png = terrain_png16(32, 32, 5);
     let res = post("", png.clone(), "image/png").await;
     assert_eq!(res.status(), 202);
