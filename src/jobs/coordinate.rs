@@ -60,6 +60,16 @@ pub struct Tiling {
 }
 
 impl Jobs {
+    /// Whether bake `id` is no longer running (gone, finished, or given back), read from the
+    /// repository: a run that meets an error then has lost its claim, not failed.
+    pub(super) async fn bake_ended(&self, id: &str) -> bool {
+        match self.0.repo.get(id).await {
+            Ok(None) => true,
+            Ok(Some(r)) => r.status != Status::Running,
+            Err(_) => false,
+        }
+    }
+
     /// Removes a finished tiled bake's tiles and the blobs only they referenced.
     pub(super) async fn drop_tiles(&self, id: &str) {
         match self.0.repo.remove_tiles(id).await {
@@ -131,8 +141,20 @@ impl Jobs {
             };
             if tiles.is_empty() {
                 // Another claim of this bake finished it and removed its tiles while this one
-                // stalled: the completion below is refused as stale (if not, something removed
-                // the tiles of a running bake, and it fails rather than assembles nothing).
+                // stalled (its heartbeat may not have said so yet): this claim is stale, and
+                // nothing it would record counts. Otherwise something removed the tiles of a
+                // running bake, and it fails rather than assembles nothing.
+                let stale = match self.0.repo.get(&claim.id).await {
+                    Ok(None) => true,
+                    Ok(Some(r)) => r.attempts != claim.attempt || r.status != Status::Running,
+                    Err(_) => false,
+                };
+                if stale {
+                    lost.store(true, Ordering::SeqCst);
+                    tracing::info!(bake = %claim.id, attempt = claim.attempt,
+                        "the tiles went with the bake another claim finished: this one is stale");
+                    return Ended::Done(Err(Error::Canceled));
+                }
                 return Ended::Done(Err(Error::Internal(format!(
                     "the tiles of bake {} are gone",
                     claim.id
@@ -263,6 +285,16 @@ impl Jobs {
                 tracing::warn!(bake = %claim.bake_id, tile = claim.index, error = %e,
                     "store unavailable during a tile: handing it back");
                 TileOutcome::Released
+            }
+            // What a tile meets once its bake was finished elsewhere (its blobs gone) is no
+            // failure: the claim is stale, whether or not its heartbeat has said so yet.
+            Some(Err(e))
+                if lost.load(Ordering::SeqCst) || self.bake_ended(&claim.bake_id).await =>
+            {
+                lost.store(true, Ordering::SeqCst);
+                tracing::info!(bake = %claim.bake_id, tile = claim.index, error = %e,
+                    "the tile's bake ended elsewhere during the run: dropped");
+                TileOutcome::Canceled
             }
             Some(Err(e)) => TileOutcome::Failed(failure_of(&key, &e)),
             None => {

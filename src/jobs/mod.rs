@@ -704,6 +704,20 @@ impl Jobs {
         let seconds = started.elapsed().as_secs_f64();
         let texels = claim.record.width as u64 * claim.record.height as u64;
 
+        // An error met after another claim took the bake over is the loss of this claim, even
+        // before a heartbeat has said so: the record shows another attempt (or an end).
+        if matches!(&ended, Ended::Done(Err(e)) if !matches!(e, Error::Canceled))
+            && !lost.load(Ordering::SeqCst)
+        {
+            let taken = match self.0.repo.get(&id).await {
+                Ok(None) => true,
+                Ok(Some(r)) => r.attempts != claim.attempt || r.status != Status::Running,
+                Err(_) => false,
+            };
+            if taken {
+                lost.store(true, Ordering::SeqCst);
+            }
+        }
         let outcome = match ended {
             Ended::Done(Ok(rec)) => Outcome::Succeeded(rec),
             Ended::Done(Err(Error::Canceled)) if run.requeue.load(Ordering::SeqCst) => {
