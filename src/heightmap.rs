@@ -103,14 +103,15 @@ impl HeightMap {
         if let Some((lat, ratio)) = squeeze.filter(|(_, r)| (r - 1.0).abs() > 0.01) {
             out.push(format!(
                 "the DEM is in degrees: at {lat:.2}° its cells are {ratio:.3}× as wide as they \
-                 are tall, which one cell_size cannot hold (angles off east–west); reproject \
+                 are tall, which one cell_size (`--cell-size`) cannot hold (angles off \
+                 east–west); reproject \
                  it (`gdalwarp -t_srs EPSG:<UTM zone> -r bilinear in.tif out.tif`)"
             ));
         }
         if let Some(v) = self.suspected_nodata() {
             out.push(format!(
                 "the DEM declares no nodata, and {v} on its border looks like one; it is baked \
-                 as a height (give nodata={v} to make it a hole)"
+                 as a height (give nodata={v}, `--nodata {v}` on the CLI, to make it a hole)"
             ));
         }
         out
@@ -937,8 +938,6 @@ fn decode_exr(bytes: &[u8], channel: Channel) -> Result<Decoded> {
     }
 }
 
-/// Picks the height from interleaved samples with `n` channels per texel (1 gray, 2 gray+alpha,
-/// 3 RGB, 4 RGBA), after normalising each sample with `f`.
 /// [`samples`], or sample `band` of each texel when one is picked.
 fn take<T: Copy>(
     buf: &[T],
@@ -985,6 +984,8 @@ fn dem_band(n: usize, color: &str, channel: Channel) -> Result<usize> {
     Ok(i)
 }
 
+/// Picks the height from interleaved samples with `n` channels per texel (1 gray, 2 gray+alpha,
+/// 3 RGB, 4 RGBA), after normalising each sample with `f`.
 fn samples<T: Copy>(buf: &[T], n: usize, channel: Channel, f: impl Fn(T) -> f32) -> Vec<f32> {
     match n {
         1 | 2 => buf.iter().step_by(n).map(|&v| f(v)).collect(),

@@ -382,10 +382,7 @@ pub fn run(args: BakeArgs) -> Result<()> {
     let (map, info) = heightmap::decode_for(&bytes, &mut params, &args.limits())?;
     let warnings = map.dem_warnings();
     for w in &warnings {
-        eprintln!(
-            "warning: {}",
-            w.replace("nodata=", "--nodata ").replace("one cell_size", "one --cell-size")
-        );
+        eprintln!("warning: {w}");
     }
     crate::bake::fit_method(&mut params, map.width as u32, map.height as u32, false)?;
     drop(bytes);

@@ -433,8 +433,8 @@ impl Georef {
 /// Applies the DEM defaults of SPEC §2 to the parameters not given explicitly: `method=sweep`
 /// (and, with it, `radius=unlimited` unless `radius` or `max_distance` is given), `cell_size` =
 /// the pixel scale, `height_scale` = 1 / `cell_size`, `edge=none`, `earth_curvature=on` (with a
-/// ray method). Then the full [`BakeParams::check`]. For a
-/// plain image only `cell_size` given by hand makes `max_distance` and the curvature usable.
+/// ray method). Then the full [`BakeParams::check`]. For a plain image only `cell_size` given
+/// by hand makes `max_distance` and the curvature usable.
 /// Idempotent: parameters already resolved (and so explicit) stay as they are.
 ///
 /// # Errors

@@ -61,11 +61,22 @@ pub struct Tiling {
 
 impl Jobs {
     /// Whether bake `id` is no longer running (gone, finished, or given back), read from the
-    /// repository: a run that meets an error then has lost its claim, not failed.
+    /// repository: a tile that meets an error then has lost its claim, not failed.
     pub(super) async fn bake_ended(&self, id: &str) -> bool {
         match self.0.repo.get(id).await {
             Ok(None) => true,
             Ok(Some(r)) => r.status != Status::Running,
+            Err(_) => false,
+        }
+    }
+
+    /// Whether another claim took `claim`'s bake over (another attempt) or it ended, read from
+    /// the repository: what the run meets then is the loss of its claim, even before a
+    /// heartbeat has said so. An unreachable repository says no: the heartbeat decides later.
+    pub(super) async fn claim_taken(&self, claim: &Claim) -> bool {
+        match self.0.repo.get(&claim.id).await {
+            Ok(None) => true,
+            Ok(Some(r)) => r.attempts != claim.attempt || r.status != Status::Running,
             Err(_) => false,
         }
     }
@@ -144,12 +155,7 @@ impl Jobs {
                 // stalled (its heartbeat may not have said so yet): this claim is stale, and
                 // nothing it would record counts. Otherwise something removed the tiles of a
                 // running bake, and it fails rather than assembles nothing.
-                let stale = match self.0.repo.get(&claim.id).await {
-                    Ok(None) => true,
-                    Ok(Some(r)) => r.attempts != claim.attempt || r.status != Status::Running,
-                    Err(_) => false,
-                };
-                if stale {
+                if self.claim_taken(claim).await {
                     lost.store(true, Ordering::SeqCst);
                     tracing::info!(bake = %claim.id, attempt = claim.attempt,
                         "the tiles went with the bake another claim finished: this one is stale");

@@ -708,15 +708,9 @@ impl Jobs {
         // before a heartbeat has said so: the record shows another attempt (or an end).
         if matches!(&ended, Ended::Done(Err(e)) if !matches!(e, Error::Canceled))
             && !lost.load(Ordering::SeqCst)
+            && self.claim_taken(&claim).await
         {
-            let taken = match self.0.repo.get(&id).await {
-                Ok(None) => true,
-                Ok(Some(r)) => r.attempts != claim.attempt || r.status != Status::Running,
-                Err(_) => false,
-            };
-            if taken {
-                lost.store(true, Ordering::SeqCst);
-            }
+            lost.store(true, Ordering::SeqCst);
         }
         let outcome = match ended {
             Ended::Done(Ok(rec)) => Outcome::Succeeded(rec),
