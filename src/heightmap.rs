@@ -162,6 +162,48 @@ impl HeightMap {
         check_finite(&values, width)?;
         Ok(HeightMap { width, height, values, terrain: Terrain::default() })
     }
+
+    /// A height map from decoded samples, as every decoder ends: `values` normalised as
+    /// [`HeightMap`] holds them (`stored` = the integer scale they were divided by, 255 or
+    /// 65535, or 1 for samples kept as-is), `nodata` resolved against `georef`'s GDAL_NODATA,
+    /// its holes marked (compared as stored) and filled, the other values checked. The Python
+    /// package builds arrays into maps through this, so an array and the same image in a file
+    /// bake alike.
+    ///
+    /// # Errors
+    /// [`Error::InvalidInput`] on a size mismatch, a map with no texel left, a non-finite or
+    /// too-large value that is not nodata.
+    pub fn from_samples(
+        width: usize,
+        height: usize,
+        mut values: Vec<f32>,
+        stored: f64,
+        nodata: NoData,
+        georef: Option<georef::Georef>,
+    ) -> Result<Self> {
+        if width == 0 || height == 0 || values.len() != width * height {
+            return Err(Error::InvalidInput(format!(
+                "{} values do not make a {width}×{height} map",
+                values.len()
+            )));
+        }
+        let nodata = match nodata {
+            NoData::Auto => georef.as_ref().and_then(|g| g.nodata()),
+            NoData::None => None,
+            NoData::Nan => Some(f64::NAN),
+            NoData::Value(v) => Some(v),
+        };
+        let holes = nodata.map(|nd| mark_holes(&values, stored, nd)).transpose()?.flatten();
+        match &holes {
+            Some(holes) => fill_holes(&mut values, holes, width)?,
+            None => {
+                check_finite(&values, width)?;
+                check_range(&values, width)?;
+            }
+        }
+        let terrain = Terrain { georef, nodata, holes };
+        Ok(HeightMap { width, height, values, terrain })
+    }
 }
 
 /// Largest absolute height value accepted (before `height_scale`). With `height_scale` at most
@@ -636,21 +678,6 @@ pub fn decode_with_in(
             d.values.len()
         )));
     }
-    let mut d = d;
-    let nodata = match nodata {
-        NoData::Auto => d.georef.as_ref().and_then(|g| g.nodata()),
-        NoData::None => None,
-        NoData::Nan => Some(f64::NAN),
-        NoData::Value(v) => Some(v),
-    };
-    let holes = nodata.map(|nd| mark_holes(&d.values, d.stored, nd)).transpose()?.flatten();
-    match &holes {
-        Some(holes) => fill_holes(&mut d.values, holes, w as usize)?,
-        None => {
-            check_finite(&d.values, w as usize)?;
-            check_range(&d.values, w as usize)?;
-        }
-    }
     let info = InputInfo {
         width: w,
         height: h,
@@ -660,9 +687,9 @@ pub fn decode_with_in(
         float: d.float,
         content_hash: blake3::hash(bytes).to_hex().to_string(),
     };
-    let terrain = Terrain { georef: d.georef, nodata, holes };
+    let map =
+        HeightMap::from_samples(w as usize, h as usize, d.values, d.stored, nodata, d.georef)?;
     held.shrink_to(est.kept);
-    let map = HeightMap { width: w as usize, height: h as usize, values: d.values, terrain };
     Ok((map, info, held))
 }
 

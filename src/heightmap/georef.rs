@@ -78,7 +78,66 @@ pub struct GeorefReport {
     pub warnings: Vec<String>,
 }
 
+/// The coordinate model of a CRS given outside a TIFF (the Python package's `crs`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CrsModel {
+    Projected,
+    Geographic,
+}
+
 impl Georef {
+    /// The georeferencing a GeoTIFF with this GDAL geotransform and CRS would carry: the
+    /// tags [`Georef::read`] would return for it (pixel scale and tie point for a north-up
+    /// grid, a model transformation otherwise; the model, EPSG code and linear unit as
+    /// GeoKeys). For arrays that come with a transform and a CRS instead of TIFF tags (rasterio,
+    /// xarray), so the DEM defaults and refusals of SPEC §2 apply to them alike.
+    /// `model` `None` is a transform without a CRS (no GeoKeys: a DEM only with `cell_size`
+    /// given); `epsg` 0 is a user-defined CRS; `linear_unit` is the EPSG unit code (9001 metre,
+    /// 9002 foot, 9003 US survey foot) of a projected CRS; `nodata` becomes GDAL_NODATA.
+    pub fn from_gdal(
+        transform: [f64; 6],
+        model: Option<CrsModel>,
+        epsg: u16,
+        linear_unit: u16,
+        nodata: Option<f64>,
+    ) -> Georef {
+        let t = transform;
+        let (pixel_scale, tiepoints, transformation) = if t[2] == 0.0 && t[4] == 0.0 {
+            (Some(vec![t[1], -t[5], 0.0]), Some(vec![0.0, 0.0, 0.0, t[0], t[3], 0.0]), None)
+        } else {
+            let m = vec![
+                t[1], t[2], 0.0, t[0], t[4], t[5], 0.0, t[3], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+                1.0,
+            ];
+            (None, None, Some(m))
+        };
+        let code = if epsg == 0 { 32767 } else { epsg };
+        let mut keys: Vec<[u16; 4]> = vec![[KEY_RASTER_TYPE, 0, 1, 1]];
+        match model {
+            None => {}
+            Some(CrsModel::Projected) => {
+                keys.insert(0, [KEY_MODEL_TYPE, 0, 1, 1]);
+                keys.push([KEY_PROJECTED_CS_TYPE, 0, 1, code]);
+                keys.push([KEY_PROJ_LINEAR_UNITS, 0, 1, linear_unit]);
+            }
+            Some(CrsModel::Geographic) => {
+                keys.insert(0, [KEY_MODEL_TYPE, 0, 1, 2]);
+                keys.push([KEY_GEOGRAPHIC_TYPE, 0, 1, code]);
+            }
+        }
+        let mut geo_keys = vec![1, 1, 0, keys.len() as u16];
+        geo_keys.extend(keys.into_iter().flatten());
+        let gdal_nodata = nodata.map(|v| if v.is_nan() { "nan".to_owned() } else { v.to_string() });
+        Georef {
+            pixel_scale,
+            tiepoints,
+            transformation,
+            geo_keys: model.map(|_| geo_keys),
+            gdal_nodata,
+            ..Georef::default()
+        }
+    }
+
     /// Reads the georeferencing tags of the current image of `dec` (all absent: `None`).
     ///
     /// # Errors
@@ -582,5 +641,30 @@ mod tests {
         let us = keys(&[4096, 0, 1, 5703, 4099, 0, 1, 9003]).vertical_unit();
         assert_eq!(us, Ok(Some(("us_survey_foot", 1200.0 / 3937.0))));
         assert_eq!(keys(&[4096, 0, 1, 1234]).vertical_unit(), Err(1234));
+    }
+
+    /// A geotransform and CRS given outside a TIFF read back as the same transform, model,
+    /// EPSG code, unit and nodata, and pass the checks a decoded GeoTIFF passes.
+    #[test]
+    fn from_gdal_round_trips_the_transform_and_crs() {
+        let t = [500_000.0, 20.0, 0.0, 4_000_000.0, 0.0, -20.0];
+        let g = Georef::from_gdal(t, Some(CrsModel::Projected), 32633, 9002, Some(-9999.0));
+        assert!(g.is_dem());
+        assert!(g.check().is_ok());
+        assert_eq!(g.transform(), Some(t));
+        assert_eq!((g.model(), g.epsg(), g.linear_unit_m()), ("projected", Some(32633), 0.3048));
+        assert_eq!(g.nodata(), Some(-9999.0));
+        assert_eq!(g.cell_size().ok(), Some(20.0));
+        let rotated = [10.0, 1.0, 0.5, 20.0, 0.5, -1.0];
+        let g = Georef::from_gdal(rotated, Some(CrsModel::Geographic), 4326, 9001, Some(f64::NAN));
+        assert_eq!(g.transform(), Some(rotated));
+        assert_eq!((g.model(), g.epsg()), ("geographic", Some(4326)));
+        assert!(g.nodata().is_some_and(f64::is_nan));
+        assert!(matches!(g.cell_size(), Err(Error::InvalidInput(m)) if m.contains("EPSG:4326")));
+        let custom = Georef::from_gdal(t, Some(CrsModel::Projected), 0, 9001, None);
+        assert_eq!((custom.epsg(), custom.nodata()), (None, None));
+        let bare = Georef::from_gdal(t, None, 0, 0, None);
+        assert!(!bare.is_dem());
+        assert_eq!(bare.transform(), Some(t));
     }
 }

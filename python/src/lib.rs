@@ -1,0 +1,428 @@
+//! The native half of the `horizon_bake` Python package: the library's bake on numpy arrays.
+//!
+//! It is a thin edge, like the CLI and the HTTP handlers: arrays become a [`HeightMap`] through
+//! the same constructor every decoder ends in ([`HeightMap::from_samples`]), keyword parameters
+//! become [`BakeParams`] through the same textual pairs the CLI and the service parse, the DEM
+//! defaults and method fitting are the CLI's, and the bake is [`horizon_bake::bake`]'s. So an
+//! array and the same image in a file bake to the same values. What is Python's (argument
+//! conversion, the result object, the exception classes) lives in `horizon_bake/*.py`; this
+//! module only does what needs the library.
+//!
+//! A bake runs on its own thread (the kernels on rayon's pool) with the GIL released; the
+//! calling thread wakes every few tens of milliseconds to report progress to the callback and to
+//! check for KeyboardInterrupt. A callback that returns `False` or raises, and Ctrl-C, cancel
+//! the bake through [`Progress::cancel`], which the kernels check between bands of rows.
+
+use horizon_bake::bake::{self as hb, Precisions, ResolvedRadius};
+use horizon_bake::heightmap::georef::{apply_dem_defaults, CrsModel, Georef};
+use horizon_bake::heightmap::HeightMap;
+use horizon_bake::params::BakeParams;
+use horizon_bake::progress::Progress;
+use horizon_bake::Error;
+use numpy::{PyArray1, PyArrayMethods, PyReadonlyArray2, PyUntypedArrayMethods};
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyList};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::{Duration, Instant};
+
+/// How often the waiting thread reports progress and checks for Ctrl-C.
+const POLL: Duration = Duration::from_millis(50);
+
+/// The library's error as the package's exception (`horizon_bake._errors`), with the message the
+/// CLI prints after `horizon-bake: `, the problem+json `code`, and the parameter's name for a
+/// parameter error.
+fn raise(py: Python<'_>, e: Error) -> PyErr {
+    let class = match &e {
+        Error::Param { .. } => "ParameterError",
+        Error::Decode(_) | Error::Unsupported(_) | Error::InvalidInput(_) => "InputError",
+        Error::Limits(_) | Error::MemoryBusy { .. } => "LimitError",
+        Error::Canceled => "Canceled",
+        _ => "HorizonBakeError",
+    };
+    let field = match &e {
+        Error::Param { field, .. } => Some(field.as_str()),
+        _ => None,
+    };
+    raise_as(py, class, &e.to_string(), e.code(), field)
+}
+
+/// An exception of class `class` of `horizon_bake._errors`.
+fn raise_as(py: Python<'_>, class: &str, message: &str, code: &str, field: Option<&str>) -> PyErr {
+    let made = py.import("horizon_bake._errors").and_then(|m| {
+        let kwargs = PyDict::new(py);
+        kwargs.set_item("code", code)?;
+        kwargs.set_item("field", field)?;
+        m.getattr(class)?.call((message,), Some(&kwargs))
+    });
+    match made {
+        Ok(exc) => PyErr::from_value(exc),
+        Err(err) => err,
+    }
+}
+
+/// Heights from a 2-D array of `uint8`, `uint16` or `float32` (the Python side converts every
+/// other dtype to `float32`), normalised as the image decoders do when `normalise` (integers to
+/// [0, 1], kept as stored × 255 or × 65535 for nodata), as-is otherwise (a DEM's samples).
+fn samples(heights: &Bound<'_, PyAny>, normalise: bool) -> PyResult<(usize, usize, Vec<f32>, f64)> {
+    fn collect<T: numpy::Element + Copy>(
+        a: &PyReadonlyArray2<'_, T>,
+        f: impl Fn(T) -> f32,
+    ) -> (usize, usize, Vec<f32>) {
+        let (h, w) = (a.shape()[0], a.shape()[1]);
+        let values = match a.as_slice() {
+            Ok(s) => s.iter().map(|&v| f(v)).collect(),
+            Err(_) => a.as_array().iter().map(|&v| f(v)).collect(),
+        };
+        (w, h, values)
+    }
+    if let Ok(a) = heights.extract::<PyReadonlyArray2<'_, u8>>() {
+        let (w, h, v) = collect(&a, |v| if normalise { v as f32 / 255.0 } else { v as f32 });
+        return Ok((w, h, v, if normalise { 255.0 } else { 1.0 }));
+    }
+    if let Ok(a) = heights.extract::<PyReadonlyArray2<'_, u16>>() {
+        let (w, h, v) =
+            collect(&a, |v| if normalise { (v as f64 / 65535.0) as f32 } else { v as f32 });
+        return Ok((w, h, v, if normalise { 65535.0 } else { 1.0 }));
+    }
+    let a = heights.extract::<PyReadonlyArray2<'_, f32>>()?;
+    let (w, h, v) = collect(&a, |v| v);
+    Ok((w, h, v, 1.0))
+}
+
+/// The georeferencing of `(transform, model, epsg, linear_unit)` from the Python side, with the
+/// nodata the parameters declare as GDAL_NODATA (so `nodata=auto` finds it).
+fn georef_of(
+    georef: Option<([f64; 6], String, u16, u16)>,
+    nodata: Option<f64>,
+) -> PyResult<Option<Georef>> {
+    let Some((t, model, epsg, unit)) = georef else { return Ok(None) };
+    let model = match model.as_str() {
+        "projected" => Some(CrsModel::Projected),
+        "geographic" => Some(CrsModel::Geographic),
+        "none" => None,
+        other => {
+            return Err(pyo3::exceptions::PyValueError::new_err(format!(
+                "crs model `{other}`: projected, geographic or none"
+            )))
+        }
+    };
+    Ok(Some(Georef::from_gdal(t, model, epsg, unit, nodata)))
+}
+
+/// What one bake made, before it becomes Python objects.
+#[derive(Default)]
+struct Made {
+    radius: Option<ResolvedRadius>,
+    layers: Option<hb::HorizonLayers>,
+    fourier: Option<horizon_bake::kernels::fourier::FourierLayers>,
+    terrain: Option<hb::TerrainProducts>,
+    bake_ms: f64,
+}
+
+fn ms(t: Instant) -> f64 {
+    (t.elapsed().as_secs_f64() * 1e6).round() / 1e3
+}
+
+/// Runs the products `params.outputs` asks for, one after the other (terrain, horizon,
+/// Fourier, as the pipeline orders them); `step` counts the finished ones for the overall
+/// progress.
+fn run(
+    map: &HeightMap,
+    params: &BakeParams,
+    precisions: Precisions,
+    progress: &Progress,
+    step: &AtomicUsize,
+) -> horizon_bake::Result<Made> {
+    let t = Instant::now();
+    let mut made = Made::default();
+    if params.outputs.terrain() {
+        let (p, r) = hb::bake_terrain(map, params, progress)?;
+        made.terrain = Some(p);
+        made.radius = Some(r);
+        step.fetch_add(1, Ordering::Relaxed);
+    }
+    if params.outputs.horizon {
+        let (l, r) = hb::bake_horizon(map, params, precisions, progress)?;
+        made.layers = Some(l);
+        made.radius = Some(r);
+        step.fetch_add(1, Ordering::Relaxed);
+    }
+    if params.outputs.fourier {
+        let (f, r) = hb::bake_fourier(map, params, progress)?;
+        made.fourier = Some(f);
+        made.radius.get_or_insert(r);
+        step.fetch_add(1, Ordering::Relaxed);
+    }
+    made.bake_ms = ms(t);
+    Ok(made)
+}
+
+/// Runs `work` on its own thread with the GIL released; meanwhile calls `callback(fraction)`
+/// (overall, 0..1, over `steps` products) every [`POLL`] and checks for signals. A callback
+/// returning `False` or raising, and KeyboardInterrupt, cancel the bake and are returned.
+fn with_progress<T: Send>(
+    py: Python<'_>,
+    progress: &Progress,
+    step: &AtomicUsize,
+    steps: usize,
+    callback: Option<&Bound<'_, PyAny>>,
+    work: impl FnOnce() -> horizon_bake::Result<T> + Send,
+) -> PyResult<T> {
+    let (tx, rx) = std::sync::mpsc::channel();
+    // Waited on with the GIL released, which asks for a `Sync` borrow.
+    let rx = std::sync::Mutex::new(rx);
+    std::thread::scope(|s| {
+        s.spawn(move || {
+            // A panic in the library is a bug; it reaches Python as an error, not an abort.
+            let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(work))
+                .unwrap_or_else(|_| Err(Error::Internal("the bake panicked".into())));
+            let _ = tx.send(r);
+        });
+        let mut interrupt: Option<PyErr> = None;
+        loop {
+            match py.detach(|| match rx.lock() {
+                Ok(rx) => rx.recv_timeout(POLL),
+                Err(_) => Err(std::sync::mpsc::RecvTimeoutError::Disconnected),
+            }) {
+                Ok(r) => {
+                    return match (interrupt, r) {
+                        (Some(e), _) => Err(e),
+                        (None, r) => r.map_err(|e| raise(py, e)),
+                    };
+                }
+                Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => {
+                    return Err(raise(py, Error::Internal("the bake thread ended".into())));
+                }
+                Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {}
+            }
+            if interrupt.is_some() {
+                continue;
+            }
+            if let Err(e) = py.check_signals() {
+                progress.cancel();
+                interrupt = Some(e);
+                continue;
+            }
+            if let Some(cb) = callback {
+                let done = step.load(Ordering::Relaxed).min(steps.saturating_sub(1));
+                let overall = (done as f64 + progress.fraction()) / steps.max(1) as f64;
+                match cb.call1((overall.clamp(0.0, 1.0),)) {
+                    Ok(v) if v.is(&*pyo3::types::PyBool::new(py, false)) => {
+                        progress.cancel();
+                    }
+                    Ok(_) => {}
+                    Err(e) => {
+                        progress.cancel();
+                        interrupt = Some(e);
+                    }
+                }
+            }
+        }
+    })
+}
+
+/// A row-major `Vec` as a numpy array of `shape`, owning the vector (no copy).
+fn array<'py, T: numpy::Element>(
+    py: Python<'py>,
+    v: Vec<T>,
+    shape: &[usize],
+) -> PyResult<Bound<'py, PyAny>> {
+    Ok(PyArray1::from_vec(py, v).reshape(shape.to_vec())?.into_any())
+}
+
+/// Bakes a 2-D array. `pairs` are the parameters as the CLI's flags spell their values;
+/// `georef` = (GDAL geotransform, "projected"|"geographic", EPSG code, EPSG linear unit) of a
+/// DEM; `precision` picks the horizon layers' type: `uint8` (the png8 values), `uint16` (png16)
+/// or `float32`. Returns a dict the Python side wraps in its result object.
+#[pyfunction]
+#[pyo3(signature = (heights, pairs, georef=None, normalise=true, precision="uint8", progress=None))]
+fn bake_array<'py>(
+    py: Python<'py>,
+    heights: &Bound<'py, PyAny>,
+    pairs: Vec<(String, String)>,
+    georef: Option<([f64; 6], String, u16, u16)>,
+    normalise: bool,
+    precision: &str,
+    progress: Option<&Bound<'py, PyAny>>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let total = Instant::now();
+    let precisions = match precision {
+        "uint8" => Precisions { u8: true, u16: false, f32: false },
+        "uint16" => Precisions { u8: false, u16: true, f32: false },
+        "float32" => Precisions { u8: false, u16: false, f32: true },
+        other => {
+            return Err(raise(
+                py,
+                Error::param("dtype", format!("`{other}`: uint8, uint16 or float32")),
+            ))
+        }
+    };
+    let mut params =
+        BakeParams::from_pairs_unchecked(pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
+            .map_err(|e| raise(py, e))?;
+    params.check_before_input().map_err(|e| raise(py, e))?;
+    let t = Instant::now();
+    let declared = match params.nodata {
+        horizon_bake::params::NoData::Value(v) => Some(v),
+        horizon_bake::params::NoData::Nan => Some(f64::NAN),
+        _ => None,
+    };
+    let georef = georef_of(georef, declared)?;
+    let normalise = normalise && georef.is_none();
+    let (w, h, values, stored) = samples(heights, normalise)?;
+    let map = py
+        .detach(|| HeightMap::from_samples(w, h, values, stored, params.nodata, georef))
+        .map_err(|e| raise(py, e))?;
+    let warnings = map.dem_warnings();
+    apply_dem_defaults(&mut params, map.terrain.georef.as_ref()).map_err(|e| raise(py, e))?;
+    hb::fit_method(&mut params, w as u32, h as u32, false).map_err(|e| raise(py, e))?;
+    let decode_ms = ms(t);
+
+    let progress_handle = Progress::new();
+    let step = AtomicUsize::new(0);
+    let steps = [params.outputs.terrain(), params.outputs.horizon, params.outputs.fourier]
+        .iter()
+        .filter(|&&b| b)
+        .count();
+    let made = with_progress(py, &progress_handle, &step, steps, progress, || {
+        run(&map, &params, precisions, &progress_handle, &step)
+    })?;
+
+    let out = PyDict::new(py);
+    out.set_item("width", w)?;
+    out.set_item("height", h)?;
+    let resolved = PyDict::new(py);
+    for (k, v) in params.to_pairs() {
+        resolved.set_item(k, v)?;
+    }
+    out.set_item("params", resolved)?;
+    if let Some(r) = &made.radius {
+        let radius = PyDict::new(py);
+        radius.set_item("texels", r.texels)?;
+        radius.set_item("reason", &r.reason)?;
+        out.set_item("resolved_radius", radius)?;
+    }
+    out.set_item("warnings", PyList::new(py, warnings)?)?;
+    out.set_item(
+        "holes",
+        map.terrain.holes.as_ref().map_or(0, |h| h.iter().filter(|&&b| b).count()),
+    )?;
+    out.set_item("nodata", map.terrain.nodata)?;
+    if let Some(l) = made.layers {
+        let shape = [l.height, l.width, 4];
+        let pair = if let Some([a, b]) = l.u8 {
+            (array(py, a, &shape)?, array(py, b, &shape)?)
+        } else if let Some([a, b]) = l.u16 {
+            (array(py, a, &shape)?, array(py, b, &shape)?)
+        } else if let Some([a, b]) = l.f32 {
+            (array(py, a, &shape)?, array(py, b, &shape)?)
+        } else {
+            return Err(raise(py, Error::Internal("no horizon layers were quantised".into())));
+        };
+        out.set_item("layers", pair)?;
+    }
+    if let Some(f) = made.fourier {
+        let d = PyDict::new(py);
+        d.set_item("terms", f.terms)?;
+        d.set_item("bands", array(py, f.bands, &[f.height, f.width, 4])?)?;
+        d.set_item("constant", array(py, f.constant, &[f.height, f.width])?)?;
+        match f.high {
+            Some(hi) => d.set_item("high", array(py, hi, &[f.height, f.width, 4])?)?,
+            None => d.set_item("high", py.None())?,
+        }
+        out.set_item("fourier", d)?;
+    }
+    if let Some(t) = made.terrain {
+        if let Some(a) = t.angles {
+            out.set_item("angles", array(py, a, &[t.bins, t.height, t.width])?)?;
+        }
+        if let Some(s) = t.svf {
+            out.set_item("svf", array(py, s, &[t.height, t.width])?)?;
+        }
+        out.set_item("product_nodata", t.nodata)?;
+    }
+    let timings = PyDict::new(py);
+    timings.set_item("decode", decode_ms)?;
+    timings.set_item("bake", made.bake_ms)?;
+    timings.set_item("total", ms(total))?;
+    out.set_item("timings_ms", timings)?;
+    Ok(out)
+}
+
+/// The parameters a bake of a `width × height` map with `georef` would run with (the DEM
+/// defaults applied, the method fitted), as pairs, and the radius in texels when it does not
+/// depend on the heights (`None` for `radius=auto` without `max_distance`). For bakes cut in
+/// blocks (`horizon_bake.dask`): each block runs with the whole map's parameters.
+#[pyfunction]
+#[pyo3(signature = (pairs, width, height, georef=None))]
+fn resolve<'py>(
+    py: Python<'py>,
+    pairs: Vec<(String, String)>,
+    width: usize,
+    height: usize,
+    georef: Option<([f64; 6], String, u16, u16)>,
+) -> PyResult<(Bound<'py, PyDict>, Option<u32>)> {
+    let mut params =
+        BakeParams::from_pairs_unchecked(pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
+            .map_err(|e| raise(py, e))?;
+    params.check_before_input().map_err(|e| raise(py, e))?;
+    let georef = georef_of(georef, None)?;
+    apply_dem_defaults(&mut params, georef.as_ref()).map_err(|e| raise(py, e))?;
+    hb::fit_method(&mut params, width as u32, height as u32, false).map_err(|e| raise(py, e))?;
+    let mut by_heights = false;
+    let r = hb::resolve_radius_in(&params, width, height, || {
+        by_heights = true;
+        (0.0, 0.0)
+    });
+    let out = PyDict::new(py);
+    for (k, v) in params.to_pairs() {
+        out.set_item(k, v)?;
+    }
+    Ok((out, (!by_heights).then_some(r.texels)))
+}
+
+/// The channel-factor cube map of face size `size` (SPEC §4): `(6, size, size, 4)` float32,
+/// faces in the order +X, −X, +Y, −Y, +Z, −Z.
+#[pyfunction]
+fn cube_map(py: Python<'_>, size: usize) -> PyResult<Bound<'_, PyAny>> {
+    if !(1..=4096).contains(&size) {
+        return Err(raise(py, Error::param("size", format!("{size}: 1..=4096"))));
+    }
+    let v = py.detach(|| horizon_bake::kernels::cubemap::cube_factors(size));
+    array(py, v, &[6, size, size, 4])
+}
+
+/// `horizon-bake ARGS…` exactly as the command line runs it (ARGS without the program name),
+/// the GIL released. Errors are the CLI's: a flag clap refuses is a ParameterError with the
+/// line the CLI prints, the rest as [`raise`].
+#[pyfunction]
+fn run_cli(py: Python<'_>, args: Vec<String>) -> PyResult<()> {
+    use clap::Parser;
+    let argv = std::iter::once("horizon-bake".to_owned()).chain(args);
+    let cli = match horizon_bake::cli::Cli::try_parse_from(argv) {
+        Ok(cli) => cli,
+        Err(e) => {
+            // As main.rs: clap's first paragraph, without tips and usage.
+            let text = e.render().to_string();
+            let first: Vec<&str> = text
+                .lines()
+                .map(str::trim)
+                .take_while(|l| !l.is_empty() && !l.starts_with("Usage:"))
+                .collect();
+            let line = first.join(" ");
+            let msg = line.trim_start_matches("error: ");
+            return Err(raise_as(py, "ParameterError", msg, "invalid_parameter", None));
+        }
+    };
+    py.detach(|| horizon_bake::cli::run(cli)).map_err(|e| raise(py, e))
+}
+
+#[pymodule]
+fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(bake_array, m)?)?;
+    m.add_function(wrap_pyfunction!(cube_map, m)?)?;
+    m.add_function(wrap_pyfunction!(resolve, m)?)?;
+    m.add_function(wrap_pyfunction!(run_cli, m)?)?;
+    m.add("CRATE_VERSION", env!("CARGO_PKG_VERSION"))?;
+    Ok(())
+}
