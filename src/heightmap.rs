@@ -176,10 +176,28 @@ impl HeightMap {
     pub fn from_samples(
         width: usize,
         height: usize,
+        values: Vec<f32>,
+        stored: f64,
+        nodata: NoData,
+        georef: Option<georef::Georef>,
+    ) -> Result<Self> {
+        Self::from_samples_filled(width, height, values, stored, nodata, georef, None)
+    }
+
+    /// [`HeightMap::from_samples`] of a window of a larger map whose holes are filled with
+    /// `fill`, the whole map's [`hole_fill`] (`None`: this map's own), so the window holds
+    /// exactly the whole map's values there, as a tiled bake's windows do.
+    ///
+    /// # Errors
+    /// As [`HeightMap::from_samples`].
+    pub fn from_samples_filled(
+        width: usize,
+        height: usize,
         mut values: Vec<f32>,
         stored: f64,
         nodata: NoData,
         georef: Option<georef::Georef>,
+        fill: Option<f32>,
     ) -> Result<Self> {
         if width == 0 || height == 0 || values.len() != width * height {
             return Err(Error::InvalidInput(format!(
@@ -195,7 +213,7 @@ impl HeightMap {
         };
         let holes = nodata.map(|nd| mark_holes(&values, stored, nd)).transpose()?.flatten();
         match &holes {
-            Some(holes) => fill_holes(&mut values, holes, width)?,
+            Some(holes) => fill_holes(&mut values, holes, width, fill)?,
             None => {
                 check_finite(&values, width)?;
                 check_range(&values, width)?;
@@ -712,9 +730,15 @@ fn mark_holes(values: &[f32], stored: f64, nd: f64) -> Result<Option<Vec<bool>>>
     Ok(holes.iter().any(|&h| h).then_some(holes))
 }
 
-/// Checks the texels that are not holes, and fills the holes [`HOLE_DEPTH`] map height ranges
-/// below the lowest of them (see the module docs).
-fn fill_holes(values: &mut [f32], holes: &[bool], width: usize) -> Result<()> {
+/// The value the holes of a map whose other texels span `lo..=hi` are filled with:
+/// [`HOLE_DEPTH`] map height ranges (at least 1) below the lowest.
+pub fn hole_fill(lo: f32, hi: f32) -> f32 {
+    lo - HOLE_DEPTH * (hi - lo).max(1.0)
+}
+
+/// Checks the texels that are not holes, and fills the holes with `fill`, or [`hole_fill`] of
+/// the others' range when `None` (see the module docs).
+fn fill_holes(values: &mut [f32], holes: &[bool], width: usize, fill: Option<f32>) -> Result<()> {
     let mut lo = f32::INFINITY;
     let mut hi = f32::NEG_INFINITY;
     for (k, (&v, &hole)) in values.iter().zip(holes).enumerate() {
@@ -727,7 +751,7 @@ fn fill_holes(values: &mut [f32], holes: &[bool], width: usize) -> Result<()> {
         lo = lo.min(v);
         hi = hi.max(v);
     }
-    let fill = lo - HOLE_DEPTH * (hi - lo).max(1.0);
+    let fill = fill.unwrap_or_else(|| hole_fill(lo, hi));
     for (v, &hole) in values.iter_mut().zip(holes) {
         if hole {
             *v = fill;

@@ -8,9 +8,11 @@ defaults, the method, ``cell_size``) and every block bakes with them, so at a fi
 (``radius`` in texels, or ``max_distance`` in map units) the result equals the untiled bake's;
 ``radius=unlimited`` and ``auto`` (which depends on the whole map's heights) are refused.
 
-With ``method=sweep`` (the DEM default) a block equals the untiled bake within ``sweep``'s
-stated tolerance; ``method=exact`` is equal to the value. A block with a nodata hole bakes it
-as the whole map does (holes cast no horizon and are not occluders).
+Each block is baked as a tile of a tiled bake is (SPEC §7.1): with the whole map's hole fill
+and height range, so the values are the whole map's to the bit. One caveat, the library's own:
+``method=sweep`` on a window with a nodata hole runs ``exact`` there (as it does on a whole map
+with holes), so with ``sweep`` a block that holds a hole while the whole map runs ``sweep``, or
+the reverse, agrees within ``sweep``'s stated tolerance rather than to the bit.
 
 Chunks should be several times the halo wide: each block computes its halo again.
 """
@@ -21,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from . import ParameterError, _crs_parts, _georef, _native, gdal_transform, param_pairs, terrain
+from . import ParameterError, _errors as hb_errors, _georef, _native, param_pairs
 
 
 def _plan(shape: tuple, transform: Any, crs: Any, params: dict) -> tuple:
@@ -60,36 +62,42 @@ def _blocks(dem: Any, product: str, transform: Any = None, crs: Any = None, noda
     params = dict(params, outputs=product, nodata=nodata)
     resolved, texels, georef = _plan(dem.shape, transform, crs, params)
     depth = texels + 1
-    # Every block bakes with the whole map's resolved parameters (every one given, so the DEM
-    # defaults do not re-resolve on the block) and its cell size.
-    fixed = {k: v for k, v in resolved.items() if k not in ("nodata",)}
-    fixed["nodata"] = param_pairs({"nodata": nodata})[0][1] if nodata is not None else "none"
-    t = georef[0]
-
-    def one(block: np.ndarray) -> np.ndarray:
-        # A float block may hold NaN holes the caller did not declare: as terrain() does.
-        nd = fixed["nodata"]
-        if nd == "none" and block.dtype.kind == "f" and np.isnan(block).any():
-            nd = "nan"
-        if nd != "none":
-            holes = np.isnan(block) if nd == "nan" else block == np.float64(nd)
-            if holes.all():
-                # A block with no height left (the sea, a clipped corner) is all holes, as
-                # the whole map's bake writes them; alone it would be refused as empty.
-                fill = np.float32(np.nan if nd == "nan" else float(nd))
-                shape = ((bins_of(),) if product == "angles" else ()) + block.shape
-                return np.full(shape, fill, dtype=np.float32)
-        out = terrain(block, transform=t, crs=_crs_of(georef), **dict(fixed, nodata=nd))
-        a = out.angles if product == "angles" else out.svf
-        return a.astype(np.float32, copy=False)
-
-    def bins_of() -> int:
-        return int(resolved["bins"])
+    # Every block bakes with the whole map's resolved parameters (every one given, so nothing
+    # re-resolves on the block), radius, hole fill and height range (the kernels' reference
+    # height), as the tiles of a tiled bake do: so each texel gets the whole map's value.
+    fixed = dict(resolved)
+    if nodata is None and np.dtype(dem.dtype).kind == "f":
+        # As terrain(): NaN in a float DEM without a declared nodata are holes.
+        fixed["nodata"] = "nan" if bool(da.isnan(dem).any().compute()) else "none"
+    elif nodata is None:
+        fixed["nodata"] = "none"
+    else:
+        fixed["nodata"] = param_pairs({"nodata": nodata})[0][1]
+    # Blocks at least as large as the halo (dask's overlap would otherwise re-chunk on its own
+    # and the output's chunks would no longer be the input's).
+    heights = dem.astype(np.float32).rechunk(tuple(_at_least(c, depth) for c in dem.chunks))
+    nd = fixed["nodata"]
+    if nd == "none":
+        holes = da.zeros(dem.shape, dtype=bool, chunks=dem.chunks)
+    elif nd == "nan":
+        holes = da.isnan(heights)
+    else:
+        holes = heights == np.float32(float(nd))
+    lo, hi, any_hole = da.compute(da.where(holes, np.inf, heights).min(),
+                                  da.where(holes, -np.inf, heights).max(), holes.any())
+    if not np.isfinite(lo):
+        raise hb_errors.InputError(
+            f"invalid height map: every texel is nodata ({nd}): the map has no height left to "
+            "bake", code="invalid_input")
+    stats = (float(lo), float(hi), bool(any_hole))
+    pairs = list(fixed.items())
+    bins = int(resolved["bins"])
+    fill = np.float32(np.nan if nd in ("nan", "none") else float(nd))
 
     # The halo by hand (dask's overlap, no padding at the map's own edges) and the trim in the
     # block: map_overlap cannot trim an output with a dimension the input has not (azimuth).
-    rows, cols = dem.numblocks
-    grown = da.overlap.overlap(dem, depth={0: depth, 1: depth}, boundary="none")
+    rows, cols = heights.numblocks
+    grown = da.overlap.overlap(heights, depth={0: depth, 1: depth}, boundary="none")
 
     def trimmed(block: np.ndarray, block_info: Any = None) -> np.ndarray:
         i, j = block_info[0]["chunk-location"]
@@ -97,34 +105,37 @@ def _blocks(dem: Any, product: str, transform: Any = None, crs: Any = None, noda
         x0 = depth if j > 0 else 0
         y1 = block.shape[0] - (depth if i < rows - 1 else 0)
         x1 = block.shape[1] - (depth if j < cols - 1 else 0)
-        out = one(block)
-        return out[..., y0:y1, x0:x1]
+        interior = (x0, y0, x1 - x0, y1 - y0)
+        block = np.ascontiguousarray(block, dtype=np.float32)
+        if nd != "none":
+            bh = np.isnan(block) if nd == "nan" else block == np.float32(float(nd))
+            if bh.all():
+                # No height left in the window (the sea, a clipped corner): all holes, as the
+                # whole map's bake writes them; alone it would be refused as empty.
+                shape = ((bins,) if product == "angles" else ()) + (y1 - y0, x1 - x0)
+                return np.full(shape, fill, dtype=np.float32)
+        angles, svf = _native.bake_block(block, interior, pairs, stats, texels, georef)
+        return angles if product == "angles" else svf
 
     if product == "angles":
-        bins = int(resolved["bins"])
         return da.map_blocks(trimmed, grown, dtype=np.float32, new_axis=0,
-                             chunks=((bins,),) + dem.chunks)
-    return da.map_blocks(trimmed, grown, dtype=np.float32, chunks=dem.chunks)
+                             chunks=((bins,),) + heights.chunks)
+    return da.map_blocks(trimmed, grown, dtype=np.float32, chunks=heights.chunks)
 
 
-def _crs_of(georef: tuple) -> Any:
-    """The CRS to hand a block: the EPSG code the whole map resolved to (model kept)."""
-    model, code = georef[1], georef[2]
-    if model == "none":
-        return None
-    return _BlockCrs(model, code, georef[3])
-
-
-class _BlockCrs:
-    """A CRS already read: its model, EPSG code and linear unit, passed through unchanged."""
-
-    def __init__(self, model: str, code: int, unit: int):
-        self.is_geographic = model == "geographic"
-        self._code = code
-        self.linear_units = {9002: "foot", 9003: "US survey foot"}.get(unit, "metre")
-
-    def to_epsg(self) -> int:
-        return self._code
+def _at_least(chunks: tuple, size: int) -> tuple:
+    """``chunks`` with every chunk smaller than ``size`` merged into its neighbour."""
+    out = list(chunks)
+    i = 0
+    while len(out) > 1 and i < len(out):
+        if out[i] < size:
+            j = i - 1 if i == len(out) - 1 else i + 1
+            out[min(i, j)] = out[i] + out[j]
+            del out[max(i, j)]
+            i = 0
+        else:
+            i += 1
+    return tuple(out)
 
 
 def angles(dem: Any, *, transform: Any = None, crs: Any = None, nodata: Any = None,
@@ -141,4 +152,4 @@ def svf(dem: Any, *, transform: Any = None, crs: Any = None, nodata: Any = None,
     return _blocks(dem, "svf", transform, crs, nodata, **params)
 
 
-__all__ = ["angles", "svf", "gdal_transform", "_crs_parts"]
+__all__ = ["angles", "svf"]

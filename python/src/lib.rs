@@ -139,22 +139,29 @@ fn run(
         let (p, r) = hb::bake_terrain(map, params, progress)?;
         made.terrain = Some(p);
         made.radius = Some(r);
-        step.fetch_add(1, Ordering::Relaxed);
+        next(progress, step);
     }
     if params.outputs.horizon {
         let (l, r) = hb::bake_horizon(map, params, precisions, progress)?;
         made.layers = Some(l);
         made.radius = Some(r);
-        step.fetch_add(1, Ordering::Relaxed);
+        next(progress, step);
     }
     if params.outputs.fourier {
         let (f, r) = hb::bake_fourier(map, params, progress)?;
         made.fourier = Some(f);
         made.radius.get_or_insert(r);
-        step.fetch_add(1, Ordering::Relaxed);
+        next(progress, step);
     }
     made.bake_ms = ms(t);
     Ok(made)
+}
+
+/// Marks a product done: the stage's fraction back to 0 first, so the overall fraction never
+/// counts a finished product twice (done + its stale 1.0).
+fn next(progress: &Progress, step: &AtomicUsize) {
+    progress.start(horizon_bake::progress::Stage::Queued, 1);
+    step.fetch_add(1, Ordering::Relaxed);
 }
 
 /// Runs `work` on its own thread with the GIL released; meanwhile calls `callback(fraction)`
@@ -179,6 +186,7 @@ fn with_progress<T: Send>(
             let _ = tx.send(r);
         });
         let mut interrupt: Option<PyErr> = None;
+        let mut last = 0.0f64;
         loop {
             match py.detach(|| match rx.lock() {
                 Ok(rx) => rx.recv_timeout(POLL),
@@ -206,7 +214,9 @@ fn with_progress<T: Send>(
             if let Some(cb) = callback {
                 let done = step.load(Ordering::Relaxed).min(steps.saturating_sub(1));
                 let overall = (done as f64 + progress.fraction()) / steps.max(1) as f64;
-                match cb.call1((overall.clamp(0.0, 1.0),)) {
+                // Read between a product's end and the step count: never report less than before.
+                last = last.max(overall.clamp(0.0, 1.0));
+                match cb.call1((last,)) {
                     Ok(v) if v.is(&*pyo3::types::PyBool::new(py, false)) => {
                         progress.cancel();
                     }
@@ -349,6 +359,62 @@ fn bake_array<'py>(
     Ok(out)
 }
 
+/// The terrain products of one block of a map cut in blocks (`horizon_bake.dask`), equal per
+/// texel to the whole map's bake: `block` is the block with its halo (heights as-is), `interior`
+/// = (column, row, width, height) of the block inside it, `pairs` the whole map's resolved
+/// parameters ([`resolve`]), `stats` = (lowest, highest) height of the whole map's texels that
+/// are not holes and whether it has any hole, `radius` the whole map's radius in texels. Holes
+/// are filled as the whole map's ([`horizon_bake::heightmap::hole_fill`]) and the kernels see
+/// the whole map's height range, as a tiled bake's tiles do ([`hb::bake_terrain_window`]).
+/// Returns (angles `(bins, h, w)` or `None`, svf `(h, w)` or `None`).
+#[pyfunction]
+#[pyo3(signature = (block, interior, pairs, stats, radius, georef=None))]
+#[allow(clippy::type_complexity)]
+fn bake_block<'py>(
+    py: Python<'py>,
+    block: &Bound<'py, PyAny>,
+    interior: (usize, usize, usize, usize),
+    pairs: Vec<(String, String)>,
+    stats: (f32, f32, bool),
+    radius: u32,
+    georef: Option<([f64; 6], String, u16, u16)>,
+) -> PyResult<(Option<Bound<'py, PyAny>>, Option<Bound<'py, PyAny>>)> {
+    let mut params =
+        BakeParams::from_pairs_unchecked(pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
+            .map_err(|e| raise(py, e))?;
+    let declared = match params.nodata {
+        horizon_bake::params::NoData::Value(v) => Some(v),
+        horizon_bake::params::NoData::Nan => Some(f64::NAN),
+        _ => None,
+    };
+    let georef = georef_of(georef, declared)?;
+    let (w, h, values, stored) = samples(block, false)?;
+    let (lo, hi, any_hole) = stats;
+    let fill = horizon_bake::heightmap::hole_fill(lo, hi);
+    let mut map =
+        HeightMap::from_samples_filled(w, h, values, stored, params.nodata, georef, Some(fill))
+            .map_err(|e| raise(py, e))?;
+    if any_hole && map.terrain.holes.is_none() {
+        // As a tiled bake's window (`TileHeights::into_map`): a hole mask whenever the whole
+        // map has holes, so the kernels take the same (hole-aware) path as on the whole map.
+        map.terrain.holes = Some(vec![false; w * h]);
+    }
+    apply_dem_defaults(&mut params, map.terrain.georef.as_ref()).map_err(|e| raise(py, e))?;
+    // MapStats::scaled_range of the whole map: its lowest value is the fill when it has holes.
+    let lowest = if any_hole { fill } else { lo };
+    let (a, b) =
+        ((lowest as f64 * params.height_scale) as f32, (hi as f64 * params.height_scale) as f32);
+    let range = (a.min(b), a.max(b));
+    let progress = Progress::new();
+    let t = py
+        .detach(|| hb::bake_terrain_window(map, &params, interior, range, radius, &progress))
+        .map_err(|e| raise(py, e))?;
+    let (iw, ih) = (t.width, t.height);
+    let angles = t.angles.map(|v| array(py, v, &[t.bins, ih, iw])).transpose()?;
+    let svf = t.svf.map(|v| array(py, v, &[ih, iw])).transpose()?;
+    Ok((angles, svf))
+}
+
 /// The parameters a bake of a `width × height` map with `georef` would run with (the DEM
 /// defaults applied, the method fitted), as pairs, and the radius in texels when it does not
 /// depend on the heights (`None` for `radius=auto` without `max_distance`). For bakes cut in
@@ -422,6 +488,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(bake_array, m)?)?;
     m.add_function(wrap_pyfunction!(cube_map, m)?)?;
     m.add_function(wrap_pyfunction!(resolve, m)?)?;
+    m.add_function(wrap_pyfunction!(bake_block, m)?)?;
     m.add_function(wrap_pyfunction!(run_cli, m)?)?;
     m.add("CRATE_VERSION", env!("CARGO_PKG_VERSION"))?;
     Ok(())

@@ -24,7 +24,7 @@
 use super::{
     check_dimensions, contained, nonfinite_error, png_dimensions, range_error, samples, sniff,
     tiff_error, tiff_meta, tiff_values, Format, HeightMap, InputInfo, Limits, Terrain, TiffMeta,
-    HOLE_DEPTH, MAX_ABS_HEIGHT,
+    MAX_ABS_HEIGHT,
 };
 use crate::error::{Error, LimitError, Result};
 use crate::heightmap::georef::Georef;
@@ -816,7 +816,7 @@ impl Checks {
             if let Some((k, v)) = self.first_bad_valid {
                 return Err(super::bad_texel_error(k as usize, w, v));
             }
-            let fill = self.lo - HOLE_DEPTH * (self.hi - self.lo).max(1.0);
+            let fill = super::hole_fill(self.lo, self.hi);
             return Ok((fill, self.hi, Some(fill)));
         }
         if let Some((k, v)) = self.first_nonfinite {
