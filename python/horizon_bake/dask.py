@@ -1,7 +1,7 @@
 """Horizon angles and sky-view factor of a DEM that is a Dask array, block by block.
 
-:func:`angles` and :func:`svf` run :func:`horizon_bake.terrain` on every block of the array
-through dask's overlap (``dask.array.overlap.overlap``, what ``map_overlap`` is built on) with a halo of the radius + 1 texels around each block (no
+:func:`angles` and :func:`svf` bake every block of the array, as a tile of the whole map,
+through ``dask.array.map_overlap`` with a halo of the radius + 1 texels around each block (no
 padding beyond the map's own edges), so every texel sees every texel within its radius, as in
 one bake of the whole map. The parameters are resolved once for the whole map (the DEM
 defaults, the method, ``cell_size``) and every block bakes with them, so at a finite radius
@@ -94,10 +94,10 @@ def _blocks(dem: Any, product: str, transform: Any = None, crs: Any = None, noda
     bins = int(resolved["bins"])
     fill = np.float32(np.nan if nd in ("nan", "none") else float(nd))
 
-    # The halo by hand (dask's overlap, no padding at the map's own edges) and the trim in the
-    # block: map_overlap cannot trim an output with a dimension the input has not (azimuth).
+    # map_overlap adds the halo (no padding at the map's own edges); the block trims it itself
+    # (trim=False), as map_overlap cannot trim an output with a dimension its input has not
+    # (azimuth), and a block at the map's edge has no halo on that side.
     rows, cols = heights.numblocks
-    grown = da.overlap.overlap(heights, depth={0: depth, 1: depth}, boundary="none")
 
     def trimmed(block: np.ndarray, block_info: Any = None) -> np.ndarray:
         i, j = block_info[0]["chunk-location"]
@@ -117,10 +117,11 @@ def _blocks(dem: Any, product: str, transform: Any = None, crs: Any = None, noda
         angles, svf = _native.bake_block(block, interior, pairs, stats, texels, georef)
         return angles if product == "angles" else svf
 
+    common = dict(depth={0: depth, 1: depth}, boundary="none", trim=False, dtype=np.float32)
     if product == "angles":
-        return da.map_blocks(trimmed, grown, dtype=np.float32, new_axis=0,
-                             chunks=((bins,),) + heights.chunks)
-    return da.map_blocks(trimmed, grown, dtype=np.float32, chunks=heights.chunks)
+        return da.map_overlap(trimmed, heights, new_axis=0, chunks=((bins,),) + heights.chunks,
+                              **common)
+    return da.map_overlap(trimmed, heights, chunks=heights.chunks, **common)
 
 
 def _at_least(chunks: tuple, size: int) -> tuple:
