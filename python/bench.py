@@ -23,12 +23,19 @@ import subprocess
 import tempfile
 import time
 
+import sys
+
 import numpy as np
 from PIL import Image
 
-import horizon_bake as hb
+# The installed package, never the source folder beside this script (whose _native module is
+# whatever `maturin develop` last built, a debug build by default): Python puts the script's
+# folder first on sys.path.
+HERE = pathlib.Path(__file__).resolve().parent
+sys.path = [p for p in sys.path if pathlib.Path(p or ".").resolve() != HERE]
+import horizon_bake as hb  # noqa: E402
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = HERE.parent
 
 CASES = [
     ("lengyel R16 (default)", {}, []),
@@ -61,7 +68,7 @@ def main() -> None:
     Image.fromarray(a).save(src)
     mtex = n * n / 1e6
     print(f"{n}×{n} 16-bit map, best of {args.repeat}; CLI {args.cli}; package {hb.__version__} "
-          f"({os.cpu_count()} cores)")
+          f"at {pathlib.Path(hb.__file__).parent} ({os.cpu_count()} cores)")
     print(f"| case | CLI bake ms | CLI whole ms | package ms | package Mtexel/s | "
           f"package / CLI bake | package / CLI whole |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
