@@ -251,7 +251,7 @@ def test_cube_map_is_the_clis(cli, tmp_path):
 
 def test_progress_is_reported_and_rises_to_done():
     seen = []
-    r = hb.bake(rng_map(384, 384, scale=30.0), method="exact", radius=48, bins=32,
+    r = hb.bake(rng_map(768, 768, scale=30.0), method="exact", radius=64, bins=32,
                 outputs="horizon,fourier", progress=seen.append)
     assert r.layers is not None
     assert len(seen) >= 2, seen
@@ -312,9 +312,10 @@ def test_the_gil_is_released_during_a_bake():
     took = time.monotonic() - t
     stop.set()
     th.join()
-    # A thread holding the GIL for the whole bake would leave the counter near zero.
+    # A bake holding the GIL would leave the counter at zero or one; released, the thread
+    # ticks every millisecond or so even on a loaded machine.
     assert took > 0.05
-    assert len(ticks) > 0.3 * took / 0.0011, (len(ticks), took)
+    assert len(ticks) >= 20 and len(ticks) > 0.05 * took / 0.0011, (len(ticks), took)
 
 
 def test_version_is_the_crates():
