@@ -14,17 +14,8 @@ fn main() -> ExitCode {
             {
                 e.exit();
             }
-            // SPEC §6: one clear line on stderr. clap's first paragraph says what was wrong
-            // (sometimes over two lines, e.g. the missing flags); tips and usage follow after a
-            // blank line and are dropped.
-            let text = e.render().to_string();
-            let first: Vec<&str> = text
-                .lines()
-                .map(str::trim)
-                .take_while(|l| !l.is_empty() && !l.starts_with("Usage:"))
-                .collect();
-            let line = first.join(" ");
-            eprintln!("horizon-bake: {}", line.trim_start_matches("error: "));
+            // SPEC §6: one clear line on stderr.
+            eprintln!("horizon-bake: {}", horizon_bake::cli::usage_error_line(&e));
             return ExitCode::from(2);
         }
     };

@@ -468,16 +468,8 @@ fn run_cli(py: Python<'_>, args: Vec<String>) -> PyResult<()> {
     let cli = match horizon_bake::cli::Cli::try_parse_from(argv) {
         Ok(cli) => cli,
         Err(e) => {
-            // As main.rs: clap's first paragraph, without tips and usage.
-            let text = e.render().to_string();
-            let first: Vec<&str> = text
-                .lines()
-                .map(str::trim)
-                .take_while(|l| !l.is_empty() && !l.starts_with("Usage:"))
-                .collect();
-            let line = first.join(" ");
-            let msg = line.trim_start_matches("error: ");
-            return Err(raise_as(py, "ParameterError", msg, "invalid_parameter", None));
+            let msg = horizon_bake::cli::usage_error_line(&e);
+            return Err(raise_as(py, "ParameterError", &msg, "invalid_parameter", None));
         }
     };
     py.detach(|| horizon_bake::cli::run(cli)).map_err(|e| raise(py, e))

@@ -43,6 +43,20 @@ pub enum Command {
     Shadow(shadow::ShadowArgs),
 }
 
+/// The one line a refused command line is reported with (SPEC §6): clap's first paragraph,
+/// which says what was wrong (sometimes over two lines, e.g. the missing flags), without the
+/// tips and usage that follow a blank line, and without clap's `error: `. `main` prints it after
+/// `horizon-bake: `; the Python package raises it.
+pub fn usage_error_line(e: &clap::Error) -> String {
+    let text = e.render().to_string();
+    let first: Vec<&str> = text
+        .lines()
+        .map(str::trim)
+        .take_while(|l| !l.is_empty() && !l.starts_with("Usage:"))
+        .collect();
+    first.join(" ").trim_start_matches("error: ").to_owned()
+}
+
 /// Runs a parsed command line.
 ///
 /// # Errors
