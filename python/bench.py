@@ -69,8 +69,8 @@ def main() -> None:
     mtex = n * n / 1e6
     print(f"{n}×{n} 16-bit map, best of {args.repeat}; CLI {args.cli}; package {hb.__version__} "
           f"at {pathlib.Path(hb.__file__).parent} ({os.cpu_count()} cores)")
-    print(f"| case | CLI bake ms | CLI whole ms | package ms | package Mtexel/s | "
-          f"package / CLI bake | package / CLI whole |")
+    print("| case | CLI bake ms | CLI whole ms | package ms | package Mtexel/s | "
+          "package / CLI bake | package / CLI whole |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
     for name, kw, flags in CASES:
         cli_bake, cli_whole, lib = [], [], []

@@ -269,12 +269,7 @@ def bake(
     Raises :class:`ParameterError` for a bad parameter, :class:`InputError` for unusable
     heights, :class:`Canceled` when ``progress`` returned ``False``; the messages are the CLI's.
     """
-    unknown = [k for k in params if k not in PARAMETERS]
-    if unknown:
-        k = unknown[0]
-        raise ParameterError(
-            f"invalid parameter `{k}`: unknown parameter; the parameters are "
-            + ", ".join(PARAMETERS), code="invalid_parameter", field=k)
+    # Unknown names are the library's to refuse, with the CLI's and the service's message.
     a = _heights(heights)
     georef = _georef(transform, crs)
     out = _native.bake_array(a, param_pairs(params), georef, True, dtype, progress)
@@ -321,11 +316,6 @@ def terrain(
         georef = ((0.0, float(cell), 0.0, 0.0, 0.0, -float(cell)), "none", 0, 0)
     else:
         georef = _georef(transform, crs)
-    unknown = [k for k in params if k not in PARAMETERS]
-    if unknown:
-        raise ParameterError(
-            f"invalid parameter `{unknown[0]}`: unknown parameter",
-            code="invalid_parameter", field=unknown[0])
     params = dict(params, outputs=outputs, nodata=nodata)
     out = _native.bake_array(a, param_pairs(params), georef, False, "float32", progress)
     return _result(out, transform=georef[0] if transform is not None else None, crs=crs)

@@ -91,10 +91,7 @@ fn samples(heights: &Bound<'_, PyAny>, normalise: bool) -> PyResult<(usize, usiz
 
 /// The georeferencing of `(transform, model, epsg, linear_unit)` from the Python side, with the
 /// nodata the parameters declare as GDAL_NODATA (so `nodata=auto` finds it).
-fn georef_of(
-    georef: Option<([f64; 6], String, u16, u16)>,
-    nodata: Option<f64>,
-) -> PyResult<Option<Georef>> {
+fn georef_of(georef: Option<GeorefArg>, nodata: Option<f64>) -> PyResult<Option<Georef>> {
     let Some((t, model, epsg, unit)) = georef else { return Ok(None) };
     let model = match model.as_str() {
         "projected" => Some(CrsModel::Projected),
@@ -107,6 +104,30 @@ fn georef_of(
         }
     };
     Ok(Some(Georef::from_gdal(t, model, epsg, unit, nodata)))
+}
+
+/// The georeferencing as the Python side passes it: (GDAL geotransform, "projected" |
+/// "geographic" | "none", EPSG code or 0, EPSG linear unit code).
+type GeorefArg = ([f64; 6], String, u16, u16);
+
+/// The parameters of `pairs` (values as the CLI's flags spell them), checked as far as they can
+/// be before the map is known; the full check runs with the DEM defaults.
+fn parse_params(py: Python<'_>, pairs: &[(String, String)]) -> PyResult<BakeParams> {
+    let params =
+        BakeParams::from_pairs_unchecked(pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
+            .map_err(|e| raise(py, e))?;
+    params.check_before_input().map_err(|e| raise(py, e))?;
+    Ok(params)
+}
+
+/// The nodata value `params` declares (NaN for `nan`), for the GDAL_NODATA of an array's
+/// georeferencing.
+fn declared_nodata(params: &BakeParams) -> Option<f64> {
+    match params.nodata {
+        horizon_bake::params::NoData::Value(v) => Some(v),
+        horizon_bake::params::NoData::Nan => Some(f64::NAN),
+        _ => None,
+    }
 }
 
 /// What one bake made, before it becomes Python objects.
@@ -250,7 +271,7 @@ fn bake_array<'py>(
     py: Python<'py>,
     heights: &Bound<'py, PyAny>,
     pairs: Vec<(String, String)>,
-    georef: Option<([f64; 6], String, u16, u16)>,
+    georef: Option<GeorefArg>,
     normalise: bool,
     precision: &str,
     progress: Option<&Bound<'py, PyAny>>,
@@ -267,17 +288,9 @@ fn bake_array<'py>(
             ))
         }
     };
-    let mut params =
-        BakeParams::from_pairs_unchecked(pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
-            .map_err(|e| raise(py, e))?;
-    params.check_before_input().map_err(|e| raise(py, e))?;
+    let mut params = parse_params(py, &pairs)?;
     let t = Instant::now();
-    let declared = match params.nodata {
-        horizon_bake::params::NoData::Value(v) => Some(v),
-        horizon_bake::params::NoData::Nan => Some(f64::NAN),
-        _ => None,
-    };
-    let georef = georef_of(georef, declared)?;
+    let georef = georef_of(georef, declared_nodata(&params))?;
     let normalise = normalise && georef.is_none();
     let (w, h, values, stored) = samples(heights, normalise)?;
     let map = py
@@ -377,17 +390,10 @@ fn bake_block<'py>(
     pairs: Vec<(String, String)>,
     stats: (f32, f32, bool),
     radius: u32,
-    georef: Option<([f64; 6], String, u16, u16)>,
+    georef: Option<GeorefArg>,
 ) -> PyResult<(Option<Bound<'py, PyAny>>, Option<Bound<'py, PyAny>>)> {
-    let mut params =
-        BakeParams::from_pairs_unchecked(pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
-            .map_err(|e| raise(py, e))?;
-    let declared = match params.nodata {
-        horizon_bake::params::NoData::Value(v) => Some(v),
-        horizon_bake::params::NoData::Nan => Some(f64::NAN),
-        _ => None,
-    };
-    let georef = georef_of(georef, declared)?;
+    let mut params = parse_params(py, &pairs)?;
+    let georef = georef_of(georef, declared_nodata(&params))?;
     let (w, h, values, stored) = samples(block, false)?;
     let (lo, hi, any_hole) = stats;
     let fill = horizon_bake::heightmap::hole_fill(lo, hi);
@@ -426,12 +432,9 @@ fn resolve<'py>(
     pairs: Vec<(String, String)>,
     width: usize,
     height: usize,
-    georef: Option<([f64; 6], String, u16, u16)>,
+    georef: Option<GeorefArg>,
 ) -> PyResult<(Bound<'py, PyDict>, Option<u32>)> {
-    let mut params =
-        BakeParams::from_pairs_unchecked(pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
-            .map_err(|e| raise(py, e))?;
-    params.check_before_input().map_err(|e| raise(py, e))?;
+    let mut params = parse_params(py, &pairs)?;
     let georef = georef_of(georef, None)?;
     apply_dem_defaults(&mut params, georef.as_ref()).map_err(|e| raise(py, e))?;
     hb::fit_method(&mut params, width as u32, height as u32, false).map_err(|e| raise(py, e))?;

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 import pathlib
-import socket
 import subprocess
 import time
 import urllib.request
