@@ -347,6 +347,7 @@ impl Jobs {
             tracing::warn!(bake = %claim.bake_id, tile = claim.index, attempt = claim.attempt,
                 "tile outcome refused: the claim is stale");
         }
+        self.discard(&claim.owner()).await;
         if let Some(hook) = self.tiling().and_then(|t| t.on_tile.clone()) {
             // A DELETE cancels the bake's tiles in the repository, which makes the running
             // ones' claims stale too: those were stopped, not taken over by another worker.

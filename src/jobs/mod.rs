@@ -540,7 +540,13 @@ impl Jobs {
         results: &[(String, String)],
         owner: &str,
     ) -> Result<bool> {
-        self.0.repo.add_results(id, results, owner).await
+        let added = self.0.repo.add_results(id, results, owner).await?;
+        if !added {
+            // The bake went away during the encode: its new blobs are nobody's.
+            let hashes = results.iter().map(|(_, h)| h.clone()).collect();
+            self.0.repo.delete_blobs_if_unused(hashes, self.0.blobs.clone()).await?;
+        }
+        Ok(added)
     }
 
     /// Removes finished bakes past their retention, then blobs no record references that are
@@ -752,9 +758,13 @@ impl Jobs {
             Outcome::Canceled(_) => Status::Canceled,
             Outcome::Released => Status::Queued,
         };
-        if lost.load(Ordering::SeqCst) {
-            // Fenced off: whatever this run produced, the claim that took over decides.
-        } else if self.complete(&claim, outcome).await && status.is_terminal() {
+        // Fenced off (lost, or the outcome refused): whatever this run produced, the claim that
+        // took over decides.
+        let recorded = !lost.load(Ordering::SeqCst) && self.complete(&claim, outcome).await;
+        // What the run wrote and its record does not reference (all of it when the outcome was
+        // refused or is not a success: a canceled bake's Fourier files, say) is nobody's now.
+        self.discard(&claim.owner()).await;
+        if recorded && status.is_terminal() {
             if let Some(f) = &self.0.on_finish {
                 f(status, seconds, texels);
             }
@@ -766,6 +776,29 @@ impl Jobs {
         drop(permit);
         self.local().remove(&id);
         let _ = self.0.changes.send(id);
+    }
+
+    /// Deletes the blobs a finished run (claim owner `owner`) still pins, unless a record
+    /// references them or another writer pins them: what a refused, canceled or failed outcome
+    /// wrote (a deterministic bake's results are often the same blobs as the winning claim's,
+    /// which that claim keeps). A recorded success has no pins left. Before, they stayed pinned
+    /// for an hour and then waited for the orphan sweep; a failure here still leaves them to it.
+    pub(crate) async fn discard(&self, owner: &str) {
+        let out = match self.0.repo.release_pins(owner).await {
+            Ok(held) if held.is_empty() => Ok(0),
+            Ok(held) => self.0.repo.delete_blobs_if_unused(held, self.0.blobs.clone()).await,
+            Err(e) => Err(e),
+        };
+        match out {
+            Ok(0) => {}
+            Ok(n) => tracing::info!(
+                owner,
+                blobs = n,
+                "removed the blobs of a run its record does not keep"
+            ),
+            Err(e) => tracing::warn!(owner, error = %e,
+                "cannot remove the blobs of a finished run: left to the orphan sweep"),
+        }
     }
 
     /// Records an outcome, retrying while the repository is unreachable (until the claim is

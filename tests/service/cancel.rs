@@ -69,3 +69,33 @@ async fn delete_during_the_encode_stage_stops_between_encoders() {
     assert!(took < 0.8 * full_encode, "cancel took {took:.0} ms of a {full_encode:.0} ms encode");
     srv.stop().await;
 }
+
+/// A bake canceled after it stored some of its files (the Fourier PNGs, written before the
+/// streamed horizon layers) leaves no blob its record does not reference: before, they stayed
+/// pinned for an hour and then waited for the orphan sweep (issue 43: refused or abandoned
+/// results stay in the store).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_canceled_bake_leaves_no_blob_behind() {
+    let srv = Server::start(|_| {}).await;
+    let c = client();
+    let q = "?radius=24&outputs=horizon,fourier";
+    let loc = submit_ok(&c, &srv, &noise_png8(2048, 2048, 73), q).await;
+    let t = Instant::now();
+    // The input and at least one Fourier file are in the store; the horizon is still baking.
+    while blob_files(srv.dir.path()).len() < 2 {
+        let v: Value = c.get(srv.url(&loc)).send().await.unwrap().json().await.unwrap();
+        assert_ne!(v["status"], "succeeded", "finished before the DELETE: {v}");
+        assert!(t.elapsed() < Duration::from_secs(120), "{v}");
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    let res = c.delete(srv.url(&loc)).send().await.unwrap();
+    assert_eq!(res.status(), 202, "the bake was no longer running");
+    let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(120)).await;
+    assert_eq!(v["status"], "canceled", "{v}");
+    let t = Instant::now();
+    while blob_files(srv.dir.path()).len() > 1 && t.elapsed() < Duration::from_secs(10) {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert_eq!(blob_files(srv.dir.path()).len(), 1, "only the input should be left");
+    srv.stop().await;
+}

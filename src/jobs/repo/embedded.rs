@@ -434,6 +434,14 @@ impl JobRepo for EmbeddedRepo {
         Ok(())
     }
 
+    async fn release_pins(&self, owner: &str) -> Result<Vec<String>> {
+        let mut g = lock(&self.mem);
+        let held: Vec<String> =
+            g.pins.iter().filter(|(_, o)| o.contains_key(owner)).map(|(h, _)| h.clone()).collect();
+        unpin(&mut g, held.clone(), owner);
+        Ok(held)
+    }
+
     async fn delete_blobs_if_unused(
         &self,
         hashes: Vec<String>,

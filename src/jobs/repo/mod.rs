@@ -217,6 +217,10 @@ pub trait JobRepo: Send + Sync + 'static {
     async fn counts(&self) -> Result<Counts>;
     /// Keeps `hash` from being deleted until `owner`'s record references it (or an hour).
     async fn pin_blob(&self, hash: &str, owner: &str) -> Result<()>;
+    /// Drops every pin `owner` holds and returns their hashes: a run whose outcome was refused
+    /// (its claim stale) hands what it wrote to [`JobRepo::delete_blobs_if_unused`] instead of
+    /// leaving it pinned for an hour.
+    async fn release_pins(&self, owner: &str) -> Result<Vec<String>>;
     /// Deletes each of `hashes` from `blobs` that no record references and no live pin holds,
     /// atomically with respect to pins and references. Returns how many were deleted.
     async fn delete_blobs_if_unused(

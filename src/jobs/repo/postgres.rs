@@ -805,6 +805,14 @@ impl JobRepo for PgRepo {
         tx.commit().await.map_err(pg_err)
     }
 
+    async fn release_pins(&self, owner: &str) -> Result<Vec<String>> {
+        sqlx::query_scalar("DELETE FROM blob_pins WHERE owner = $1 RETURNING hash")
+            .bind(owner)
+            .fetch_all(&self.pool)
+            .await
+            .map_err(pg_err)
+    }
+
     async fn delete_blobs_if_unused(
         &self,
         hashes: Vec<String>,
