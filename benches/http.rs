@@ -3,7 +3,8 @@
 //!
 //! For an N² 16-bit height map at the default parameters (N = `HTTP_BENCH_SIZE`, default 2048),
 //! best of `HTTP_BENCH_RUNS` (default 3), interleaved so machine load affects both alike:
-//! - `cli`: the real binary, `horizon-bake bake IN -o DIR --format png8`, wall time and peak
+//! - `cli`: the real binary, `horizon-bake bake IN -o DIR --format png8` (or the
+//!   `HTTP_BENCH_FORMAT`), wall time and peak
 //!   resident memory (VmHWM sampled from /proc every 5 ms);
 //! - `http`: the real binary as a server (`horizon-bake serve`, a child process): POST the PNG,
 //!   wait on its event stream until the bake ends, GET `horizon/0` and `horizon/1` (png8), DELETE. Its peak resident
@@ -15,6 +16,9 @@
 //! the first `?format=exr` download of both layers over HTTP (re-bake included) against the
 //! service's own `timings_ms.bake`, and a bake that names `formats=png8,exr` at submission
 //! (EXR encoded with the bake; its downloads are file reads).
+//! `HTTP_BENCH_SERVE_ARGS` adds `serve` flags (`--tile-above 67108864`: 8192² untiled).
+//! `HTTP_BENCH_FORMAT=png16` bakes 16-bit layers instead, named at submission
+//! (`?formats=png16`) and downloaded as `?format=png16`, against the CLI's `--format png16`.
 //! Run: `cargo bench --bench http` (or `HTTP_BENCH_SIZE=8192 HTTP_BENCH_RUNS=1 …`).
 
 mod common;
@@ -37,14 +41,14 @@ fn peak_mib(pid: u32) -> Option<f64> {
 }
 
 /// The CLI's png8 bake of `input` into `out`: (wall seconds, peak MiB).
-fn cli(input: &Path, out: &Path) -> (f64, f64) {
+fn cli(input: &Path, out: &Path, format: &str) -> (f64, f64) {
     let t = Instant::now();
     let mut child = Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
         .arg("bake")
         .arg(input)
         .arg("-o")
         .arg(out)
-        .args(["--format", "png8"])
+        .args(["--format", format])
         .stderr(Stdio::null())
         .spawn()
         .expect("cli");
@@ -75,6 +79,7 @@ async fn submit_and_wait_q(
     png: &[u8],
     query: &str,
 ) -> (String, serde_json::Value) {
+    let t_post = Instant::now();
     let res = c
         .post(format!("{base}/v1/bakes{query}"))
         .header("content-type", "image/png")
@@ -83,6 +88,7 @@ async fn submit_and_wait_q(
         .await
         .expect("submit");
     assert_eq!(res.status(), 202, "submit answered {}", res.status());
+    eprintln!("  POST answered 202 after {:.1} ms", t_post.elapsed().as_secs_f64() * 1e3);
     let loc = res.headers()["location"].to_str().expect("location").to_owned();
     // Wait as a pipeline should: on the bake's event stream, which ends when the bake does
     // (polling every few ms would cost the server CPU the CLI does not spend).
@@ -110,14 +116,38 @@ async fn get_all(c: &reqwest::Client, base: &str, loc: &str, query: &str) -> usi
             tokio::time::sleep(Duration::from_millis(20)).await;
         };
         assert_eq!(res.status(), 200);
-        bytes += res.bytes().await.expect("body").len();
+        // Counted as it arrives, as a pipeline writing the file would take it: collecting a
+        // 534 MB layer into one growing buffer cost this client seconds the server never spent
+        // (curl reads the same file at over 1 GB/s).
+        let mut res = res;
+        while let Some(chunk) = res.chunk().await.expect("body") {
+            bytes += chunk.len();
+        }
     }
     bytes
 }
 
-async fn over_http(c: &reqwest::Client, base: &str, png: &[u8]) -> (usize, serde_json::Value) {
-    let (loc, v) = submit_and_wait(c, base, png).await;
-    let bytes = get_all(c, base, &loc, "").await;
+async fn over_http(
+    c: &reqwest::Client,
+    base: &str,
+    png: &[u8],
+    format: &str,
+) -> (usize, serde_json::Value) {
+    // png8 is the default format: named neither at submission nor at download, as a pipeline
+    // asking for the defaults would; any other is named at both.
+    let (submit_q, get_q) = if format == "png8" {
+        (String::new(), String::new())
+    } else {
+        (format!("?formats={format}"), format!("?format={format}"))
+    };
+    let (loc, v) = submit_and_wait_q(c, base, png, &submit_q).await;
+    let t = Instant::now();
+    let bytes = get_all(c, base, &loc, &get_q).await;
+    eprintln!(
+        "  GET of both layers: {:.1} ms, {:.1} MB",
+        t.elapsed().as_secs_f64() * 1e3,
+        bytes as f64 / 1e6
+    );
     // Remove it so the next run is a fresh bake rather than a deduplicated answer.
     let res = c.delete(format!("{base}{loc}")).send().await.expect("delete");
     assert_eq!(res.status(), 204);
@@ -152,11 +182,17 @@ fn main() {
         std::env::var("HTTP_BENCH_SIZE").ok().and_then(|v| v.parse().ok()).unwrap_or(2048);
     let runs: usize =
         std::env::var("HTTP_BENCH_RUNS").ok().and_then(|v| v.parse().ok()).unwrap_or(3);
+    let format = std::env::var("HTTP_BENCH_FORMAT").unwrap_or_else(|_| "png8".into());
+    assert!(format == "png8" || format == "png16", "HTTP_BENCH_FORMAT is png8 or png16");
     let png = terrain_png16(n, 0);
     let dir = tempfile::tempdir().expect("tempdir");
     let input = dir.path().join("in.png");
     std::fs::write(&input, &png).expect("input");
-    let (server, base) = start_server(dir.path(), &[]);
+    // `HTTP_BENCH_SERVE_ARGS`: more `serve` flags, e.g. `--tile-above 67108864` to bake an
+    // 8192² map untiled (the default tiles maps above 4096², SPEC §7.1).
+    let serve_args = std::env::var("HTTP_BENCH_SERVE_ARGS").unwrap_or_default();
+    let serve_args: Vec<&str> = serve_args.split_whitespace().collect();
+    let (server, base) = start_server(dir.path(), &serve_args);
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
@@ -166,11 +202,11 @@ fn main() {
     let (mut best_cli, mut best_http, mut cli_peak) = (f64::MAX, f64::MAX, 0.0f64);
     let mut timings = serde_json::Value::Null;
     for run in 0..runs {
-        let (t, peak) = cli(&input, &dir.path().join(format!("cli{run}")));
+        let (t, peak) = cli(&input, &dir.path().join(format!("cli{run}")), &format);
         best_cli = best_cli.min(t);
         cli_peak = cli_peak.max(peak);
         let t = Instant::now();
-        let (bytes, tm) = rt.block_on(over_http(&c, &base, &png));
+        let (bytes, tm) = rt.block_on(over_http(&c, &base, &png, &format));
         let took = t.elapsed().as_secs_f64();
         if took < best_http {
             best_http = took;
@@ -180,7 +216,7 @@ fn main() {
     }
     let server_peak = peak_mib(server.0.id()).unwrap_or(f64::NAN);
     let texels = (n * n) as f64;
-    println!("{n}×{n} 16-bit input, default parameters, png8 layers, best of {runs}");
+    println!("{n}×{n} 16-bit input, default parameters, {format} layers, best of {runs}");
     println!("{:<6} {:>10} {:>10} {:>9} {:>10}", "path", "ms", "Mtexel/s", "ratio", "peak MiB");
     for (name, t, peak) in [("cli", best_cli, cli_peak), ("http", best_http, server_peak)] {
         println!(
@@ -192,6 +228,9 @@ fn main() {
         );
     }
     println!("service timings_ms of the best run: {timings}");
+    let cli_json = std::fs::read(dir.path().join("cli0").join("bake.json")).expect("bake.json");
+    let cli_json: serde_json::Value = serde_json::from_slice(&cli_json).expect("bake.json");
+    println!("cli timings_ms of the first run: {}", cli_json["timings_ms"]);
     println!(
         "HTTP/CLI ratio: {:.3} (target ≤ 1.3); server peak {:.0} MiB (target ≤ 1536 at 8192²)",
         best_http / best_cli,
