@@ -8,9 +8,11 @@
 //! - [`profile`]: the horizon profile at one point.
 //! - [`shadow`]: lit or shadowed for a sun position.
 //! - [`sun`]: the sun position of a time and place (NREL SPA).
+//! - [`surface`]: normal, ambient occlusion and bent normal (SPEC §3.8), from the same horizons.
 
 pub mod angles;
 pub mod profile;
 pub mod shadow;
 pub mod sun;
+pub mod surface;
 pub mod svf;

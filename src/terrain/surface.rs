@@ -1,0 +1,232 @@
+//! Surface maps from the same bake (SPEC §3.8): the tangent-space normal, the ambient occlusion
+//! and the bent normal an artist imports beside the horizon layers, from the heights and the
+//! per-bin horizons the kernels already compute.
+//!
+//! - [`normal`]: n = normalize(−∂h/∂x, −∂h/∂y, 1) by central differences in texels of the scaled
+//!   heights, one-sided at an `edge=none` border, in the tangent frame of SPEC §2 (x = +column,
+//!   y as `y_axis` says).
+//! - [`occlusion`]: AO = (1/π) ∫ V max(0, n·ω) dω over the directions above the horizontal plane
+//!   and the bent normal normalize(∫ V max(0, n·ω) ω dω), V = 1 above the horizon α_k of each
+//!   bin. For one azimuth the elevation integral has a closed form (below), so a texel costs a
+//!   few operations per bin: the azimuth integral is the midpoint rule over the bake's bins, as
+//!   the definition says ("evaluated at the bake's bins azimuths").
+//!
+//! With ω = (cos θ cos φ, cos θ sin φ, sin θ) at elevation θ and a = n_z, b = n_x cos φ + n_y sin φ,
+//! n·ω = a sin θ + b cos θ and dω = cos θ dθ dφ. The integrand is positive for θ above
+//! θ₀ = atan(−b / a) when b < 0 (the normal leans away from φ) and everywhere when b ≥ 0, so per
+//! bin the integrals run from θ₁ = max(α, θ₀) to π/2:
+//! - AO: ∫ (a sin θ + b cos θ) cos θ dθ = [a sin²θ / 2 + b (θ + sin θ cos θ) / 2];
+//! - horizontal part of the bent normal, along (cos φ, sin φ):
+//!   ∫ (a sin θ + b cos θ) cos²θ dθ = [−a cos³θ / 3 + b (sin θ − sin³θ / 3)];
+//! - vertical part: ∫ (a sin θ + b cos θ) sin θ cos θ dθ = [a sin³θ / 3 − b cos³θ / 3].
+//!
+//! The oracle beside it (tests) integrates the same definition numerically over elevation, and
+//! the tests/ binary holds the maps against an independent quadrature of the exact horizon.
+
+use crate::kernels::Grid;
+use std::f64::consts::{FRAC_PI_2, PI};
+
+/// The unit normal of texel (`x`, `y`) (image column and row) of `grid`, in the tangent frame.
+/// Central differences in texel units; at an `edge=none` border the one-sided difference
+/// toward the inside (a map one texel wide or tall has slope 0 along that axis).
+pub fn normal(grid: &Grid<'_>, x: usize, y: usize) -> [f64; 3] {
+    let h = |i: i64, j: i64| grid.at_offset(x, y, i, j).map(f64::from);
+    let here = grid.heights[y * grid.width + x] as f64;
+    let slope = |plus: Option<f64>, minus: Option<f64>| match (plus, minus) {
+        (Some(p), Some(m)) => (p - m) * 0.5,
+        (Some(p), None) => p - here,
+        (None, Some(m)) => here - m,
+        (None, None) => 0.0,
+    };
+    // A wrapped grid always has both neighbours; only `edge=none` misses one at a border.
+    let (dx, dy) = (slope(h(1, 0), h(-1, 0)), slope(h(0, 1), h(0, -1)));
+    let len = (dx * dx + dy * dy + 1.0).sqrt();
+    [-dx / len, -dy / len, 1.0 / len]
+}
+
+/// Ambient occlusion and bent normal of one texel.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Occlusion {
+    /// In [0, 1]; 1 on an open, flat texel.
+    pub ao: f64,
+    /// Unit vector in the tangent frame; the normal itself where nothing is visible.
+    pub bent: [f64; 3],
+}
+
+/// [`Occlusion`] of a texel whose unit normal is `n` and whose horizon at bin k is sin α_k =
+/// `s[k]` (clamped to [0, 1], so α ≥ 0), at azimuths φ_k = 2πk / bins from +x toward +y.
+pub fn occlusion(s: &[f32], n: [f64; 3]) -> Occlusion {
+    let bins = s.len();
+    if bins == 0 {
+        return Occlusion { ao: 1.0, bent: n };
+    }
+    let a = n[2];
+    let (mut ao, mut bx, mut by, mut bz) = (0.0, 0.0, 0.0, 0.0);
+    let step = 2.0 * PI / bins as f64;
+    for (k, &sk) in s.iter().enumerate() {
+        let (sin_phi, cos_phi) = (k as f64 * step).sin_cos();
+        let b = n[0] * cos_phi + n[1] * sin_phi;
+        let alpha = (sk as f64).clamp(0.0, 1.0).asin();
+        let from = if b < 0.0 { alpha.max((-b).atan2(a)) } else { alpha };
+        if from >= FRAC_PI_2 {
+            continue;
+        }
+        let (st, ct) = from.sin_cos();
+        // Each antiderivative at π/2 minus its value at θ₁.
+        ao += a * 0.5 + b * PI * 0.25 - (a * st * st * 0.5 + b * (from + st * ct) * 0.5);
+        let horiz = b * (2.0 / 3.0) - (-a * ct * ct * ct / 3.0 + b * (st - st * st * st / 3.0));
+        let vert = a / 3.0 - (a * st * st * st / 3.0 - b * ct * ct * ct / 3.0);
+        bx += horiz * cos_phi;
+        by += horiz * sin_phi;
+        bz += vert;
+    }
+    let ao = (ao * step / PI).clamp(0.0, 1.0);
+    let len = (bx * bx + by * by + bz * bz).sqrt();
+    let bent = if len > 1e-12 { [bx / len, by / len, bz / len] } else { n };
+    Occlusion { ao, bent }
+}
+
+/// How `normal.png` stores the normal's y (SPEC §3.8 `normal_convention`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum NormalConvention {
+    /// Y+ (Godot, Blender, Unity): y as the tangent frame has it.
+    #[default]
+    OpenGl,
+    /// Y− (Unreal, DirectX): y negated.
+    DirectX,
+}
+
+/// A unit vector's components in [−1, 1] as bytes: floor(((v + 1) / 2)·255 + 0.5), y negated
+/// for `DirectX`.
+pub fn encode_unit(v: [f64; 3], convention: NormalConvention) -> [u8; 3] {
+    let y = if convention == NormalConvention::DirectX { -v[1] } else { v[1] };
+    [v[0], y, v[2]].map(|c| (((c.clamp(-1.0, 1.0) + 1.0) * 0.5) * 255.0 + 0.5).floor() as u8)
+}
+
+/// A value in [0, 1] as a byte: floor(v·255 + 0.5).
+pub fn encode_unorm(v: f64) -> u8 {
+    (v.clamp(0.0, 1.0) * 255.0 + 0.5).floor() as u8
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::params::{Edge, YAxis};
+
+    /// The definition integrated numerically: for each bin, the midpoint rule over elevation
+    /// with `steps` steps of V(θ > α) max(0, n·ω) cos θ (and ω times it).
+    fn oracle(s: &[f32], n: [f64; 3], steps: usize) -> (f64, [f64; 3]) {
+        let bins = s.len();
+        let dphi = 2.0 * PI / bins as f64;
+        let dth = FRAC_PI_2 / steps as f64;
+        let (mut ao, mut v) = (0.0, [0.0; 3]);
+        for (k, &sk) in s.iter().enumerate() {
+            let phi = k as f64 * dphi;
+            let alpha = (sk as f64).clamp(0.0, 1.0).asin();
+            for i in 0..steps {
+                let th = (i as f64 + 0.5) * dth;
+                if th <= alpha {
+                    continue;
+                }
+                let w = [th.cos() * phi.cos(), th.cos() * phi.sin(), th.sin()];
+                let d = (n[0] * w[0] + n[1] * w[1] + n[2] * w[2]).max(0.0);
+                let m = d * th.cos() * dth * dphi;
+                ao += m;
+                for c in 0..3 {
+                    v[c] += m * w[c];
+                }
+            }
+        }
+        let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+        (ao / PI, v.map(|c| c / len))
+    }
+
+    fn unit(v: [f64; 3]) -> [f64; 3] {
+        let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+        v.map(|c| c / l)
+    }
+
+    #[test]
+    fn open_flat_texel_is_unoccluded_and_bends_nowhere() {
+        let o = occlusion(&[0.0; 32], [0.0, 0.0, 1.0]);
+        assert!((o.ao - 1.0).abs() < 1e-12, "{o:?}");
+        assert!(
+            o.bent[0].abs() < 1e-12 && o.bent[1].abs() < 1e-12 && (o.bent[2] - 1.0).abs() < 1e-12
+        );
+    }
+
+    #[test]
+    fn a_uniform_horizon_on_a_flat_texel_is_cos_squared() {
+        // AO of a flat texel under a horizon α at every azimuth: ∫_α^{π/2} sin θ cos θ dθ · 2 =
+        // cos² α (the radiative sky-view factor).
+        let alpha = 30f64.to_radians();
+        let o = occlusion(&[alpha.sin() as f32; 16], [0.0, 0.0, 1.0]);
+        assert!((o.ao - alpha.cos().powi(2)).abs() < 1e-6, "{o:?}");
+    }
+
+    #[test]
+    fn closed_form_matches_the_numerical_integral_on_random_texels() {
+        let mut seed = 0x9e37_79b9_7f4a_7c15u64;
+        let mut rnd = || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            (seed >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for case in 0..200 {
+            let bins = [8, 16, 32, 64][case % 4];
+            let s: Vec<f32> = (0..bins).map(|_| (rnd() * rnd()) as f32).collect();
+            // Normals up to ~70° from vertical, some with the horizon below their tangent plane.
+            let n = unit([rnd() * 4.0 - 2.0, rnd() * 4.0 - 2.0, 0.7 + rnd()]);
+            let o = occlusion(&s, n);
+            // The midpoint rule steps over the kink at α and θ₀: within π/40000 per bin.
+            let (ao, bent) = oracle(&s, n, 20_000);
+            assert!((o.ao - ao).abs() < 1e-4, "case {case}: ao {} vs {ao}", o.ao);
+            for c in 0..3 {
+                assert!(
+                    (o.bent[c] - bent[c]).abs() < 2e-4,
+                    "case {case}: {:?} vs {bent:?}",
+                    o.bent
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn normals_by_central_and_one_sided_differences() {
+        // h = 2·col + 3·row: ∂h/∂x = 2; tangent +y is up the image (row − 1) with y_axis=up, so
+        // ∂h/∂y = −3 there and +3 with y_axis=down.
+        let (w, h) = (5, 4);
+        let heights: Vec<f32> = (0..w * h).map(|i| (2 * (i % w) + 3 * (i / w)) as f32).collect();
+        for (y_axis, dy) in [(YAxis::Up, -3.0), (YAxis::Down, 3.0)] {
+            let grid = Grid::new(w, h, &heights, Edge::None, y_axis);
+            let want = unit([-2.0, -dy, 1.0]);
+            for (x, y) in [(2, 1), (0, 0), (4, 3), (0, 3)] {
+                let n = normal(&grid, x, y);
+                for c in 0..3 {
+                    assert!((n[c] - want[c]).abs() < 1e-12, "{y_axis:?} ({x},{y}): {n:?}");
+                }
+            }
+        }
+        // Wrapped, the border differences reach across: a ramp 0..4 wraps from 4 back to 0.
+        let ramp: Vec<f32> = (0..5).map(|i| i as f32).collect();
+        let grid = Grid::new(5, 1, &ramp, Edge::Wrap, YAxis::Up);
+        let n = normal(&grid, 0, 0);
+        // (h(1) − h(4)) / 2 = −1.5.
+        assert!((n[0] - unit([1.5, 0.0, 1.0])[0]).abs() < 1e-12, "{n:?}");
+    }
+
+    #[test]
+    fn conventions_round_trip() {
+        let v = unit([0.3, -0.5, 0.8]);
+        let gl = encode_unit(v, NormalConvention::OpenGl);
+        let dx = encode_unit(v, NormalConvention::DirectX);
+        assert_eq!((gl[0], gl[2]), (dx[0], dx[2]));
+        let decode = |b: u8| b as f64 / 255.0 * 2.0 - 1.0;
+        assert!((decode(gl[1]) - v[1]).abs() <= 1.0 / 255.0);
+        assert!((decode(dx[1]) + v[1]).abs() <= 1.0 / 255.0);
+        assert_eq!(encode_unit([0.0, 0.0, 1.0], NormalConvention::OpenGl), [128, 128, 255]);
+        assert_eq!(encode_unorm(1.0), 255);
+        assert_eq!(encode_unorm(0.5), 128);
+    }
+}
