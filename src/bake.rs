@@ -863,6 +863,105 @@ fn terrain_planes(
     Ok((ang, sv))
 }
 
+/// The surface maps of one bake (SPEC §3.8), encoded samples of `width × height` texels, row 0
+/// first; each when asked. Holes are 0 in every map.
+#[derive(Debug, Clone)]
+pub struct SurfaceMaps {
+    pub width: usize,
+    pub height: usize,
+    /// RGB8: (n + 1) / 2, y as `normal_convention` says.
+    pub normal: Option<Vec<u8>>,
+    /// Grey8: the ambient occlusion.
+    pub ao: Option<Vec<u8>>,
+    /// RGB8 (`rgb`; `rg` with blue 0) or RGBA8 (`rgb_ao`) as `bent_normal_encoding` says.
+    pub bent_normal: Option<Vec<u8>>,
+}
+
+impl SurfaceMaps {
+    /// Channels per texel of `bent_normal` with `encoding`.
+    pub fn bent_channels(encoding: crate::params::BentNormalEncoding) -> usize {
+        use crate::params::BentNormalEncoding as E;
+        match encoding {
+            E::Rgb | E::Rg => 3,
+            E::RgbAo => 4,
+        }
+    }
+}
+
+/// Bakes the surface maps `params.outputs` asks for (`normal`, `ao`, `bent_normal`, SPEC §3.8)
+/// in one pass of the bake's kernel: each texel's normal from the scaled heights and its
+/// occlusion from its horizons, the kernel's per-bin values for the ray methods and the 8
+/// channel directions for `lengyel` (coarse: 45° apart, each a 5-bin average).
+///
+/// # Errors
+/// [`crate::Error::Canceled`].
+pub fn bake_surface(
+    map: &HeightMap,
+    params: &BakeParams,
+    progress: &Progress,
+) -> Result<(SurfaceMaps, ResolvedRadius)> {
+    use crate::params::BentNormalEncoding;
+    use crate::terrain::surface;
+    let (w, h) = (map.width, map.height);
+    let heights = map.scaled(params.height_scale);
+    check_scaled(&heights)?;
+    let radius = resolve_radius(params, w, h, &heights);
+    let grid = Grid::new(w, h, &heights, params.edge, params.y_axis);
+    let holes = map.terrain.holes.as_deref();
+    let kernel = make_kernel_for(params, grid, radius.texels, progress, holes);
+    let per_bin = params.method != Method::Lengyel;
+    let nb = kernel.bins();
+    let o = params.outputs;
+    let bent_ch = SurfaceMaps::bent_channels(params.bent_normal_encoding);
+    let mut normal = o.normal.then(|| vec![0u8; w * h * 3]);
+    let mut ao = o.ao.then(|| vec![0u8; w * h]);
+    let mut bent = o.bent_normal.then(|| vec![0u8; w * h * bent_ch]);
+    let band = kernels::band_rows_for(kernel.as_ref());
+    progress.start(Stage::Bake, h as u64);
+    {
+        let normal_rows = normal.as_mut().map(|p| split(p, band * w * 3));
+        let ao_rows = ao.as_mut().map(|p| split(p, band * w));
+        let bent_rows = bent.as_mut().map(|p| split(p, band * w * bent_ch));
+        let flip = surface::flips_y(params.y_axis, params.normal_convention);
+        kernels::run_bands(kernel.as_ref(), band, per_bin, progress, |bi, b: Band<'_>| {
+            let mut nr = normal_rows.as_ref().and_then(|r| r[bi].lock().ok());
+            let mut ar = ao_rows.as_ref().and_then(|r| r[bi].lock().ok());
+            let mut br = bent_rows.as_ref().and_then(|r| r[bi].lock().ok());
+            for t in 0..b.rows * w {
+                let (x, y) = (t % w, b.y0 + t / w);
+                if holes.is_some_and(|m| m[y * w + x]) {
+                    continue; // the planes start at 0
+                }
+                let n = surface::normal(&grid, x, y);
+                if let Some(out) = nr.as_mut() {
+                    out[t * 3..t * 3 + 3].copy_from_slice(&surface::encode_unit(n, flip));
+                }
+                if ar.is_none() && br.is_none() {
+                    continue;
+                }
+                let s = match b.bins {
+                    Some(bins) if per_bin => &bins[t * nb..(t + 1) * nb],
+                    _ => &b.channels[t * 8..t * 8 + 8],
+                };
+                let occ = surface::occlusion(s, n);
+                if let Some(out) = ar.as_mut() {
+                    out[t] = surface::encode_unorm(occ.ao);
+                }
+                if let Some(out) = br.as_mut() {
+                    let v = surface::encode_unit(occ.bent, flip);
+                    let (z, a) = match params.bent_normal_encoding {
+                        BentNormalEncoding::Rg => (0, 0),
+                        _ => (v[2], surface::encode_unorm(occ.ao)),
+                    };
+                    out[t * bent_ch..(t + 1) * bent_ch]
+                        .copy_from_slice(&[v[0], v[1], z, a][..bent_ch]);
+                }
+            }
+        })?;
+    }
+    Ok((SurfaceMaps { width: w, height: h, normal, ao, bent_normal: bent }, radius))
+}
+
 /// The terrain products (`angles`, `svf`) of the interior of one tile of a tiled bake (SPEC
 /// §7.1), as [`bake_window`] bakes its horizon layers: `window` is the tile's window of the map
 /// (unscaled values, holes, the map's nodata), `interior` = (column, row, width, height) inside

@@ -134,18 +134,43 @@ pub struct Outputs {
     /// The sky-view factor (SPEC §3.7), as `svf.tif`.
     #[serde(default)]
     pub svf: bool,
+    /// The tangent-space normal map (SPEC §3.8), as `normal.png`.
+    #[serde(default)]
+    pub normal: bool,
+    /// Ambient occlusion from the horizons (SPEC §3.8), as `ao.png`.
+    #[serde(default)]
+    pub ao: bool,
+    /// The bent normal (SPEC §3.8), as `bent_normal.png`.
+    #[serde(default)]
+    pub bent_normal: bool,
 }
 
 impl Outputs {
+    /// Nothing asked for: what `outputs=` parses into before its names.
+    pub const NONE: Outputs = Outputs {
+        horizon: false,
+        fourier: false,
+        angles: false,
+        svf: false,
+        normal: false,
+        ao: false,
+        bent_normal: false,
+    };
+
     /// Whether a terrain product (SPEC §3.7) is asked for.
     pub fn terrain(&self) -> bool {
         self.angles || self.svf
+    }
+
+    /// Whether a surface map (SPEC §3.8) is asked for.
+    pub fn surface(&self) -> bool {
+        self.normal || self.ao || self.bent_normal
     }
 }
 
 impl Default for Outputs {
     fn default() -> Self {
-        Outputs { horizon: true, fourier: false, angles: false, svf: false }
+        Outputs { horizon: true, ..Outputs::NONE }
     }
 }
 
@@ -163,6 +188,15 @@ impl fmt::Display for Outputs {
         }
         if self.svf {
             parts.push("svf");
+        }
+        if self.normal {
+            parts.push("normal");
+        }
+        if self.ao {
+            parts.push("ao");
+        }
+        if self.bent_normal {
+            parts.push("bent_normal");
         }
         f.write_str(&parts.join(","))
     }
@@ -196,6 +230,30 @@ pub enum SvfModel {
     Radiative,
     /// 1 − mean sin α (Zakšek et al. 2011, RVT).
     Visual,
+}
+
+/// How `normal.png` stores the normal's y (SPEC §3.8).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Hash, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum NormalConvention {
+    /// Y+ (Godot, Blender, Unity): the stored y points up the image, whatever `y_axis`.
+    #[default]
+    OpenGl,
+    /// Y− (Unreal): the stored y points down the image.
+    DirectX,
+}
+
+/// What `bent_normal.png` holds (SPEC §3.8).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Hash, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum BentNormalEncoding {
+    /// x, y, z as (v + 1) / 2.
+    #[default]
+    Rgb,
+    /// x, y only (z rebuilt from them: Godot's `bent_normal_texture`).
+    Rg,
+    /// x, y, z and the ambient occlusion in alpha (as Knald packs it).
+    RgbAo,
 }
 
 /// Whether far terrain drops with the earth's curvature (SPEC §3.7).
@@ -305,6 +363,8 @@ pub struct BakeParams {
     pub angle_unit: AngleUnit,
     pub azimuth_from: AzimuthFrom,
     pub svf_model: SvfModel,
+    pub normal_convention: NormalConvention,
+    pub bent_normal_encoding: BentNormalEncoding,
     /// The band (sample) of a multi-band TIFF the heights are read from, 1-based; `None`:
     /// `channel` decides (a DEM with several bands then needs it, SPEC §2).
     pub band: Option<u8>,
@@ -342,6 +402,8 @@ impl Default for BakeParams {
             angle_unit: AngleUnit::Degrees,
             azimuth_from: AzimuthFrom::EastCcw,
             svf_model: SvfModel::Radiative,
+            normal_convention: NormalConvention::OpenGl,
+            bent_normal_encoding: BentNormalEncoding::Rgb,
             band: None,
             linear_unit_m: 1.0,
             explicit: Explicit::default(),
@@ -373,6 +435,8 @@ pub const PARAM_NAMES: &[&str] = &[
     "azimuth_from",
     "svf_model",
     "band",
+    "normal_convention",
+    "bent_normal_encoding",
 ];
 
 pub(crate) fn parse_enum<T: Copy>(field: &str, value: &str, options: &[(&str, T)]) -> Result<T> {
@@ -604,26 +668,27 @@ impl BakeParams {
                 )?
             }
             "outputs" => {
-                let mut o = Outputs { horizon: false, fourier: false, angles: false, svf: false };
+                const NAMES: &str = "horizon, fourier, angles, svf, normal, ao, bent_normal";
+                let mut o = Outputs::NONE;
                 for part in value.split(',').map(str::trim).filter(|p| !p.is_empty()) {
                     match part.to_ascii_lowercase().as_str() {
                         "horizon" => o.horizon = true,
                         "fourier" => o.fourier = true,
                         "angles" => o.angles = true,
                         "svf" => o.svf = true,
+                        "normal" => o.normal = true,
+                        "ao" => o.ao = true,
+                        "bent_normal" => o.bent_normal = true,
                         _ => {
                             return Err(Error::param(
                                 key,
-                                format!("`{part}` is not one of horizon, fourier, angles, svf"),
+                                format!("`{part}` is not one of {NAMES}"),
                             ))
                         }
                     }
                 }
-                if !o.horizon && !o.fourier && !o.terrain() {
-                    return Err(Error::param(
-                        key,
-                        "must name at least one of horizon, fourier, angles, svf",
-                    ));
+                if !o.horizon && !o.fourier && !o.terrain() && !o.surface() {
+                    return Err(Error::param(key, format!("must name at least one of {NAMES}")));
                 }
                 self.outputs = o;
             }
@@ -725,6 +790,24 @@ impl BakeParams {
                     key,
                     value,
                     &[("radiative", SvfModel::Radiative), ("visual", SvfModel::Visual)],
+                )?
+            }
+            "normal_convention" => {
+                self.normal_convention = parse_enum(
+                    key,
+                    value,
+                    &[("opengl", NormalConvention::OpenGl), ("directx", NormalConvention::DirectX)],
+                )?
+            }
+            "bent_normal_encoding" => {
+                self.bent_normal_encoding = parse_enum(
+                    key,
+                    value,
+                    &[
+                        ("rgb", BentNormalEncoding::Rgb),
+                        ("rg", BentNormalEncoding::Rg),
+                        ("rgb_ao", BentNormalEncoding::RgbAo),
+                    ],
                 )?
             }
             _ => {
@@ -891,6 +974,8 @@ impl BakeParams {
             ("azimuth_from", name(&self.azimuth_from)),
             ("svf_model", name(&self.svf_model)),
             ("band", self.band.map_or("auto".into(), |b| b.to_string())),
+            ("normal_convention", name(&self.normal_convention)),
+            ("bent_normal_encoding", name(&self.bent_normal_encoding)),
         ]
     }
 }

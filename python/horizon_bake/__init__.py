@@ -70,7 +70,7 @@ PARAMETERS = (
     "height_scale", "channel", "edge", "y_axis", "method", "radius", "bins", "reduce",
     "min_elevation_deg", "encoding", "outputs", "fourier_terms", "fourier_range", "nodata",
     "cell_size", "max_distance", "earth_curvature", "refraction", "angle_unit", "azimuth_from",
-    "svf_model", "band",
+    "svf_model", "band", "normal_convention", "bent_normal_encoding",
 )
 
 ProgressCallback = Callable[[float], Optional[bool]]
@@ -226,6 +226,13 @@ class BakeResult:
     angles: Optional[np.ndarray] = None
     #: Sky-view factor ``(H, W)`` float32; holes hold ``product_nodata``.
     svf: Optional[np.ndarray] = None
+    #: The surface maps (SPEC §3.8), the values of ``normal.png``, ``ao.png`` and
+    #: ``bent_normal.png``: ``normal`` ``(H, W, 3)`` uint8 ((n + 1) / 2, y as
+    #: ``normal_convention``), ``ao`` ``(H, W)`` uint8, ``bent_normal`` ``(H, W, 3)`` (``(H, W,
+    #: 4)`` with the AO in alpha for ``bent_normal_encoding="rgb_ao"``); holes 0.
+    normal: Optional[np.ndarray] = None
+    ao: Optional[np.ndarray] = None
+    bent_normal: Optional[np.ndarray] = None
     #: The parameters the bake ran with, every one resolved (DEM defaults, method fitted), as
     #: the CLI's bake.json and the service report them.
     params: Dict[str, str] = field(default_factory=dict)

@@ -32,6 +32,9 @@ class BakeResult:
     fourier: Optional[Dict[str, Any]]
     angles: Optional[np.ndarray]
     svf: Optional[np.ndarray]
+    normal: Optional[np.ndarray]
+    ao: Optional[np.ndarray]
+    bent_normal: Optional[np.ndarray]
     params: Dict[str, str]
     resolved_radius: Optional[Dict[str, Any]]
     timings_ms: Dict[str, float]
@@ -72,6 +75,8 @@ def bake(
     azimuth_from: Optional[str] = ...,
     svf_model: Optional[str] = ...,
     band: Union[int, str, None] = ...,
+    normal_convention: Optional[str] = ...,
+    bent_normal_encoding: Optional[str] = ...,
 ) -> BakeResult: ...
 def terrain(
     dem: Any,

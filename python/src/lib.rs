@@ -137,6 +137,7 @@ struct Made {
     layers: Option<hb::HorizonLayers>,
     fourier: Option<horizon_bake::kernels::fourier::FourierLayers>,
     terrain: Option<hb::TerrainProducts>,
+    surface: Option<hb::SurfaceMaps>,
     bake_ms: f64,
 }
 
@@ -144,8 +145,8 @@ fn ms(t: Instant) -> f64 {
     (t.elapsed().as_secs_f64() * 1e6).round() / 1e3
 }
 
-/// Runs the products `params.outputs` asks for, one after the other (terrain, horizon,
-/// Fourier, as the pipeline orders them); `step` counts the finished ones for the overall
+/// Runs the products `params.outputs` asks for, one after the other (terrain, surface maps,
+/// horizon, Fourier, as the pipeline orders them); `step` counts the finished ones for the overall
 /// progress.
 fn run(
     map: &HeightMap,
@@ -159,6 +160,12 @@ fn run(
     if params.outputs.terrain() {
         let (p, r) = hb::bake_terrain(map, params, progress)?;
         made.terrain = Some(p);
+        made.radius = Some(r);
+        next(progress, step);
+    }
+    if params.outputs.surface() {
+        let (m, r) = hb::bake_surface(map, params, progress)?;
+        made.surface = Some(m);
         made.radius = Some(r);
         next(progress, step);
     }
@@ -303,10 +310,15 @@ fn bake_array<'py>(
 
     let progress_handle = Progress::new();
     let step = AtomicUsize::new(0);
-    let steps = [params.outputs.terrain(), params.outputs.horizon, params.outputs.fourier]
-        .iter()
-        .filter(|&&b| b)
-        .count();
+    let steps = [
+        params.outputs.terrain(),
+        params.outputs.surface(),
+        params.outputs.horizon,
+        params.outputs.fourier,
+    ]
+    .iter()
+    .filter(|&&b| b)
+    .count();
     let made = with_progress(py, &progress_handle, &step, steps, progress, || {
         run(&map, &params, precisions, &progress_handle, &step)
     })?;
@@ -363,6 +375,19 @@ fn bake_array<'py>(
             out.set_item("svf", array(py, s, &[t.height, t.width])?)?;
         }
         out.set_item("product_nodata", t.nodata)?;
+    }
+    if let Some(m) = made.surface {
+        let (w, h) = (m.width, m.height);
+        if let Some(n) = m.normal {
+            out.set_item("normal", array(py, n, &[h, w, 3])?)?;
+        }
+        if let Some(a) = m.ao {
+            out.set_item("ao", array(py, a, &[h, w])?)?;
+        }
+        if let Some(b) = m.bent_normal {
+            let ch = b.len() / (w * h).max(1);
+            out.set_item("bent_normal", array(py, b, &[h, w, ch])?)?;
+        }
     }
     let timings = PyDict::new(py);
     timings.set_item("decode", decode_ms)?;

@@ -45,6 +45,8 @@ NON_DEFAULT = {
     "azimuth_from": ("north_cw", "north_cw"),
     "svf_model": ("visual", "visual"),
     "band": (1, "1"),
+    "normal_convention": ("directx", "directx"),
+    "bent_normal_encoding": ("rgb_ao", "rgb_ao"),
 }
 
 
@@ -137,6 +139,31 @@ def test_dtypes_and_odd_sizes_equal_the_cli(cli, tmp_path, dtype, shape):
                 assert np.array_equal(r.fourier["constant"], np.asarray(im))
             report = json.loads((out / "bake.json").read_text())
             assert r.resolved_radius["texels"] == report["params"]["resolved_radius"]["texels"]
+
+
+def test_surface_maps_are_the_clis_pngs(cli, tmp_path):
+    """normal, ao and bent_normal (SPEC §3.8) as arrays hold the values of the CLI's PNGs, in
+    both conventions and every bent-normal encoding."""
+    a = rng_map(23, 30, seed=45, dtype=np.uint16)
+    src = tmp_path / "in.png"
+    write_png(src, a)
+    for conv, enc in [("opengl", "rgb"), ("directx", "rgb_ao"), ("opengl", "rg")]:
+        out = tmp_path / f"{conv}-{enc}"
+        p = run_cli(cli, "bake", str(src), "-o", str(out), "--method", "exact", "--radius", "8",
+                    "--outputs", "normal,ao,bent_normal", "--normal-convention", conv,
+                    "--bent-normal-encoding", enc)
+        assert p.returncode == 0, p.stderr
+        r = hb.bake(a, method="exact", radius=8, outputs=("normal", "ao", "bent_normal"),
+                    normal_convention=conv, bent_normal_encoding=enc)
+        assert r.layers is None
+        for name in ("normal", "ao", "bent_normal"):
+            with Image.open(out / f"{name}.png") as im:
+                assert np.array_equal(getattr(r, name), np.asarray(im)), (conv, enc, name)
+        assert r.bent_normal.shape == (23, 30, 4 if enc == "rgb_ao" else 3)
+        if enc == "rg":
+            assert not r.bent_normal[..., 2].any()
+    # Relief occludes: the AO is below 1 somewhere and never above it.
+    assert r.ao.min() < 255
 
 
 def test_float32_layers_are_the_unquantised_values():

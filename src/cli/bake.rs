@@ -188,7 +188,7 @@ pub struct ParamFlags {
     #[arg(long)]
     pub encoding: Option<String>,
     /// Comma list of horizon (default), fourier, angles, svf (angles and svf: GeoTIFF terrain
-    /// products).
+    /// products), normal, ao, bent_normal (surface maps: normal.png, ao.png, bent_normal.png).
     #[arg(long)]
     pub outputs: Option<String>,
     /// 3, 5 (default), 7 or 9.
@@ -225,6 +225,13 @@ pub struct ParamFlags {
     /// it; default auto: --channel decides).
     #[arg(long)]
     pub band: Option<String>,
+    /// Where the y of normal.png and bent_normal.png points in the image, whatever --y-axis:
+    /// opengl (default, Y+, up: Godot, Blender, Unity) or directx (Y−, down: Unreal).
+    #[arg(long)]
+    pub normal_convention: Option<String>,
+    /// What bent_normal.png holds: rgb (default), rg (x, y; blue 0) or rgb_ao (AO in alpha).
+    #[arg(long)]
+    pub bent_normal_encoding: Option<String>,
 }
 
 impl ParamFlags {
@@ -257,6 +264,8 @@ impl ParamFlags {
             ("azimuth_from", &self.azimuth_from),
             ("svf_model", &self.svf_model),
             ("band", &self.band),
+            ("normal_convention", &self.normal_convention),
+            ("bent_normal_encoding", &self.bent_normal_encoding),
         ];
         let p = BakeParams::from_pairs_unchecked(
             pairs.iter().filter_map(|(k, v)| v.as_deref().map(|v| (*k, v))),

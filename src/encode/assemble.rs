@@ -405,11 +405,7 @@ pub fn write_png<T: PngSample + LeSample, W: Write + Send>(
     plane: usize,
     rows: &mut RowSource<'_, T>,
 ) -> Result<W> {
-    let ch = match color {
-        PngColor::Gray => 1,
-        PngColor::GrayAlpha => 2,
-        PngColor::Rgba => 4,
-    };
+    let ch = color.channels();
     let w = PngRowWriter::<W, T>::new(out, width, height, color)?;
     let band = band_rows(width * ch * T::BYTES);
     // The encoder on its own thread, a band behind the reads: while one band is filtered and

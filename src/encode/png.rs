@@ -10,14 +10,18 @@ pub enum PngColor {
     Gray,
     /// Grey and alpha (the terrain renderings: a hole is transparent).
     GrayAlpha,
+    /// Three channels (the normal and bent-normal maps, SPEC §3.8).
+    Rgb,
     Rgba,
 }
 
 impl PngColor {
-    fn channels(self) -> usize {
+    /// Samples per pixel.
+    pub fn channels(self) -> usize {
         match self {
             PngColor::Gray => 1,
             PngColor::GrayAlpha => 2,
+            PngColor::Rgb => 3,
             PngColor::Rgba => 4,
         }
     }
@@ -186,6 +190,7 @@ fn write_header<W: std::io::Write, T: PngSample>(
     let color_type = match color {
         PngColor::Gray => 0,
         PngColor::GrayAlpha => 4,
+        PngColor::Rgb => 2,
         PngColor::Rgba => 6,
     };
     ihdr.extend_from_slice(&[T::BITS, color_type, 0, 0, 0]);

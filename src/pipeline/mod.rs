@@ -8,7 +8,8 @@
 //!   over the sink's writers, so no layer and no encoded image is ever whole in memory.
 //! - Anything else (EXR, KTX2, DDS) bakes whole layers at the precisions the formats need, then
 //!   encodes them.
-//! - Fourier outputs are baked before the streamed horizon layers, which consume the map.
+//! - Fourier outputs are baked before the streamed horizon layers, which consume the map, and
+//!   so are the terrain products ([`terrain`]) and the surface maps ([`surface`]).
 //!
 //! Beside it: [`terrain`] (the GeoTIFF products), [`job`] (a stored bake record run through
 //! this pipeline into the blob store: what the jobs core runs for the service) and [`tiled`]
@@ -23,6 +24,7 @@ use crate::progress::{Progress, Stage};
 use std::time::Instant;
 
 pub mod job;
+pub mod surface;
 pub mod terrain;
 pub mod tiled;
 
@@ -110,6 +112,23 @@ pub fn produce<S: Sink>(
         let bake_ms = ms(t);
         store_ms += keep(sink, files, &mut names)?;
         terrain = Some((r, products, bake_ms));
+    }
+    // Surface maps (SPEC §3.8) next, for the same reason; their description joins the terrain
+    // products' in bake.json.
+    if params.outputs.surface() {
+        let t = Instant::now();
+        let (files, r, products) = surface::surface_files(&map, params, progress)?;
+        let bake_ms = ms(t);
+        store_ms += keep(sink, files, &mut names)?;
+        terrain = Some(match terrain {
+            None => (r, products, bake_ms),
+            Some((r0, mut p0, ms0)) => {
+                if let (Some(a), serde_json::Value::Object(b)) = (p0.as_object_mut(), products) {
+                    a.extend(b);
+                }
+                (r0, p0, ms0 + bake_ms)
+            }
+        });
     }
     let products = terrain.as_ref().map_or(serde_json::Value::Null, |t| t.1.clone());
     let terrain_ms = terrain.as_ref().map_or(0.0, |t| t.2);

@@ -104,11 +104,12 @@ pub fn check(
             ),
         ));
     }
-    if params.outputs.fourier {
+    if params.outputs.fourier || params.outputs.surface() {
         return Err(Error::param(
             "outputs",
             "a tiled bake (map above --tile-above) produces the horizon layers and the terrain \
-             products (angles, svf); not fourier",
+             products (angles, svf); not fourier, nor yet the surface maps (normal, ao, \
+             bent_normal)",
         ));
     }
     // Each terrain product is one classic GeoTIFF, assembled tile by tile: the untiled bake's

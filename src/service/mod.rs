@@ -60,6 +60,9 @@ pub const ROUTES: &[(&str, &[&str])] = &[
     ("/v1/bakes/{id}/horizon.dds", &["GET"]),
     ("/v1/bakes/{id}/fourier/{layer}", &["GET"]),
     ("/v1/bakes/{id}/angles", &["GET"]),
+    ("/v1/bakes/{id}/normal", &["GET"]),
+    ("/v1/bakes/{id}/ao", &["GET"]),
+    ("/v1/bakes/{id}/bent_normal", &["GET"]),
     ("/v1/bakes/{id}/svf", &["GET"]),
     ("/v1/bakes/{id}/shadow", &["GET"]),
     ("/v1/bakes/{id}/profile", &["GET"]),
@@ -286,6 +289,9 @@ pub fn app(st: AppState) -> Router {
         .route("/v1/bakes/{id}/horizon.dds", get(handlers::horizon_dds))
         .route("/v1/bakes/{id}/fourier/{layer}", get(handlers::fourier_layer))
         .route("/v1/bakes/{id}/angles", get(handlers::angles))
+        .route("/v1/bakes/{id}/normal", get(handlers::normal))
+        .route("/v1/bakes/{id}/ao", get(handlers::ao))
+        .route("/v1/bakes/{id}/bent_normal", get(handlers::bent_normal))
         .route("/v1/bakes/{id}/svf", get(handlers::svf))
         .route("/v1/bakes/{id}/shadow", get(handlers::shadow))
         .route("/v1/bakes/{id}/profile", get(handlers::profile))

@@ -24,6 +24,7 @@
 //! the tests/ binary holds the maps against an independent quadrature of the exact horizon.
 
 use crate::kernels::Grid;
+use crate::params::{NormalConvention, YAxis};
 use std::f64::consts::{FRAC_PI_2, PI};
 
 /// The unit normal of texel (`x`, `y`) (image column and row) of `grid`, in the tangent frame.
@@ -86,21 +87,24 @@ pub fn occlusion(s: &[f32], n: [f64; 3]) -> Occlusion {
     Occlusion { ao, bent }
 }
 
-/// How `normal.png` stores the normal's y (SPEC §3.8 `normal_convention`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub enum NormalConvention {
-    /// Y+ (Godot, Blender, Unity): y as the tangent frame has it.
-    #[default]
-    OpenGl,
-    /// Y− (Unreal, DirectX): y negated.
-    DirectX,
+/// Whether the stored y is the tangent frame's y negated: `normal_convention` names the
+/// direction of the stored y in the image, whatever `y_axis` (SPEC §2) made the frame: `opengl`
+/// (Y+) up the image, `directx` (Y−) down it. So `y_axis=up` with `opengl`, and `y_axis=down`
+/// with `directx`, store the frame's y as it is.
+pub fn flips_y(y_axis: YAxis, convention: NormalConvention) -> bool {
+    (y_axis == YAxis::Up) != (convention == NormalConvention::OpenGl)
 }
 
 /// A unit vector's components in [−1, 1] as bytes: floor(((v + 1) / 2)·255 + 0.5), y negated
-/// for `DirectX`.
-pub fn encode_unit(v: [f64; 3], convention: NormalConvention) -> [u8; 3] {
-    let y = if convention == NormalConvention::DirectX { -v[1] } else { v[1] };
-    [v[0], y, v[2]].map(|c| (((c.clamp(-1.0, 1.0) + 1.0) * 0.5) * 255.0 + 0.5).floor() as u8)
+/// when `flip_y` ([`flips_y`]). 0 sits exactly on a rounding tie (127.5 + 0.5), so a component
+/// within 1e-9 of it (what the sums over symmetric azimuths leave of a flat texel's bent
+/// normal) is 0: flat is 128, 128, 255 whichever way the last bit fell.
+pub fn encode_unit(v: [f64; 3], flip_y: bool) -> [u8; 3] {
+    let y = if flip_y { -v[1] } else { v[1] };
+    [v[0], y, v[2]].map(|c| {
+        let c = if c.abs() < 1e-9 { 0.0 } else { c.clamp(-1.0, 1.0) };
+        (((c + 1.0) * 0.5) * 255.0 + 0.5).floor() as u8
+    })
 }
 
 /// A value in [0, 1] as a byte: floor(v·255 + 0.5).
@@ -111,7 +115,7 @@ pub fn encode_unorm(v: f64) -> u8 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::params::{Edge, YAxis};
+    use crate::params::Edge;
 
     /// The definition integrated numerically: for each bin, the midpoint rule over elevation
     /// with `steps` steps of V(θ > α) max(0, n·ω) cos θ (and ω times it).
@@ -219,13 +223,17 @@ mod tests {
     #[test]
     fn conventions_round_trip() {
         let v = unit([0.3, -0.5, 0.8]);
-        let gl = encode_unit(v, NormalConvention::OpenGl);
-        let dx = encode_unit(v, NormalConvention::DirectX);
+        let gl = encode_unit(v, flips_y(YAxis::Up, NormalConvention::OpenGl));
+        let dx = encode_unit(v, flips_y(YAxis::Up, NormalConvention::DirectX));
+        // A frame already pointing down the image is DirectX's as it is.
+        assert!(!flips_y(YAxis::Down, NormalConvention::DirectX));
+        assert!(flips_y(YAxis::Down, NormalConvention::OpenGl));
         assert_eq!((gl[0], gl[2]), (dx[0], dx[2]));
         let decode = |b: u8| b as f64 / 255.0 * 2.0 - 1.0;
         assert!((decode(gl[1]) - v[1]).abs() <= 1.0 / 255.0);
         assert!((decode(dx[1]) + v[1]).abs() <= 1.0 / 255.0);
-        assert_eq!(encode_unit([0.0, 0.0, 1.0], NormalConvention::OpenGl), [128, 128, 255]);
+        assert_eq!(encode_unit([0.0, 0.0, 1.0], false), [128, 128, 255]);
+        assert_eq!(encode_unit([-1e-17, 1e-17, 1.0], true), [128, 128, 255]);
         assert_eq!(encode_unorm(1.0), 255);
         assert_eq!(encode_unorm(0.5), 128);
     }

@@ -14,4 +14,5 @@ mod lengyel_fast;
 mod march;
 mod properties;
 mod shading;
+mod surface;
 mod sweep;

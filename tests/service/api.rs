@@ -1128,3 +1128,58 @@ async fn dem_resource_and_png_renderings() {
     assert!(shadowed > 0, "the ridge casts a shadow at 8°");
     srv.stop().await;
 }
+
+/// Issue 45: a bake with the surface maps in `outputs` serves `normal.png`, `ao.png` and
+/// `bent_normal.png` byte-identical to the CLI's, links them, answers 409 for one it did not
+/// compute, and a tiled map asking for them is a 422 naming `outputs`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn surface_maps_over_http_are_the_cli_s_files() {
+    let srv = Server::start(|c| {
+        c.tiles =
+            horizon_bake::pipeline::tiled::TileSettings { tile_above: 64 * 64, tile_size: 32 };
+    })
+    .await;
+    let c = client();
+    let png = terrain_png16(41, 33, 45);
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("in.png");
+    std::fs::write(&input, &png).unwrap();
+    let flags = ["--method", "march", "--radius", "12", "--bent-normal-encoding", "rgb_ao"];
+    let st = std::process::Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
+        .args(["bake", input.to_str().unwrap(), "-o", dir.path().join("out").to_str().unwrap()])
+        .args(["--outputs", "horizon,normal,ao,bent_normal"])
+        .args(flags)
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let q =
+        "?method=march&radius=12&bent_normal_encoding=rgb_ao&outputs=horizon,normal,ao,bent_normal";
+    let loc = submit_ok(&c, &srv, &png, q).await;
+    let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
+    assert_eq!(v["status"], "succeeded", "{v}");
+    for name in ["normal", "ao", "bent_normal"] {
+        assert_eq!(v["links"][name], format!("{loc}/{name}"), "{v}");
+        let res = c.get(srv.url(&format!("{loc}/{name}"))).send().await.unwrap();
+        assert_eq!(res.status(), 200, "{name}");
+        assert_eq!(res.headers()["content-type"], "image/png");
+        let body = res.bytes().await.unwrap();
+        let cli = std::fs::read(dir.path().join("out").join(format!("{name}.png"))).unwrap();
+        assert!(body[..] == cli[..], "{name}.png differs from the CLI's");
+    }
+    let loc = submit_ok(&c, &srv, &png, "?method=march&radius=12&outputs=horizon,normal").await;
+    wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
+    let res = c.get(srv.url(&format!("{loc}/ao"))).send().await.unwrap();
+    assert_eq!(res.status(), 409);
+    // Above --tile-above (64²): refused before it is queued.
+    let res = c
+        .post(srv.url("/v1/bakes?method=march&radius=4&outputs=horizon,ao"))
+        .header("content-type", "image/png")
+        .body(terrain_png16(80, 80, 46))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(res.status(), 422);
+    let p: Value = res.json().await.unwrap();
+    assert_eq!(p["field"], "outputs", "{p}");
+    srv.stop().await;
+}

@@ -271,6 +271,16 @@ impl BakeResource {
             if outputs.is_some_and(|o| o.svf) {
                 links.insert("svf".to_owned(), format!("{base}/svf"));
             }
+            // The surface maps (SPEC §3.8).
+            for (on, name) in [
+                (outputs.is_some_and(|o| o.normal), "normal"),
+                (outputs.is_some_and(|o| o.ao), "ao"),
+                (outputs.is_some_and(|o| o.bent_normal), "bent_normal"),
+            ] {
+                if on {
+                    links.insert(name.to_owned(), format!("{base}/{name}"));
+                }
+            }
             if outputs.is_some_and(|o| o.horizon) {
                 for (k, path) in [
                     ("horizon_0", "/horizon/0"),

@@ -438,6 +438,53 @@ async fn terrain_product(
     blob_response(st, headers, hash, "image/tiff", file).await
 }
 
+/// A surface map (SPEC §3.8) the bake stored as `file`, as its PNG.
+async fn surface_map(
+    st: &AppState,
+    id: &str,
+    q: Vec<(String, String)>,
+    headers: &HeaderMap,
+    file: &'static str,
+    what: &str,
+) -> Answer {
+    known_query(q, &[])?;
+    let rec = finished(st, id).await?;
+    let Some(hash) = rec.results.get(file) else {
+        return Err(not_produced(id, what));
+    };
+    blob_response(st, headers, hash, "image/png", file).await
+}
+
+/// `GET /v1/bakes/{id}/normal`: `normal.png`, the tangent-space normal map (SPEC §3.8).
+pub async fn normal(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    surface_map(&st, &id, q, &headers, "normal.png", "normal").await
+}
+
+/// `GET /v1/bakes/{id}/ao`: `ao.png`, the ambient occlusion (SPEC §3.8).
+pub async fn ao(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    surface_map(&st, &id, q, &headers, "ao.png", "ao").await
+}
+
+/// `GET /v1/bakes/{id}/bent_normal`: `bent_normal.png` (SPEC §3.8).
+pub async fn bent_normal(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    surface_map(&st, &id, q, &headers, "bent_normal.png", "bent_normal").await
+}
+
 /// `GET /v1/bakes/{id}/angles`: `angles.tif`, one GeoTIFF band per bin (SPEC §3.7).
 pub async fn angles(
     State(st): State<AppState>,
