@@ -527,17 +527,49 @@ where
     T: Sample,
     S: FnMut(LayerRows<'_, T>) -> Result<()> + Send,
 {
+    Ok(stream_horizon_tapped(map, params, false, progress, sink)?.0)
+}
+
+/// [`stream_horizon`], and with `surface` the surface maps `params.outputs` asks for (SPEC
+/// §3.8) from the same kernel pass (each band's horizons feed them as they are computed).
+///
+/// # Errors
+/// As [`stream_horizon`].
+pub fn stream_horizon_tapped<T, S>(
+    map: HeightMap,
+    params: &BakeParams,
+    surface: bool,
+    progress: &Progress,
+    sink: S,
+) -> Result<(ResolvedRadius, Option<SurfaceMaps>)>
+where
+    T: Sample,
+    S: FnMut(LayerRows<'_, T>) -> Result<()> + Send,
+{
     let (w, h) = (map.width, map.height);
     let mut map = map;
     let holes = map.terrain.holes.take();
     let heights = map.into_scaled(params.height_scale);
     let radius = resolve_radius(params, w, h, &heights);
     let grid = Grid::new(w, h, &heights, params.edge, params.y_axis);
-    let kernel = make_kernel_for(params, grid, radius.texels, progress, holes.as_deref());
+    let mut kernel = make_kernel_for(params, grid, radius.texels, progress, holes.as_deref());
+    let mut maps = None;
+    if surface {
+        let job = SurfaceJob::new(params, kernel.bins());
+        let shared = Arc::new(Mutex::new(job.maps(w, h)));
+        maps = Some(shared.clone());
+        let holes = holes.as_deref();
+        kernel = Box::new(SurfaceTap { inner: kernel, grid, holes, job, maps: shared });
+    }
     let kernel = masked(kernel, holes.as_deref());
     progress.start(Stage::Bake, h as u64);
     stream_rows(kernel.as_ref(), params.encoding, progress, sink)?;
-    Ok(radius)
+    drop(kernel);
+    let maps = maps.map(|m| match Arc::try_unwrap(m) {
+        Ok(m) => m.into_inner().unwrap_or_else(|e| e.into_inner()),
+        Err(m) => m.lock().unwrap_or_else(|e| e.into_inner()).clone(),
+    });
+    Ok((radius, maps))
 }
 
 /// Quantised rows of a window of consecutive bands, both layers: band `i` of the window owns
@@ -888,10 +920,102 @@ impl SurfaceMaps {
     }
 }
 
+/// What the surface maps of one bake need of its parameters, computed once.
+#[derive(Debug, Clone)]
+pub struct SurfaceJob {
+    outputs: crate::params::Outputs,
+    flip_y: bool,
+    encoding: crate::params::BentNormalEncoding,
+    /// Per-bin horizons (ray methods) rather than the 8 channels (`lengyel`).
+    per_bin: bool,
+    /// (sin, cos) of the azimuths the horizons are at.
+    dirs: Vec<(f64, f64)>,
+    bent_channels: usize,
+}
+
+impl SurfaceJob {
+    /// For `params`, whose kernel computes `bins` bins.
+    pub fn new(params: &BakeParams, bins: usize) -> Self {
+        use crate::terrain::surface;
+        let per_bin = params.method != Method::Lengyel;
+        SurfaceJob {
+            outputs: params.outputs,
+            flip_y: surface::flips_y(params.y_axis, params.normal_convention),
+            encoding: params.bent_normal_encoding,
+            per_bin,
+            dirs: surface::bin_directions(if per_bin { bins } else { 8 }),
+            bent_channels: SurfaceMaps::bent_channels(params.bent_normal_encoding),
+        }
+    }
+
+    /// Empty maps of `w × h` texels for what is asked.
+    fn maps(&self, w: usize, h: usize) -> SurfaceMaps {
+        let o = self.outputs;
+        SurfaceMaps {
+            width: w,
+            height: h,
+            normal: o.normal.then(|| vec![0u8; w * h * 3]),
+            ao: o.ao.then(|| vec![0u8; w * h]),
+            bent_normal: o.bent_normal.then(|| vec![0u8; w * h * self.bent_channels]),
+        }
+    }
+
+    /// The surface samples of `rows` rows from `y0` (one texel after another) into the `out`
+    /// slices of those rows, from the kernel's `channels` (8 per texel) or `bins` (`nb` per
+    /// texel) of the same rows. Holes are left as they are (0).
+    #[allow(clippy::too_many_arguments)]
+    fn rows(
+        &self,
+        grid: &Grid<'_>,
+        holes: Option<&[bool]>,
+        y0: usize,
+        rows: usize,
+        channels: &[f32],
+        bins: Option<&[f32]>,
+        nb: usize,
+        mut out: [Option<&mut [u8]>; 3],
+    ) {
+        use crate::params::BentNormalEncoding;
+        use crate::terrain::surface;
+        let w = grid.width;
+        let ch = self.bent_channels;
+        for t in 0..rows * w {
+            let (x, y) = (t % w, y0 + t / w);
+            if holes.is_some_and(|m| m[y * w + x]) {
+                continue;
+            }
+            let n = surface::normal(grid, x, y);
+            if let Some(o) = out[0].as_deref_mut() {
+                o[t * 3..t * 3 + 3].copy_from_slice(&surface::encode_unit(n, self.flip_y));
+            }
+            if out[1].is_none() && out[2].is_none() {
+                continue;
+            }
+            let s = match bins {
+                Some(b) if self.per_bin => &b[t * nb..(t + 1) * nb],
+                _ => &channels[t * 8..t * 8 + 8],
+            };
+            let occ = surface::occlusion_with(s, n, &self.dirs);
+            if let Some(o) = out[1].as_deref_mut() {
+                o[t] = surface::encode_unorm(occ.ao);
+            }
+            if let Some(o) = out[2].as_deref_mut() {
+                let v = surface::encode_unit(occ.bent, self.flip_y);
+                let (z, a) = match self.encoding {
+                    BentNormalEncoding::Rg => (0, 0),
+                    _ => (v[2], surface::encode_unorm(occ.ao)),
+                };
+                o[t * ch..(t + 1) * ch].copy_from_slice(&[v[0], v[1], z, a][..ch]);
+            }
+        }
+    }
+}
+
 /// Bakes the surface maps `params.outputs` asks for (`normal`, `ao`, `bent_normal`, SPEC §3.8)
 /// in one pass of the bake's kernel: each texel's normal from the scaled heights and its
 /// occlusion from its horizons, the kernel's per-bin values for the ray methods and the 8
-/// channel directions for `lengyel` (coarse: 45° apart, each a 5-bin average).
+/// channel directions for `lengyel` (coarse: 45° apart, each a 5-bin average). With the
+/// streamed horizon layers they come from the same pass instead ([`stream_horizon_tapped`]).
 ///
 /// # Errors
 /// [`crate::Error::Canceled`].
@@ -900,8 +1024,6 @@ pub fn bake_surface(
     params: &BakeParams,
     progress: &Progress,
 ) -> Result<(SurfaceMaps, ResolvedRadius)> {
-    use crate::params::BentNormalEncoding;
-    use crate::terrain::surface;
     let (w, h) = (map.width, map.height);
     let heights = map.scaled(params.height_scale);
     check_scaled(&heights)?;
@@ -909,57 +1031,89 @@ pub fn bake_surface(
     let grid = Grid::new(w, h, &heights, params.edge, params.y_axis);
     let holes = map.terrain.holes.as_deref();
     let kernel = make_kernel_for(params, grid, radius.texels, progress, holes);
-    let per_bin = params.method != Method::Lengyel;
     let nb = kernel.bins();
-    let o = params.outputs;
-    let bent_ch = SurfaceMaps::bent_channels(params.bent_normal_encoding);
-    let mut normal = o.normal.then(|| vec![0u8; w * h * 3]);
-    let mut ao = o.ao.then(|| vec![0u8; w * h]);
-    let mut bent = o.bent_normal.then(|| vec![0u8; w * h * bent_ch]);
+    let job = SurfaceJob::new(params, nb);
+    let mut maps = job.maps(w, h);
     let band = kernels::band_rows_for(kernel.as_ref());
     progress.start(Stage::Bake, h as u64);
     {
-        let normal_rows = normal.as_mut().map(|p| split(p, band * w * 3));
-        let ao_rows = ao.as_mut().map(|p| split(p, band * w));
-        let bent_rows = bent.as_mut().map(|p| split(p, band * w * bent_ch));
-        let flip = surface::flips_y(params.y_axis, params.normal_convention);
-        kernels::run_bands(kernel.as_ref(), band, per_bin, progress, |bi, b: Band<'_>| {
+        let ch = job.bent_channels;
+        let normal_rows = maps.normal.as_mut().map(|p| split(p, band * w * 3));
+        let ao_rows = maps.ao.as_mut().map(|p| split(p, band * w));
+        let bent_rows = maps.bent_normal.as_mut().map(|p| split(p, band * w * ch));
+        kernels::run_bands(kernel.as_ref(), band, job.per_bin, progress, |bi, b: Band<'_>| {
             let mut nr = normal_rows.as_ref().and_then(|r| r[bi].lock().ok());
             let mut ar = ao_rows.as_ref().and_then(|r| r[bi].lock().ok());
             let mut br = bent_rows.as_ref().and_then(|r| r[bi].lock().ok());
-            for t in 0..b.rows * w {
-                let (x, y) = (t % w, b.y0 + t / w);
-                if holes.is_some_and(|m| m[y * w + x]) {
-                    continue; // the planes start at 0
-                }
-                let n = surface::normal(&grid, x, y);
-                if let Some(out) = nr.as_mut() {
-                    out[t * 3..t * 3 + 3].copy_from_slice(&surface::encode_unit(n, flip));
-                }
-                if ar.is_none() && br.is_none() {
-                    continue;
-                }
-                let s = match b.bins {
-                    Some(bins) if per_bin => &bins[t * nb..(t + 1) * nb],
-                    _ => &b.channels[t * 8..t * 8 + 8],
-                };
-                let occ = surface::occlusion(s, n);
-                if let Some(out) = ar.as_mut() {
-                    out[t] = surface::encode_unorm(occ.ao);
-                }
-                if let Some(out) = br.as_mut() {
-                    let v = surface::encode_unit(occ.bent, flip);
-                    let (z, a) = match params.bent_normal_encoding {
-                        BentNormalEncoding::Rg => (0, 0),
-                        _ => (v[2], surface::encode_unorm(occ.ao)),
-                    };
-                    out[t * bent_ch..(t + 1) * bent_ch]
-                        .copy_from_slice(&[v[0], v[1], z, a][..bent_ch]);
-                }
-            }
+            let out = [nr.as_deref_mut(), ar.as_deref_mut(), br.as_deref_mut()]
+                .map(|o| o.map(|s: &mut &mut [u8]| &mut **s));
+            job.rows(&grid, holes, b.y0, b.rows, b.channels, b.bins, nb, out);
         })?;
     }
-    Ok((SurfaceMaps { width: w, height: h, normal, ao, bent_normal: bent }, radius))
+    Ok((maps, radius))
+}
+
+/// A kernel whose rows also feed the surface maps: the horizons it computes for the horizon
+/// layers (their channels, or the bins asked of it anyway) give each texel's occlusion in the
+/// same pass, so `outputs=horizon,normal,ao,bent_normal` costs one kernel pass, not two.
+struct SurfaceTap<'a> {
+    inner: Box<dyn HorizonRows + 'a>,
+    grid: Grid<'a>,
+    holes: Option<&'a [bool]>,
+    job: SurfaceJob,
+    maps: Arc<Mutex<SurfaceMaps>>,
+}
+
+impl HorizonRows for SurfaceTap<'_> {
+    fn width(&self) -> usize {
+        self.inner.width()
+    }
+    fn height(&self) -> usize {
+        self.inner.height()
+    }
+    fn bins(&self) -> usize {
+        self.inner.bins()
+    }
+    fn texel_cost(&self) -> f64 {
+        self.inner.texel_cost()
+    }
+    fn failure(&self) -> Option<crate::Error> {
+        self.inner.failure()
+    }
+    fn rows(&self, y0: usize, channels: &mut [f32], bins_out: Option<&mut [f32]>) {
+        let w = self.grid.width;
+        let (rows, nb) = (channels.len() / (w * 8), self.inner.bins());
+        // The per-bin values when the surface needs them and the caller did not ask: one
+        // band's worth, the kernel's own output.
+        let mut own = Vec::new();
+        let bins: Option<&mut [f32]> = match bins_out {
+            Some(b) => Some(b),
+            None if self.job.per_bin => {
+                own.resize(rows * w * nb, 0.0);
+                Some(&mut own[..])
+            }
+            None => None,
+        };
+        let mut bins = bins;
+        self.inner.rows(y0, channels, bins.as_deref_mut());
+        if self.inner.failure().is_some() {
+            return;
+        }
+        let mut band = self.job.maps(w, rows);
+        let out =
+            [band.normal.as_deref_mut(), band.ao.as_deref_mut(), band.bent_normal.as_deref_mut()];
+        self.job.rows(&self.grid, self.holes, y0, rows, channels, bins.as_deref(), nb, out);
+        let mut maps = self.maps.lock().unwrap_or_else(|e| e.into_inner());
+        let ch = self.job.bent_channels;
+        let put = |to: &mut Option<Vec<u8>>, from: Option<Vec<u8>>, per: usize| {
+            if let (Some(to), Some(from)) = (to.as_mut(), from) {
+                to[y0 * w * per..(y0 + rows) * w * per].copy_from_slice(&from);
+            }
+        };
+        put(&mut maps.normal, band.normal.take(), 3);
+        put(&mut maps.ao, band.ao.take(), 1);
+        put(&mut maps.bent_normal, band.bent_normal.take(), ch);
+    }
 }
 
 /// The terrain products (`angles`, `svf`) of the interior of one tile of a tiled bake (SPEC

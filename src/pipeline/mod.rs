@@ -113,9 +113,10 @@ pub fn produce<S: Sink>(
         store_ms += keep(sink, files, &mut names)?;
         terrain = Some((r, products, bake_ms));
     }
-    // Surface maps (SPEC §3.8) next, for the same reason; their description joins the terrain
-    // products' in bake.json.
-    if params.outputs.surface() {
+    // Surface maps (SPEC §3.8) next, for the same reason (their description joins the terrain
+    // products' in bake.json), unless they come from the streamed horizon layers' own pass.
+    let streams = params.outputs.horizon && streamable(formats);
+    if params.outputs.surface() && !streams {
         let t = Instant::now();
         let (files, r, products) = surface::surface_files(&map, params, progress)?;
         let bake_ms = ms(t);
@@ -137,7 +138,7 @@ pub fn produce<S: Sink>(
             terrain.ok_or_else(|| Error::Internal("a bake with no outputs".into()))?;
         return Ok(Produced { names, radius, bake_ms, encode_ms: 0.0, store_ms, products });
     }
-    let out = if params.outputs.horizon && streamable(formats) {
+    let out = if streams {
         let t = Instant::now();
         let mut radius = None;
         if params.outputs.fourier {
@@ -147,12 +148,21 @@ pub fn produce<S: Sink>(
         }
         let fourier_ms = ms(t);
         let t = Instant::now();
-        let (writers, r) = if formats.png16 {
+        let (writers, r, surface) = if formats.png16 {
             stream_into::<u16, S>(map, params, progress, sink)?
         } else {
             stream_into::<u8, S>(map, params, progress, sink)?
         };
         let bake_ms = ms(t);
+        let mut products = products.clone();
+        if let Some(m) = surface {
+            let (files, info) = surface::surface_pngs(&m, params, progress)?;
+            store_ms += keep(sink, files, &mut names)?;
+            match (&mut products, info) {
+                (serde_json::Value::Object(a), serde_json::Value::Object(b)) => a.extend(b),
+                (p, info) => *p = info,
+            }
+        }
         let t = Instant::now();
         sink.finish(writers)?;
         store_ms += ms(t);
@@ -165,7 +175,7 @@ pub fn produce<S: Sink>(
             bake_ms: bake_ms + terrain_ms,
             encode_ms: fourier_ms,
             store_ms: 0.0,
-            products: products.clone(),
+            products,
         }
     } else {
         let t = Instant::now();
@@ -323,16 +333,20 @@ fn keep<S: Sink>(sink: &mut S, files: Vec<OutFile>, names: &mut Vec<&'static str
     Ok(ms(t))
 }
 
+/// The streamed horizon PNGs into `sink`'s writers, and the surface maps `params` asks for
+/// from the same kernel pass.
 fn stream_into<T: Sample + png::PngSample, S: Sink>(
     map: HeightMap,
     params: &BakeParams,
     progress: &Progress,
     sink: &mut S,
-) -> Result<(Streamed<S>, ResolvedRadius)> {
+) -> Result<(Streamed<S>, ResolvedRadius, Option<bake::SurfaceMaps>)> {
     const NAMES: [&str; 2] = ["horizon_0.png", "horizon_1.png"];
     let outs = [sink.writer(NAMES[0])?, sink.writer(NAMES[1])?];
-    let ([a, b], radius) = stream_horizon_pngs::<T, _>(map, params, progress, outs)?;
-    Ok(([(NAMES[0], a), (NAMES[1], b)], radius))
+    let surface = params.outputs.surface();
+    let ([a, b], radius, maps) =
+        stream_horizon_pngs_tapped::<T, _>(map, params, surface, progress, outs)?;
+    Ok(([(NAMES[0], a), (NAMES[1], b)], radius, maps))
 }
 
 /// Bakes `map` into two PNGs (layers 0 and 1, 8- or 16-bit RGBA as `T` says), written to `outs`
@@ -352,21 +366,43 @@ where
     T: Sample + png::PngSample,
     W: std::io::Write + Send + 'static,
 {
+    let (files, radius, _) =
+        stream_horizon_pngs_tapped::<T, W>(map, params, false, progress, outs)?;
+    Ok((files, radius))
+}
+
+/// [`stream_horizon_pngs`], and with `surface` the surface maps from the same kernel pass
+/// ([`bake::stream_horizon_tapped`]).
+///
+/// # Errors
+/// As [`stream_horizon_pngs`].
+pub fn stream_horizon_pngs_tapped<T, W>(
+    map: HeightMap,
+    params: &BakeParams,
+    surface: bool,
+    progress: &Progress,
+    outs: [W; 2],
+) -> Result<([W; 2], ResolvedRadius, Option<bake::SurfaceMaps>)>
+where
+    T: Sample + png::PngSample,
+    W: std::io::Write + Send + 'static,
+{
     let (w, h) = (map.width, map.height);
     let [o0, o1] = outs;
     let mut writers = [
         png::PngRowWriter::<W, T>::new(o0, w, h, png::PngColor::Rgba)?,
         png::PngRowWriter::<W, T>::new(o1, w, h, png::PngColor::Rgba)?,
     ];
-    let radius = bake::stream_horizon(map, params, progress, |rows: LayerRows<'_, T>| {
-        // The two layers side by side; each writer also deflates its pieces on the pool.
-        let [w0, w1] = &mut writers;
-        let (a, b) =
-            rayon::join(|| w0.write_rows(rows.layers[0]), || w1.write_rows(rows.layers[1]));
-        a.and(b)
-    })?;
+    let (radius, maps) =
+        bake::stream_horizon_tapped(map, params, surface, progress, |rows: LayerRows<'_, T>| {
+            // The two layers side by side; each writer also deflates its pieces on the pool.
+            let [w0, w1] = &mut writers;
+            let (a, b) =
+                rayon::join(|| w0.write_rows(rows.layers[0]), || w1.write_rows(rows.layers[1]));
+            a.and(b)
+        })?;
     let [w0, w1] = writers;
-    Ok(([w0.finish()?, w1.finish()?], radius))
+    Ok(([w0.finish()?, w1.finish()?], radius, maps))
 }
 
 /// Bakes the Fourier coefficients (SPEC §3.4) into `fourier_0.png`, `fourier_1.png` and, with

@@ -14,9 +14,22 @@ pub fn surface_files(
     params: &BakeParams,
     progress: &Progress,
 ) -> Result<(Vec<OutFile>, ResolvedRadius, serde_json::Value)> {
-    use crate::params::BentNormalEncoding as E;
     let (m, radius) = bake::bake_surface(map, params, progress)?;
     progress.start(Stage::Encode, 1);
+    let (files, info) = surface_pngs(&m, params, progress)?;
+    Ok((files, radius, info))
+}
+
+/// The PNGs of surface maps baked with `params` and what they hold, for bake.json.
+///
+/// # Errors
+/// [`Error::Canceled`], the PNG encoder's errors.
+pub fn surface_pngs(
+    m: &bake::SurfaceMaps,
+    params: &BakeParams,
+    progress: &Progress,
+) -> Result<(Vec<OutFile>, serde_json::Value)> {
+    use crate::params::BentNormalEncoding as E;
     let (w, h) = (m.width, m.height);
     let convention = match params.normal_convention {
         crate::params::NormalConvention::OpenGl => "opengl",
@@ -73,5 +86,5 @@ pub fn surface_files(
             }),
         );
     }
-    Ok((files, radius, serde_json::Value::Object(info)))
+    Ok((files, serde_json::Value::Object(info)))
 }

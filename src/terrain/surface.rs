@@ -25,7 +25,7 @@
 
 use crate::kernels::Grid;
 use crate::params::{NormalConvention, YAxis};
-use std::f64::consts::{FRAC_PI_2, PI};
+use std::f64::consts::PI;
 
 /// The unit normal of texel (`x`, `y`) (image column and row) of `grid`, in the tangent frame.
 /// Central differences in texel units; at an `edge=none` border the one-sided difference
@@ -54,9 +54,21 @@ pub struct Occlusion {
     pub bent: [f64; 3],
 }
 
+/// (sin φ_k, cos φ_k) of the `bins` azimuths φ_k = 2πk / bins: computed once per bake, so a
+/// texel's [`occlusion_with`] costs no trigonometry of the azimuths.
+pub fn bin_directions(bins: usize) -> Vec<(f64, f64)> {
+    let step = 2.0 * PI / bins.max(1) as f64;
+    (0..bins).map(|k| (k as f64 * step).sin_cos()).collect()
+}
+
 /// [`Occlusion`] of a texel whose unit normal is `n` and whose horizon at bin k is sin α_k =
 /// `s[k]` (clamped to [0, 1], so α ≥ 0), at azimuths φ_k = 2πk / bins from +x toward +y.
 pub fn occlusion(s: &[f32], n: [f64; 3]) -> Occlusion {
+    occlusion_with(s, n, &bin_directions(s.len()))
+}
+
+/// [`occlusion`] with the bins' directions given ([`bin_directions`] of `s.len()`).
+pub fn occlusion_with(s: &[f32], n: [f64; 3], dirs: &[(f64, f64)]) -> Occlusion {
     let bins = s.len();
     if bins == 0 {
         return Occlusion { ao: 1.0, bent: n };
@@ -64,15 +76,26 @@ pub fn occlusion(s: &[f32], n: [f64; 3]) -> Occlusion {
     let a = n[2];
     let (mut ao, mut bx, mut by, mut bz) = (0.0, 0.0, 0.0, 0.0);
     let step = 2.0 * PI / bins as f64;
-    for (k, &sk) in s.iter().enumerate() {
-        let (sin_phi, cos_phi) = (k as f64 * step).sin_cos();
+    for (&sk, &(sin_phi, cos_phi)) in s.iter().zip(dirs) {
         let b = n[0] * cos_phi + n[1] * sin_phi;
-        let alpha = (sk as f64).clamp(0.0, 1.0).asin();
-        let from = if b < 0.0 { alpha.max((-b).atan2(a)) } else { alpha };
-        if from >= FRAC_PI_2 {
+        // θ₁ = max(α, θ₀), both in [0, π/2]: compared by their sines, so only the larger one's
+        // angle is taken (for the AO's θ term).
+        let sa = (sk as f64).clamp(0.0, 1.0);
+        let (st, ct) = if b < 0.0 {
+            let r = (a * a + b * b).sqrt();
+            let s0 = -b / r;
+            if s0 > sa {
+                (s0, a / r)
+            } else {
+                (sa, (1.0 - sa * sa).max(0.0).sqrt())
+            }
+        } else {
+            (sa, (1.0 - sa * sa).max(0.0).sqrt())
+        };
+        if st >= 1.0 {
             continue;
         }
-        let (st, ct) = from.sin_cos();
+        let from = st.asin();
         // Each antiderivative at π/2 minus its value at θ₁.
         ao += a * 0.5 + b * PI * 0.25 - (a * st * st * 0.5 + b * (from + st * ct) * 0.5);
         let horiz = b * (2.0 / 3.0) - (-a * ct * ct * ct / 3.0 + b * (st - st * st * st / 3.0));
@@ -116,6 +139,7 @@ pub fn encode_unorm(v: f64) -> u8 {
 mod tests {
     use super::*;
     use crate::params::Edge;
+    use std::f64::consts::FRAC_PI_2;
 
     /// The definition integrated numerically: for each bin, the midpoint rule over elevation
     /// with `steps` steps of V(θ > α) max(0, n·ω) cos θ (and ω times it).

@@ -200,3 +200,50 @@ fn a_flat_open_map_is_unoccluded_for_every_method_and_conventions_flip_green() {
         );
     }
 }
+
+/// The surface maps computed in the streamed horizon layers' own kernel pass (what
+/// `--outputs horizon,normal,ao,bent_normal` runs) are the maps of a pass of their own, for
+/// every method, both edges and a map with holes; the layers are unchanged by the tap.
+#[test]
+fn the_same_pass_as_the_horizon_layers_gives_the_same_maps() {
+    use horizon_bake::bake::bake_surface;
+    use horizon_bake::pipeline::{stream_horizon_pngs, stream_horizon_pngs_tapped};
+    let mut rng = Rng(451);
+    let (w, h) = (37, 29);
+    let values = waves(&mut rng, w, h, 3, 0.6);
+    let mut holed = HeightMap::from_values(w, h, values.clone()).unwrap();
+    let mut mask = vec![false; w * h];
+    for i in [40usize, 41, 77, 300, 301, 302, 640] {
+        mask[i] = true;
+    }
+    holed.terrain.holes = Some(mask);
+    let plain = HeightMap::from_values(w, h, values).unwrap();
+    for (method, edge, map) in [
+        ("lengyel", "wrap", &plain),
+        ("exact", "none", &plain),
+        ("march", "wrap", &plain),
+        ("sweep", "none", &plain),
+        ("exact", "none", &holed),
+    ] {
+        let params = BakeParams::from_pairs([
+            ("method", method),
+            ("radius", "10"),
+            ("edge", edge),
+            ("bent_normal_encoding", "rgb_ao"),
+            ("outputs", "horizon,normal,ao,bent_normal"),
+        ])
+        .unwrap();
+        let p = Progress::new();
+        let (alone, _) = bake_surface(map, &params, &p).unwrap();
+        let (layers, _, tapped) =
+            stream_horizon_pngs_tapped::<u8, _>(map.clone(), &params, true, &p, [vec![], vec![]])
+                .unwrap();
+        let tapped = tapped.unwrap();
+        assert!(alone.normal == tapped.normal, "{method}: normal");
+        assert!(alone.ao == tapped.ao, "{method}: ao");
+        assert!(alone.bent_normal == tapped.bent_normal, "{method}: bent");
+        let (plain_layers, _) =
+            stream_horizon_pngs::<u8, _>(map.clone(), &params, &p, [vec![], vec![]]).unwrap();
+        assert!(layers == plain_layers, "{method}: the tap changed the layers");
+    }
+}
