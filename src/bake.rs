@@ -984,7 +984,7 @@ impl SurfaceJob {
             if holes.is_some_and(|m| m[y * w + x]) {
                 continue;
             }
-            let n = surface::normal(grid, x, y);
+            let n = surface::normal(grid, holes, x, y);
             if let Some(o) = out[0].as_deref_mut() {
                 o[t * 3..t * 3 + 3].copy_from_slice(&surface::encode_unit(n, self.flip_y));
             }

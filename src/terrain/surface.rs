@@ -28,10 +28,22 @@ use crate::params::{NormalConvention, YAxis};
 use std::f64::consts::PI;
 
 /// The unit normal of texel (`x`, `y`) (image column and row) of `grid`, in the tangent frame.
-/// Central differences in texel units; at an `edge=none` border the one-sided difference
-/// toward the inside (a map one texel wide or tall has slope 0 along that axis).
-pub fn normal(grid: &Grid<'_>, x: usize, y: usize) -> [f64; 3] {
-    let h = |i: i64, j: i64| grid.at_offset(x, y, i, j).map(f64::from);
+/// Central differences in texel units; at an `edge=none` border, and beside a nodata hole
+/// (whose decoder fill is no surface, SPEC §2), the one-sided difference toward the side that
+/// is there (slope 0 along an axis with neither).
+pub fn normal(grid: &Grid<'_>, holes: Option<&[bool]>, x: usize, y: usize) -> [f64; 3] {
+    let w = grid.width as i64;
+    let h = |i: i64, j: i64| {
+        let v = grid.at_offset(x, y, i, j)?;
+        if let Some(m) = holes {
+            let (c, r) = (x as i64 + i, y as i64 + j * grid.row_step());
+            let (c, r) = (c.rem_euclid(w), r.rem_euclid(grid.height as i64));
+            if m[(r * w + c) as usize] {
+                return None;
+            }
+        }
+        Some(f64::from(v))
+    };
     let here = grid.heights[y * grid.width + x] as f64;
     let slope = |plus: Option<f64>, minus: Option<f64>| match (plus, minus) {
         (Some(p), Some(m)) => (p - m) * 0.5,
@@ -230,7 +242,7 @@ mod tests {
             let grid = Grid::new(w, h, &heights, Edge::None, y_axis);
             let want = unit([-2.0, -dy, 1.0]);
             for (x, y) in [(2, 1), (0, 0), (4, 3), (0, 3)] {
-                let n = normal(&grid, x, y);
+                let n = normal(&grid, None, x, y);
                 for c in 0..3 {
                     assert!((n[c] - want[c]).abs() < 1e-12, "{y_axis:?} ({x},{y}): {n:?}");
                 }
@@ -239,7 +251,12 @@ mod tests {
         // Wrapped, the border differences reach across: a ramp 0..4 wraps from 4 back to 0.
         let ramp: Vec<f32> = (0..5).map(|i| i as f32).collect();
         let grid = Grid::new(5, 1, &ramp, Edge::Wrap, YAxis::Up);
-        let n = normal(&grid, 0, 0);
+        // Beside a hole the difference is one-sided, as at a border: the hole at column 1
+        // leaves (h(0) − h(4)) = −4 toward −x only.
+        let holes = [false, true, false, false, false];
+        let n = normal(&grid, Some(&holes), 0, 0);
+        assert!((n[0] - unit([4.0, 0.0, 1.0])[0]).abs() < 1e-12, "{n:?}");
+        let n = normal(&grid, None, 0, 0);
         // (h(1) − h(4)) / 2 = −1.5.
         assert!((n[0] - unit([1.5, 0.0, 1.0])[0]).abs() < 1e-12, "{n:?}");
     }

@@ -242,6 +242,16 @@ fn the_same_pass_as_the_horizon_layers_gives_the_same_maps() {
         assert!(alone.normal == tapped.normal, "{method}: normal");
         assert!(alone.ao == tapped.ao, "{method}: ao");
         assert!(alone.bent_normal == tapped.bent_normal, "{method}: bent");
+        if let Some(m) = &map.terrain.holes {
+            // Every output of a hole is 0 (SPEC §2), and a hole's neighbour is still surface.
+            let (n, a) = (alone.normal.as_ref().unwrap(), alone.ao.as_ref().unwrap());
+            for (i, _) in m.iter().enumerate().filter(|(_, &h)| h) {
+                assert_eq!((&n[i * 3..i * 3 + 3], a[i]), (&[0u8, 0, 0][..], 0), "hole {i}");
+                if !m[i + w] {
+                    assert!(n[(i + w) * 3 + 2] > 0 && a[i + w] > 0, "below hole {i}");
+                }
+            }
+        }
         let (plain_layers, _) =
             stream_horizon_pngs::<u8, _>(map.clone(), &params, &p, [vec![], vec![]]).unwrap();
         assert!(layers == plain_layers, "{method}: the tap changed the layers");
