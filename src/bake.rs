@@ -268,6 +268,28 @@ pub struct Masked<'a> {
     holes: &'a [bool],
 }
 
+/// The [`HorizonRows`] methods a wrapper kernel (`inner` and something done to its rows)
+/// forwards unchanged.
+macro_rules! forward_to_inner {
+    () => {
+        fn width(&self) -> usize {
+            self.inner.width()
+        }
+        fn height(&self) -> usize {
+            self.inner.height()
+        }
+        fn bins(&self) -> usize {
+            self.inner.bins()
+        }
+        fn texel_cost(&self) -> f64 {
+            self.inner.texel_cost()
+        }
+        fn failure(&self) -> Option<crate::Error> {
+            self.inner.failure()
+        }
+    };
+}
+
 /// `kernel`, masked where `holes` says (unchanged without holes).
 pub fn masked<'a>(
     kernel: Box<dyn HorizonRows + 'a>,
@@ -280,21 +302,7 @@ pub fn masked<'a>(
 }
 
 impl HorizonRows for Masked<'_> {
-    fn width(&self) -> usize {
-        self.inner.width()
-    }
-    fn height(&self) -> usize {
-        self.inner.height()
-    }
-    fn bins(&self) -> usize {
-        self.inner.bins()
-    }
-    fn texel_cost(&self) -> f64 {
-        self.inner.texel_cost()
-    }
-    fn failure(&self) -> Option<crate::Error> {
-        self.inner.failure()
-    }
+    forward_to_inner!();
     fn rows(&self, y0: usize, channels: &mut [f32], mut bins_out: Option<&mut [f32]>) {
         self.inner.rows(y0, channels, bins_out.as_deref_mut());
         let (w, nb) = (self.width(), self.bins());
@@ -1065,21 +1073,7 @@ struct SurfaceTap<'a> {
 }
 
 impl HorizonRows for SurfaceTap<'_> {
-    fn width(&self) -> usize {
-        self.inner.width()
-    }
-    fn height(&self) -> usize {
-        self.inner.height()
-    }
-    fn bins(&self) -> usize {
-        self.inner.bins()
-    }
-    fn texel_cost(&self) -> f64 {
-        self.inner.texel_cost()
-    }
-    fn failure(&self) -> Option<crate::Error> {
-        self.inner.failure()
-    }
+    forward_to_inner!();
     fn rows(&self, y0: usize, channels: &mut [f32], bins_out: Option<&mut [f32]>) {
         let w = self.grid.width;
         let (rows, nb) = (channels.len() / (w * 8), self.inner.bins());

@@ -346,13 +346,7 @@ async fn after_retention_the_bucket_holds_exactly_the_referenced_blobs() {
         assert_eq!(s, 404, "bake {id} outlived its retention");
     }
     let db = cl.db().await;
-    let referenced: BTreeSet<String> =
-        sqlx::query_scalar::<_, String>("SELECT hash FROM blob_refs")
-            .fetch_all(&db)
-            .await
-            .unwrap()
-            .into_iter()
-            .collect();
+    let referenced = cl.referenced_blobs().await;
     let from_records: BTreeSet<String> = {
         let recs: Vec<Value> =
             sqlx::query_scalar("SELECT record FROM bakes").fetch_all(&db).await.unwrap();

@@ -266,13 +266,7 @@ async fn a_stalled_worker_cannot_overwrite_a_tile_another_wrote() {
     // Whatever the stalled worker wrote for the tile it lost went with its refused outcome
     // (before, it stayed in S3, pinned for an hour, then waited for the orphan sweep): the
     // bucket holds the bake's input and results, nothing else.
-    let referenced: BTreeSet<String> =
-        sqlx::query_scalar::<_, String>("SELECT hash FROM blob_refs")
-            .fetch_all(&db)
-            .await
-            .unwrap()
-            .into_iter()
-            .collect();
+    let referenced = cl.referenced_blobs().await;
     assert_eq!(cl.bucket_blobs().await, referenced, "blobs besides the referenced ones");
     let other = if stalled == w1 { w2 } else { w1 };
     assert!(metric(&c, cl.base(other), SUCCEEDED).await >= 1.0);

@@ -180,6 +180,17 @@ impl Cluster {
         sqlx::PgPool::connect(&self.db_url).await.unwrap()
     }
 
+    /// Every blob some record references (the `blob_refs` table).
+    pub async fn referenced_blobs(&self) -> BTreeSet<String> {
+        let db = self.db().await;
+        sqlx::query_scalar::<_, String>("SELECT hash FROM blob_refs")
+            .fetch_all(&db)
+            .await
+            .unwrap()
+            .into_iter()
+            .collect()
+    }
+
     /// Every blob object under this cluster's prefix.
     pub async fn bucket_blobs(&self) -> BTreeSet<String> {
         use futures_util::StreamExt;

@@ -421,38 +421,23 @@ pub(super) fn not_produced(id: &str, what: &str) -> Problem {
     )
 }
 
-/// A stored terrain product (SPEC §3.7): `file` of a bake submitted with `outputs` naming `what`.
-async fn terrain_product(
+/// A product stored with the bake (a terrain product of SPEC §3.7, a surface map of §3.8):
+/// `file` of a bake submitted with `outputs` naming `what`, served as `content_type`.
+async fn stored_file(
     st: &AppState,
     id: &str,
     q: Vec<(String, String)>,
     headers: &HeaderMap,
     file: &'static str,
     what: &str,
+    content_type: &'static str,
 ) -> Answer {
     known_query(q, &[])?;
     let rec = finished(st, id).await?;
     let Some(hash) = rec.results.get(file) else {
         return Err(not_produced(id, what));
     };
-    blob_response(st, headers, hash, "image/tiff", file).await
-}
-
-/// A surface map (SPEC §3.8) the bake stored as `file`, as its PNG.
-async fn surface_map(
-    st: &AppState,
-    id: &str,
-    q: Vec<(String, String)>,
-    headers: &HeaderMap,
-    file: &'static str,
-    what: &str,
-) -> Answer {
-    known_query(q, &[])?;
-    let rec = finished(st, id).await?;
-    let Some(hash) = rec.results.get(file) else {
-        return Err(not_produced(id, what));
-    };
-    blob_response(st, headers, hash, "image/png", file).await
+    blob_response(st, headers, hash, content_type, file).await
 }
 
 /// `GET /v1/bakes/{id}/normal`: `normal.png`, the tangent-space normal map (SPEC §3.8).
@@ -462,7 +447,7 @@ pub async fn normal(
     Query(q): Query<Vec<(String, String)>>,
     headers: HeaderMap,
 ) -> Answer {
-    surface_map(&st, &id, q, &headers, "normal.png", "normal").await
+    stored_file(&st, &id, q, &headers, "normal.png", "normal", "image/png").await
 }
 
 /// `GET /v1/bakes/{id}/ao`: `ao.png`, the ambient occlusion (SPEC §3.8).
@@ -472,7 +457,7 @@ pub async fn ao(
     Query(q): Query<Vec<(String, String)>>,
     headers: HeaderMap,
 ) -> Answer {
-    surface_map(&st, &id, q, &headers, "ao.png", "ao").await
+    stored_file(&st, &id, q, &headers, "ao.png", "ao", "image/png").await
 }
 
 /// `GET /v1/bakes/{id}/bent_normal`: `bent_normal.png` (SPEC §3.8).
@@ -482,7 +467,7 @@ pub async fn bent_normal(
     Query(q): Query<Vec<(String, String)>>,
     headers: HeaderMap,
 ) -> Answer {
-    surface_map(&st, &id, q, &headers, "bent_normal.png", "bent_normal").await
+    stored_file(&st, &id, q, &headers, "bent_normal.png", "bent_normal", "image/png").await
 }
 
 /// `GET /v1/bakes/{id}/angles`: `angles.tif`, one GeoTIFF band per bin (SPEC §3.7).
@@ -492,7 +477,7 @@ pub async fn angles(
     Query(q): Query<Vec<(String, String)>>,
     headers: HeaderMap,
 ) -> Answer {
-    terrain_product(&st, &id, q, &headers, "angles.tif", "angles").await
+    stored_file(&st, &id, q, &headers, "angles.tif", "angles", "image/tiff").await
 }
 
 /// `GET /v1/bakes/{id}/svf`: `svf.tif`, the sky-view factor (SPEC §3.7); `format=png` renders
@@ -507,7 +492,7 @@ pub async fn svf(
     let mut q = q;
     let format = take_terrain_format(&mut q)?;
     if !format {
-        return terrain_product(&st, &id, q, &headers, "svf.tif", "svf").await;
+        return stored_file(&st, &id, q, &headers, "svf.tif", "svf", "image/tiff").await;
     }
     known_query(q, &[])?;
     let rec = finished(&st, &id).await?;
