@@ -572,11 +572,7 @@ where
     let kernel = masked(kernel, holes.as_deref());
     progress.start(Stage::Bake, h as u64);
     stream_rows(kernel.as_ref(), params.encoding, progress, sink)?;
-    drop(kernel);
-    let maps = maps.map(|m| match Arc::try_unwrap(m) {
-        Ok(m) => m.into_inner().unwrap_or_else(|e| e.into_inner()),
-        Err(m) => m.lock().unwrap_or_else(|e| e.into_inner()).clone(),
-    });
+    let maps = maps.map(|m| std::mem::take(&mut *m.lock().unwrap_or_else(|e| e.into_inner())));
     Ok((radius, maps))
 }
 
@@ -905,7 +901,7 @@ fn terrain_planes(
 
 /// The surface maps of one bake (SPEC §3.8), encoded samples of `width × height` texels, row 0
 /// first; each when asked. Holes are 0 in every map.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Default)]
 pub struct SurfaceMaps {
     pub width: usize,
     pub height: usize,
@@ -1080,7 +1076,7 @@ impl HorizonRows for SurfaceTap<'_> {
         // The per-bin values when the surface needs them and the caller did not ask: one
         // band's worth, the kernel's own output.
         let mut own = Vec::new();
-        let bins: Option<&mut [f32]> = match bins_out {
+        let mut bins: Option<&mut [f32]> = match bins_out {
             Some(b) => Some(b),
             None if self.job.per_bin => {
                 own.resize(rows * w * nb, 0.0);
@@ -1088,7 +1084,6 @@ impl HorizonRows for SurfaceTap<'_> {
             }
             None => None,
         };
-        let mut bins = bins;
         self.inner.rows(y0, channels, bins.as_deref_mut());
         if self.inner.failure().is_some() {
             return;

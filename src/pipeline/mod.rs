@@ -124,9 +124,7 @@ pub fn produce<S: Sink>(
         terrain = Some(match terrain {
             None => (r, products, bake_ms),
             Some((r0, mut p0, ms0)) => {
-                if let (Some(a), serde_json::Value::Object(b)) = (p0.as_object_mut(), products) {
-                    a.extend(b);
-                }
+                join_products(&mut p0, products);
                 (r0, p0, ms0 + bake_ms)
             }
         });
@@ -158,10 +156,7 @@ pub fn produce<S: Sink>(
         if let Some(m) = surface {
             let (files, info) = surface::surface_pngs(&m, params, progress)?;
             store_ms += keep(sink, files, &mut names)?;
-            match (&mut products, info) {
-                (serde_json::Value::Object(a), serde_json::Value::Object(b)) => a.extend(b),
-                (p, info) => *p = info,
-            }
+            join_products(&mut products, info);
         }
         let t = Instant::now();
         sink.finish(writers)?;
@@ -322,6 +317,16 @@ pub fn rebake_levels(
 
 /// The two streamed horizon files, named, before the sink keeps them.
 type Streamed<S> = [(&'static str, <S as Sink>::Writer); 2];
+
+/// Adds the file descriptions `more` to bake.json's `products` (`null` until a product is
+/// described).
+fn join_products(into: &mut serde_json::Value, more: serde_json::Value) {
+    match (into, more) {
+        (serde_json::Value::Object(a), serde_json::Value::Object(b)) => a.extend(b),
+        (into @ serde_json::Value::Null, more) => *into = more,
+        _ => {}
+    }
+}
 
 /// Hands whole files to the sink; returns the time it took, ms.
 fn keep<S: Sink>(sink: &mut S, files: Vec<OutFile>, names: &mut Vec<&'static str>) -> Result<f64> {
