@@ -1,7 +1,7 @@
 //! `horizon-bake cubemap -o DIR [--size N] [--format …]` (SPEC §6): the channel-factor cube map
 //! as `cube_0.png` … `cube_5.png` (faces +X, −X, +Y, −Y, +Z, −Z; UNORM8 RGBA),
-//! `cubemap.ktx2` and `cubemap.dds` (SNORM8 RGBA, so a zero factor is exact). Written all or
-//! nothing, like `bake`.
+//! `cubemap.ktx2` and `cubemap.dds` (SNORM8 RGBA, so a zero factor is exact; or BC7 blocks of the
+//! UNORM faces with `--texture-precision bc7`). Written all or nothing, like `bake`.
 
 use crate::encode::{CubeFormats, MAX_CUBE_SIZE};
 use crate::error::{Error, Result};
@@ -20,9 +20,14 @@ pub struct CubemapArgs {
     /// Comma list of png8 (default), ktx2, dds.
     #[arg(long, default_value = "png8")]
     pub format: String,
+    /// unorm8 (default: RGBA8 SNORM texels, a zero factor exact) or bc7 (BC7 blocks of the
+    /// UNORM faces of cube_N.png, f = 2t − 1: for loaders that read no uncompressed cube map,
+    /// such as three.js's KTX2Loader).
+    #[arg(long)]
+    pub texture_precision: Option<String>,
     /// The SPEC §8 options of cubemap.ktx2 / cubemap.dds: --mips, --mip-filter (box, min or
-    /// max), --supercompression, --zstd-level, --dds-header (the cube map stays one RGBA8 SNORM
-    /// cube).
+    /// max), --supercompression, --zstd-level, --dds-header (the cube map stays one cube
+    /// texture).
     #[command(flatten)]
     pub texture: super::bake::TextureFlags,
 }
@@ -72,14 +77,19 @@ fn parse_size(value: &str) -> Result<usize> {
 pub fn run(args: CubemapArgs) -> Result<()> {
     let size = parse_size(&args.size)?;
     let mut formats = parse_formats(&args.format)?;
-    formats.texture = args.texture.options(None)?;
+    formats.texture = args.texture.options(args.texture_precision.as_deref())?;
     if formats.ktx2 || formats.dds {
         formats.texture.check_for(formats.ktx2, formats.dds, true)?;
         if formats.dds && formats.texture.zstd_level.is_some() {
             // As the service's downloads: each container takes the options it has.
             eprintln!("note: --supercompression zstd applies to the KTX2 files; DDS has none");
         }
-    } else if let Some(option) = args.texture.first_given() {
+    } else if let Some(option) = args
+        .texture_precision
+        .as_ref()
+        .map(|_| "texture_precision")
+        .or_else(|| args.texture.first_given())
+    {
         return Err(Error::param(option, "applies only with --format ktx2 or dds"));
     }
     let files = cube_files(size, formats)?;

@@ -522,8 +522,8 @@ fn precision_of<T: LeSample>() -> TexturePrecision {
 }
 
 /// Writes a KTX2 array texture of the RGBA planes `planes` of `rows` (one layer each, in
-/// order), level 0 only, uncompressed at `T`'s precision: the same bytes as
-/// [`super::ktx2::write`] of that texture built whole.
+/// order), level 0 only, uncompressed at `T`'s precision, stating `conventions` (SPEC §8): the
+/// same bytes as [`super::ktx2::write`] of that texture built whole.
 ///
 /// # Errors
 /// The row source's and `out`'s errors.
@@ -532,13 +532,15 @@ pub fn write_ktx2<T: LeSample, W: Write>(
     width: usize,
     height: usize,
     planes: &[usize],
+    conventions: &str,
     rows: &mut RowSource<'_, T>,
 ) -> Result<W> {
     let format = pixel_format(precision_of::<T>())?;
     let t = shell(format, width, height, planes.len());
     let image = format.image_bytes(width, height);
     let len = image * planes.len();
-    let (mut head, offsets) = ktx2::prefix(&t, &[(len, len)], format.block_bytes(), false);
+    let (mut head, offsets) =
+        ktx2::prefix(&t, &[(len, len)], format.block_bytes(), false, conventions);
     head.resize(offsets[0], 0);
     out.write_all(&head)?;
     stream_images(&mut out, width, height, planes, rows)?;
@@ -687,7 +689,7 @@ pub fn write_textures<W: Write>(
         rows: &mut TileRows,
         tag: u32,
         (width, height): (usize, usize),
-        (planes, name, ktx): (&[usize], &'static str, bool),
+        (planes, name, ktx, meta): (&[usize], &'static str, bool, &str),
         header: DdsHeader,
         open: &mut dyn FnMut(&'static str) -> Result<W>,
         keep: &mut dyn FnMut(&'static str, W) -> Result<()>,
@@ -695,7 +697,7 @@ pub fn write_textures<W: Write>(
         let mut src = |p: usize, y: usize, out: &mut [T]| rows.read(tag, p, y, out);
         let out = open(name)?;
         let out = if ktx {
-            write_ktx2(out, width, height, planes, &mut src)?
+            write_ktx2(out, width, height, planes, meta, &mut src)?
         } else {
             write_dds(out, width, height, planes, header, &mut src)?
         };
@@ -709,7 +711,8 @@ pub fn write_textures<W: Write>(
         }
         for &(planes, ktx_name, dds_name) in &sets {
             let name = if ktx { ktx_name } else { dds_name };
-            let job = (planes, name, ktx);
+            let meta = formats.conventions.ktx2_json(opts, separate.then_some(planes[0]));
+            let job = (planes, name, ktx, meta.as_str());
             let header = opts.dds_header;
             match opts.precision {
                 TexturePrecision::Unorm8 => {

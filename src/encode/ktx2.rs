@@ -4,7 +4,8 @@
 //! No Rust crate both writes KTX2 and builds offline (NOTES.md), and the container is small, so
 //! it is written here by hand: identifier, header, the level index, a basic data format descriptor
 //! (DFD), the key/value data ([`key_values`]: `KTXorientation` and `KTXwriter`, which engines'
-//! loaders and `ktx validate` read), then the levels smallest first. `tests/encode/encode.rs` proves it by reading
+//! loaders and `ktx validate` read, and `horizon-bake`: the data's conventions as JSON, SPEC §8),
+//! then the levels smallest first. `tests/encode/encode.rs` proves it by reading
 //! every texel back with the independent `ktx2` crate and comparing the DFD with the one that
 //! crate generates for the same format.
 //!
@@ -41,14 +42,18 @@ pub const VK_FORMAT_BC7_UNORM_BLOCK: u32 = 145;
 /// supercompressionScheme of Zstandard.
 pub const SUPERCOMPRESSION_ZSTD: u32 = 2;
 
-/// The key/value data every file carries, sorted by key as KTX2 §3.11 requires: the data's
-/// orientation (rows from the top, texels left to right: "rd", which three.js and engines read
-/// to decide whether to flip) and who wrote it. Each entry: its byte length (u32), the key, NUL,
-/// the value with its NUL, padded to 4 bytes.
-pub fn key_values() -> Vec<u8> {
+/// The key/value data every file carries, sorted by key as KTX2 §3.11 requires (by bytes: the
+/// upper-case `KTX` keys first): the data's orientation (rows from the top, texels left to
+/// right: "rd", which three.js and engines read to decide whether to flip), who wrote it, and
+/// under `horizon-bake` the `conventions` of the data (a JSON object: what the texels hold and
+/// how to decode them, so a file read without its bake.json still says so). Each entry: its
+/// byte length (u32), the key, NUL, the value with its NUL, padded to 4 bytes.
+pub fn key_values(conventions: &str) -> Vec<u8> {
     let writer = format!("horizon-bake {}", env!("CARGO_PKG_VERSION"));
     let mut out = Vec::new();
-    for (key, value) in [("KTXorientation", "rd"), ("KTXwriter", writer.as_str())] {
+    for (key, value) in
+        [("KTXorientation", "rd"), ("KTXwriter", writer.as_str()), ("horizon-bake", conventions)]
+    {
         let len = key.len() + 1 + value.len() + 1;
         out.extend((len as u32).to_le_bytes());
         out.extend(key.as_bytes());
@@ -122,7 +127,7 @@ fn dfd(f: PixelFormat) -> Vec<u8> {
 ///
 /// # Errors
 /// [`crate::Error::Internal`] when the levels do not fit the texture's size, or zstd fails.
-pub fn write(t: &Texture, zstd_level: Option<i32>) -> Result<Vec<u8>> {
+pub fn write(t: &Texture, zstd_level: Option<i32>, conventions: &str) -> Result<Vec<u8>> {
     t.check()?;
     let levels = t.levels.len();
     // Raw level data: images in layer/face order, each level on its own.
@@ -145,7 +150,7 @@ pub fn write(t: &Texture, zstd_level: Option<i32>) -> Result<Vec<u8>> {
     };
     let lens: Vec<(usize, usize)> =
         stored.iter().zip(&raw).map(|(s, r)| (s.len(), r.len())).collect();
-    let (mut out, offsets) = prefix(t, &lens, align, zstd_level.is_some());
+    let (mut out, offsets) = prefix(t, &lens, align, zstd_level.is_some(), conventions);
     for l in (0..levels).rev() {
         out.resize(offsets[l], 0);
         out.extend_from_slice(stored[l]);
@@ -155,13 +160,15 @@ pub fn write(t: &Texture, zstd_level: Option<i32>) -> Result<Vec<u8>> {
 
 /// Everything of a KTX2 file before its level data, for `t`'s format, size, shape and level
 /// count (`t.levels` is only counted), with levels of `lens[l]` = (stored, uncompressed) bytes
-/// aligned to `align`: the bytes and each level's offset. [`write`] appends the levels; the
-/// streamed writer of `encode::assemble` writes level 0 band by band after the same bytes.
+/// aligned to `align`, and the `horizon-bake` key's `conventions`: the bytes and each level's
+/// offset. [`write`] appends the levels; the streamed writer of `encode::assemble` writes level
+/// 0 band by band after the same bytes.
 pub(crate) fn prefix(
     t: &Texture,
     lens: &[(usize, usize)],
     align: usize,
     zstd: bool,
+    conventions: &str,
 ) -> (Vec<u8>, Vec<usize>) {
     let (vk_format, type_size, ..) = describe(t.format);
     let (layer_count, face_count) = match t.shape {
@@ -172,7 +179,7 @@ pub(crate) fn prefix(
     };
     let levels = lens.len();
     let dfd = dfd(t.format);
-    let kvd = key_values();
+    let kvd = key_values(conventions);
     let header_len = 12 + 9 * 4 + 4 * 4 + 2 * 8;
     let dfd_offset = header_len + levels * 3 * 8;
     // The DFD's length is a multiple of 4, so the KVD that follows it is 4-aligned.
@@ -219,12 +226,13 @@ pub(crate) fn prefix(
 
 /// Encodes one single-level, uncompressed texture: `Shape::Array(n)` with `n` images, or
 /// `Shape::Cube` with 6 faces. The vkFormat follows the sample type of `images`:
-/// R8G8B8A8_UNORM, R8G8B8A8_SNORM, R16G16B16A16_UNORM or R32G32B32A32_SFLOAT.
+/// R8G8B8A8_UNORM, R8G8B8A8_SNORM, R16G16B16A16_UNORM or R32G32B32A32_SFLOAT. Its
+/// `horizon-bake` key is `{}`: these texels carry no convention of ours.
 ///
 /// # Errors
 /// [`crate::Error::Internal`] when the images do not fit `width × height` RGBA or `shape`.
 pub fn encode(width: usize, height: usize, shape: Shape, images: &[Texels<'_>]) -> Result<Vec<u8>> {
-    write(&Texture::single(width, height, shape, images)?, None)
+    write(&Texture::single(width, height, shape, images)?, None, "{}")
 }
 
 #[cfg(test)]
@@ -270,7 +278,8 @@ mod tests {
                 kv,
                 [
                     ("KTXorientation".to_owned(), b"rd\0".to_vec()),
-                    ("KTXwriter".to_owned(), writer.into_bytes())
+                    ("KTXwriter".to_owned(), writer.into_bytes()),
+                    ("horizon-bake".to_owned(), b"{}\0".to_vec())
                 ]
             );
             let level = r.levels().next().unwrap();

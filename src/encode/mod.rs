@@ -134,6 +134,47 @@ pub struct Formats {
     pub texture: TextureOptions,
     /// Sample type of `horizon_0.exr` / `horizon_1.exr` (float unless asked otherwise).
     pub exr_precision: exr::ExrPrecision,
+    /// What the layers' values mean, stated in every KTX2 file (SPEC §8): set from the bake's
+    /// parameters where the layers are encoded; not a choice of format, so not serialised.
+    #[serde(skip)]
+    pub conventions: LayerConventions,
+}
+
+/// The bake parameters a horizon layer's texels depend on for their meaning, which every KTX2
+/// file states under its `horizon-bake` key (SPEC §8) with the layout and the channels it holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct LayerConventions {
+    /// `y_axis=down`: tangent-space +y toward the bottom of the image.
+    pub y_axis_down: bool,
+    /// `encoding=sqrt`: the texels hold √s.
+    pub sqrt: bool,
+}
+
+impl LayerConventions {
+    /// The `horizon-bake` value of one KTX2 horizon file: what its texels hold, `y_axis`,
+    /// `encoding`, `layout`, and per layer the horizon channels in its components (channel c at
+    /// azimuth c·45° from +x toward +y). `file` is the index of a `separate` file, None for the
+    /// array.
+    pub fn ktx2_json(self, opts: &TextureOptions, file: Option<usize>) -> String {
+        let all: Vec<Vec<u8>> = if opts.precision == TexturePrecision::Bc5 {
+            (0..4).map(|l| vec![2 * l, 2 * l + 1]).collect()
+        } else {
+            (0..2).map(|l| (4 * l..4 * l + 4).collect()).collect()
+        };
+        let channels = match file {
+            Some(i) => all.get(i).map(|c| vec![c.clone()]).unwrap_or_default(),
+            None => all,
+        };
+        serde_json::json!({
+            "content": "horizon",
+            "value": if self.sqrt { "sqrt(sin(horizon elevation))" } else { "sin(horizon elevation)" },
+            "y_axis": if self.y_axis_down { "down" } else { "up" },
+            "encoding": if self.sqrt { "sqrt" } else { "linear" },
+            "layout": if opts.layout == TextureLayout::Separate { "separate" } else { "array" },
+            "channels": channels,
+        })
+        .to_string()
+    }
 }
 
 impl Default for Formats {
@@ -146,6 +187,7 @@ impl Default for Formats {
             dds: false,
             texture: TextureOptions::default(),
             exr_precision: exr::ExrPrecision::Float,
+            conventions: LayerConventions::default(),
         }
     }
 }
@@ -167,6 +209,7 @@ impl Formats {
             dds: false,
             texture: TextureOptions { precision: texture_precision, ..Default::default() },
             exr_precision: exr::ExrPrecision::Float,
+            conventions: LayerConventions::default(),
         };
         for part in list.split(',').map(str::trim).filter(|p| !p.is_empty()) {
             match part.to_ascii_lowercase().as_str() {
@@ -354,7 +397,8 @@ pub fn horizon_files_levels(
         if formats.ktx2 {
             for (i, t) in textures.iter().enumerate() {
                 let name = if separate { SEPARATE_KTX2[i] } else { "horizon.ktx2" };
-                out.push(OutFile { name, bytes: ktx2::write(t, opts.zstd_level)? });
+                let meta = formats.conventions.ktx2_json(opts, separate.then_some(i));
+                out.push(OutFile { name, bytes: ktx2::write(t, opts.zstd_level, &meta)? });
             }
         }
         if formats.dds {
@@ -405,7 +449,8 @@ pub struct CubeFormats {
     pub ktx2: bool,
     pub dds: bool,
     /// Mips, supercompression and DDS header of `cubemap.ktx2`/`cubemap.dds` (SPEC §8; the
-    /// cube map stays RGBA8 SNORM in one cube texture).
+    /// cube map stays one cube texture, RGBA8 SNORM or, with `texture_precision=bc7`, BC7
+    /// blocks of its UNORM faces).
     pub texture: TextureOptions,
 }
 
@@ -432,16 +477,35 @@ pub fn cube_files(size: usize, factors: &[f32], formats: CubeFormats) -> Result<
         }
     }
     if formats.ktx2 || formats.dds {
-        let snorm: Vec<i8> = factors.iter().map(|&f| crate::kernels::cubemap::snorm8(f)).collect();
-        let faces: Vec<Texels<'_>> = snorm.chunks_exact(face_len).map(Texels::Snorm8).collect();
         let opts = &formats.texture;
         opts.check_for(formats.ktx2, formats.dds, true)?;
+        // SNORM keeps a zero factor exact; `bc7` (for loaders that read no uncompressed cube,
+        // such as three.js) compresses the UNORM faces of the PNGs, f = 2t − 1 as for them.
+        let bc7 = opts.precision == TexturePrecision::Bc7;
+        let (snorm, unorm): (Vec<i8>, Vec<u8>) = if bc7 {
+            (Vec::new(), factors.iter().map(|&f| crate::kernels::cubemap::unorm8(f)).collect())
+        } else {
+            (factors.iter().map(|&f| crate::kernels::cubemap::snorm8(f)).collect(), Vec::new())
+        };
+        let faces: Vec<Texels<'_>> = if bc7 {
+            unorm.chunks_exact(face_len).map(Texels::Unorm8).collect()
+        } else {
+            snorm.chunks_exact(face_len).map(Texels::Snorm8).collect()
+        };
         let progress = crate::progress::Progress::new();
         let cube = texture::build(size, size, Shape::Cube, &faces, opts, &progress)?;
         if formats.ktx2 {
+            let meta = serde_json::json!({
+                "content": "cube_factors",
+                "faces": ["+x", "-x", "+y", "-y", "+z", "-z"],
+                "row0": "t = -1",
+                "factors": if bc7 { "unorm: f = 2t - 1" } else { "snorm: f = t" },
+                "slots": "channel c in slot c % 4, negated for c >= 4",
+            })
+            .to_string();
             out.push(OutFile {
                 name: "cubemap.ktx2",
-                bytes: ktx2::write(&cube[0], opts.zstd_level)?,
+                bytes: ktx2::write(&cube[0], opts.zstd_level, &meta)?,
             });
         }
         if formats.dds {

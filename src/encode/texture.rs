@@ -408,11 +408,12 @@ impl TextureOptions {
         if self.dds_header == DdsHeader::Legacy && !dds {
             return Err(Error::param("dds_header", "applies only to DDS files"));
         }
-        if cube && self.precision != TexturePrecision::Unorm8 {
+        if cube && !matches!(self.precision, TexturePrecision::Unorm8 | TexturePrecision::Bc7) {
             return Err(Error::param(
                 "texture_precision",
-                "the cube map is always RGBA8 SNORM; it takes mips, mip_filter, \
-                 supercompression and dds_header",
+                "the cube map is RGBA8 SNORM, or BC7 blocks of its UNORM faces with \
+                 texture_precision=bc7; it takes mips, mip_filter, supercompression and \
+                 dds_header",
             ));
         }
         if cube && self.layout != TextureLayout::Array {

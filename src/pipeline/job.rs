@@ -164,6 +164,7 @@ pub fn encode_on_request(
                 dds: false,
                 texture: Default::default(),
                 exr_precision,
+                conventions: Default::default(),
             };
             let float = exr(ExrPrecision::Float);
             let (layers, _) = bake::bake_horizon(&map, &params, float.precisions(), progress)?;
@@ -188,6 +189,7 @@ pub fn encode_on_request(
                 dds: texture.is_some_and(|(e, _)| e == "dds"),
                 texture: texture.map(|(_, o)| o).unwrap_or_default(),
                 exr_precision: ExrPrecision::Float,
+                conventions: crate::pipeline::conventions(&params),
             };
             let (layers, _) = bake::bake_horizon(&map, &params, formats.precisions(), progress)?;
             // `mip_filter=rebake` bakes the levels again from the map.

@@ -80,6 +80,14 @@ pub fn cube_files(size: usize, formats: encode::CubeFormats) -> Result<Vec<OutFi
     encode::cube_files(size, &crate::kernels::cubemap::cube_factors_shared(size), formats)
 }
 
+/// The conventions of `params`' horizon layers that the KTX2 files state (SPEC §8).
+pub fn conventions(params: &BakeParams) -> encode::LayerConventions {
+    encode::LayerConventions {
+        y_axis_down: params.y_axis == crate::params::YAxis::Down,
+        sqrt: params.encoding == crate::params::Encoding::Sqrt,
+    }
+}
+
 /// Milliseconds since `t`, to the microsecond.
 pub fn ms(t: Instant) -> f64 {
     (t.elapsed().as_secs_f64() * 1e6).round() / 1e3
@@ -102,6 +110,7 @@ pub fn produce<S: Sink>(
     progress: &Progress,
     sink: &mut S,
 ) -> Result<Produced> {
+    let formats = &Formats { conventions: conventions(params), ..*formats };
     let mut names: Vec<&'static str> = Vec::new();
     let mut store_ms = 0.0;
     // Terrain products first: the streamed horizon layers below consume the map.

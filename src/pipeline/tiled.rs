@@ -306,6 +306,7 @@ impl Tiler for PipelineTiler {
             Arc::new(move |hash: &str, start, len| read_range(store.as_ref(), hash, start, len))
         };
         let params = params_of(rec)?;
+        let formats = Formats { conventions: crate::pipeline::conventions(&params), ..formats };
         let mut done = rec.clone();
         let (w, h) = (ctx.plan.width as usize, ctx.plan.height as usize);
         if params.outputs.terrain() {

@@ -16,7 +16,8 @@ const float HORIZON_QUARTER_PI = 0.78539816;
 const float HORIZON_TWO_OVER_PI = 0.63661977;
 
 // The signed channel factors from a texel of the UNORM cube map (`cube_N.png`): f = t*2 - 1.
-// A SNORM cube map (`cubemap.ktx2`, `cubemap.dds`) samples to f directly: do not call this.
+// A SNORM cube map (`cubemap.ktx2`, `cubemap.dds`) samples to f directly: do not call this
+// (the BC7 cube, `texture_precision=bc7`, is UNORM: call it).
 vec4 horizon_cube_factors(vec4 texel) {
     return texel * 2.0 - 1.0;
 }

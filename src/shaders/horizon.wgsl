@@ -14,7 +14,8 @@ const HORIZON_QUARTER_PI: f32 = 0.78539816;
 const HORIZON_TWO_OVER_PI: f32 = 0.63661977;
 
 // The signed channel factors from a texel of the UNORM cube map (`cube_N.png`): f = t*2 - 1.
-// A SNORM cube map (`cubemap.ktx2`, `cubemap.dds`) samples to f directly: do not call this.
+// A SNORM cube map (`cubemap.ktx2`, `cubemap.dds`) samples to f directly: do not call this
+// (the BC7 cube, `texture_precision=bc7`, is UNORM: call it).
 fn horizon_cube_factors(texel: vec4<f32>) -> vec4<f32> {
     return texel * 2.0 - 1.0;
 }

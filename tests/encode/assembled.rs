@@ -208,11 +208,14 @@ fn textures_are_byte_identical() {
                     assert!(bytes.as_slice() == file(&files, name), "write_textures {name}");
                 }
                 for (planes, ktx, dds) in sets {
+                    let separate = (layout == TextureLayout::Separate).then_some(planes[0]);
+                    let meta = formats.conventions.ktx2_json(&formats.texture, separate);
                     let (k, d) = match precision {
                         TexturePrecision::Unorm8 => {
                             let mut s = |p: usize, y: usize, o: &mut [u8]| rows.read(t, p, y, o);
                             (
-                                assemble::write_ktx2(Vec::new(), w, h, planes, &mut s).unwrap(),
+                                assemble::write_ktx2(Vec::new(), w, h, planes, &meta, &mut s)
+                                    .unwrap(),
                                 assemble::write_dds(Vec::new(), w, h, planes, header, &mut s)
                                     .unwrap(),
                             )
@@ -220,7 +223,8 @@ fn textures_are_byte_identical() {
                         TexturePrecision::Unorm16 => {
                             let mut s = |p: usize, y: usize, o: &mut [u16]| rows.read(t, p, y, o);
                             (
-                                assemble::write_ktx2(Vec::new(), w, h, planes, &mut s).unwrap(),
+                                assemble::write_ktx2(Vec::new(), w, h, planes, &meta, &mut s)
+                                    .unwrap(),
                                 assemble::write_dds(Vec::new(), w, h, planes, header, &mut s)
                                     .unwrap(),
                             )
@@ -228,7 +232,8 @@ fn textures_are_byte_identical() {
                         _ => {
                             let mut s = |p: usize, y: usize, o: &mut [f32]| rows.read(t, p, y, o);
                             (
-                                assemble::write_ktx2(Vec::new(), w, h, planes, &mut s).unwrap(),
+                                assemble::write_ktx2(Vec::new(), w, h, planes, &meta, &mut s)
+                                    .unwrap(),
                                 assemble::write_dds(Vec::new(), w, h, planes, header, &mut s)
                                     .unwrap(),
                             )

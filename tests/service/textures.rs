@@ -122,6 +122,23 @@ async fn texture_variants_are_query_parameters_encoded_once() {
     )
     .unwrap();
     assert_eq!(&res.bytes().await.unwrap()[..], &want[0].bytes[..]);
+    // BC7 blocks of the UNORM faces, for loaders that read no uncompressed cube (three.js).
+    let res = c.get(srv.url("/v1/cubemap.ktx2?size=8&texture_precision=bc7")).send().await.unwrap();
+    assert_eq!(res.status(), 200);
+    let texture = TextureOptions::from_pairs([("texture_precision", "bc7")]).unwrap();
+    let want = horizon_bake::pipeline::cube_files(
+        8,
+        CubeFormats { ktx2: true, texture, ..Default::default() },
+    )
+    .unwrap();
+    assert_eq!(&res.bytes().await.unwrap()[..], &want[0].bytes[..]);
+    for route in ["cubemap.ktx2", "cubemap.dds"] {
+        let res = c.get(srv.url(&format!("/v1/{route}?texture_precision=unorm16"))).send();
+        let res = res.await.unwrap();
+        assert_eq!(res.status(), 422, "{route}");
+        let p: Value = res.json().await.unwrap();
+        assert_eq!(p["field"], "texture_precision", "{route}: {p}");
+    }
     let res =
         c.get(srv.url("/v1/cubemap.dds?size=8&mips=full&dds_header=legacy")).send().await.unwrap();
     assert_eq!(res.status(), 200);

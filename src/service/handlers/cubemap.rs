@@ -113,16 +113,17 @@ pub async fn cubemap_face(
     cube_answer(&st, &headers, size, formats, face, "image/png").await
 }
 
-/// The SPEC §8 options a cube-map texture takes (`mips`, `mip_filter`, `supercompression`,
-/// `zstd_level` for KTX2, `dds_header` for DDS) from the query.
+/// The SPEC §8 options a cube-map texture takes (`texture_precision` unorm8 or bc7, `mips`,
+/// `mip_filter`, `supercompression`, `zstd_level` for KTX2, `dds_header` for DDS) from the
+/// query.
 fn cube_texture(
     q: &HashMap<String, String>,
     ktx2: bool,
 ) -> Result<crate::encode::TextureOptions, Problem> {
     let keys: &[&str] = if ktx2 {
-        &["mips", "mip_filter", "supercompression", "zstd_level"]
+        &["texture_precision", "mips", "mip_filter", "supercompression", "zstd_level"]
     } else {
-        &["mips", "mip_filter", "dds_header"]
+        &["texture_precision", "mips", "mip_filter", "dds_header"]
     };
     let opts = crate::encode::TextureOptions::from_pairs(
         keys.iter().filter_map(|k| q.get(*k).map(|v| (*k, v.as_str()))),
@@ -131,28 +132,32 @@ fn cube_texture(
     Ok(opts)
 }
 
-/// `GET /v1/cubemap.ktx2?size=N`: the six faces as one RGBA8 SNORM cube map (with `mips`,
-/// `mip_filter`, `supercompression`, `zstd_level` as SPEC §8 says).
+/// `GET /v1/cubemap.ktx2?size=N`: the six faces as one RGBA8 SNORM cube map, or BC7 blocks of
+/// the UNORM faces with `texture_precision=bc7` (with `mips`, `mip_filter`,
+/// `supercompression`, `zstd_level` as SPEC §8 says).
 pub async fn cubemap_ktx2(
     State(st): State<AppState>,
     Query(q): Query<Vec<(String, String)>>,
     headers: HeaderMap,
 ) -> Answer {
-    let q = known_query(q, &["size", "mips", "mip_filter", "supercompression", "zstd_level"])?;
+    let q = known_query(
+        q,
+        &["size", "texture_precision", "mips", "mip_filter", "supercompression", "zstd_level"],
+    )?;
     let size = cube_size(&st, &q)?;
     let texture = cube_texture(&q, true)?;
     let formats = CubeFormats { ktx2: true, texture, ..Default::default() };
     cube_answer(&st, &headers, size, formats, 0, KTX2_TYPE).await
 }
 
-/// `GET /v1/cubemap.dds?size=N`: the six faces as one RGBA8 SNORM DDS cube map (with `mips`,
-/// `mip_filter`, `dds_header`).
+/// `GET /v1/cubemap.dds?size=N`: the six faces as one RGBA8 SNORM DDS cube map, or BC7 with
+/// `texture_precision=bc7` (with `mips`, `mip_filter`, `dds_header`).
 pub async fn cubemap_dds(
     State(st): State<AppState>,
     Query(q): Query<Vec<(String, String)>>,
     headers: HeaderMap,
 ) -> Answer {
-    let q = known_query(q, &["size", "mips", "mip_filter", "dds_header"])?;
+    let q = known_query(q, &["size", "texture_precision", "mips", "mip_filter", "dds_header"])?;
     let size = cube_size(&st, &q)?;
     let texture = cube_texture(&q, false)?;
     let formats = CubeFormats { dds: true, texture, ..Default::default() };
