@@ -170,7 +170,9 @@ fn ktx2_files_state_the_bake_s_conventions() {
     let dir = tempfile::tempdir().unwrap();
     let input = dir.path().join("h.png");
     write_png16(&input, 16, 12, &smooth_heights(16, 12, 3));
-    let cases: [(&[&str], &[(&str, &str, &str, &str, serde_json::Value)]); 3] = [
+    // (flags, [(file, y_axis, encoding, layout, channels)]).
+    type Expect = (&'static str, &'static str, &'static str, &'static str, serde_json::Value);
+    let cases: [(&[&str], &[Expect]); 3] = [
         (
             &[],
             &[(
