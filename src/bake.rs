@@ -932,8 +932,8 @@ pub struct SurfaceJob {
     encoding: crate::params::BentNormalEncoding,
     /// Per-bin horizons (ray methods) rather than the 8 channels (`lengyel`).
     per_bin: bool,
-    /// (sin, cos) of the azimuths the horizons are at.
-    dirs: Vec<(f64, f64)>,
+    /// The azimuths the horizons are at.
+    dirs: crate::terrain::surface::BinDirs,
     bent_channels: usize,
 }
 
@@ -947,7 +947,7 @@ impl SurfaceJob {
             flip_y: surface::flips_y(params.y_axis, params.normal_convention),
             encoding: params.bent_normal_encoding,
             per_bin,
-            dirs: surface::bin_directions(if per_bin { bins } else { 8 }),
+            dirs: surface::BinDirs::new(if per_bin { bins } else { 8 }),
             bent_channels: SurfaceMaps::bent_channels(params.bent_normal_encoding),
         }
     }
@@ -999,7 +999,7 @@ impl SurfaceJob {
                 Some(b) if self.per_bin => &b[t * nb..(t + 1) * nb],
                 _ => &channels[t * 8..t * 8 + 8],
             };
-            let occ = surface::occlusion_with(s, n, &self.dirs);
+            let occ = surface::occlusion_fast(s, n, &self.dirs);
             if let Some(o) = out[1].as_deref_mut() {
                 o[t] = surface::encode_unorm(occ.ao);
             }
@@ -1074,13 +1074,20 @@ impl HorizonRows for SurfaceTap<'_> {
         let w = self.grid.width;
         let (rows, nb) = (channels.len() / (w * 8), self.inner.bins());
         // The per-bin values when the surface needs them and the caller did not ask: one
-        // band's worth, the kernel's own output.
-        let mut own = Vec::new();
+        // band's worth, the kernel's own output, in buffers each pool thread keeps (a band is
+        // megabytes: allocating and zeroing it per band cost as much as the occlusion). A stack
+        // of them, since a thread waiting inside the kernel may run another band meanwhile.
+        thread_local! {
+            static OWN: std::cell::RefCell<Vec<Vec<f32>>> = const { std::cell::RefCell::new(Vec::new()) };
+        }
+        let mut own = OWN.with(|o| o.borrow_mut().pop()).unwrap_or_default();
         let mut bins: Option<&mut [f32]> = match bins_out {
             Some(b) => Some(b),
             None if self.job.per_bin => {
-                own.resize(rows * w * nb, 0.0);
-                Some(&mut own[..])
+                if own.len() < rows * w * nb {
+                    own.resize(rows * w * nb, 0.0);
+                }
+                Some(&mut own[..rows * w * nb])
             }
             None => None,
         };
@@ -1102,6 +1109,13 @@ impl HorizonRows for SurfaceTap<'_> {
         put(&mut maps.normal, band.normal.take(), 3);
         put(&mut maps.ao, band.ao.take(), 1);
         put(&mut maps.bent_normal, band.bent_normal.take(), ch);
+        drop(maps);
+        OWN.with(|o| {
+            let mut kept = o.borrow_mut();
+            if kept.len() < 4 {
+                kept.push(own);
+            }
+        });
     }
 }
 
