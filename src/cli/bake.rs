@@ -368,6 +368,7 @@ pub fn run(args: BakeArgs) -> Result<()> {
     }
     formats.exr_precision =
         crate::encode::exr::ExrPrecision::parse("exr_precision", &args.exr_precision)?;
+    crate::pipeline::surface::check_surface_formats(&params, &formats)?;
     // Without the horizon output there are no layers to write as png16, EXR, KTX2 or DDS;
     // writing none while bake.json lists them would be a lie, so the combination is refused.
     // (png8, the default, stays accepted: the Fourier files are 8-bit PNGs.)

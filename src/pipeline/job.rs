@@ -307,7 +307,12 @@ impl BlobSink<'_> {
 /// png8 or png16 as asked, an EXR is `.half.exr` at half precision, a KTX2/DDS file the name of
 /// its variant ([`texture_result_name`], the name its download looks up).
 pub fn result_name(formats: &Formats, file: &str) -> String {
-    if let Some((stem, ext)) = file.rsplit_once('.').filter(|(_, e)| *e == "ktx2" || *e == "dds") {
+    // The horizon textures' names carry their variant; the surface maps' (`normal.ktx2`, …)
+    // are stored as they are: they have no variants encoded on request.
+    let horizon = file.starts_with("horizon");
+    if let Some((stem, ext)) =
+        file.rsplit_once('.').filter(|(_, e)| horizon && (*e == "ktx2" || *e == "dds"))
+    {
         let layer = stem.strip_prefix("horizon_").and_then(|i| i.parse::<usize>().ok());
         let ext = if ext == "ktx2" { "ktx2" } else { "dds" };
         let opts = formats.texture.for_container(ext == "ktx2");

@@ -127,7 +127,7 @@ pub fn produce<S: Sink>(
     let streams = params.outputs.horizon && streamable(formats);
     if params.outputs.surface() && !streams {
         let t = Instant::now();
-        let (files, r, products) = surface::surface_files(&map, params, progress)?;
+        let (files, r, products) = surface::surface_files(&map, params, formats, progress)?;
         let bake_ms = ms(t);
         store_ms += keep(sink, files, &mut names)?;
         terrain = Some(match terrain {
@@ -163,7 +163,7 @@ pub fn produce<S: Sink>(
         let bake_ms = ms(t);
         let mut products = products.clone();
         if let Some(m) = surface {
-            let (files, info) = surface::surface_pngs(&m, params, progress)?;
+            let (files, info) = surface::surface_outputs(&m, params, formats, progress)?;
             store_ms += keep(sink, files, &mut names)?;
             join_products(&mut products, info);
         }

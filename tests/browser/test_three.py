@@ -4,7 +4,8 @@ tests/browser/three/package.json, `npm ci` there) in Debian's chromium, WebGL2 o
 Every variant three.js can represent is loaded through `KTX2Loader` (with `detectSupport` on a
 real `WebGLRenderer`), uploaded by three.js, drawn with `texelFetch` (one fragment per texel, a
 float render target) and read back, so what is compared is what a three.js material samples:
-- `texture_layout=separate` RGBA8: every texel equal to the PNG layers; with `mips=full` and
+- `texture_layout=separate` RGBA8: every texel equal to the PNG layers, and the surface maps
+  (`normal.ktx2`, `ao.ktx2`, `bent_normal.ktx2`) equal to their PNGs; with `mips=full` and
   zstd, level k equal to the box filter of level k − 1 (mean rounding half up, SPEC §8)
   computed here from the PNG;
 - float32: within half a 16-bit step of `--format png16`'s layers;
@@ -167,7 +168,8 @@ def run(*args: str) -> None:
 
 # name: the CLI flags of one bake of TERRAIN into its own directory.
 BAKES = {
-    "raw8": ["--format", "png8,ktx2", "--texture-layout", "separate"],
+    "raw8": ["--format", "png8,ktx2", "--texture-layout", "separate",
+             "--outputs", "horizon,normal,ao,bent_normal"],
     "mips_zstd": ["--format", "png8,ktx2", "--texture-layout", "separate", "--mips", "full",
                   "--supercompression", "zstd"],
     "float32": ["--format", "png16,ktx2", "--texture-layout", "separate",
@@ -280,6 +282,19 @@ def test_separate_rgba8_layers_are_the_png_layers(page):
         assert np.array_equal(got, want.astype(np.int32)), f"layer {i}: max {np.abs(got - want).max()}"
 
 
+def test_surface_maps_load_as_2d_textures(page):
+    pg, root, _ = page
+    for name in ["normal", "ao", "bent_normal"]:
+        img = Image.open(root / "raw8" / f"{name}.png")
+        want = np.asarray(img.convert("RGBA")).astype(np.int32)
+        if img.mode == "L":
+            want[..., :3] = np.asarray(img)[..., None]
+        info = loaded(pg, f"/raw8/{name}.ktx2")
+        assert (info["type"], info["width"]) == ("DataTexture", 128), info
+        got = np.rint(drawn(pg, f"/raw8/{name}.ktx2", 128, 128) * 255).astype(np.int32)
+        assert np.array_equal(got, want), f"{name}: max {np.abs(got - want).max()}"
+
+
 def test_zstd_mip_chain_loads_level_by_level(page):
     pg, root, _ = page
     for i in range(2):
@@ -372,7 +387,7 @@ def test_what_three_cannot_represent_is_what_the_readme_says(page):
 def test_ktx_parse_reads_orientation_writer_and_conventions(page):
     pg, root, _ = page
     files = sorted(p.relative_to(root).as_posix() for p in root.glob("*/*.ktx2"))
-    assert len(files) == 2 + 2 + 2 + 2 + 4 + 1 + 2, files
+    assert len(files) == 2 + 3 + 2 + 2 + 2 + 4 + 1 + 2, files
     for f in files:
         c = pg.evaluate("(u) => parse(u)", "/" + f)
         kv = c["kv"]
@@ -381,6 +396,10 @@ def test_ktx_parse_reads_orientation_writer_and_conventions(page):
         meta = json.loads(kv["horizon-bake"])
         if f.startswith("cube"):
             assert (meta["content"], c["faceCount"], c["layerCount"]) == ("cube_factors", 6, 0), (f, c)
+            continue
+        if meta["content"] in ("normal", "ao", "bent_normal"):
+            assert f.startswith("raw8/") and c["layerCount"] == 0, (f, c)
+            assert f.endswith(meta["content"] + ".ktx2"), (f, meta)
             continue
         assert meta["content"] == "horizon", (f, meta)
         sep = not f.startswith("array/")

@@ -264,6 +264,116 @@ fn the_bc7_cube_map_is_the_png_faces_in_blocks() {
     assert!(dds.windows(level.len()).any(|w| w == level), "cubemap.dds holds the KTX2's blocks");
 }
 
+/// The surface maps as KTX2 and DDS (SPEC §3.8 "formats, mips and KTX2/DDS as the horizon
+/// layers"), read by the `ktx2` crate and `ddsfile`: each one 2D texture (layerCount 0, DDS
+/// array size 1); `unorm8` level 0 is the PNG's channels with alpha 255 (the AO in r, g, b),
+/// level 1 the box filter of it, zstd levels as KTX-Software writes them; `bc5` holds the
+/// first two channels (each texel within half a BC4 step of its block's range); a 16-bit
+/// texture of 8-bit maps is refused.
+#[test]
+fn surface_maps_as_ktx2_and_dds_hold_the_png_values() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("h.png");
+    let (w, h) = (24, 20);
+    write_png16(&input, w, h, &smooth_heights(w, h, 8));
+    let bake = |name: &str, flags: &[&str]| {
+        let out = dir.path().join(name);
+        let mut args = vec!["bake", input.to_str().unwrap(), "-o", out.to_str().unwrap()];
+        args.extend(["--outputs", "horizon,normal,ao,bent_normal", "--method", "exact"]);
+        args.extend(["--radius", "8", "--height-scale", "6", "--format", "png8,ktx2,dds"]);
+        args.extend(flags.iter());
+        run(&args);
+        out
+    };
+    let rgba = |out: &Path, name: &str| -> Vec<u8> {
+        let img = image::open(out.join(name)).unwrap();
+        match img.color().channel_count() {
+            1 => img.to_luma8().iter().flat_map(|&a| [a, a, a, 255]).collect(),
+            _ => img.to_rgba8().into_raw(),
+        }
+    };
+    let out = bake(
+        "raw",
+        &["--mips", "full", "--supercompression", "zstd", "--bent-normal-encoding", "rgb_ao"],
+    );
+    for map in ["normal", "ao", "bent_normal"] {
+        let want = rgba(&out, &format!("{map}.png"));
+        let bytes = std::fs::read(out.join(format!("{map}.ktx2"))).unwrap();
+        let r = Reader::new(&bytes[..]).unwrap();
+        let hd = r.header();
+        assert_eq!(hd.format, Some(Format::R8G8B8A8_UNORM), "{map}");
+        assert_eq!(
+            (hd.pixel_width, hd.pixel_height, hd.layer_count, hd.face_count),
+            (24, 20, 0, 1)
+        );
+        assert_eq!(hd.level_count, 5, "{map}: 24×20 down to 1×1");
+        let levels: Vec<Vec<u8>> = r
+            .levels()
+            .map(|l| zstd::bulk::decompress(l.data, l.uncompressed_byte_length as usize).unwrap())
+            .collect();
+        assert_eq!(levels[0], want, "{map} level 0");
+        // Level 1 (12×10): the mean of each 2×2, rounding half up.
+        for (i, &v) in levels[1].iter().enumerate() {
+            let (x, y, c) = ((i / 4) % 12, i / 48, i % 4);
+            let at = |dx: usize, dy: usize| want[((2 * y + dy) * w + 2 * x + dx) * 4 + c] as u32;
+            assert_eq!(
+                v as u32,
+                (at(0, 0) + at(1, 0) + at(0, 1) + at(1, 1) + 2) / 4,
+                "{map} level 1 {i}"
+            );
+        }
+        assert_eq!(conventions_of(&bytes)["content"], map);
+        let dds =
+            ddsfile::Dds::read(&mut &std::fs::read(out.join(format!("{map}.dds"))).unwrap()[..])
+                .unwrap();
+        assert_eq!((dds.get_width(), dds.get_height(), dds.get_num_array_layers()), (24, 20, 1));
+        assert_eq!(dds.get_num_mipmap_levels(), 5, "{map}.dds");
+        assert_eq!(&dds.data[..want.len()], &want[..], "{map}.dds level 0");
+    }
+    let out = bake("bc5", &["--texture-precision", "bc5"]);
+    for map in ["normal", "ao", "bent_normal"] {
+        let want = rgba(&out, &format!("{map}.png"));
+        let bytes = std::fs::read(out.join(format!("{map}.ktx2"))).unwrap();
+        let r = Reader::new(&bytes[..]).unwrap();
+        assert_eq!(r.header().format, Some(Format::BC5_UNORM_BLOCK), "{map}");
+        assert_eq!(r.header().layer_count, 0, "{map}: one RG texture");
+        let level = r.levels().next().unwrap().data;
+        let mut got = vec![0u8; w * h * 4];
+        let view = dds::ImageViewMut::new(
+            &mut got,
+            dds::Size::new(w as u32, h as u32),
+            dds::ColorFormat::RGBA_U8,
+        )
+        .unwrap();
+        dds::decode(&mut &level[..], view, dds::Format::BC5_UNORM, &dds::DecodeOptions::default())
+            .unwrap();
+        // BC5 is two BC4 channels: 8 steps between a block's endpoints, so a texel is within
+        // half a step, (max − min) / 14 of its block, plus the endpoints' rounding.
+        for (by, bx, c) in
+            (0..h / 4).flat_map(|y| (0..w / 4).flat_map(move |x| [(y, x, 0), (y, x, 1)]))
+        {
+            let texels: Vec<usize> =
+                (0..16).map(|k| ((by * 4 + k / 4) * w + bx * 4 + k % 4) * 4 + c).collect();
+            let lo = texels.iter().map(|&i| want[i]).min().unwrap();
+            let hi = texels.iter().map(|&i| want[i]).max().unwrap();
+            for i in texels {
+                let err = (got[i] as i32 - want[i] as i32).abs();
+                assert!(
+                    err * 14 <= (hi - lo) as i32 + 28,
+                    "{map} block ({bx},{by}) channel {c}: off by {err}, range {lo}..{hi}"
+                );
+            }
+        }
+    }
+    let o = Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
+        .args(["bake", input.to_str().unwrap(), "-o", dir.path().join("x").to_str().unwrap()])
+        .args(["--outputs", "horizon,ao", "--format", "ktx2", "--texture-precision", "float32"])
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("texture_precision"));
+}
+
 /// DDS with mips: data is layer-major (all levels of layer 0, then layer 1), the header counts
 /// the levels; `ddsfile` (a reader we did not write) agrees on every field.
 #[test]

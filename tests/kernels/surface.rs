@@ -92,7 +92,13 @@ fn surface_maps_match_an_independent_quadrature_of_the_exact_horizon() {
             ("outputs", "normal,ao,bent_normal"),
         ])
         .unwrap();
-        let (files, _, _) = surface_files(&map, &params, &Progress::new()).unwrap();
+        let (files, _, _) = surface_files(
+            &map,
+            &params,
+            &horizon_bake::encode::Formats::default(),
+            &Progress::new(),
+        )
+        .unwrap();
         let get = |n: &str| decode(&files.iter().find(|f| f.name == n).unwrap().bytes);
         let (normal, ao, bent) = (
             get("normal.png").to_rgb8(),
@@ -142,7 +148,13 @@ fn a_flat_open_map_is_unoccluded_for_every_method_and_conventions_flip_green() {
                 ("outputs", "normal,ao,bent_normal"),
             ])
             .unwrap();
-            let (files, _, _) = surface_files(&map, &params, &Progress::new()).unwrap();
+            let (files, _, _) = surface_files(
+                &map,
+                &params,
+                &horizon_bake::encode::Formats::default(),
+                &Progress::new(),
+            )
+            .unwrap();
             let get = |n: &str| decode(&files.iter().find(|f| f.name == n).unwrap().bytes);
             assert!(
                 get("normal.png").to_rgb8().pixels().all(|p| p.0 == [128, green, 255]),
@@ -168,7 +180,13 @@ fn a_flat_open_map_is_unoccluded_for_every_method_and_conventions_flip_green() {
             ("outputs", "normal"),
         ])
         .unwrap();
-        let (files, _, _) = surface_files(&map, &params, &Progress::new()).unwrap();
+        let (files, _, _) = surface_files(
+            &map,
+            &params,
+            &horizon_bake::encode::Formats::default(),
+            &Progress::new(),
+        )
+        .unwrap();
         decode(&files[0].bytes).to_rgb8().get_pixel(3, 3).0
     };
     let (gl, dx) = (n("opengl"), n("directx"));
@@ -189,7 +207,9 @@ fn a_flat_open_map_is_unoccluded_for_every_method_and_conventions_flip_green() {
                 ("outputs", "normal,ao"),
             ])
             .unwrap();
-            surface_files(&m, &params, &Progress::new()).unwrap().0
+            surface_files(&m, &params, &horizon_bake::encode::Formats::default(), &Progress::new())
+                .unwrap()
+                .0
         };
         let (up, down) = (files("up"), files("down"));
         assert!(up[0].bytes == down[0].bytes, "{conv}: normal.png depends on y_axis");

@@ -1170,6 +1170,47 @@ async fn surface_maps_over_http_are_the_cli_s_files() {
     wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
     let res = c.get(srv.url(&format!("{loc}/ao"))).send().await.unwrap();
     assert_eq!(res.status(), 409);
+    let res = c.get(srv.url(&format!("{loc}/normal?format=ktx2"))).send().await.unwrap();
+    assert_eq!(res.status(), 409, "no ktx2 in formats");
+    let res = c.get(srv.url(&format!("{loc}/normal?format=tga"))).send().await.unwrap();
+    assert_eq!(res.status(), 422);
+    // As KTX2/DDS textures (BC5 with mips, zstd for the KTX2): the CLI's files.
+    let tex = ["--format", "png8,ktx2,dds", "--texture-precision", "bc5", "--mips", "full"];
+    let out = dir.path().join("tex");
+    let st = std::process::Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
+        .args(["bake", input.to_str().unwrap(), "-o", out.to_str().unwrap()])
+        .args(["--outputs", "horizon,normal,ao,bent_normal", "--supercompression", "zstd"])
+        .args(flags)
+        .args(tex)
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let q2 =
+        format!("{q}&formats=png8,ktx2,dds&texture_precision=bc5&mips=full&supercompression=zstd");
+    let loc = submit_ok(&c, &srv, &png, &q2).await;
+    let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
+    assert_eq!(v["status"], "succeeded", "{v}");
+    for name in ["normal", "ao", "bent_normal"] {
+        for (ext, ctype) in [("ktx2", "image/ktx2"), ("dds", "image/vnd-ms.dds")] {
+            let res = c.get(srv.url(&format!("{loc}/{name}?format={ext}"))).send().await.unwrap();
+            assert_eq!(res.status(), 200, "{name} {ext}");
+            assert_eq!(res.headers()["content-type"], ctype);
+            let body = res.bytes().await.unwrap();
+            let cli = std::fs::read(out.join(format!("{name}.{ext}"))).unwrap();
+            assert!(body[..] == cli[..], "{name}.{ext} differs from the CLI's");
+        }
+    }
+    // 8-bit maps: a 16-bit texture is refused at submission, naming the option.
+    let res = c
+        .post(srv.url(&format!("/v1/bakes{q}&formats=ktx2&texture_precision=unorm16")))
+        .header("content-type", "image/png")
+        .body(png.clone())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(res.status(), 422);
+    let p: Value = res.json().await.unwrap();
+    assert_eq!(p["field"], "texture_precision", "{p}");
     // Above --tile-above (64²): refused before it is queued.
     let res = c
         .post(srv.url("/v1/bakes?method=march&radius=4&outputs=horizon,ao"))

@@ -207,7 +207,9 @@ pub fn library_files(png: &[u8], pairs: &[(&str, &str)]) -> BTreeMap<String, Vec
         out.insert(format!("horizon_{k}.png16"), b);
     }
     let (layers, _) = bake::bake_horizon(&map, &params, Precisions::ALL, &Progress::new()).unwrap();
-    let rest = Formats::parse("exr,ktx2,dds", TexturePrecision::Unorm8).unwrap();
+    let mut rest = Formats::parse("exr,ktx2,dds", TexturePrecision::Unorm8).unwrap();
+    // The KTX2 file states the bake's y_axis and encoding (SPEC §8), as the service's does.
+    rest.conventions = horizon_bake::pipeline::conventions(&params);
     for file in encode::horizon_files(&layers, &rest).unwrap() {
         out.insert(file.name.to_owned(), file.bytes);
     }

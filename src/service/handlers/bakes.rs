@@ -501,6 +501,7 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
     // (Those a DEM's defaults may change wait for them: the decode checks again.)
     params.check_before_input().map_err(Problem::from)?;
     let formats = delivery.resolve()?;
+    crate::pipeline::surface::check_surface_formats(&params, &formats).map_err(Problem::from)?;
     if !params.outputs.horizon && formats != Formats::default() {
         // As the CLI: a format of horizon layers that a Fourier-only bake would never write.
         return Err(Problem::param(
@@ -586,8 +587,16 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
     } else {
         (bytes, stored)
     };
-    let pairs: Vec<(String, String)> =
+    let mut pairs: Vec<(String, String)> =
         params.to_pairs().into_iter().map(|(k, v)| (k.to_owned(), v)).collect();
+    if params.outputs.surface() && (formats.ktx2 || formats.dds) {
+        // The surface maps' textures are written by the bake itself (the horizon layers'
+        // variants are encoded on request instead), so a bake that wrote other ones, or none,
+        // is not this one.
+        let texture =
+            serde_json::to_string(&formats).map_err(|e| Error::Internal(e.to_string()))?;
+        pairs.push(("surface_textures".to_owned(), texture));
+    }
     let (bytes, input_hash, input_bytes, key) = blocking(move || {
         let (input_hash, len) = match (&bytes, stored) {
             (Some(b), _) => (blake3::hash(b).to_hex().to_string(), b.len() as u64),

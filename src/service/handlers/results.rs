@@ -440,34 +440,88 @@ async fn stored_file(
     blob_response(st, headers, hash, content_type, file).await
 }
 
-/// `GET /v1/bakes/{id}/normal`: `normal.png`, the tangent-space normal map (SPEC §3.8).
+/// A surface map (SPEC §3.8) `what` of a bake: its PNG, or with `format=ktx2|dds` the 2D
+/// texture the bake wrote when its `formats` had that container (a 409 naming it otherwise).
+async fn surface_file(
+    st: &AppState,
+    id: &str,
+    q: Vec<(String, String)>,
+    headers: &HeaderMap,
+    what: &'static str,
+) -> Answer {
+    let mut q = q;
+    let format = match q.iter().position(|(k, _)| k == "format") {
+        Some(i) => q.remove(i).1,
+        None => "png".to_owned(),
+    };
+    let (ext, content_type) = match format.as_str() {
+        "png" => ("png", "image/png"),
+        "ktx2" => ("ktx2", KTX2_TYPE),
+        "dds" => ("dds", DDS_TYPE),
+        other => {
+            return Err(Problem::param("format", format!("`{other}` is not one of png, ktx2, dds")))
+        }
+    };
+    let file: &'static str = match (what, ext) {
+        ("normal", "png") => "normal.png",
+        ("normal", "ktx2") => "normal.ktx2",
+        ("normal", _) => "normal.dds",
+        ("ao", "png") => "ao.png",
+        ("ao", "ktx2") => "ao.ktx2",
+        ("ao", _) => "ao.dds",
+        (_, "png") => "bent_normal.png",
+        (_, "ktx2") => "bent_normal.ktx2",
+        _ => "bent_normal.dds",
+    };
+    if ext != "png" {
+        known_query(q, &[])?;
+        let rec = finished(st, id).await?;
+        let Some(hash) = rec.results.get(file) else {
+            return Err(Problem::new(
+                StatusCode::CONFLICT,
+                "result_not_requested",
+                format!(
+                    "bake `{id}` did not write `{file}`; submit it with outputs including {what} \
+                     and formats including {ext}"
+                ),
+            ));
+        };
+        return blob_response(st, headers, hash, content_type, file).await;
+    }
+    stored_file(st, id, q, headers, file, what, content_type).await
+}
+
+/// `GET /v1/bakes/{id}/normal`: `normal.png`, the tangent-space normal map (SPEC §3.8);
+/// `format=ktx2|dds` its texture.
 pub async fn normal(
     State(st): State<AppState>,
     Path(id): Path<String>,
     Query(q): Query<Vec<(String, String)>>,
     headers: HeaderMap,
 ) -> Answer {
-    stored_file(&st, &id, q, &headers, "normal.png", "normal", "image/png").await
+    surface_file(&st, &id, q, &headers, "normal").await
 }
 
-/// `GET /v1/bakes/{id}/ao`: `ao.png`, the ambient occlusion (SPEC §3.8).
+/// `GET /v1/bakes/{id}/ao`: `ao.png`, the ambient occlusion (SPEC §3.8); `format=ktx2|dds`
+/// its texture.
 pub async fn ao(
     State(st): State<AppState>,
     Path(id): Path<String>,
     Query(q): Query<Vec<(String, String)>>,
     headers: HeaderMap,
 ) -> Answer {
-    stored_file(&st, &id, q, &headers, "ao.png", "ao", "image/png").await
+    surface_file(&st, &id, q, &headers, "ao").await
 }
 
-/// `GET /v1/bakes/{id}/bent_normal`: `bent_normal.png` (SPEC §3.8).
+/// `GET /v1/bakes/{id}/bent_normal`: `bent_normal.png` (SPEC §3.8); `format=ktx2|dds` its
+/// texture.
 pub async fn bent_normal(
     State(st): State<AppState>,
     Path(id): Path<String>,
     Query(q): Query<Vec<(String, String)>>,
     headers: HeaderMap,
 ) -> Answer {
-    stored_file(&st, &id, q, &headers, "bent_normal.png", "bent_normal", "image/png").await
+    surface_file(&st, &id, q, &headers, "bent_normal").await
 }
 
 /// `GET /v1/bakes/{id}/angles`: `angles.tif`, one GeoTIFF band per bin (SPEC §3.7).
