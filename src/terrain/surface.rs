@@ -332,6 +332,16 @@ mod tests {
         (ao / PI, v.map(|c| c / len))
     }
 
+    /// Uniform values in [0, 1) from a xorshift64 generator seeded with `seed`.
+    fn xorshift(mut seed: u64) -> impl FnMut() -> f64 {
+        move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            (seed >> 11) as f64 / (1u64 << 53) as f64
+        }
+    }
+
     fn unit(v: [f64; 3]) -> [f64; 3] {
         let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
         v.map(|c| c / l)
@@ -357,13 +367,7 @@ mod tests {
 
     #[test]
     fn closed_form_matches_the_numerical_integral_on_random_texels() {
-        let mut seed = 0x9e37_79b9_7f4a_7c15u64;
-        let mut rnd = || {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            (seed >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut rnd = xorshift(0x9e37_79b9_7f4a_7c15);
         for case in 0..200 {
             let bins = [8, 16, 32, 64][case % 4];
             let s: Vec<f32> = (0..bins).map(|_| (rnd() * rnd()) as f32).collect();
@@ -385,13 +389,7 @@ mod tests {
 
     #[test]
     fn the_fast_occlusion_is_the_closed_form() {
-        let mut seed = 0x2545_f491_4f6c_dd1du64;
-        let mut rnd = || {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            (seed >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut rnd = xorshift(0x2545_f491_4f6c_dd1d);
         for case in 0..2000 {
             let bins = [8, 12, 16, 32, 64, 360][case % 6];
             let dirs = BinDirs::new(bins);

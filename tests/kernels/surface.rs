@@ -92,13 +92,7 @@ fn surface_maps_match_an_independent_quadrature_of_the_exact_horizon() {
             ("outputs", "normal,ao,bent_normal"),
         ])
         .unwrap();
-        let (files, _, _) = surface_files(
-            &map,
-            &params,
-            &horizon_bake::encode::Formats::default(),
-            &Progress::new(),
-        )
-        .unwrap();
+        let (files, _, _) = pngs(&map, &params);
         let get = |n: &str| decode(&files.iter().find(|f| f.name == n).unwrap().bytes);
         let (normal, ao, bent) = (
             get("normal.png").to_rgb8(),
@@ -148,13 +142,7 @@ fn a_flat_open_map_is_unoccluded_for_every_method_and_conventions_flip_green() {
                 ("outputs", "normal,ao,bent_normal"),
             ])
             .unwrap();
-            let (files, _, _) = surface_files(
-                &map,
-                &params,
-                &horizon_bake::encode::Formats::default(),
-                &Progress::new(),
-            )
-            .unwrap();
+            let (files, _, _) = pngs(&map, &params);
             let get = |n: &str| decode(&files.iter().find(|f| f.name == n).unwrap().bytes);
             assert!(
                 get("normal.png").to_rgb8().pixels().all(|p| p.0 == [128, green, 255]),
@@ -180,13 +168,7 @@ fn a_flat_open_map_is_unoccluded_for_every_method_and_conventions_flip_green() {
             ("outputs", "normal"),
         ])
         .unwrap();
-        let (files, _, _) = surface_files(
-            &map,
-            &params,
-            &horizon_bake::encode::Formats::default(),
-            &Progress::new(),
-        )
-        .unwrap();
+        let (files, _, _) = pngs(&map, &params);
         decode(&files[0].bytes).to_rgb8().get_pixel(3, 3).0
     };
     let (gl, dx) = (n("opengl"), n("directx"));
@@ -207,9 +189,7 @@ fn a_flat_open_map_is_unoccluded_for_every_method_and_conventions_flip_green() {
                 ("outputs", "normal,ao"),
             ])
             .unwrap();
-            surface_files(&m, &params, &horizon_bake::encode::Formats::default(), &Progress::new())
-                .unwrap()
-                .0
+            pngs(&m, &params).0
         };
         let (up, down) = (files("up"), files("down"));
         assert!(up[0].bytes == down[0].bytes, "{conv}: normal.png depends on y_axis");
@@ -276,4 +256,12 @@ fn the_same_pass_as_the_horizon_layers_gives_the_same_maps() {
             stream_horizon_pngs::<u8, _>(map.clone(), &params, &p, [vec![], vec![]]).unwrap();
         assert!(layers == plain_layers, "{method}: the tap changed the layers");
     }
+}
+
+/// The surface maps' files of `params` for `map` with the default formats (their PNGs).
+fn pngs(
+    map: &HeightMap,
+    params: &BakeParams,
+) -> (Vec<horizon_bake::encode::OutFile>, horizon_bake::bake::ResolvedRadius, serde_json::Value) {
+    surface_files(map, params, &horizon_bake::encode::Formats::default(), &Progress::new()).unwrap()
 }
