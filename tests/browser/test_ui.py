@@ -15,7 +15,8 @@ Cancel stops a bake; every download link answers 200 with its content type; the 
 bakes by `#id`; without WebGL2 the CPU preview is shown; with --api-key the page works once the
 key is entered, progress included. Issue 24: a GeoTIFF DEM (made with rasterio) is sent
 without height_scale/edge, gets the DEM defaults, shows its CRS and cell size, and its SVF and
-the shadow of a sun the user sets are shown with the values of the server's GeoTIFFs.
+the shadow of a sun the user sets are shown with the values of the server's GeoTIFFs. Issue 45:
+the surface maps, ticked in the form, are shown as the server's PNGs.
 
 Run: HORIZON_BIN=target/debug/horizon-bake python -m pytest -q tests/browser
 """
@@ -31,6 +32,7 @@ import time
 
 import numpy as np
 import pytest
+from PIL import Image
 from playwright.sync_api import sync_playwright
 
 from harness import TERRAIN, chromium_or_skip, compare, decode_rgba, launch, server
@@ -824,6 +826,14 @@ def _dem_geotiff() -> bytes:
 def _shown_image(page, img_id: str) -> np.ndarray:
     """What the page shows in <img id=img_id>, drawn to a canvas at its natural size: (grey,
     alpha) per pixel, rows from the top."""
+    rgba = _shown_rgba(page, img_id)
+    assert np.array_equal(rgba[..., 0], rgba[..., 1]) and np.array_equal(rgba[..., 0], rgba[..., 2])
+    return np.stack([rgba[..., 0], rgba[..., 3]], axis=-1)
+
+
+def _shown_rgba(page, img_id: str) -> np.ndarray:
+    """What the page shows in <img id=img_id>, drawn to a canvas at its natural size: RGBA per
+    pixel, rows from the top."""
     from harness import decode_rgba
 
     px = page.evaluate(
@@ -839,9 +849,38 @@ def _shown_image(page, img_id: str) -> np.ndarray:
           for (let i = 0; i < b.length; i += 0x8000) s += String.fromCharCode(...b.subarray(i, i + 0x8000));
           return { width: c.width, height: c.height, rgba: btoa(s) };
         }""", img_id)
-    rgba = decode_rgba(px)
-    assert np.array_equal(rgba[..., 0], rgba[..., 1]) and np.array_equal(rgba[..., 0], rgba[..., 2])
-    return np.stack([rgba[..., 0], rgba[..., 3]], axis=-1)
+    return decode_rgba(px)
+
+
+def test_surface_maps_are_shown_as_the_server_wrote_them(browser, srv):
+    """Issue 45: ticking "surface maps" bakes outputs normal,ao,bent_normal; the page then shows
+    each map, pixel for pixel the server's PNG, with its convention; a bake without them hides
+    the panel."""
+    p = Page(browser, srv.url + "/")
+    page = p.page
+    res = upload(page, str(TERRAIN), {"method": "exact", "radius": "8", "height_scale": TRUE_SCALE})
+    bake_id = bake_id_of(res)
+    wait_loaded(page, bake_id)
+    assert page.is_hidden("#surface")
+    page.set_checked("#p-out-surface", True)
+    with page.expect_response(lambda r: r.request.method == "POST" and "/v1/bakes" in r.url) as info:
+        page.click("#bake")
+    res = info.value
+    assert res.status == 202, res.text()
+    assert "outputs=horizon%2Cnormal%2Cao%2Cbent_normal" in res.request.url, res.request.url
+    bake_id = bake_id_of(res)
+    wait_loaded(page, bake_id)
+    for name in ["normal", "ao", "bent_normal"]:
+        page.wait_for_function(
+            "id => !document.getElementById(id + '-fig').hidden", arg=name, timeout=60_000)
+        status, _, body = srv.request(f"/v1/bakes/{bake_id}/{name}")
+        assert status == 200, name
+        want = np.asarray(Image.open(io.BytesIO(body)).convert("RGBA"))
+        assert np.array_equal(_shown_rgba(page, f"{name}-image"), want), name
+    assert "normal_convention opengl" in page.text_content("#surface-note")
+    assert page.is_checked("#p-out-surface")
+    p.assert_no_errors()
+    p.close()
 
 
 def _read_geotiff(body: bytes):

@@ -87,6 +87,7 @@ const state = {
   retryTimer: 0,
   range: null,         // {min, max} of the chosen PNG's normalised heights
   terrainFor: '',      // id whose SVF the terrain panel shows
+  surfaceFor: '',      // id whose maps the surface panel shows
   size: undefined,     // render size (longer side) in `display` resolution, else native
 };
 
@@ -237,7 +238,8 @@ function formParams() {
       const mode = $('p-radius-mode').value;
       p.radius = mode === 'texels' ? $('p-radius').value.trim() : mode;
     } else if (f === 'outputs') {
-      p.outputs = [['horizon', 'p-out-horizon'], ['fourier', 'p-out-fourier'], ['angles,svf', 'p-out-terrain']]
+      p.outputs = [['horizon', 'p-out-horizon'], ['fourier', 'p-out-fourier'], ['angles,svf', 'p-out-terrain'],
+        ['normal,ao,bent_normal', 'p-out-surface']]
         .filter(([, id]) => $(id).checked).map(([n]) => n).join(',');
     } else if (input && !input.disabled) {
       p[f] = String(input.value).trim();
@@ -270,6 +272,7 @@ function resetForm() {
   $('p-out-horizon').checked = true;
   $('p-out-fourier').checked = false;
   $('p-out-terrain').checked = $('p-dem').checked;
+  $('p-out-surface').checked = false;
   syncForm();
   clearErrors();
 }
@@ -298,6 +301,7 @@ function loadForm(p) {
   $('p-out-horizon').checked = outs.includes('horizon');
   $('p-out-fourier').checked = outs.includes('fourier');
   $('p-out-terrain').checked = outs.includes('angles') || outs.includes('svf');
+  $('p-out-surface').checked = SURFACE_MAPS.some((m) => outs.includes(m));
   syncForm();
   clearErrors();
   showRelief();
@@ -750,6 +754,7 @@ function showBake(res) {
   if (res.status === 'succeeded' && (changed || state.loadedId !== res.id)) loadViewer(res);
   showDem(res);
   showTerrain(res);
+  showSurface(res);
   if (res.status === 'failed' && res.error) {
     showError({ code: res.error.code || 'failed', detail: res.error.detail || res.error.message || JSON.stringify(res.error) }, `bake ${res.id} failed`);
   }
@@ -813,7 +818,39 @@ function showTerrain(res) {
   }
 }
 
-/** Loads a terrain rendering (`svf` or `shadow`) of the current bake into its figure. */
+const SURFACE_MAPS = ['normal', 'ao', 'bent_normal'];
+
+/** The surface-map panel of a succeeded bake: each of normal, ao, bent_normal it computed,
+ * as the server's PNG (SPEC §3.8), with what its channels hold. */
+function showSurface(res) {
+  const sec = $('surface');
+  const p = res.params || {};
+  const maps = SURFACE_MAPS.filter((m) => outputsOf(p).includes(m));
+  if (res.status !== 'succeeded' || !maps.length) {
+    sec.hidden = true;
+    return;
+  }
+  sec.hidden = false;
+  if (state.surfaceFor === res.id) return;
+  state.surfaceFor = res.id;
+  for (const id of SURFACE_MAPS) {
+    $(`${id}-fig`).hidden = true;
+    const img = $(`${id}-image`);
+    if (img.src.startsWith('blob:')) URL.revokeObjectURL(img.src);
+    img.removeAttribute('src');
+  }
+  const conv = p.normal_convention || 'opengl';
+  $('surface-note').textContent = `normal_convention ${conv} (${conv === 'directx' ? 'Y−: Unreal' : 'Y+: Godot, Blender, Unity'}), from ${p.method === 'lengyel' ? 'its 8 channel directions (lengyel: coarse)' : `every one of its ${p.bins} bins`}; holes are black.`;
+  const captions = {
+    normal: 'normal map: (n + 1) / 2, flat = (128, 128, 255)',
+    ao: 'ambient occlusion: white open and flat, darker under the horizons',
+    bent_normal: `bent normal: (b + 1) / 2 (${p.bent_normal_encoding || 'rgb'})`,
+  };
+  for (const m of maps) showTerrainImage(m, '', captions[m]);
+}
+
+/** Loads a server image (`svf` or `shadow` rendering, or a surface map) of the current bake
+ * into its figure. */
 async function showTerrainImage(kind, query, caption) {
   const bake = state.bake;
   if (!bake) return;
