@@ -839,7 +839,8 @@ pub fn bake_terrain(
     }
     let holes = map.terrain.holes.as_deref();
     let nodata = map.terrain.nodata.map_or(f32::NAN, |v| v as f32);
-    let (ang, sv) = terrain_planes(kernel.as_ref(), params, holes, nodata, progress)?;
+    let normals = NormalSource { grid: &grid, holes, row0: 0 };
+    let (ang, sv) = terrain_planes(kernel.as_ref(), params, holes, nodata, &normals, progress)?;
     Ok((TerrainProducts { width: w, height: h, angles: ang, bins: nb, svf: sv, nodata }, radius))
 }
 
@@ -852,14 +853,26 @@ type TerrainPlanes = (Option<Vec<f32>>, Option<Vec<f32>>);
 ///
 /// # Errors
 /// [`crate::Error::Canceled`].
+/// The heights a texel's normal comes from (`svf_model=tilted`): the grid, its holes (every
+/// texel of the grid), and the grid row of the kernel's row 0 (a tile's window starts its
+/// kernel rows at the interior; its columns are the grid's).
+struct NormalSource<'a> {
+    grid: &'a Grid<'a>,
+    holes: Option<&'a [bool]>,
+    row0: usize,
+}
+
 fn terrain_planes(
     kernel: &dyn HorizonRows,
     params: &BakeParams,
     holes: Option<&[bool]>,
     nodata: f32,
+    normals: &NormalSource<'_>,
     progress: &Progress,
 ) -> Result<TerrainPlanes> {
-    use crate::terrain::{angles, svf};
+    use crate::terrain::{angles, surface, svf};
+    let tilted = params.svf_model == crate::params::SvfModel::Tilted;
+    let dirs = surface::BinDirs::new(params.bins as usize);
     let (w, h, nb) = (kernel.width(), kernel.height(), params.bins as usize);
     let order = angles::band_bins(nb, params.azimuth_from, params.y_axis);
     let plane = w * h;
@@ -891,7 +904,15 @@ fn terrain_planes(
                     }
                 }
                 if let Some(out) = svf_rows.as_mut() {
-                    out[t] = if hole { nodata } else { svf::svf(s, params.svf_model) };
+                    out[t] = if hole {
+                        nodata
+                    } else if tilted {
+                        let (x, y) = (t % w, normals.row0 + b.y0 + t / w);
+                        let n = surface::normal(normals.grid, normals.holes, x, y);
+                        svf::svf_tilted(s, n, &dirs)
+                    } else {
+                        svf::svf(s, params.svf_model)
+                    };
                 }
             }
         })?;
@@ -1155,7 +1176,8 @@ pub fn bake_terrain_window(
     }
     let rows = RowWindow { inner: kernel, oy, rows: ih };
     let row_holes = holes.as_deref().map(|m| &m[oy * ww..(oy + ih) * ww]);
-    let (ang, sv) = terrain_planes(&rows, params, row_holes, nodata, progress)?;
+    let normals = NormalSource { grid: &grid, holes: holes.as_deref(), row0: oy };
+    let (ang, sv) = terrain_planes(&rows, params, row_holes, nodata, &normals, progress)?;
     // Keep the interior's columns, plane by plane, in place (each row moves to the left).
     let cut = |mut v: Vec<f32>| {
         let planes = v.len() / (ww * ih);

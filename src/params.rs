@@ -230,6 +230,10 @@ pub enum SvfModel {
     Radiative,
     /// 1 − mean sin α (Zakšek et al. 2011, RVT).
     Visual,
+    /// The share of isotropic diffuse light on the tilted surface itself (Dozier & Frew 1990
+    /// for a slope): the sky above both the horizon and the surface's own plane, cosine-weighted
+    /// about its normal.
+    Tilted,
 }
 
 /// How `normal.png` stores the normal's y (SPEC §3.8).
@@ -789,7 +793,11 @@ impl BakeParams {
                 self.svf_model = parse_enum(
                     key,
                     value,
-                    &[("radiative", SvfModel::Radiative), ("visual", SvfModel::Visual)],
+                    &[
+                        ("radiative", SvfModel::Radiative),
+                        ("visual", SvfModel::Visual),
+                        ("tilted", SvfModel::Tilted),
+                    ],
                 )?
             }
             "normal_convention" => {

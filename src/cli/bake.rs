@@ -218,7 +218,8 @@ pub struct ParamFlags {
     /// Azimuths of angles.tif: east_ccw (default) or north_cw.
     #[arg(long)]
     pub azimuth_from: Option<String>,
-    /// Sky-view factor: radiative (default, mean cos² α) or visual (1 − mean sin α).
+    /// Sky-view factor: radiative (default, mean cos² α), visual (1 − mean sin α) or tilted
+    /// (the tilted surface's own, Dozier & Frew for a slope).
     #[arg(long)]
     pub svf_model: Option<String>,
     /// The band of a multi-band TIFF the heights are in, 1..4 (a DEM with several bands needs

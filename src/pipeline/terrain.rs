@@ -86,6 +86,7 @@ fn svf_model_name(params: &BakeParams) -> &'static str {
     match params.svf_model {
         crate::params::SvfModel::Radiative => "radiative",
         crate::params::SvfModel::Visual => "visual",
+        crate::params::SvfModel::Tilted => "tilted",
     }
 }
 

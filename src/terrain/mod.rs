@@ -4,7 +4,7 @@
 //! decoding, no encoding.
 //!
 //! - [`angles`]: horizon angles per azimuth band, in the unit and azimuth convention asked.
-//! - [`svf`]: the sky-view factor, radiative or visual.
+//! - [`svf`]: the sky-view factor, radiative, visual or tilted.
 //! - [`profile`]: the horizon profile at one point.
 //! - [`shadow`]: lit or shadowed for a sun position.
 //! - [`sun`]: the sun position of a time and place (NREL SPA).

@@ -3,10 +3,25 @@
 //! - `radiative`: mean_n cos² α_n = mean_n (1 − sin² α_n), the share of isotropic diffuse sky
 //!   light a horizontal surface receives (Dozier & Frew 1990, slope 0).
 //! - `visual`: 1 − mean_n sin α_n (Zakšek, Oštir & Kokalj 2011, as RVT computes it).
+//! - `tilted`: the share of isotropic diffuse sky light on the tilted surface itself (Dozier &
+//!   Frew 1990, the equation for a slope): (1/2π) ∫ [cos S sin² H_φ + sin S cos(φ − A) (H_φ −
+//!   sin H_φ cos H_φ)] dφ with H_φ the zenith angle of the higher of the horizon and the
+//!   surface's own plane. That is (1/π) ∫ V max(0, n·ω) dω over the sky above the horizon,
+//!   exactly the AO of SPEC §3.8, so [`svf_tilted`] is [`crate::terrain::surface`]'s closed
+//!   form at the bins; the terrain test holds it to D&F's equation computed by numpy.
 
 use crate::params::SvfModel;
+use crate::terrain::surface::{occlusion_fast, BinDirs};
 
-/// The sky-view factor of one texel from its per-bin sin α.
+/// The tilted surface's sky-view factor of one texel from its per-bin sin α (`dirs` of as many
+/// bins) and its unit normal `n` in the tangent frame.
+#[inline]
+pub fn svf_tilted(s: &[f32], n: [f64; 3], dirs: &BinDirs) -> f32 {
+    occlusion_fast(s, n, dirs).ao as f32
+}
+
+/// The sky-view factor of one texel from its per-bin sin α, for a surface facing straight up
+/// (`tilted` needs the normal: [`svf_tilted`]).
 #[inline]
 pub fn svf(s: &[f32], model: SvfModel) -> f32 {
     if s.is_empty() {
@@ -14,7 +29,10 @@ pub fn svf(s: &[f32], model: SvfModel) -> f32 {
     }
     let n = s.len() as f64;
     let sum: f64 = match model {
-        SvfModel::Radiative => s.iter().map(|&v| 1.0 - (v as f64).clamp(0.0, 1.0).powi(2)).sum(),
+        // A surface facing straight up (the tilted model of a flat texel) is `radiative`.
+        SvfModel::Radiative | SvfModel::Tilted => {
+            s.iter().map(|&v| 1.0 - (v as f64).clamp(0.0, 1.0).powi(2)).sum()
+        }
         SvfModel::Visual => s.iter().map(|&v| 1.0 - (v as f64).clamp(0.0, 1.0)).sum(),
     };
     (sum / n) as f32
@@ -32,5 +50,31 @@ mod tests {
         let s = [0.5, 0.0, 0.5, 0.0];
         assert!((svf(&s, SvfModel::Radiative) - 0.875).abs() < 1e-6);
         assert!((svf(&s, SvfModel::Visual) - 0.75).abs() < 1e-6);
+    }
+
+    #[test]
+    fn tilted_is_radiative_when_flat_and_cos_half_angle_squared_on_an_open_slope() {
+        let s = [0.5f32, 0.1, 0.3, 0.0, 0.7, 0.2, 0.0, 0.4];
+        let dirs = BinDirs::new(8);
+        let flat = svf_tilted(&s, [0.0, 0.0, 1.0], &dirs);
+        assert!((flat - svf(&s, SvfModel::Radiative)).abs() < 1e-5, "{flat}");
+        // An open plane tilted by S toward +x (no terrain above the horizontal): D&F's
+        // equation with H_φ the zenith angle of the plane's own horizon where it rises above
+        // the horizontal (upslope), 90° elsewhere (α ≥ 0), at 3600 azimuths.
+        let slope = 30f64.to_radians();
+        let n = [slope.sin(), 0.0, slope.cos()];
+        let bins = 3600;
+        let got = svf_tilted(&vec![0.0; bins], n, &BinDirs::new(bins)) as f64;
+        let mut want = 0.0;
+        for k in 0..bins {
+            let phi = k as f64 * std::f64::consts::TAU / bins as f64;
+            // The plane's own horizon (zenith angle) where it rises above the horizontal.
+            let rise = (-slope.tan() * phi.cos()).atan().max(0.0);
+            let h = std::f64::consts::FRAC_PI_2 - rise;
+            want +=
+                slope.cos() * h.sin().powi(2) + slope.sin() * phi.cos() * (h - h.sin() * h.cos());
+        }
+        want /= bins as f64;
+        assert!((got - want).abs() < 1e-4, "{got} vs {want}");
     }
 }

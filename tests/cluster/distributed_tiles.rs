@@ -472,8 +472,8 @@ async fn a_stalled_coordinator_gives_the_bake_back() {
     assert!(ours == cli, "the result differs from the CLI's");
 }
 
-/// The terrain products of a tiled bake (`outputs=horizon,angles,svf`, a nodata hole across a
-/// tile seam, edge wrap), on one API and two workers: `angles.tif` and `svf.tif`, assembled tile
+/// The terrain products of a tiled bake (`outputs=horizon,angles,svf`, `svf_model=tilted`, a
+/// nodata hole across a tile seam, edge wrap), on one API and two workers: `angles.tif` and `svf.tif`, assembled tile
 /// by tile, are the CLI's untiled files byte for byte (and the layers its PNGs); GDAL
 /// (rasterio) reads them with the bands, nodata and holes of the map; the svf's PNG rendering,
 /// which would read the whole file, is a 422.
@@ -498,7 +498,10 @@ async fn tiled_terrain_geotiffs_are_the_cli_s_bytes() {
         &heights,
     )
     .unwrap();
-    let q = "radius=24&method=march&edge=wrap&bins=16&outputs=horizon,angles,svf&nodata=0";
+    // `svf_model=tilted` (issue 44) needs each texel's normal: from the tile's window, the
+    // same as the whole map's (the hole across the seam makes some one-sided).
+    let q = "radius=24&method=march&edge=wrap&bins=16&outputs=horizon,angles,svf&nodata=0\
+             &svf_model=tilted";
     let (s, v) = submit(&c, cl.base(api), &png, q).await;
     assert_eq!(s, 202, "{v}");
     let id = v["id"].as_str().unwrap().to_owned();
@@ -528,6 +531,7 @@ async fn tiled_terrain_geotiffs_are_the_cli_s_bytes() {
         .args(["bake", input.to_str().unwrap(), "-o", out.to_str().unwrap()])
         .args(["--format", "png8,geotiff", "--outputs", "horizon,angles,svf", "--bins", "16"])
         .args(["--radius", "24", "--method", "march", "--edge", "wrap", "--nodata", "0"])
+        .args(["--svf-model", "tilted"])
         .status()
         .unwrap();
     assert!(st.success());

@@ -13,7 +13,9 @@ Checks, each against something we did not write (GDAL, pvlib's SPA, numpy refere
 - every hole of the input is nodata in every output, and no valid texel is;
 - `exact` angles match an independent bilinear line-of-sight written here (numpy, with the
   earth-curvature drop) within 0.01 degrees, and the SVF matches mean cos^2 of those angles;
-- `azimuth_from=north_cw` renumbers the same rays; bake.json carries the georeferencing.
+- `azimuth_from=north_cw` renumbers the same rays; bake.json carries the georeferencing;
+- `svf_model=tilted` is Dozier & Frew's equation for a slope, computed here with numpy from
+  angles.tif and the DEM's central differences, within 1e-4.
 
 Usage: check_dem.py HORIZON_BAKE_BINARY WORKDIR
 """
@@ -558,6 +560,49 @@ if code == 0 and code2 == 0:
           f"{int(np.sum(sh3[sure] != want[sure]))} of {int(sure.sum())} texels off the decode")
     check(np.all(sh3[sure] == want[sure]) and np.all(sh3[holes] == 255),
           "lengyel shadow = (sin e > s decoded from horizon_0/1.png), holes nodata")
+
+# --- svf_model=tilted (issue 44): Dozier & Frew's equation for a slope, computed here ---
+# V = mean_n [cos S sin^2 H_n + sin S cos(phi_n - A) (H_n - sin H_n cos H_n)], H_n the zenith
+# angle of the higher of the horizon (angles.tif, exact) and the slope's own plane, S and A the
+# slope and aspect of numpy's central differences of the DEM in metres (texels whose four
+# neighbours are all there); against svf.tif of the same bake.
+OUTT = os.path.join(WORK, "tilted")
+code, err = run("bake", UTM, "-o", OUTT, "--format", "geotiff", "--outputs", "angles,svf",
+                "--method", "exact", "--radius", "unlimited", "--bins", str(BINS),
+                "--svf-model", "tilted")
+check(code == 0, f"svf_model=tilted bakes (exit {code} {err[:200]})")
+if code == 0:
+    with rasterio.open(os.path.join(OUTT, "angles.tif")) as a, \
+            rasterio.open(os.path.join(OUTT, "svf.tif")) as o:
+        ang_t = np.radians(a.read().astype(np.float64))
+        svf_t = o.read(1).astype(np.float64)
+        descr_t = o.descriptions[0] or ""
+    cell = 250.0
+    gx = np.zeros_like(dem)
+    gy = np.zeros_like(dem)
+    gx[:, 1:-1] = (dem[:, 2:] - dem[:, :-2]) / (2 * cell)
+    gy[1:-1, :] = (dem[:-2, :] - dem[2:, :]) / (2 * cell)  # +y = north = row - 1
+    inner = np.zeros_like(holes)
+    inner[1:-1, 1:-1] = ~(holes[1:-1, 1:-1] | holes[:-2, 1:-1] | holes[2:, 1:-1]
+                          | holes[1:-1, :-2] | holes[1:-1, 2:])
+    slope = np.arctan(np.hypot(gx, gy))
+    aspect = np.arctan2(-gy, -gx)  # where the normal (-gx, -gy, 1) leans: downslope
+    phis = np.arange(BINS) * 2 * math.pi / BINS
+    v = np.zeros_like(dem)
+    for n_, phi in enumerate(phis):
+        rise = np.maximum(0.0, np.arctan(-np.tan(slope) * np.cos(phi - aspect)))
+        h_ = np.minimum(math.pi / 2 - ang_t[n_], math.pi / 2 - rise)
+        v += (np.cos(slope) * np.sin(h_) ** 2
+              + np.sin(slope) * np.cos(phi - aspect) * (h_ - np.sin(h_) * np.cos(h_)))
+    v /= BINS
+    d = np.abs(svf_t[inner] - v[inner])
+    flat_d = np.abs(svf_t[inner] - svf[inner])
+    print(f"svf tilted: {int(inner.sum())} texels, max |tilted - D&F| {d.max():.2e}, "
+          f"mean {d.mean():.2e}; differs from radiative by up to {flat_d.max():.3f}")
+    check(d.max() <= 1e-4, f"svf_model=tilted = Dozier & Frew's slope equation (max {d.max():.2e})")
+    check(flat_d.max() > 1e-3, "the tilted SVF is not the horizontal one")
+    check(np.all(svf_t[holes] == -9999), "tilted svf: holes nodata")
+    check("tilted" in descr_t, f"svf.tif says tilted: {descr_t}")
 
 if failures:
     print(f"{len(failures)} check(s) failed")
