@@ -793,6 +793,9 @@ pub struct TerrainProducts {
     pub bins: usize,
     /// One plane.
     pub svf: Option<Vec<f32>>,
+    /// `bins` planes in the bands' order, as `angles`: the distance (map units: `cell_size`,
+    /// else texels) to the point that sets each horizon; `nodata` where the horizon is 0.
+    pub distance: Option<Vec<f32>>,
     /// The value written at holes.
     pub nodata: f32,
 }
@@ -840,8 +843,74 @@ pub fn bake_terrain(
     let holes = map.terrain.holes.as_deref();
     let nodata = map.terrain.nodata.map_or(f32::NAN, |v| v as f32);
     let normals = NormalSource { grid: &grid, holes, row0: 0 };
-    let (ang, sv) = terrain_planes(kernel.as_ref(), params, holes, nodata, &normals, progress)?;
-    Ok((TerrainProducts { width: w, height: h, angles: ang, bins: nb, svf: sv, nodata }, radius))
+    let (ang, sv) = if params.outputs.angles || params.outputs.svf {
+        terrain_planes(kernel.as_ref(), params, holes, nodata, &normals, progress)?
+    } else {
+        (None, None)
+    };
+    let distance = if params.outputs.horizon_distance {
+        Some(horizon_distances(grid, params, radius.texels, holes, nodata, progress)?)
+    } else {
+        None
+    };
+    let products =
+        TerrainProducts { width: w, height: h, angles: ang, bins: nb, svf: sv, distance, nodata };
+    Ok((products, radius))
+}
+
+/// `horizon_distance` (SPEC §3.7): for every texel and bin, the distance along the ray to the
+/// point that sets the horizon, by one exact walk per bin whatever the bake's method (the ray
+/// methods other than `exact` keep no such point), with its radius, curvature and holes; in map
+/// units (`cell_size`, else texels), `nodata` at holes and where the horizon is 0. Band-major in
+/// the order of `angles.tif`'s bands.
+///
+/// # Errors
+/// [`crate::Error::Canceled`].
+fn horizon_distances(
+    grid: Grid<'_>,
+    params: &BakeParams,
+    radius: u32,
+    holes: Option<&[bool]>,
+    nodata: f32,
+    progress: &Progress,
+) -> Result<Vec<f32>> {
+    use rayon::prelude::*;
+    let (w, h, nb) = (grid.width, grid.height, params.bins as usize);
+    let order = crate::terrain::angles::band_bins(nb, params.azimuth_from, params.y_axis);
+    let r = (params.radius != Radius::Unlimited || params.max_distance.is_some()).then_some(radius);
+    let k = kernels::exact::ExactHorizon::new(grid, r, params.bins, crate::params::Reduce::Point)
+        .with_curvature(curvature(params))
+        .with_holes(holes);
+    let unit = params.cell_size.unwrap_or(1.0);
+    // Texel-major rows (each texel's bands together), then transposed to band planes.
+    let mut texels = vec![nodata; w * h * nb];
+    progress.start(Stage::Bake, h as u64);
+    texels.par_chunks_mut(w * nb).enumerate().try_for_each(|(y, row)| {
+        if progress.is_canceled() {
+            return Err(crate::Error::Canceled);
+        }
+        for (x, bands) in row.chunks_exact_mut(nb).enumerate() {
+            if holes.is_some_and(|m| m[y * w + x]) {
+                continue;
+            }
+            for (band, o) in bands.iter_mut().enumerate() {
+                let (t, s) = k.horizon_and_distance(x, y, order[band]);
+                if t > 0.0 {
+                    *o = (s * unit) as f32;
+                }
+            }
+        }
+        progress.advance(1);
+        Ok(())
+    })?;
+    let plane = w * h;
+    let mut planes = vec![nodata; plane * nb];
+    for (t, bands) in texels.chunks_exact(nb).enumerate() {
+        for (band, &v) in bands.iter().enumerate() {
+            planes[band * plane + t] = v;
+        }
+    }
+    Ok(planes)
 }
 
 /// `angles` (band-major) and `svf` planes, each when asked.
@@ -1195,6 +1264,8 @@ pub fn bake_terrain_window(
         angles: ang.map(cut),
         bins: nb,
         svf: sv.map(cut),
+        // Refused for tiled bakes (pipeline::tiled): no window gives it.
+        distance: None,
         nodata,
     })
 }

@@ -143,6 +143,10 @@ pub struct Outputs {
     /// The bent normal (SPEC §3.8), as `bent_normal.png`.
     #[serde(default)]
     pub bent_normal: bool,
+    /// The distance to the point that sets each bin's horizon (SPEC §3.7), as
+    /// `horizon_distance.tif`.
+    #[serde(default)]
+    pub horizon_distance: bool,
 }
 
 impl Outputs {
@@ -155,11 +159,12 @@ impl Outputs {
         normal: false,
         ao: false,
         bent_normal: false,
+        horizon_distance: false,
     };
 
     /// Whether a terrain product (SPEC §3.7) is asked for.
     pub fn terrain(&self) -> bool {
-        self.angles || self.svf
+        self.angles || self.svf || self.horizon_distance
     }
 
     /// Whether a surface map (SPEC §3.8) is asked for.
@@ -197,6 +202,9 @@ impl fmt::Display for Outputs {
         }
         if self.bent_normal {
             parts.push("bent_normal");
+        }
+        if self.horizon_distance {
+            parts.push("horizon_distance");
         }
         f.write_str(&parts.join(","))
     }
@@ -672,7 +680,8 @@ impl BakeParams {
                 )?
             }
             "outputs" => {
-                const NAMES: &str = "horizon, fourier, angles, svf, normal, ao, bent_normal";
+                const NAMES: &str =
+                    "horizon, fourier, angles, svf, normal, ao, bent_normal, horizon_distance";
                 let mut o = Outputs::NONE;
                 for part in value.split(',').map(str::trim).filter(|p| !p.is_empty()) {
                     match part.to_ascii_lowercase().as_str() {
@@ -683,6 +692,7 @@ impl BakeParams {
                         "normal" => o.normal = true,
                         "ao" => o.ao = true,
                         "bent_normal" => o.bent_normal = true,
+                        "horizon_distance" => o.horizon_distance = true,
                         _ => {
                             return Err(Error::param(
                                 key,

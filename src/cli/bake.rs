@@ -187,7 +187,7 @@ pub struct ParamFlags {
     /// linear (default) or sqrt.
     #[arg(long)]
     pub encoding: Option<String>,
-    /// Comma list of horizon (default), fourier, angles, svf (angles and svf: GeoTIFF terrain
+    /// Comma list of horizon (default), fourier, angles, svf, horizon_distance (GeoTIFF terrain
     /// products), normal, ao, bent_normal (surface maps: normal.png, ao.png, bent_normal.png).
     #[arg(long)]
     pub outputs: Option<String>,
@@ -338,9 +338,11 @@ pub fn run(args: BakeArgs) -> Result<()> {
         return Err(Error::param(
             "format",
             if geotiff {
-                "geotiff holds the terrain products: add --outputs angles,svf (or one of them)"
+                "geotiff holds the terrain products: add --outputs angles,svf (or one of them, \
+                 or horizon_distance)"
             } else {
-                "--outputs angles and svf are written as GeoTIFF: add --format geotiff"
+                "--outputs angles, svf and horizon_distance are written as GeoTIFF: add --format \
+                 geotiff"
             },
         ));
     }

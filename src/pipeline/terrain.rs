@@ -64,7 +64,56 @@ pub fn terrain_files(
             }),
         );
     }
+    if let Some(d) = &p.distance {
+        let unit = distance_unit(map, params);
+        let descriptions = distance_descriptions(params, p.bins, &unit);
+        let bands: Vec<geotiff::Band<'_>> = d
+            .chunks_exact(plane)
+            .zip(descriptions)
+            .map(|(plane, description)| geotiff::Band { plane, description })
+            .collect();
+        if progress.is_canceled() {
+            return Err(Error::Canceled);
+        }
+        let bytes = geotiff::encode(p.width, p.height, &bands, georef, p.nodata)?;
+        files.push(OutFile { name: "horizon_distance.tif", bytes });
+        let azimuths: Vec<f64> =
+            (0..p.bins).map(|n| crate::terrain::angles::band_azimuth_deg(n, p.bins)).collect();
+        info.insert(
+            "horizon_distance.tif".into(),
+            serde_json::json!({
+                "bands": bands.iter().map(|b| b.description.clone()).collect::<Vec<_>>(),
+                "azimuths_deg": azimuths,
+                "azimuth_from": azimuth_from_name(params),
+                "unit": unit,
+                "value": "horizontal distance to the point that sets the horizon (exact ray); \
+                          nodata where the horizon is 0",
+                "nodata": nodata,
+            }),
+        );
+    }
     Ok((files, radius, serde_json::Value::Object(info)))
+}
+
+/// The unit of `horizon_distance.tif`: the CRS's linear unit when `cell_size` came from it (or
+/// was given), texels otherwise.
+fn distance_unit(map: &HeightMap, params: &BakeParams) -> String {
+    match (params.cell_size, map.terrain.georef.as_ref()) {
+        (Some(c), Some(g)) => g.report(Some(c)).units.unwrap_or_else(|| "map units".to_owned()),
+        (Some(_), None) => "map units (cell_size)".to_owned(),
+        (None, _) => "texels".to_owned(),
+    }
+}
+
+/// The band descriptions of `horizon_distance.tif` at `bins` azimuths.
+fn distance_descriptions(params: &BakeParams, bins: usize, unit: &str) -> Vec<String> {
+    let from = azimuth_from_name(params);
+    (0..bins)
+        .map(|n| {
+            let az = crate::terrain::angles::band_azimuth_deg(n, bins);
+            format!("distance to the horizon at azimuth {az}° ({from}), {unit}")
+        })
+        .collect()
 }
 
 fn azimuth_from_name(params: &BakeParams) -> &'static str {

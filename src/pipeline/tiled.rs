@@ -104,12 +104,12 @@ pub fn check(
             ),
         ));
     }
-    if params.outputs.fourier || params.outputs.surface() {
+    if params.outputs.fourier || params.outputs.surface() || params.outputs.horizon_distance {
         return Err(Error::param(
             "outputs",
             "a tiled bake (map above --tile-above) produces the horizon layers and the terrain \
              products (angles, svf); not fourier, nor yet the surface maps (normal, ao, \
-             bent_normal)",
+             bent_normal) or horizon_distance",
         ));
     }
     // Each terrain product is one classic GeoTIFF, assembled tile by tile: the untiled bake's

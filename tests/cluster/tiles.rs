@@ -162,6 +162,8 @@ fn what_tiles_cannot_do_is_refused_with_the_parameter_named() {
     let ktx2 = Formats::parse("ktx2,dds", TexturePrecision::Unorm8).unwrap();
     assert!(field("radius=8", &ktx2, 100, 100).is_none());
     assert_eq!(field("radius=8&outputs=horizon,fourier", &png8, 100, 100).unwrap().0, "outputs");
+    let (f, m) = field("radius=8&outputs=angles,horizon_distance", &png8, 100, 100).unwrap();
+    assert!(f == "outputs" && m.contains("horizon_distance"), "{f}: {m}");
     // The terrain products are assembled tile by tile, within the untiled limit per file.
     assert!(field("radius=8&outputs=horizon,angles,svf", &png8, 100, 100).is_none());
     let (f, m) = field("radius=8&outputs=angles&bins=32", &png8, 4000, 4000).unwrap();

@@ -863,15 +863,16 @@ async fn ui_dir_serves_the_page_from_disk() {
     assert_eq!(s, 404);
 }
 
-/// Issue 24: a bake with `outputs=angles,svf` serves the same GeoTIFFs as the library writes;
-/// shadow and profile are computed on request.
+/// Issue 24: a bake with `outputs=angles,svf` (and issue 44's `horizon_distance`) serves the
+/// same GeoTIFFs as the library writes; shadow and profile are computed on request.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn terrain_products_over_http() {
     use horizon_bake::params::BakeParams;
     let srv = Server::start(|_| {}).await;
     let c = client();
     let png = terrain_png16(37, 29, 24);
-    let q = "method=exact&radius=unlimited&edge=none&outputs=angles,svf&bins=12&svf_model=visual";
+    let q = "method=exact&radius=unlimited&edge=none&outputs=angles,svf,horizon_distance&bins=12\
+             &svf_model=visual";
     let params = BakeParams::from_pairs(q.split('&').filter_map(|kv| kv.split_once('='))).unwrap();
     let (map, _) =
         horizon_bake::heightmap::decode(&png, params.channel, &Default::default()).unwrap();
@@ -888,7 +889,10 @@ async fn terrain_products_over_http() {
     let loc = res.headers()["location"].to_str().unwrap().to_owned();
     let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
     assert_eq!(v["status"], "succeeded", "{v}");
-    for (route, file) in [("angles", "angles.tif"), ("svf", "svf.tif")] {
+    assert_eq!(v["links"]["horizon_distance"], format!("{loc}/horizon_distance"), "{v}");
+    for (route, file) in
+        [("angles", "angles.tif"), ("svf", "svf.tif"), ("horizon_distance", "horizon_distance.tif")]
+    {
         let res = c.get(srv.url(&format!("{loc}/{route}"))).send().await.unwrap();
         assert_eq!(res.status(), 200);
         assert_eq!(res.headers()["content-type"], "image/tiff");

@@ -15,7 +15,8 @@ Checks, each against something we did not write (GDAL, pvlib's SPA, numpy refere
   earth-curvature drop) within 0.01 degrees, and the SVF matches mean cos^2 of those angles;
 - `azimuth_from=north_cw` renumbers the same rays; bake.json carries the georeferencing;
 - `svf_model=tilted` is Dozier & Frew's equation for a slope, computed here with numpy from
-  angles.tif and the DEM's central differences, within 1e-4.
+  angles.tif and the DEM's central differences, within 1e-4;
+- `horizon_distance` is the reference ray's arg max (95 % of the rays within one cell).
 
 Usage: check_dem.py HORIZON_BAKE_BINARY WORKDIR
 """
@@ -324,7 +325,7 @@ cell = 250.0
 bad = holes[:-1, :-1] | holes[1:, :-1] | holes[:-1, 1:] | holes[1:, 1:]
 
 
-def horizon_deg(col, row, phi, curvature=True, radius=math.inf):
+def horizon_deg(col, row, phi, curvature=True, radius=math.inf, distance=False):
     dx, dy = math.cos(phi), -math.sin(phi)  # y up = north = toward row 0
     if abs(dx) < 1e-12:
         dx = 0.0
@@ -336,7 +337,7 @@ def horizon_deg(col, row, phi, curvature=True, radius=math.inf):
 
     s_end = min(to_edge(col, dx, W - 1), to_edge(row, dy, H - 1), radius)
     if s_end <= 0:
-        return 0.0
+        return (0.0, 0.0) if distance else 0.0
     h0 = dem[row, col]
 
     def ratio(s):
@@ -364,8 +365,14 @@ def horizon_deg(col, row, phi, curvature=True, radius=math.inf):
     # Refine around the best sample (the ratio is smooth there).
     lo, hi = max(s[k] - 0.03, 1e-6), min(s[k] + 0.03, s_end)
     fine = np.linspace(lo, hi, 601)
-    best = max(best, float(np.max(ratio(fine))))
-    return math.degrees(math.atan(max(best, 0.0)))
+    rf = ratio(fine)
+    at = s[k]
+    if float(np.max(rf)) > best:
+        best, at = float(np.max(rf)), float(fine[int(np.argmax(rf))])
+    deg = math.degrees(math.atan(max(best, 0.0)))
+    if distance:
+        return deg, (at * cell if best > 0 else 0.0)
+    return deg
 
 
 rng = np.random.default_rng(24)
@@ -560,6 +567,40 @@ if code == 0 and code2 == 0:
           f"{int(np.sum(sh3[sure] != want[sure]))} of {int(sure.sum())} texels off the decode")
     check(np.all(sh3[sure] == want[sure]) and np.all(sh3[holes] == 255),
           "lengyel shadow = (sin e > s decoded from horizon_0/1.png), holes nodata")
+
+# --- horizon_distance (issue 44): the distance to the point that sets each horizon ---
+# Against the reference's arg max on the same texels as the angles (where the horizon is above
+# 0.5 degrees, so the point is well defined); a ray whose two highest points nearly tie may pick
+# either, so most, not all, must agree to a cell.
+OUTH = os.path.join(WORK, "hdist")
+code, err = run("bake", UTM, "-o", OUTH, "--format", "geotiff", "--outputs", "horizon_distance",
+                "--method", "sweep", "--radius", "unlimited", "--bins", str(BINS))
+check(code == 0, f"outputs=horizon_distance bakes (exit {code} {err[:200]})")
+if code == 0:
+    with rasterio.open(os.path.join(OUTH, "horizon_distance.tif")) as o:
+        dist = o.read().astype(np.float64)
+        d_descr = o.descriptions
+        check(o.count == BINS and o.crs == crs and o.nodata == -9999,
+              f"horizon_distance.tif: {o.count} bands, CRS {o.crs}, nodata {o.nodata}")
+    check("metre" in (d_descr[0] or ""), f"horizon_distance band 1 described: {d_descr[0]}")
+    check(np.all(dist[:, holes] == -9999), "horizon_distance: holes nodata")
+    agree, total, zeros, zero_ok = 0, 0, 0, 0
+    for row, col in pick[:40]:
+        for n_ in range(BINS):
+            deg, ref_d = horizon_deg(col, row, 2 * math.pi * n_ / BINS, distance=True)
+            got = dist[n_, row, col]
+            if deg == 0.0:
+                zeros += 1
+                zero_ok += bool(got == -9999)
+            elif deg > 0.5:
+                total += 1
+                agree += abs(got - ref_d) <= cell
+    print(f"horizon_distance: {agree} of {total} rays within one cell of the reference")
+    check(total > 100 and agree >= 0.95 * total,
+          f"horizon_distance at the reference's arg max ({agree}/{total} within 250 m)")
+    # (A sampled reference can miss a sliver above 0 that the exact walk finds.)
+    check(zero_ok >= 0.95 * zeros,
+          f"horizon_distance is nodata where the horizon is 0 ({zero_ok}/{zeros})")
 
 # --- svf_model=tilted (issue 44): Dozier & Frew's equation for a slope, computed here ---
 # V = mean_n [cos S sin^2 H_n + sin S cos(phi_n - A) (H_n - sin H_n cos H_n)], H_n the zenith

@@ -261,6 +261,21 @@ impl<'a> ExactHorizon<'a> {
         self.walk(&ray, 0.0, seed).0.max(seed)
     }
 
+    /// tan α of texel (`x`, `y`) at bin `n` and the horizontal distance, in texels, to the point
+    /// of the ray that sets it (the walk's arg max: SPEC §3.7 `horizon_distance`); (0, 0) when
+    /// nothing rises above the horizontal.
+    pub fn horizon_and_distance(&self, x: usize, y: usize, n: usize) -> (f64, f64) {
+        assert!(x < self.grid.width && y < self.grid.height, "texel outside the grid");
+        let (dx, dy) = self.dirs[n];
+        let ray = self.ray(x, y, dx, dy);
+        let (t, s) = self.walk(&ray, 0.0, 0.0);
+        if t > 0.0 {
+            (t, s)
+        } else {
+            (0.0, 0.0)
+        }
+    }
+
     /// Per-bin sin α of texel (x, y) into `s` (`bins` long), one scalar walk per azimuth (the
     /// vectorised path is [`HorizonRows::rows`]).
     pub fn texel_bins(&self, x: usize, y: usize, s: &mut [f32]) {

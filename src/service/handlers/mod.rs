@@ -271,6 +271,9 @@ impl BakeResource {
             if outputs.is_some_and(|o| o.svf) {
                 links.insert("svf".to_owned(), format!("{base}/svf"));
             }
+            if outputs.is_some_and(|o| o.horizon_distance) {
+                links.insert("horizon_distance".to_owned(), format!("{base}/horizon_distance"));
+            }
             // The surface maps (SPEC §3.8).
             for (on, name) in [
                 (outputs.is_some_and(|o| o.normal), "normal"),

@@ -534,6 +534,18 @@ pub async fn angles(
     stored_file(&st, &id, q, &headers, "angles.tif", "angles", "image/tiff").await
 }
 
+/// `GET /v1/bakes/{id}/horizon_distance`: `horizon_distance.tif`, one GeoTIFF band per bin
+/// (SPEC §3.7).
+pub async fn horizon_distance(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    stored_file(&st, &id, q, &headers, "horizon_distance.tif", "horizon_distance", "image/tiff")
+        .await
+}
+
 /// `GET /v1/bakes/{id}/svf`: `svf.tif`, the sky-view factor (SPEC §3.7); `format=png` renders
 /// it as an 8-bit grey + alpha PNG for a browser ([`crate::pipeline::svf_png`], on the preview
 /// pool), its strong ETag derived from the stored file's.
