@@ -796,6 +796,8 @@ pub struct TerrainProducts {
     /// `bins` planes in the bands' order, as `angles`: the distance (map units: `cell_size`,
     /// else texels) to the point that sets each horizon; `nodata` where the horizon is 0.
     pub distance: Option<Vec<f32>>,
+    /// Positive and negative openness in degrees, one plane each.
+    pub openness: Option<[Vec<f32>; 2]>,
     /// The value written at holes.
     pub nodata: f32,
 }
@@ -853,9 +855,76 @@ pub fn bake_terrain(
     } else {
         None
     };
-    let products =
-        TerrainProducts { width: w, height: h, angles: ang, bins: nb, svf: sv, distance, nodata };
+    let openness = if params.outputs.openness {
+        Some(openness_planes(grid, params, radius.texels, holes, nodata, progress)?)
+    } else {
+        None
+    };
+    let products = TerrainProducts {
+        width: w,
+        height: h,
+        angles: ang,
+        bins: nb,
+        svf: sv,
+        distance,
+        openness,
+        nodata,
+    };
     Ok((products, radius))
+}
+
+/// Positive and negative openness (SPEC §3.7, Yokoyama et al. 2002, as RVT computes them), in
+/// degrees: the mean over the `bins` azimuths of 90° − β_n, β_n the signed maximum elevation
+/// angle within `radius` texels (no clamp at 0), on the surface and on the inverted surface −h;
+/// by the plain cell walk over the bilinear surface ([`kernels::exact::signed_elevation`]),
+/// without the earth-curvature drop (as RVT), holes no surface; an azimuth whose ray meets no
+/// surface (no length at an `edge=none` border, or holes only) is left out of the mean.
+/// `nodata` at holes.
+///
+/// # Errors
+/// [`crate::Error::Canceled`].
+fn openness_planes(
+    grid: Grid<'_>,
+    params: &BakeParams,
+    radius: u32,
+    holes: Option<&[bool]>,
+    nodata: f32,
+    progress: &Progress,
+) -> Result<[Vec<f32>; 2]> {
+    use rayon::prelude::*;
+    let (w, h) = (grid.width, grid.height);
+    let inverted: Vec<f32> = grid.heights.iter().map(|v| -v).collect();
+    let grids = [grid, Grid::new(w, h, &inverted, params.edge, params.y_axis)];
+    let nb = params.bins as usize;
+    let phis: Vec<f64> = (0..nb).map(|n| n as f64 * std::f64::consts::TAU / nb as f64).collect();
+    let r = f64::from(radius);
+    let mut planes = [vec![nodata; w * h], vec![nodata; w * h]];
+    progress.start(Stage::Bake, 2 * h as u64);
+    for (g, plane) in grids.iter().zip(planes.iter_mut()) {
+        plane.par_chunks_mut(w).enumerate().try_for_each(|(y, row)| {
+            if progress.is_canceled() {
+                return Err(crate::Error::Canceled);
+            }
+            for (x, o) in row.iter_mut().enumerate() {
+                if holes.is_some_and(|m| m[y * w + x]) {
+                    continue;
+                }
+                let (mut sum, mut n) = (0.0f64, 0usize);
+                for &phi in &phis {
+                    if let Some(beta) = kernels::exact::signed_elevation(g, holes, x, y, phi, r) {
+                        sum += 90.0 - beta.to_degrees();
+                        n += 1;
+                    }
+                }
+                if n > 0 {
+                    *o = (sum / n as f64) as f32;
+                }
+            }
+            progress.advance(1);
+            Ok(())
+        })?;
+    }
+    Ok(planes)
 }
 
 /// `horizon_distance` (SPEC §3.7): for every texel and bin, the distance along the ray to the
@@ -1264,8 +1333,9 @@ pub fn bake_terrain_window(
         angles: ang.map(cut),
         bins: nb,
         svf: sv.map(cut),
-        // Refused for tiled bakes (pipeline::tiled): no window gives it.
+        // Refused for tiled bakes (pipeline::tiled): no window gives them.
         distance: None,
+        openness: None,
         nodata,
     })
 }

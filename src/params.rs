@@ -147,6 +147,10 @@ pub struct Outputs {
     /// `horizon_distance.tif`.
     #[serde(default)]
     pub horizon_distance: bool,
+    /// Positive and negative openness (SPEC §3.7), as `openness_positive.tif` and
+    /// `openness_negative.tif`.
+    #[serde(default)]
+    pub openness: bool,
 }
 
 impl Outputs {
@@ -160,11 +164,12 @@ impl Outputs {
         ao: false,
         bent_normal: false,
         horizon_distance: false,
+        openness: false,
     };
 
     /// Whether a terrain product (SPEC §3.7) is asked for.
     pub fn terrain(&self) -> bool {
-        self.angles || self.svf || self.horizon_distance
+        self.angles || self.svf || self.horizon_distance || self.openness
     }
 
     /// Whether a surface map (SPEC §3.8) is asked for.
@@ -205,6 +210,9 @@ impl fmt::Display for Outputs {
         }
         if self.horizon_distance {
             parts.push("horizon_distance");
+        }
+        if self.openness {
+            parts.push("openness");
         }
         f.write_str(&parts.join(","))
     }
@@ -681,7 +689,8 @@ impl BakeParams {
             }
             "outputs" => {
                 const NAMES: &str =
-                    "horizon, fourier, angles, svf, normal, ao, bent_normal, horizon_distance";
+                    "horizon, fourier, angles, svf, normal, ao, bent_normal, horizon_distance, \
+                     openness";
                 let mut o = Outputs::NONE;
                 for part in value.split(',').map(str::trim).filter(|p| !p.is_empty()) {
                     match part.to_ascii_lowercase().as_str() {
@@ -693,6 +702,7 @@ impl BakeParams {
                         "ao" => o.ao = true,
                         "bent_normal" => o.bent_normal = true,
                         "horizon_distance" => o.horizon_distance = true,
+                        "openness" => o.openness = true,
                         _ => {
                             return Err(Error::param(
                                 key,
@@ -870,6 +880,19 @@ impl BakeParams {
 
     fn check_with(&self, settled: bool) -> Result<()> {
         let b = self.bins;
+        // Openness is measured within a distance (SPEC §3.7, RVT's radius): to the edge of the
+        // map it would mostly measure the map's size. (A DEM's default radius is `unlimited`.)
+        if self.outputs.openness
+            && self.radius == Radius::Unlimited
+            && self.max_distance.is_none()
+            && (settled || self.explicit.has("radius"))
+        {
+            return Err(Error::param(
+                "max_distance",
+                "openness is measured within a distance: give max_distance (metres, with a cell \
+                 size) or a finite radius (texels)",
+            ));
+        }
         let ray = matches!(self.method, Method::Exact | Method::March | Method::Sweep)
             || !(settled || self.explicit.has("method"));
         let layers = self.outputs.horizon || self.outputs.fourier;

@@ -187,8 +187,9 @@ pub struct ParamFlags {
     /// linear (default) or sqrt.
     #[arg(long)]
     pub encoding: Option<String>,
-    /// Comma list of horizon (default), fourier, angles, svf, horizon_distance (GeoTIFF terrain
-    /// products), normal, ao, bent_normal (surface maps: normal.png, ao.png, bent_normal.png).
+    /// Comma list of horizon (default), fourier, angles, svf, horizon_distance, openness (GeoTIFF
+    /// terrain products), normal, ao, bent_normal (surface maps: normal.png, ao.png,
+    /// bent_normal.png).
     #[arg(long)]
     pub outputs: Option<String>,
     /// 3, 5 (default), 7 or 9.

@@ -92,6 +92,31 @@ pub fn terrain_files(
             }),
         );
     }
+    if let Some([pos, neg]) = &p.openness {
+        let within = format!("{} azimuths within {} texels", p.bins, radius.texels);
+        for (name, plane, sign) in
+            [("openness_positive.tif", pos, "positive"), ("openness_negative.tif", neg, "negative")]
+        {
+            if progress.is_canceled() {
+                return Err(Error::Canceled);
+            }
+            let description = format!("{sign} openness, degrees ({within})");
+            let bands = [geotiff::Band { plane, description: description.clone() }];
+            let bytes = geotiff::encode(p.width, p.height, &bands, georef, p.nodata)?;
+            files.push(OutFile { name, bytes });
+            info.insert(
+                name.into(),
+                serde_json::json!({
+                    "bands": [description],
+                    "unit": "degrees",
+                    "value": format!("mean over the azimuths of 90° − the signed maximum \
+                        elevation angle {}(Yokoyama et al. 2002)",
+                        if sign == "negative" { "of the inverted surface " } else { "" }),
+                    "nodata": nodata,
+                }),
+            );
+        }
+    }
     Ok((files, radius, serde_json::Value::Object(info)))
 }
 

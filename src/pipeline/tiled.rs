@@ -104,12 +104,13 @@ pub fn check(
             ),
         ));
     }
-    if params.outputs.fourier || params.outputs.surface() || params.outputs.horizon_distance {
+    let o = params.outputs;
+    if o.fourier || o.surface() || o.horizon_distance || o.openness {
         return Err(Error::param(
             "outputs",
             "a tiled bake (map above --tile-above) produces the horizon layers and the terrain \
              products (angles, svf); not fourier, nor yet the surface maps (normal, ao, \
-             bent_normal) or horizon_distance",
+             bent_normal), horizon_distance or openness",
         ));
     }
     // Each terrain product is one classic GeoTIFF, assembled tile by tile: the untiled bake's

@@ -65,6 +65,8 @@ pub const ROUTES: &[(&str, &[&str])] = &[
     ("/v1/bakes/{id}/bent_normal", &["GET"]),
     ("/v1/bakes/{id}/svf", &["GET"]),
     ("/v1/bakes/{id}/horizon_distance", &["GET"]),
+    ("/v1/bakes/{id}/openness_positive", &["GET"]),
+    ("/v1/bakes/{id}/openness_negative", &["GET"]),
     ("/v1/bakes/{id}/shadow", &["GET"]),
     ("/v1/bakes/{id}/profile", &["GET"]),
     ("/v1/bakes/{id}/preview", &["GET"]),
@@ -295,6 +297,8 @@ pub fn app(st: AppState) -> Router {
         .route("/v1/bakes/{id}/bent_normal", get(handlers::bent_normal))
         .route("/v1/bakes/{id}/svf", get(handlers::svf))
         .route("/v1/bakes/{id}/horizon_distance", get(handlers::horizon_distance))
+        .route("/v1/bakes/{id}/openness_positive", get(handlers::openness_positive))
+        .route("/v1/bakes/{id}/openness_negative", get(handlers::openness_negative))
         .route("/v1/bakes/{id}/shadow", get(handlers::shadow))
         .route("/v1/bakes/{id}/profile", get(handlers::profile))
         .route("/v1/bakes/{id}/preview", get(handlers::preview))

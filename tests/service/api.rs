@@ -863,6 +863,45 @@ async fn ui_dir_serves_the_page_from_disk() {
     assert_eq!(s, 404);
 }
 
+/// Issue 44: openness (positive and negative) over HTTP is the library's GeoTIFFs; to the
+/// edge of the map (radius unlimited, no max_distance) it is refused naming max_distance.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn openness_over_http() {
+    use horizon_bake::params::BakeParams;
+    let srv = Server::start(|_| {}).await;
+    let c = client();
+    let png = terrain_png16(31, 23, 44);
+    let q = "method=exact&radius=5&edge=none&outputs=openness&bins=8";
+    let params = BakeParams::from_pairs(q.split('&').filter_map(|kv| kv.split_once('='))).unwrap();
+    let (map, _) =
+        horizon_bake::heightmap::decode(&png, params.channel, &Default::default()).unwrap();
+    let progress = horizon_bake::progress::Progress::new();
+    let (want, _, _) = horizon_bake::pipeline::terrain_files(&map, &params, &progress).unwrap();
+    assert_eq!(want.len(), 2);
+    let loc = submit_ok(&c, &srv, &png, &format!("?{q}")).await;
+    let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
+    assert_eq!(v["status"], "succeeded", "{v}");
+    for name in ["openness_positive", "openness_negative"] {
+        assert_eq!(v["links"][name], format!("{loc}/{name}"), "{v}");
+        let res = c.get(srv.url(&format!("{loc}/{name}"))).send().await.unwrap();
+        assert_eq!(res.status(), 200, "{name}");
+        let body = res.bytes().await.unwrap();
+        let f = want.iter().find(|f| f.name == format!("{name}.tif")).unwrap();
+        assert!(body[..] == f.bytes[..], "{name}.tif differs from the library's");
+    }
+    let res = c
+        .post(srv.url("/v1/bakes?method=exact&radius=unlimited&outputs=openness"))
+        .header("content-type", "image/png")
+        .body(png)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(res.status(), 422);
+    let p: Value = res.json().await.unwrap();
+    assert_eq!(p["field"], "max_distance", "{p}");
+    srv.stop().await;
+}
+
 /// Issue 24: a bake with `outputs=angles,svf` (and issue 44's `horizon_distance`) serves the
 /// same GeoTIFFs as the library writes; shadow and profile are computed on request.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

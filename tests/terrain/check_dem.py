@@ -16,7 +16,8 @@ Checks, each against something we did not write (GDAL, pvlib's SPA, numpy refere
 - `azimuth_from=north_cw` renumbers the same rays; bake.json carries the georeferencing;
 - `svf_model=tilted` is Dozier & Frew's equation for a slope, computed here with numpy from
   angles.tif and the DEM's central differences, within 1e-4;
-- `horizon_distance` is the reference ray's arg max (95 % of the rays within one cell).
+- `horizon_distance` is the reference ray's arg max (95 % of the rays within one cell);
+- positive and negative openness within 2 km match the signed reference ray within 0.01 deg.
 
 Usage: check_dem.py HORIZON_BAKE_BINARY WORKDIR
 """
@@ -325,7 +326,8 @@ cell = 250.0
 bad = holes[:-1, :-1] | holes[1:, :-1] | holes[:-1, 1:] | holes[1:, 1:]
 
 
-def horizon_deg(col, row, phi, curvature=True, radius=math.inf, distance=False):
+def horizon_deg(col, row, phi, curvature=True, radius=math.inf, distance=False, signed=False,
+                surface=None):
     dx, dy = math.cos(phi), -math.sin(phi)  # y up = north = toward row 0
     if abs(dx) < 1e-12:
         dx = 0.0
@@ -337,16 +339,17 @@ def horizon_deg(col, row, phi, curvature=True, radius=math.inf, distance=False):
 
     s_end = min(to_edge(col, dx, W - 1), to_edge(row, dy, H - 1), radius)
     if s_end <= 0:
-        return (0.0, 0.0) if distance else 0.0
-    h0 = dem[row, col]
+        return None if signed else ((0.0, 0.0) if distance else 0.0)
+    z_ = dem if surface is None else surface
+    h0 = z_[row, col]
 
     def ratio(s):
         x, y = col + s * dx, row + s * dy
         i = np.clip(np.floor(x).astype(int), 0, W - 2)
         j = np.clip(np.floor(y).astype(int), 0, H - 2)
         fx, fy = x - i, y - j
-        z = (dem[j, i] * (1 - fx) * (1 - fy) + dem[j, i + 1] * fx * (1 - fy)
-             + dem[j + 1, i] * (1 - fx) * fy + dem[j + 1, i + 1] * fx * fy)
+        z = (z_[j, i] * (1 - fx) * (1 - fy) + z_[j, i + 1] * fx * (1 - fy)
+             + z_[j + 1, i] * (1 - fx) * fy + z_[j + 1, i + 1] * fx * fy)
         d = s * cell
         r = (z - h0 - (d * d / (2 * R_E) if curvature else 0.0)) / d
         # On a grid line the point is on the edge of the cells on both sides: surface if
@@ -369,6 +372,8 @@ def horizon_deg(col, row, phi, curvature=True, radius=math.inf, distance=False):
     at = s[k]
     if float(np.max(rf)) > best:
         best, at = float(np.max(rf)), float(fine[int(np.argmax(rf))])
+    if signed:  # a ray that meets no surface (holes only) has no beta
+        return math.degrees(math.atan(best)) if np.isfinite(best) else None
     deg = math.degrees(math.atan(max(best, 0.0)))
     if distance:
         return deg, (at * cell if best > 0 else 0.0)
@@ -601,6 +606,42 @@ if code == 0:
     # (A sampled reference can miss a sliver above 0 that the exact walk finds.)
     check(zero_ok >= 0.95 * zeros,
           f"horizon_distance is nodata where the horizon is 0 ({zero_ok}/{zeros})")
+
+# --- openness (issue 44): Yokoyama's positive and negative openness within 2 km ---
+# The reference: the same bilinear ray, signed (no clamp at 0), without the curvature drop, on
+# the DEM and on -DEM; mean over the bins of 90 - beta, azimuths whose ray meets no surface
+# (no length, or holes only) left out.
+OUTO = os.path.join(WORK, "openness")
+code, err = run("bake", UTM, "-o", OUTO, "--format", "geotiff", "--outputs", "openness",
+                "--max-distance", "2000", "--bins", "16")
+check(code == 0, f"outputs=openness bakes within max_distance (exit {code} {err[:200]})")
+code_u, err_u = run("bake", UTM, "-o", os.path.join(WORK, "open-u"), "--format", "geotiff",
+                    "--outputs", "openness")
+check(code_u == 2 and "max_distance" in err_u,
+      f"openness to the edge of the map is refused naming max_distance ({err_u[:160]})")
+if code == 0:
+    with rasterio.open(os.path.join(OUTO, "openness_positive.tif")) as o, \
+            rasterio.open(os.path.join(OUTO, "openness_negative.tif")) as g:
+        opos, oneg = o.read(1).astype(np.float64), g.read(1).astype(np.float64)
+        check(o.crs == crs and g.nodata == -9999, f"openness GeoTIFFs keep CRS and nodata")
+    radius_t = math.ceil(2000 / cell)
+    oerr, near = [], []
+    for row, col in pick[:40]:
+        by_hole = bool(holes[max(row - radius_t, 0):row + radius_t + 1,
+                             max(col - radius_t, 0):col + radius_t + 1].any())
+        for plane, surf in ((opos, dem), (oneg, -dem)):
+            betas = [horizon_deg(col, row, 2 * math.pi * n_ / 16, curvature=False,
+                                 radius=radius_t, signed=True, surface=surf) for n_ in range(16)]
+            betas = [b for b in betas if b is not None]
+            (near if by_hole else oerr).append(abs(plane[row, col] - np.mean([90 - b for b in betas])))
+    oerr, near = np.array(oerr), np.array(near)
+    print(f"openness vs reference: {len(oerr)} values, mean |d| {oerr.mean():.5f} deg, "
+          f"max {oerr.max():.5f}; {len(near)} within reach of a hole: max {near.max():.5f}; "
+          f"positive mean {np.mean(opos[~holes]):.2f}, negative mean {np.mean(oneg[~holes]):.2f}")
+    check(oerr.max() <= 0.01, f"openness within 0.01 deg of the numpy reference (max {oerr.max():.5f})")
+    # Beside holes the two differ in where a ray along a hole's edge still sees surface.
+    check(near.max() <= 0.5, f"openness beside holes within 0.5 deg (max {near.max():.5f})")
+    check(np.all(opos[holes] == -9999) and np.all(oneg[holes] == -9999), "openness: holes nodata")
 
 # --- svf_model=tilted (issue 44): Dozier & Frew's equation for a slope, computed here ---
 # V = mean_n [cos S sin^2 H_n + sin S cos(phi_n - A) (H_n - sin H_n cos H_n)], H_n the zenith

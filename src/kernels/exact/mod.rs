@@ -33,7 +33,7 @@ mod oracle;
 pub(crate) mod walk;
 
 pub use oracle::ExactMarch;
-pub use walk::horizon_sin;
+pub use walk::{horizon_sin, signed_elevation};
 
 use super::nearfield::{StripMarch, LANES};
 use super::{reduce_into, Grid, HorizonRows};
@@ -229,7 +229,7 @@ impl<'a> ExactHorizon<'a> {
             }
             k.map(|t| hs[t] as f64)
         };
-        walk(&self.grid, ray, Some((&self.pyramid, self.hmax)), (seed, 0.0), start, corners)
+        walk(&self.grid, ray, Some((&self.pyramid, self.hmax)), ((seed, 0.0), 0.0), start, corners)
     }
 
     /// Makes [`HorizonRows::rows`] return early (leaving the rest of its rows unspecified) once

@@ -26,9 +26,10 @@ impl<'a> ExactMarch<'a> {
     pub fn texel_bins(&self, x: usize, y: usize, s: &mut [f32]) {
         for (o, &(dx, dy)) in s.iter_mut().zip(&self.dirs) {
             let ray = Ray::new(&self.grid, x, y, dx, dy, self.radius);
-            let t =
-                walk(&self.grid, &ray, None, (0.0, 0.0), 0.0, |cx, cy| corners(&self.grid, cx, cy))
-                    .0;
+            let t = walk(&self.grid, &ray, None, ((0.0, 0.0), 0.0), 0.0, |cx, cy| {
+                corners(&self.grid, cx, cy)
+            })
+            .0;
             *o = sin_of_tan(t) as f32;
         }
     }

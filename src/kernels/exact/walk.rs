@@ -235,8 +235,10 @@ impl Pyramid {
     }
 }
 
-/// Walks `ray` cell by cell and returns max(0, sup (h − h0)/s). With `accel`, blocks that cannot
-/// beat the best value so far are skipped whole (identical result, see module docs).
+/// Walks `ray` cell by cell and returns max(floor, sup (h − h0)/s): `floor` 0 for a horizon
+/// (α ≥ 0), −∞ for the signed maximum of openness (then without `accel`, whose early exit
+/// assumes nothing below the horizontal matters). With `accel`, blocks that cannot beat the
+/// best value so far are skipped whole (identical result, see module docs).
 ///
 /// `seed` = (t, s): a value t of the ratio already achieved at arc length s on this very ray
 /// (or (0, 0)); it only lets more blocks be skipped. Returns the best ratio and where it is.
@@ -244,21 +246,21 @@ pub(super) fn walk<F>(
     grid: &Grid<'_>,
     ray: &Ray,
     accel: Option<(&Pyramid, f64)>,
-    seed: (f64, f64),
+    (seed, floor): ((f64, f64), f64),
     start: f64,
     corners: F,
 ) -> (f64, f64)
 where
     F: Fn(i64, i64) -> [f64; 4],
 {
-    let mut best = seed.0.max(0.0);
-    let mut best_s = if seed.0 > 0.0 { seed.1 } else { 0.0 };
+    let mut best = seed.0.max(floor);
+    let mut best_s = if seed.0 > floor { seed.1 } else { 0.0 };
     if ray.s_end <= 0.0 {
-        return (0.0, 0.0);
+        return (floor, 0.0);
     }
     if let Some((_, hmax)) = accel {
         if hmax <= ray.h0 {
-            return (0.0, 0.0);
+            return (floor, 0.0);
         }
     }
     // Mid-ray starts take the cell just ahead of the start point.
@@ -373,7 +375,45 @@ pub fn horizon_sin(grid: &Grid<'_>, x: usize, y: usize, phi: f64, radius: Option
     let radius = radius.map(|r| r.clamp(0.0, cap));
     let (dx, dy) = direction(phi, grid.row_step());
     let ray = Ray::new(grid, x, y, dx, dy, radius);
-    sin_of_tan(walk(grid, &ray, None, (0.0, 0.0), 0.0, |cx, cy| corners(grid, cx, cy)).0)
+    sin_of_tan(walk(grid, &ray, None, ((0.0, 0.0), 0.0), 0.0, |cx, cy| corners(grid, cx, cy)).0)
+}
+
+/// The signed maximum elevation angle (radians, no clamp at 0) of texel (`x`, `y`) along
+/// tangent-space azimuth `phi` within `radius` texels (SPEC §3.7 openness's β), by the plain
+/// cell walk over the bilinear surface; a cell with a corner in `holes` is no surface. None when
+/// the ray meets no surface (no length at an `edge=none` border looking out, or holes only).
+pub fn signed_elevation(
+    grid: &Grid<'_>,
+    holes: Option<&[bool]>,
+    x: usize,
+    y: usize,
+    phi: f64,
+    radius: f64,
+) -> Option<f64> {
+    let (dx, dy) = direction(phi, grid.row_step());
+    let ray = Ray::new(grid, x, y, dx, dy, Some(radius));
+    if ray.s_end <= 0.0 {
+        return None;
+    }
+    let (w, h) = (grid.width as i64, grid.height as i64);
+    // A corner as `corners` finds it (wrapped, or clamped at an `edge=none` border).
+    let hole = |c: i64, r: i64| {
+        let (c, r) = match grid.edge {
+            Edge::Wrap => (c.rem_euclid(w), r.rem_euclid(h)),
+            Edge::None => (c.clamp(0, w - 1), r.clamp(0, h - 1)),
+        };
+        holes.is_some_and(|m| m[(r * w + c) as usize])
+    };
+    let corners = |cx: i64, cy: i64| {
+        if [(0, 0), (1, 0), (0, 1), (1, 1)].iter().any(|&(i, j)| hole(cx + i, cy + j)) {
+            [f64::NEG_INFINITY; 4]
+        } else {
+            corners(grid, cx, cy)
+        }
+    };
+    let (t, _) =
+        walk(grid, &ray, None, ((f64::NEG_INFINITY, 0.0), f64::NEG_INFINITY), 0.0, corners);
+    t.is_finite().then(|| t.atan())
 }
 
 #[cfg(test)]

@@ -274,6 +274,11 @@ impl BakeResource {
             if outputs.is_some_and(|o| o.horizon_distance) {
                 links.insert("horizon_distance".to_owned(), format!("{base}/horizon_distance"));
             }
+            if outputs.is_some_and(|o| o.openness) {
+                for sign in ["openness_positive", "openness_negative"] {
+                    links.insert(sign.to_owned(), format!("{base}/{sign}"));
+                }
+            }
             // The surface maps (SPEC §3.8).
             for (on, name) in [
                 (outputs.is_some_and(|o| o.normal), "normal"),

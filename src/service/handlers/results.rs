@@ -546,6 +546,28 @@ pub async fn horizon_distance(
         .await
 }
 
+/// `GET /v1/bakes/{id}/openness_positive`: `openness_positive.tif` (SPEC §3.7).
+pub async fn openness_positive(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    let file = "openness_positive.tif";
+    stored_file(&st, &id, q, &headers, file, "openness", "image/tiff").await
+}
+
+/// `GET /v1/bakes/{id}/openness_negative`: `openness_negative.tif` (SPEC §3.7).
+pub async fn openness_negative(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    let file = "openness_negative.tif";
+    stored_file(&st, &id, q, &headers, file, "openness", "image/tiff").await
+}
+
 /// `GET /v1/bakes/{id}/svf`: `svf.tif`, the sky-view factor (SPEC §3.7); `format=png` renders
 /// it as an 8-bit grey + alpha PNG for a browser ([`crate::pipeline::svf_png`], on the preview
 /// pool), its strong ETag derived from the stored file's.
