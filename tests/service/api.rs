@@ -441,9 +441,27 @@ async fn finished_bakes_are_removed_after_the_retention() {
     assert!(blob_files(dir.path()).is_empty(), "{:?}", blob_files(dir.path()));
 }
 
-/// A blob store whose deletes take a while (an S3 round trip, a slow disk), so a retention
-/// sweep is still removing a bake's blobs when the server drains.
-struct SlowDeletes(horizon_bake::jobs::blob::FsBlobStore);
+/// A blob store whose deletes wait for the test to open a gate (an S3 round trip, a slow disk,
+/// held as long as the test needs), so a retention sweep is still removing a bake's blobs when
+/// the server drains, however loaded the machine is. A delete gives up waiting after 60 s.
+struct SlowDeletes(horizon_bake::jobs::blob::FsBlobStore, std::sync::Arc<Gate>);
+
+#[derive(Default)]
+struct Gate {
+    open: std::sync::Mutex<bool>,
+    opened: std::sync::Condvar,
+}
+
+impl Gate {
+    fn open(&self) {
+        *self.open.lock().unwrap() = true;
+        self.opened.notify_all();
+    }
+    fn wait(&self) {
+        let g = self.open.lock().unwrap();
+        let _g = self.opened.wait_timeout_while(g, Duration::from_secs(60), |open| !*open).unwrap();
+    }
+}
 
 impl horizon_bake::jobs::blob::BlobStore for SlowDeletes {
     fn writer(&self) -> horizon_bake::error::Result<Box<dyn horizon_bake::jobs::blob::BlobWriter>> {
@@ -463,7 +481,7 @@ impl horizon_bake::jobs::blob::BlobStore for SlowDeletes {
         self.0.contains(hash)
     }
     fn delete(&self, hash: &str) -> horizon_bake::error::Result<()> {
-        std::thread::sleep(Duration::from_millis(1000));
+        self.1.wait();
         self.0.delete(hash)
     }
     fn list(&self) -> horizon_bake::error::Result<Vec<(String, u64)>> {
@@ -491,7 +509,9 @@ async fn a_drain_waits_for_a_retention_sweep_in_flight() {
     config.retention = Duration::ZERO;
     config.sweep_interval = Duration::from_millis(100);
     let repo = Arc::new(EmbeddedRepo::open(&dir.path().join("bakes.redb")).unwrap());
-    let blobs = Arc::new(SlowDeletes(FsBlobStore::open(&dir.path().join("blobs")).unwrap()));
+    let gate = Arc::new(Gate::default());
+    let store = FsBlobStore::open(&dir.path().join("blobs")).unwrap();
+    let blobs = Arc::new(SlowDeletes(store, gate.clone()));
     let st = service::AppState::with_stores(config, repo, blobs).unwrap();
     st.start().await.unwrap();
     let app = service::app(st.clone());
@@ -507,11 +527,17 @@ async fn a_drain_waits_for_a_retention_sweep_in_flight() {
         assert!(t.elapsed() < Duration::from_secs(30), "not removed");
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
-    // The record is gone and its blobs are being deleted, a second each (long enough that the
-    // 404 is seen first even when the whole service binary runs beside it).
+    // The record is gone and its blobs wait at the gate: the sweep is in flight.
     let left = blob_files(dir.path()).len();
     assert!(left > 1, "the sweep should still be deleting: {left} blob files left");
-    st.drain().await;
+    let drain = tokio::spawn({
+        let st = st.clone();
+        async move { st.drain().await }
+    });
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert!(!drain.is_finished(), "the drain returned with the sweep still deleting");
+    gate.open();
+    tokio::time::timeout(Duration::from_secs(60), drain).await.unwrap().unwrap();
     assert!(blob_files(dir.path()).is_empty(), "{:?}", blob_files(dir.path()));
 }
 
