@@ -12,7 +12,7 @@
 use crate::error::Result;
 use crate::heightmap::HeightMap;
 use crate::kernels::{self, Band, Grid, HorizonRows};
-use crate::params::{BakeParams, Encoding, Method, Radius};
+use crate::params::{AzimuthFrom, BakeParams, Encoding, Method, Radius};
 use crate::progress::{Progress, Stage};
 use serde::Serialize;
 use std::sync::{Arc, Mutex};
@@ -20,8 +20,8 @@ use std::sync::{Arc, Mutex};
 pub use crate::layers::{HorizonLayers, Precisions, Sample};
 
 mod rays;
+pub use rays::{centre_lat_lon, compass_of, horizon_profile, shadow, MAX_SUN_RAYS};
 use rays::{horizon_distances, openness_planes};
-pub use rays::{horizon_profile, shadow};
 
 /// How the radius was resolved (reported with the bake).
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -802,6 +802,12 @@ pub struct TerrainProducts {
     pub distance: Option<Vec<f32>>,
     /// Positive and negative openness in degrees, one plane each.
     pub openness: Option<[Vec<f32>; 2]>,
+    /// Hours of direct sun, and the clear-sky direct beam on the surface in Wh/m², over the
+    /// days asked; one plane each.
+    pub sun_hours: Option<Vec<f32>>,
+    pub insolation: Option<Vec<f32>>,
+    /// Where north is (SPEC §3.7 "True and grid north"), for bake.json.
+    pub north: Option<crate::heightmap::north::NorthReport>,
     /// The value written at holes.
     pub nodata: f32,
 }
@@ -849,15 +855,52 @@ pub fn bake_terrain(
     let holes = map.terrain.holes.as_deref();
     let nodata = map.terrain.nodata.map_or(f32::NAN, |v| v as f32);
     let normals = NormalSource { grid: &grid, holes, row0: 0 };
-    let (ang, sv) = if params.outputs.angles || params.outputs.svf {
-        terrain_planes(kernel.as_ref(), params, holes, nodata, &normals, progress)?
+    let (compass, north) = compass_of(map, params);
+    // Compass bands on a projected map are true azimuths, turned per texel: rays of their own.
+    let true_bands = params.azimuth_from == AzimuthFrom::NorthCw && compass.is_true();
+    let rays = rays::ray_kernel(grid, params, radius.texels, holes);
+    let mut kernel_params = params.clone();
+    kernel_params.outputs.angles &= !true_bands;
+    let (mut ang, sv) = if kernel_params.outputs.angles || params.outputs.svf {
+        terrain_planes(kernel.as_ref(), &kernel_params, holes, nodata, &normals, progress)?
     } else {
         (None, None)
     };
+    if params.outputs.angles && true_bands {
+        ang =
+            Some(rays::true_north_angles(&rays, params, &compass, 0..h, holes, nodata, progress)?);
+    }
+    let bands = true_bands.then_some(&compass);
     let distance = if params.outputs.horizon_distance {
-        Some(horizon_distances(grid, params, radius.texels, holes, nodata, progress)?)
+        Some(horizon_distances(&rays, params, bands, holes, nodata, progress)?)
     } else {
         None
+    };
+    let [sun_hours, insolation] = if params.outputs.sun() {
+        let place = match (params.latitude, params.longitude) {
+            (Some(a), Some(o)) => (a, o),
+            _ => centre_lat_lon(map).ok_or_else(|| {
+                crate::Error::param(
+                    "latitude",
+                    "sun_hours and insolation need the sun's place: give latitude and \
+                     longitude, or a DEM whose projection places its centre",
+                )
+            })?,
+        };
+        let step = params.time_step_minutes.unwrap_or(crate::params::DEFAULT_TIME_STEP_MINUTES);
+        let (from, to) = (params.date_from.as_deref(), params.date_to.as_deref());
+        let (Some(from), Some(to)) = (from, to) else {
+            return Err(crate::Error::param("date", "sun_hours and insolation need a date"));
+        };
+        let suns = crate::terrain::sun::day_steps(from, to, step, place.0, place.1)?;
+        let metres: Vec<f32> =
+            map.values.iter().map(|v| (f64::from(*v) * params.linear_unit_m) as f32).collect();
+        let step_hours = f64::from(step) / 60.0;
+        rays::sun_planes(
+            &rays, &grid, params, &compass, &suns, step_hours, &metres, holes, nodata, progress,
+        )?
+    } else {
+        [None, None]
     };
     let openness = if params.outputs.openness {
         Some(openness_planes(grid, params, radius.texels, holes, nodata, progress)?)
@@ -872,6 +915,9 @@ pub fn bake_terrain(
         svf: sv,
         distance,
         openness,
+        sun_hours,
+        insolation,
+        north: map.terrain.georef.is_some().then_some(north),
         nodata,
     };
     Ok((products, radius))
@@ -1186,6 +1232,7 @@ pub fn bake_terrain_window(
     window: HeightMap,
     params: &BakeParams,
     interior: (usize, usize, usize, usize),
+    origin: Option<(usize, usize)>,
     range: (f32, f32),
     radius: u32,
     progress: &Progress,
@@ -1197,6 +1244,23 @@ pub fn bake_terrain_window(
     let mut window = window;
     let holes = window.terrain.holes.take();
     let nodata = window.terrain.nodata.map_or(f32::NAN, |v| v as f32);
+    let georef = window.terrain.georef.take();
+    let (compass, north) = crate::heightmap::north::compass(
+        georef.as_ref(),
+        origin.unwrap_or((0, 0)),
+        (ww, wh),
+        params.y_axis,
+    );
+    let true_bands =
+        params.outputs.angles && params.azimuth_from == AzimuthFrom::NorthCw && compass.is_true();
+    if true_bands && origin.is_none() {
+        return Err(crate::Error::param(
+            "azimuth_from",
+            "north_cw bands are true azimuths, turned per texel by the map's projection, and a \
+             block that does not know where it lies in the map cannot turn them: use east_ccw \
+             (grid azimuths), or bake the whole map",
+        ));
+    }
     let heights = window.into_scaled(params.height_scale);
     let grid = Grid::new(ww, wh, &heights, params.edge, params.y_axis).with_range(range.0, range.1);
     let kernel = make_kernel_for(params, grid, radius, progress, holes.as_deref());
@@ -1210,7 +1274,23 @@ pub fn bake_terrain_window(
     let rows = RowWindow { inner: kernel, oy, rows: ih };
     let row_holes = holes.as_deref().map(|m| &m[oy * ww..(oy + ih) * ww]);
     let normals = NormalSource { grid: &grid, holes: holes.as_deref(), row0: oy };
-    let (ang, sv) = terrain_planes(&rows, params, row_holes, nodata, &normals, progress)?;
+    let mut kernel_params = params.clone();
+    kernel_params.outputs.angles &= !true_bands;
+    let (mut ang, sv) =
+        terrain_planes(&rows, &kernel_params, row_holes, nodata, &normals, progress)?;
+    if true_bands {
+        let k = rays::ray_kernel(grid, params, radius, holes.as_deref());
+        let a = rays::true_north_angles(
+            &k,
+            params,
+            &compass,
+            oy..oy + ih,
+            holes.as_deref(),
+            nodata,
+            progress,
+        )?;
+        ang = Some(a);
+    }
     // Keep the interior's columns, plane by plane, in place (each row moves to the left).
     let cut = |mut v: Vec<f32>| {
         let planes = v.len() / (ww * ih);
@@ -1231,6 +1311,9 @@ pub fn bake_terrain_window(
         // Refused for tiled bakes (pipeline::tiled): no window gives them.
         distance: None,
         openness: None,
+        sun_hours: None,
+        insolation: None,
+        north: georef.is_some().then_some(north),
         nodata,
     })
 }

@@ -17,6 +17,7 @@
 
 pub mod budget;
 pub mod georef;
+pub mod north;
 pub mod stream;
 
 use crate::error::{Error, LimitError, Result};

@@ -151,6 +151,13 @@ pub struct Outputs {
     /// `openness_negative.tif`.
     #[serde(default)]
     pub openness: bool,
+    /// Hours of direct sun over `date_from`..`date_to` (SPEC §3.7), as `sun_hours.tif`.
+    #[serde(default)]
+    pub sun_hours: bool,
+    /// The clear-sky direct beam on the tilted surface over the same days, Wh/m², as
+    /// `insolation.tif`.
+    #[serde(default)]
+    pub insolation: bool,
 }
 
 impl Outputs {
@@ -165,11 +172,18 @@ impl Outputs {
         bent_normal: false,
         horizon_distance: false,
         openness: false,
+        sun_hours: false,
+        insolation: false,
     };
 
     /// Whether a terrain product (SPEC §3.7) is asked for.
     pub fn terrain(&self) -> bool {
-        self.angles || self.svf || self.horizon_distance || self.openness
+        self.angles || self.svf || self.horizon_distance || self.openness || self.sun()
+    }
+
+    /// Whether a product of the sun over days (SPEC §3.7 `sun_hours`, `insolation`) is asked.
+    pub fn sun(&self) -> bool {
+        self.sun_hours || self.insolation
     }
 
     /// Whether a surface map (SPEC §3.8) is asked for.
@@ -213,6 +227,12 @@ impl fmt::Display for Outputs {
         }
         if self.openness {
             parts.push("openness");
+        }
+        if self.sun_hours {
+            parts.push("sun_hours");
+        }
+        if self.insolation {
+            parts.push("insolation");
         }
         f.write_str(&parts.join(","))
     }
@@ -388,6 +408,20 @@ pub struct BakeParams {
     /// The band (sample) of a multi-band TIFF the heights are read from, 1-based; `None`:
     /// `channel` decides (a DEM with several bands then needs it, SPEC §2).
     pub band: Option<u8>,
+    /// The first and last local solar day (`YYYY-MM-DD`, `date` sets both) of `sun_hours` and
+    /// `insolation` (SPEC §3.7).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub date_from: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub date_to: Option<String>,
+    /// Minutes between the sun positions sampled over a day (`None`: 10).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub time_step_minutes: Option<u32>,
+    /// The place of the sun's position, degrees (`None`: the DEM's centre).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub latitude: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub longitude: Option<f64>,
     /// Metres per map unit of the input's CRS (1 for metre CRSs, cell sizes given in metres and
     /// plain images): read from the input with the DEM defaults, never a parameter; the
     /// curvature drop is in metres.
@@ -425,6 +459,11 @@ impl Default for BakeParams {
             normal_convention: NormalConvention::OpenGl,
             bent_normal_encoding: BentNormalEncoding::Rgb,
             band: None,
+            date_from: None,
+            date_to: None,
+            time_step_minutes: None,
+            latitude: None,
+            longitude: None,
             linear_unit_m: 1.0,
             explicit: Explicit::default(),
         }
@@ -457,7 +496,43 @@ pub const PARAM_NAMES: &[&str] = &[
     "band",
     "normal_convention",
     "bent_normal_encoding",
+    "date",
+    "date_from",
+    "date_to",
+    "time_step_minutes",
+    "latitude",
+    "longitude",
 ];
+
+/// The default of `time_step_minutes`.
+pub const DEFAULT_TIME_STEP_MINUTES: u32 = 10;
+/// Most days one `sun_hours`/`insolation` bake spans (a year and a day).
+pub const MAX_SUN_DAYS: i64 = 366;
+
+/// (year, month, day) of a `YYYY-MM-DD` date, or a parameter error naming `field`.
+pub fn parse_date(field: &str, value: &str) -> Result<(i32, u32, u32)> {
+    let bad = || Error::param(field, format!("`{value}` is not a date YYYY-MM-DD"));
+    let mut it = value.trim().splitn(3, '-');
+    let y: i32 = it.next().and_then(|v| v.parse().ok()).ok_or_else(bad)?;
+    let m: u32 = it.next().and_then(|v| v.parse().ok()).ok_or_else(bad)?;
+    let d: u32 = it.next().and_then(|v| v.parse().ok()).ok_or_else(bad)?;
+    let leap = (y % 4 == 0 && y % 100 != 0) || y % 400 == 0;
+    let days = [31, if leap { 29 } else { 28 }, 31, 30, 31, 30, 31, 31, 30, 31, 30, 31];
+    if !(1..=9999).contains(&y) || !(1..=12).contains(&m) || d < 1 || d > days[m as usize - 1] {
+        return Err(bad());
+    }
+    Ok((y, m, d))
+}
+
+/// Days since 1970-01-01 of a civil date (Howard Hinnant's `days_from_civil`).
+pub fn days_from_civil((y, m, d): (i32, u32, u32)) -> i64 {
+    let y = i64::from(y) - i64::from(m <= 2);
+    let era = y.div_euclid(400);
+    let yoe = y - era * 400;
+    let mp = (i64::from(m) + 9) % 12;
+    let doy = (153 * mp + 2) / 5 + i64::from(d) - 1;
+    era * 146_097 + yoe * 365 + yoe / 4 - yoe / 100 + doy - 719_468
+}
 
 pub(crate) fn parse_enum<T: Copy>(field: &str, value: &str, options: &[(&str, T)]) -> Result<T> {
     let v = value.trim().to_ascii_lowercase();
@@ -690,7 +765,7 @@ impl BakeParams {
             "outputs" => {
                 const NAMES: &str =
                     "horizon, fourier, angles, svf, normal, ao, bent_normal, horizon_distance, \
-                     openness";
+                     openness, sun_hours, insolation";
                 let mut o = Outputs::NONE;
                 for part in value.split(',').map(str::trim).filter(|p| !p.is_empty()) {
                     match part.to_ascii_lowercase().as_str() {
@@ -703,6 +778,8 @@ impl BakeParams {
                         "bent_normal" => o.bent_normal = true,
                         "horizon_distance" => o.horizon_distance = true,
                         "openness" => o.openness = true,
+                        "sun_hours" => o.sun_hours = true,
+                        "insolation" => o.insolation = true,
                         _ => {
                             return Err(Error::param(
                                 key,
@@ -820,6 +897,57 @@ impl BakeParams {
                     ],
                 )?
             }
+            "date" | "date_from" | "date_to" => {
+                let v = match value.trim() {
+                    "" | "auto" => None,
+                    v => {
+                        let (y, m, d) = parse_date(key, v)?;
+                        Some(format!("{y:04}-{m:02}-{d:02}"))
+                    }
+                };
+                if key != "date_to" {
+                    self.date_from = v.clone();
+                }
+                if key != "date_from" {
+                    self.date_to = v;
+                }
+            }
+            "time_step_minutes" => {
+                self.time_step_minutes = match value.trim() {
+                    "" | "auto" => None,
+                    _ => {
+                        let t = parse_u32(key, value)?;
+                        if t == 0 || t > 1440 || 1440 % t != 0 {
+                            return Err(Error::param(
+                                key,
+                                format!("must divide a day of 1440 minutes (1, 5, 10, 15, 30, 60, …), got {t}"),
+                            ));
+                        }
+                        Some(t)
+                    }
+                }
+            }
+            "latitude" | "longitude" => {
+                let v = match value.trim() {
+                    "" | "auto" => None,
+                    _ => {
+                        let v = parse_f64(key, value)?;
+                        let lim = if key == "latitude" { 90.0 } else { 180.0 };
+                        if !(-lim..=lim).contains(&v) {
+                            return Err(Error::param(
+                                key,
+                                format!("must be between -{lim} and {lim} degrees"),
+                            ));
+                        }
+                        Some(v)
+                    }
+                };
+                if key == "latitude" {
+                    self.latitude = v;
+                } else {
+                    self.longitude = v;
+                }
+            }
             "normal_convention" => {
                 self.normal_convention = parse_enum(
                     key,
@@ -868,6 +996,38 @@ impl BakeParams {
         self.check_with(true)
     }
 
+    /// The days of `sun_hours`/`insolation`: both ends given, in order, at most
+    /// [`MAX_SUN_DAYS`]; `latitude` and `longitude` together or not at all.
+    fn check_sun(&self) -> Result<()> {
+        let (Some(from), Some(to)) = (&self.date_from, &self.date_to) else {
+            return Err(Error::param(
+                "date",
+                "sun_hours and insolation are sums over days: give date (YYYY-MM-DD), or \
+                 date_from and date_to",
+            ));
+        };
+        let days = days_from_civil(parse_date("date_to", to)?)
+            - days_from_civil(parse_date("date_from", from)?)
+            + 1;
+        if days < 1 {
+            return Err(Error::param("date_to", format!("{to} is before date_from {from}")));
+        }
+        if days > MAX_SUN_DAYS {
+            return Err(Error::param(
+                "date_to",
+                format!("{days} days from {from} to {to}: at most {MAX_SUN_DAYS}"),
+            ));
+        }
+        if self.latitude.is_some() != self.longitude.is_some() {
+            let missing = if self.latitude.is_none() { "latitude" } else { "longitude" };
+            return Err(Error::param(
+                missing,
+                "give latitude and longitude together (or neither: the DEM's centre)",
+            ));
+        }
+        Ok(())
+    }
+
     /// [`BakeParams::check`] before the input is read: a method not given may still become a
     /// ray method by the DEM defaults (SPEC §2, [`crate::heightmap::georef::apply_dem_defaults`],
     /// which checks again once it has resolved them), so the rules of `lengyel` wait for it.
@@ -892,6 +1052,9 @@ impl BakeParams {
                 "openness is measured within a distance: give max_distance (metres, with a cell \
                  size) or a finite radius (texels)",
             ));
+        }
+        if self.outputs.sun() {
+            self.check_sun()?;
         }
         let ray = matches!(self.method, Method::Exact | Method::March | Method::Sweep)
             || !(settled || self.explicit.has("method"));
@@ -992,7 +1155,7 @@ impl BakeParams {
                 .and_then(|v| v.as_str().map(str::to_owned))
                 .unwrap_or_default()
         }
-        vec![
+        let mut pairs = vec![
             ("height_scale", self.height_scale.to_string()),
             ("channel", name(&self.channel)),
             ("edge", name(&self.edge)),
@@ -1017,7 +1180,20 @@ impl BakeParams {
             ("band", self.band.map_or("auto".into(), |b| b.to_string())),
             ("normal_convention", name(&self.normal_convention)),
             ("bent_normal_encoding", name(&self.bent_normal_encoding)),
-        ]
+        ];
+        // The days of the sun's products are parameters of those alone: a bake without them
+        // keeps the pairs (and the dedup key) it had before they existed.
+        if self.outputs.sun() {
+            let opt = |v: &Option<String>| v.clone().unwrap_or_else(|| "auto".into());
+            let num = |v: Option<f64>| v.map_or("auto".into(), |v| v.to_string());
+            pairs.push(("date_from", opt(&self.date_from)));
+            pairs.push(("date_to", opt(&self.date_to)));
+            let step = self.time_step_minutes.unwrap_or(DEFAULT_TIME_STEP_MINUTES);
+            pairs.push(("time_step_minutes", step.to_string()));
+            pairs.push(("latitude", num(self.latitude)));
+            pairs.push(("longitude", num(self.longitude)));
+        }
+        pairs
     }
 }
 

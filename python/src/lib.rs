@@ -438,7 +438,7 @@ fn bake_block<'py>(
     let range = (a.min(b), a.max(b));
     let progress = Progress::new();
     let t = py
-        .detach(|| hb::bake_terrain_window(map, &params, interior, range, radius, &progress))
+        .detach(|| hb::bake_terrain_window(map, &params, interior, None, range, radius, &progress))
         .map_err(|e| raise(py, e))?;
     let (iw, ih) = (t.width, t.height);
     let angles = t.angles.map(|v| array(py, v, &[t.bins, ih, iw])).transpose()?;

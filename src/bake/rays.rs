@@ -8,10 +8,12 @@
 
 use super::{bake_horizon, check_scaled, curvature, resolve_radius};
 use crate::error::Result;
+use crate::heightmap::north::{self, Compass, NorthReport};
 use crate::heightmap::HeightMap;
-use crate::kernels::{self, Grid};
-use crate::params::{BakeParams, Method, Radius};
+use crate::kernels::{self, Grid, HorizonRows};
+use crate::params::{AzimuthFrom, BakeParams, Method, Radius};
 use crate::progress::{Progress, Stage};
+use crate::terrain::sun::SunAzimuth;
 
 /// Positive and negative openness (SPEC §3.7, Yokoyama et al. 2002, as RVT computes them), in
 /// degrees: the mean over the `bins` azimuths of 90° − β_n, β_n the signed maximum elevation
@@ -76,20 +78,16 @@ pub(super) fn openness_planes(
 /// # Errors
 /// [`crate::Error::Canceled`].
 pub(super) fn horizon_distances(
-    grid: Grid<'_>,
+    k: &kernels::exact::ExactHorizon<'_>,
     params: &BakeParams,
-    radius: u32,
+    true_bands: Option<&Compass>,
     holes: Option<&[bool]>,
     nodata: f32,
     progress: &Progress,
 ) -> Result<Vec<f32>> {
     use rayon::prelude::*;
-    let (w, h, nb) = (grid.width, grid.height, params.bins as usize);
+    let (w, h, nb) = (k.width(), k.height(), params.bins as usize);
     let order = crate::terrain::angles::band_bins(nb, params.azimuth_from, params.y_axis);
-    let r = (params.radius != Radius::Unlimited || params.max_distance.is_some()).then_some(radius);
-    let k = kernels::exact::ExactHorizon::new(grid, r, params.bins, crate::params::Reduce::Point)
-        .with_curvature(curvature(params))
-        .with_holes(holes);
     let unit = params.cell_size.unwrap_or(1.0);
     // Texel-major rows (each texel's bands together), then transposed to band planes.
     let mut texels = vec![nodata; w * h * nb];
@@ -103,7 +101,15 @@ pub(super) fn horizon_distances(
                 continue;
             }
             for (band, o) in bands.iter_mut().enumerate() {
-                let (t, s) = k.horizon_and_distance(x, y, order[band]);
+                let (t, s) = match true_bands {
+                    // Compass bands on a projected map: the true azimuth's φ at this texel.
+                    Some(c) => k.horizon_and_distance_at(
+                        x,
+                        y,
+                        c.phi(x, y, crate::terrain::angles::band_azimuth_deg(band, nb)),
+                    ),
+                    None => k.horizon_and_distance(x, y, order[band]),
+                };
                 if t > 0.0 {
                     *o = (s * unit) as f32;
                 }
@@ -112,14 +118,7 @@ pub(super) fn horizon_distances(
         progress.advance(1);
         Ok(())
     })?;
-    let plane = w * h;
-    let mut planes = vec![nodata; plane * nb];
-    for (t, bands) in texels.chunks_exact(nb).enumerate() {
-        for (band, &v) in bands.iter().enumerate() {
-            planes[band * plane + t] = v;
-        }
-    }
-    Ok(planes)
+    Ok(transpose_bands(&texels, nb))
 }
 
 /// The exact horizon profile (SPEC §3.7) of texel (`x`, `y`): (azimuth, elevation) in degrees
@@ -153,9 +152,182 @@ pub fn horizon_profile(
     let k = kernels::exact::ExactHorizon::new(grid, r, 16, crate::params::Reduce::Point)
         .with_curvature(curvature(params))
         .with_holes(map.terrain.holes.as_deref());
-    Ok(crate::terrain::profile::profile(bins, params.azimuth_from, params.y_axis, |phi| {
-        k.horizon_sin(x, y, phi)
-    }))
+    let (compass, _) = compass_of(map, params);
+    let to_phi = |az: f64| match params.azimuth_from {
+        AzimuthFrom::NorthCw => compass.phi(x, y, az),
+        AzimuthFrom::EastCcw => az.rem_euclid(360.0).to_radians(),
+    };
+    Ok(crate::terrain::profile::profile_with(bins, to_phi, |phi| k.horizon_sin(x, y, phi)))
+}
+
+/// The compass of a whole map (SPEC §3.7 "True and grid north"): compass azimuths through its
+/// projection per texel, or on the grid, and what bake.json says of it.
+pub fn compass_of(map: &HeightMap, params: &BakeParams) -> (Compass, NorthReport) {
+    north::compass(map.terrain.georef.as_ref(), (0, 0), (map.width, map.height), params.y_axis)
+}
+
+/// The latitude and longitude (degrees) of a DEM's centre, where its projection places it.
+pub fn centre_lat_lon(map: &HeightMap) -> Option<(f64, f64)> {
+    let g = map.terrain.georef.as_ref().filter(|g| g.is_dem())?;
+    let geo = north::Geodesy::of(g).ok()?;
+    let (lon, lat) = geo.lon_lat(map.width as f64 / 2.0, map.height as f64 / 2.0)?;
+    Some((lat, lon))
+}
+
+/// The exact kernel of the per-texel rays: the bake's radius (none at `unlimited`), curvature
+/// and holes.
+pub(super) fn ray_kernel<'a>(
+    grid: Grid<'a>,
+    params: &BakeParams,
+    radius: u32,
+    holes: Option<&'a [bool]>,
+) -> kernels::exact::ExactHorizon<'a> {
+    let r = (params.radius != Radius::Unlimited || params.max_distance.is_some()).then_some(radius);
+    kernels::exact::ExactHorizon::new(grid, r, params.bins.max(1), crate::params::Reduce::Point)
+        .with_curvature(curvature(params))
+        .with_holes(holes)
+}
+
+/// `angles` with `azimuth_from=north_cw` on a map whose projection gives true north (SPEC §3.7):
+/// band n is the horizon at true azimuth n·360°/bins, whose φ differs from texel to texel by
+/// the meridian convergence, so no kernel bin holds it: one exact ray per texel and band at
+/// that φ (the profile's and the shadow's ray), in `angle_unit`; band-major like
+/// [`super::bake_terrain`]'s planes, `nodata` at holes. Of a window's rows `rows` (a tile's
+/// interior rows; every column), with `compass` over the window.
+///
+/// # Errors
+/// [`crate::Error::Canceled`].
+pub(super) fn true_north_angles(
+    k: &kernels::exact::ExactHorizon<'_>,
+    params: &BakeParams,
+    compass: &Compass,
+    rows: std::ops::Range<usize>,
+    holes: Option<&[bool]>,
+    nodata: f32,
+    progress: &Progress,
+) -> Result<Vec<f32>> {
+    use rayon::prelude::*;
+    let (w, nb) = (k.width(), params.bins as usize);
+    let h = rows.len();
+    let mut texels = vec![nodata; w * h * nb];
+    progress.start(Stage::Bake, h as u64);
+    texels.par_chunks_mut(w * nb).enumerate().try_for_each(|(j, row)| {
+        if progress.is_canceled() {
+            return Err(crate::Error::Canceled);
+        }
+        let y = rows.start + j;
+        for (x, bands) in row.chunks_exact_mut(nb).enumerate() {
+            if holes.is_some_and(|m| m[y * w + x]) {
+                continue;
+            }
+            for (n, o) in bands.iter_mut().enumerate() {
+                let phi = compass.phi(x, y, crate::terrain::angles::band_azimuth_deg(n, nb));
+                *o = crate::terrain::angles::angle(
+                    k.horizon_sin(x, y, phi) as f32,
+                    params.angle_unit,
+                );
+            }
+        }
+        progress.advance(1);
+        Ok(())
+    })?;
+    Ok(transpose_bands(&texels, nb))
+}
+
+/// Texel-major bands (each texel's `nb` values together) as band-major planes.
+fn transpose_bands(texels: &[f32], nb: usize) -> Vec<f32> {
+    let plane = texels.len() / nb.max(1);
+    let mut planes = vec![0f32; texels.len()];
+    for (t, bands) in texels.chunks_exact(nb).enumerate() {
+        for (band, &v) in bands.iter().enumerate() {
+            planes[band * plane + t] = v;
+        }
+    }
+    planes
+}
+
+/// Most texel × sun-step rays one `sun_hours`/`insolation` bake may cast (SPEC §10: bounded
+/// before it costs): 2³⁰, about 20 CPU-minutes of unlimited rays on a 1000² DEM.
+pub const MAX_SUN_RAYS: u64 = 1 << 30;
+
+/// `sun_hours` and `insolation` (SPEC §3.7): over the sun positions `suns` (each standing for
+/// `step_hours`, the sun above 0°), a texel counts a step where the sun clears its exact
+/// horizon at the sun's own azimuth (true, turned to φ by `compass` per texel); insolation adds
+/// the clear-sky direct normal irradiance ([`crate::terrain::sun::clear_sky_dni`], at the air
+/// pressure of the texel's altitude `metres`) times the cosine of incidence on the surface
+/// (its normal from central differences of the scaled heights, [`crate::terrain::surface`])
+/// for those steps, in Wh/m². Each plane when `params.outputs` asks, `nodata` at holes.
+///
+/// # Errors
+/// [`crate::Error::Canceled`]; [`crate::Error::Param`] naming `time_step_minutes` above
+/// [`MAX_SUN_RAYS`].
+#[allow(clippy::too_many_arguments)]
+pub(super) fn sun_planes(
+    k: &kernels::exact::ExactHorizon<'_>,
+    grid: &Grid<'_>,
+    params: &BakeParams,
+    compass: &Compass,
+    suns: &[crate::terrain::sun::Sun],
+    step_hours: f64,
+    metres: &[f32],
+    holes: Option<&[bool]>,
+    nodata: f32,
+    progress: &Progress,
+) -> Result<[Option<Vec<f32>>; 2]> {
+    use crate::terrain::{shadow::lit, sun::SunAzimuth};
+    use rayon::prelude::*;
+    let (w, h) = (grid.width, grid.height);
+    let valid = holes.map_or(w * h, |m| m.iter().filter(|&&b| !b).count());
+    let rays = valid as u64 * suns.len() as u64;
+    if rays > MAX_SUN_RAYS {
+        return Err(crate::Error::param(
+            "time_step_minutes",
+            format!(
+                "{valid} texels × {} sun positions are {rays} rays, above the limit of \
+                 {MAX_SUN_RAYS}: take a longer time step, fewer days or a smaller map",
+                suns.len()
+            ),
+        ));
+    }
+    let (want_hours, want_sun) = (params.outputs.sun_hours, params.outputs.insolation);
+    let mut hours = vec![nodata; w * h];
+    let mut energy = vec![nodata; w * h];
+    progress.start(Stage::Bake, h as u64);
+    hours.par_chunks_mut(w).zip(energy.par_chunks_mut(w)).enumerate().try_for_each(
+        |(y, (hrow, erow))| {
+            if progress.is_canceled() {
+                return Err(crate::Error::Canceled);
+            }
+            for x in 0..w {
+                if holes.is_some_and(|m| m[y * w + x]) {
+                    continue;
+                }
+                let n = want_sun.then(|| crate::terrain::surface::normal(grid, holes, x, y));
+                let pressure = crate::terrain::sun::pressure_at(f64::from(metres[y * w + x]));
+                let (mut lit_steps, mut wh) = (0u32, 0.0f64);
+                for sun in suns {
+                    let phi = SunAzimuth::True(sun.azimuth_north_cw).phi(compass, x, y);
+                    if !lit(k.horizon_sin(x, y, phi), sun.elevation) {
+                        continue;
+                    }
+                    lit_steps += 1;
+                    if let Some(n) = n {
+                        let l = crate::terrain::shadow::sun_direction(phi, sun.elevation);
+                        let cos_i = n[0] * l[0] + n[1] * l[1] + n[2] * l[2];
+                        if cos_i > 0.0 {
+                            let dni = crate::terrain::sun::clear_sky_dni(sun.elevation, pressure);
+                            wh += dni * cos_i * step_hours;
+                        }
+                    }
+                }
+                hrow[x] = (f64::from(lit_steps) * step_hours) as f32;
+                erow[x] = wh as f32;
+            }
+            progress.advance(1);
+            Ok(())
+        },
+    )?;
+    Ok([want_hours.then_some(hours), want_sun.then_some(energy)])
 }
 
 /// The sun shadow of every texel (SPEC §3.7): [`crate::terrain::shadow::LIT`] where the sun at
@@ -170,7 +342,7 @@ pub fn horizon_profile(
 pub fn shadow(
     map: &HeightMap,
     params: &BakeParams,
-    azimuth_deg: f64,
+    azimuth: SunAzimuth,
     elevation_deg: f64,
     progress: &Progress,
 ) -> Result<Vec<u8>> {
@@ -189,9 +361,10 @@ pub fn shadow(
     if elevation_deg <= 0.0 {
         return Ok(out);
     }
-    let phi =
-        crate::terrain::profile::tangent_azimuth(azimuth_deg, params.azimuth_from, params.y_axis);
+    let (compass, _) = compass_of(map, params);
     if params.method == Method::Lengyel {
+        // One φ for the map (the layers are decoded for one light): the centre's.
+        let phi = azimuth.phi(&compass, w / 2, h / 2);
         let (layers, _) = bake_horizon(map, params, crate::layers::Precisions::U8, progress)?;
         let [l0, l1] = layers
             .u8
@@ -210,11 +383,7 @@ pub fn shadow(
     check_scaled(&heights)?;
     let radius = resolve_radius(params, w, h, &heights);
     let grid = Grid::new(w, h, &heights, params.edge, params.y_axis);
-    let r = (params.radius != Radius::Unlimited || params.max_distance.is_some())
-        .then_some(radius.texels);
-    let k = kernels::exact::ExactHorizon::new(grid, r, 16, crate::params::Reduce::Point)
-        .with_curvature(curvature(params))
-        .with_holes(holes);
+    let k = ray_kernel(grid, params, radius.texels, holes);
     progress.start(Stage::Bake, h as u64);
     out.par_chunks_mut(w).enumerate().try_for_each(|(y, row)| {
         if progress.is_canceled() {
@@ -222,6 +391,7 @@ pub fn shadow(
         }
         for (x, o) in row.iter_mut().enumerate() {
             if *o != NODATA {
+                let phi = azimuth.phi(&compass, x, y);
                 *o = if lit(k.horizon_sin(x, y, phi), elevation_deg) { LIT } else { SHADOW };
             }
         }

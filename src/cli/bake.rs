@@ -187,9 +187,9 @@ pub struct ParamFlags {
     /// linear (default) or sqrt.
     #[arg(long)]
     pub encoding: Option<String>,
-    /// Comma list of horizon (default), fourier, angles, svf, horizon_distance, openness (GeoTIFF
-    /// terrain products), normal, ao, bent_normal (surface maps: normal.png, ao.png,
-    /// bent_normal.png).
+    /// Comma list of horizon (default), fourier, angles, svf, horizon_distance, openness,
+    /// sun_hours, insolation (GeoTIFF terrain products), normal, ao, bent_normal (surface maps:
+    /// normal.png, ao.png, bent_normal.png).
     #[arg(long)]
     pub outputs: Option<String>,
     /// 3, 5 (default), 7 or 9.
@@ -216,7 +216,8 @@ pub struct ParamFlags {
     /// Unit of angles.tif: degrees (default), radians or sin.
     #[arg(long)]
     pub angle_unit: Option<String>,
-    /// Azimuths of angles.tif: east_ccw (default) or north_cw.
+    /// Azimuths of angles.tif: east_ccw (default, the grid's x axis) or north_cw (compass, from
+    /// true north where the DEM's projection gives it).
     #[arg(long)]
     pub azimuth_from: Option<String>,
     /// Sky-view factor: radiative (default, mean cos² α), visual (1 − mean sin α) or tilted
@@ -234,6 +235,25 @@ pub struct ParamFlags {
     /// What bent_normal.png holds: rgb (default), rg (x, y; blue 0) or rgb_ao (AO in alpha).
     #[arg(long)]
     pub bent_normal_encoding: Option<String>,
+    /// The local solar day (YYYY-MM-DD) of --outputs sun_hours,insolation (sets --date-from and
+    /// --date-to).
+    #[arg(long, conflicts_with_all = ["date_from", "date_to"])]
+    pub date: Option<String>,
+    /// The first day (YYYY-MM-DD) of sun_hours/insolation over a range.
+    #[arg(long, requires = "date_to")]
+    pub date_from: Option<String>,
+    /// The last day (YYYY-MM-DD, inclusive; at most 366 days after --date-from).
+    #[arg(long, requires = "date_from")]
+    pub date_to: Option<String>,
+    /// Minutes between sun positions of sun_hours/insolation (default 10; divides 1440).
+    #[arg(long)]
+    pub time_step_minutes: Option<String>,
+    /// Latitude of the sun's place in degrees (default: the DEM's centre).
+    #[arg(long, allow_hyphen_values = true, requires = "longitude")]
+    pub latitude: Option<String>,
+    /// Longitude of the sun's place in degrees, east positive (default: the DEM's centre).
+    #[arg(long, allow_hyphen_values = true, requires = "latitude")]
+    pub longitude: Option<String>,
 }
 
 impl ParamFlags {
@@ -268,6 +288,12 @@ impl ParamFlags {
             ("band", &self.band),
             ("normal_convention", &self.normal_convention),
             ("bent_normal_encoding", &self.bent_normal_encoding),
+            ("date", &self.date),
+            ("date_from", &self.date_from),
+            ("date_to", &self.date_to),
+            ("time_step_minutes", &self.time_step_minutes),
+            ("latitude", &self.latitude),
+            ("longitude", &self.longitude),
         ];
         let p = BakeParams::from_pairs_unchecked(
             pairs.iter().filter_map(|(k, v)| v.as_deref().map(|v| (*k, v))),

@@ -27,16 +27,11 @@ pub struct ShadowArgs {
     /// Sun elevation in degrees (at or below 0 shadows everything).
     #[arg(long, allow_hyphen_values = true, requires = "sun_azimuth")]
     pub sun_elevation: Option<String>,
-    /// The time (RFC 3339, e.g. 2026-06-21T07:30:00Z) whose sun (NREL SPA) casts the shadow;
-    /// with --latitude and --longitude, instead of --sun-azimuth/--sun-elevation.
-    #[arg(long, conflicts_with_all = ["sun_azimuth", "sun_elevation"], requires_all = ["latitude", "longitude"])]
+    /// The time (RFC 3339, e.g. 2026-06-21T07:30:00Z) whose sun (NREL SPA) casts the shadow,
+    /// instead of --sun-azimuth/--sun-elevation; seen from --latitude/--longitude (degrees), or
+    /// from a DEM's centre.
+    #[arg(long, conflicts_with_all = ["sun_azimuth", "sun_elevation"])]
     pub sun_time: Option<String>,
-    /// Latitude of the place in degrees (with --sun-time).
-    #[arg(long, allow_hyphen_values = true)]
-    pub latitude: Option<String>,
-    /// Longitude of the place in degrees, east positive (with --sun-time).
-    #[arg(long, allow_hyphen_values = true)]
-    pub longitude: Option<String>,
     /// The bake parameters (`--radius` defaults to unlimited and the horizon is the exact ray's,
     /// unless `--method lengyel`, whose baked layers are decoded).
     #[command(flatten)]
@@ -62,27 +57,41 @@ pub fn run(args: ShadowArgs) -> Result<()> {
         }
         params.set("method", "exact")?;
     }
-    let (az, el, sun) = crate::terrain::sun::resolve(
+    let query = crate::terrain::sun::SunQuery::parse(
         args.sun_azimuth.as_deref(),
         args.sun_elevation.as_deref(),
         args.sun_time.as_deref(),
-        args.latitude.as_deref(),
-        args.longitude.as_deref(),
+        args.params.latitude.as_deref(),
+        args.params.longitude.as_deref(),
         params.azimuth_from,
-        params.y_axis,
     )?;
-    if let (Some(sun), Some(t)) = (sun, &args.sun_time) {
-        eprintln!(
-            "sun at {t}: azimuth {:.4}° (from north, clockwise), elevation {:.4}°",
-            sun.azimuth_north_cw, sun.elevation
-        );
-    }
     let bytes = std::fs::read(&args.input)
         .map_err(|e| Error::InvalidInput(format!("cannot read {}: {e}", args.input.display())))?;
     let (map, _) = heightmap::decode_for(&bytes, &mut params, &Limits::default())?;
     crate::bake::check_method_fits(&params, map.width as u32, map.height as u32)?;
     drop(bytes);
-    let tif = crate::pipeline::shadow_tif(&map, &params, az, el, &Progress::new())?;
+    let centre = crate::bake::centre_lat_lon(&map);
+    if let (_, _, Some(sun)) = query.resolve(centre)? {
+        let t = args.sun_time.as_deref().unwrap_or_default();
+        let (lat, lon) = match (&args.params.latitude, centre) {
+            (Some(_), _) | (None, None) => ("given".to_owned(), String::new()),
+            (None, Some((a, o))) => (format!("{a:.5}"), format!("{o:.5}")),
+        };
+        let place = if lon.is_empty() {
+            String::new()
+        } else {
+            format!(" at the DEM's centre {lat}° N {lon}° E")
+        };
+        eprintln!(
+            "sun at {t}{place}: azimuth {:.4}° (from true north, clockwise), elevation {:.4}°",
+            sun.azimuth_north_cw, sun.elevation
+        );
+    }
+    let (_, north) = crate::bake::compass_of(&map, &params);
+    if let Some(why) = &north.reason {
+        eprintln!("warning: azimuths are taken from grid north: {why}");
+    }
+    let tif = crate::pipeline::shadow_tif(&map, &params, &query, &Progress::new())?;
     // Written beside the target and renamed: a failure leaves no half-written file.
     let dir = args.out.parent().filter(|d| !d.as_os_str().is_empty()).map(PathBuf::from);
     let dir = dir.unwrap_or_else(|| PathBuf::from("."));

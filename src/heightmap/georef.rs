@@ -515,6 +515,17 @@ pub fn apply_dem_defaults(params: &mut BakeParams, georef: Option<&Georef>) -> R
             )));
         }
     }
+    // The sun's place (SPEC §3.7): the DEM's centre through its projection, else given.
+    if params.outputs.sun()
+        && params.latitude.is_none()
+        && georef.filter(|g| g.is_dem()).is_none_or(|g| super::north::Geodesy::of(g).is_err())
+    {
+        return Err(Error::param(
+            "latitude",
+            "sun_hours and insolation need the sun's place: give latitude and longitude (this \
+             map has no projection that places its centre)",
+        ));
+    }
     let dem = georef.filter(|g| g.is_dem() || (g.transform().is_some() && ex.has("cell_size")));
     if dem.is_some() && !ex.has("method") {
         // A line of sight, to the edge unless a reach is given (SPEC §2). Left unmarked, so

@@ -3,6 +3,7 @@
 //! `shadow` and its preview.
 
 use super::*;
+use crate::terrain::sun::{SunAzimuth, SunQuery};
 
 /// Bakes the terrain products `params.outputs` asks for into GeoTIFFs (SPEC §3.7): `angles.tif`
 /// (one band per bin) and `svf.tif`, with the input's georeferencing; and what they hold, for
@@ -23,13 +24,15 @@ pub fn terrain_files(
     let mut files = Vec::new();
     let mut info = serde_json::Map::new();
     let nodata = serde_json::json!(geotiff::nodata_text(p.nodata));
+    let true_north = p.north.as_ref().is_some_and(|n| n.reference == "true");
+    let north = serde_json::to_value(&p.north).unwrap_or_default();
     if let Some(a) = &p.angles {
         let (from, unit) = (azimuth_from_name(params), angle_unit_name(params));
         let azimuths: Vec<f64> =
             (0..p.bins).map(|n| crate::terrain::angles::band_azimuth_deg(n, p.bins)).collect();
         let bands: Vec<geotiff::Band<'_>> = a
             .chunks_exact(plane)
-            .zip(angle_descriptions(params, p.bins))
+            .zip(angle_descriptions(params, p.bins, true_north))
             .map(|(plane, description)| geotiff::Band { plane, description })
             .collect();
         if progress.is_canceled() {
@@ -43,6 +46,7 @@ pub fn terrain_files(
                 "bands": bands.iter().map(|b| b.description.clone()).collect::<Vec<_>>(),
                 "azimuths_deg": azimuths,
                 "azimuth_from": from,
+                "north": north_of(params, true_north),
                 "unit": unit,
                 "nodata": nodata,
             }),
@@ -66,7 +70,7 @@ pub fn terrain_files(
     }
     if let Some(d) = &p.distance {
         let unit = distance_unit(map, params);
-        let descriptions = distance_descriptions(params, p.bins, &unit);
+        let descriptions = distance_descriptions(params, p.bins, &unit, true_north);
         let bands: Vec<geotiff::Band<'_>> = d
             .chunks_exact(plane)
             .zip(descriptions)
@@ -85,6 +89,7 @@ pub fn terrain_files(
                 "bands": bands.iter().map(|b| b.description.clone()).collect::<Vec<_>>(),
                 "azimuths_deg": azimuths,
                 "azimuth_from": azimuth_from_name(params),
+                "north": north_of(params, true_north),
                 "unit": unit,
                 "value": "horizontal distance to the point that sets the horizon (exact ray); \
                           nodata where the horizon is 0",
@@ -117,7 +122,81 @@ pub fn terrain_files(
             );
         }
     }
+    let sun = [
+        ("sun_hours.tif", &p.sun_hours, "hours of direct sun", "hours"),
+        ("insolation.tif", &p.insolation, "clear-sky direct beam on the surface", "Wh/m²"),
+    ];
+    for (name, plane, what, unit) in sun {
+        let Some(plane) = plane else { continue };
+        if progress.is_canceled() {
+            return Err(Error::Canceled);
+        }
+        let step = params.time_step_minutes.unwrap_or(crate::params::DEFAULT_TIME_STEP_MINUTES);
+        let (from, to) = (params.date_from.as_deref(), params.date_to.as_deref());
+        let (from, to) = (from.unwrap_or_default(), to.unwrap_or_default());
+        let days = if from == to { from.to_owned() } else { format!("{from} to {to}") };
+        let description = format!("{what}, {unit}, {days}, every {step} min");
+        let bands = [geotiff::Band { plane, description: description.clone() }];
+        let bytes = geotiff::encode(p.width, p.height, &bands, georef, p.nodata)?;
+        files.push(OutFile { name, bytes });
+        let place = match (params.latitude, params.longitude) {
+            (Some(a), Some(o)) => {
+                serde_json::json!({"latitude": a, "longitude": o, "from": "given"})
+            }
+            _ => match bake::centre_lat_lon(map) {
+                Some((a, o)) => serde_json::json!({
+                    "latitude": (a * 1e6).round() / 1e6,
+                    "longitude": (o * 1e6).round() / 1e6,
+                    "from": "the DEM's centre",
+                }),
+                None => serde_json::Value::Null,
+            },
+        };
+        info.insert(
+            name.into(),
+            serde_json::json!({
+                "bands": [description],
+                "unit": unit,
+                "date_from": from,
+                "date_to": to,
+                "time_step_minutes": step,
+                "sun": "NREL SPA (solar-positioning crate), apparent elevation; local mean \
+                        solar days; the midpoint of each step",
+                "place": place,
+                "clear_sky": if name == "insolation.tif" {
+                    "simplified Solis (Ineichen 2008) with pvlib's defaults: aod700 0.1, \
+                     precipitable water 1 cm, I0 1364 W/m², pressure of the texel's altitude \
+                     (pvlib alt2pres); direct beam only, times the cosine of incidence on the \
+                     surface"
+                } else {
+                    "none: a step counts where the sun is above 0° and above the horizon at \
+                     its own azimuth"
+                },
+                "north": north,
+                "nodata": nodata,
+            }),
+        );
+    }
     Ok((files, radius, serde_json::Value::Object(info)))
+}
+
+/// What a product's azimuths count from, for bake.json: `east_ccw` is the grid's x axis;
+/// `north_cw` is true north where the map's projection gives it, else grid north.
+fn north_of(params: &BakeParams, true_north: bool) -> &'static str {
+    match (params.azimuth_from, true_north) {
+        (crate::params::AzimuthFrom::EastCcw, _) => "grid (x axis)",
+        (crate::params::AzimuthFrom::NorthCw, true) => "true",
+        (crate::params::AzimuthFrom::NorthCw, false) => "grid",
+    }
+}
+
+/// The azimuth convention of a band description: `east_ccw`, or `north_cw` with which north.
+fn band_from(params: &BakeParams, true_north: bool) -> &'static str {
+    match (params.azimuth_from, true_north) {
+        (crate::params::AzimuthFrom::EastCcw, _) => "east_ccw",
+        (crate::params::AzimuthFrom::NorthCw, true) => "north_cw, true north",
+        (crate::params::AzimuthFrom::NorthCw, false) => "north_cw",
+    }
 }
 
 /// The unit of `horizon_distance.tif`: the CRS's linear unit when `cell_size` came from it (or
@@ -131,8 +210,13 @@ fn distance_unit(map: &HeightMap, params: &BakeParams) -> String {
 }
 
 /// The band descriptions of `horizon_distance.tif` at `bins` azimuths.
-fn distance_descriptions(params: &BakeParams, bins: usize, unit: &str) -> Vec<String> {
-    let from = azimuth_from_name(params);
+fn distance_descriptions(
+    params: &BakeParams,
+    bins: usize,
+    unit: &str,
+    true_north: bool,
+) -> Vec<String> {
+    let from = band_from(params, true_north);
     (0..bins)
         .map(|n| {
             let az = crate::terrain::angles::band_azimuth_deg(n, bins);
@@ -165,8 +249,9 @@ fn svf_model_name(params: &BakeParams) -> &'static str {
 }
 
 /// The band descriptions of `angles.tif` at `bins` azimuths (as [`terrain_files`] writes them).
-pub fn angle_descriptions(params: &BakeParams, bins: usize) -> Vec<String> {
-    let (from, unit) = (azimuth_from_name(params), angle_unit_name(params));
+/// `true_north`: compass bands are true azimuths (SPEC §3.7 "True and grid north").
+pub fn angle_descriptions(params: &BakeParams, bins: usize, true_north: bool) -> Vec<String> {
+    let (from, unit) = (band_from(params, true_north), angle_unit_name(params));
     (0..bins)
         .map(|n| {
             let az = crate::terrain::angles::band_azimuth_deg(n, bins);
@@ -188,17 +273,20 @@ pub fn svf_description(params: &BakeParams, bins: usize) -> String {
 pub fn shadow_tif(
     map: &HeightMap,
     params: &BakeParams,
-    azimuth_deg: f64,
-    elevation_deg: f64,
+    sun: &SunQuery,
     progress: &Progress,
 ) -> Result<Vec<u8>> {
-    let plane = bake::shadow(map, params, azimuth_deg, elevation_deg, progress)?;
-    let from = match params.azimuth_from {
-        crate::params::AzimuthFrom::EastCcw => "east_ccw",
-        crate::params::AzimuthFrom::NorthCw => "north_cw",
+    let (azimuth, elevation_deg, _) = sun.resolve(bake::centre_lat_lon(map))?;
+    let plane = bake::shadow(map, params, azimuth, elevation_deg, progress)?;
+    let (compass, _) = bake::compass_of(map, params);
+    let from = match (azimuth, compass.is_true()) {
+        (SunAzimuth::Grid(_), _) => "east_ccw: counter-clockwise from the grid's x axis",
+        (SunAzimuth::True(_), true) => "north_cw: clockwise from true north",
+        (SunAzimuth::True(_), false) => "north_cw: clockwise from grid north",
     };
     let description = format!(
-        "sun shadow at azimuth {azimuth_deg}° ({from}), elevation {elevation_deg}° (1 lit, 0 shadow)"
+        "sun shadow at azimuth {}° ({from}), elevation {elevation_deg}° (1 lit, 0 shadow)",
+        azimuth.degrees()
     );
     encode::geotiff::encode_u8(
         map.width,
@@ -218,11 +306,11 @@ pub fn shadow_tif(
 pub fn shadow_png(
     map: &HeightMap,
     params: &BakeParams,
-    azimuth_deg: f64,
-    elevation_deg: f64,
+    sun: &SunQuery,
     progress: &Progress,
 ) -> Result<Vec<u8>> {
-    let plane = bake::shadow(map, params, azimuth_deg, elevation_deg, progress)?;
+    let (azimuth, elevation_deg, _) = sun.resolve(bake::centre_lat_lon(map))?;
+    let plane = bake::shadow(map, params, azimuth, elevation_deg, progress)?;
     png::encode8(map.width, map.height, png::PngColor::GrayAlpha, &shadow_grey(&plane))
 }
 

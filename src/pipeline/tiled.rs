@@ -105,12 +105,12 @@ pub fn check(
         ));
     }
     let o = params.outputs;
-    if o.fourier || o.surface() || o.horizon_distance || o.openness {
+    if o.fourier || o.surface() || o.horizon_distance || o.openness || o.sun() {
         return Err(Error::param(
             "outputs",
             "a tiled bake (map above --tile-above) produces the horizon layers and the terrain \
              products (angles, svf); not fourier, nor yet the surface maps (normal, ao, \
-             bent_normal), horizon_distance or openness",
+             bent_normal), horizon_distance, openness, sun_hours or insolation",
         ));
     }
     // Each terrain product is one classic GeoTIFF, assembled tile by tile: the untiled bake's
@@ -329,7 +329,13 @@ impl Tiler for PipelineTiler {
                     continue;
                 }
                 let names = if tag == assemble::tag::ANGLES {
-                    crate::pipeline::angle_descriptions(&params, nb)
+                    let (compass, _) = crate::heightmap::north::compass(
+                        georef.as_ref(),
+                        (0, 0),
+                        (w, h),
+                        params.y_axis,
+                    );
+                    crate::pipeline::angle_descriptions(&params, nb, compass.is_true())
                 } else {
                     vec![crate::pipeline::svf_description(&params, nb)]
                 };
@@ -503,11 +509,13 @@ pub fn bake_tile_into<W: Write>(
     let interior = (ox as usize, oy as usize, g.interior.w as usize, g.interior.h as usize);
     // The terrain products first (as the untiled bake does): the horizon bake consumes the window.
     let (range, radius) = (ctx.range, ctx.radius);
+    // Where the window lies in the map its georeferencing describes (compass bands, SPEC §3.7).
+    let origin = Some((g.window_x as usize, g.window_y as usize));
     let mut window = Some(window);
     let terrain = if params.outputs.terrain() {
         let w = if params.outputs.horizon { window.clone() } else { window.take() };
         let w = w.ok_or_else(|| Error::Internal("no window".into()))?;
-        Some(bake::bake_terrain_window(w, params, interior, range, radius, progress)?)
+        Some(bake::bake_terrain_window(w, params, interior, origin, range, radius, progress)?)
     } else {
         None
     };

@@ -67,6 +67,8 @@ pub const ROUTES: &[(&str, &[&str])] = &[
     ("/v1/bakes/{id}/horizon_distance", &["GET"]),
     ("/v1/bakes/{id}/openness_positive", &["GET"]),
     ("/v1/bakes/{id}/openness_negative", &["GET"]),
+    ("/v1/bakes/{id}/sun_hours", &["GET"]),
+    ("/v1/bakes/{id}/insolation", &["GET"]),
     ("/v1/bakes/{id}/shadow", &["GET"]),
     ("/v1/bakes/{id}/profile", &["GET"]),
     ("/v1/bakes/{id}/preview", &["GET"]),
@@ -299,6 +301,8 @@ pub fn app(st: AppState) -> Router {
         .route("/v1/bakes/{id}/horizon_distance", get(handlers::horizon_distance))
         .route("/v1/bakes/{id}/openness_positive", get(handlers::openness_positive))
         .route("/v1/bakes/{id}/openness_negative", get(handlers::openness_negative))
+        .route("/v1/bakes/{id}/sun_hours", get(handlers::sun_hours))
+        .route("/v1/bakes/{id}/insolation", get(handlers::insolation))
         .route("/v1/bakes/{id}/shadow", get(handlers::shadow))
         .route("/v1/bakes/{id}/profile", get(handlers::profile))
         .route("/v1/bakes/{id}/preview", get(handlers::preview))

@@ -22,10 +22,20 @@ pub fn profile(
     y_axis: YAxis,
     horizon_sin: impl Fn(f64) -> f64,
 ) -> Vec<(f64, f64)> {
+    profile_with(bins, |az| tangent_azimuth(az, from, y_axis), horizon_sin)
+}
+
+/// [`profile`] with the azimuth in degrees turned into φ by `to_phi` (a true azimuth through a
+/// map's projection, [`crate::heightmap::north::Compass`]).
+pub fn profile_with(
+    bins: usize,
+    to_phi: impl Fn(f64) -> f64,
+    horizon_sin: impl Fn(f64) -> f64,
+) -> Vec<(f64, f64)> {
     (0..bins)
         .map(|n| {
             let az = n as f64 * 360.0 / bins as f64;
-            let s = horizon_sin(tangent_azimuth(az, from, y_axis)).clamp(0.0, 1.0);
+            let s = horizon_sin(to_phi(az)).clamp(0.0, 1.0);
             (az, s.asin().to_degrees())
         })
         .collect()

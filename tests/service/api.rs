@@ -928,6 +928,55 @@ async fn openness_over_http() {
     srv.stop().await;
 }
 
+/// Issue 44: sun hours and insolation over HTTP are the library's GeoTIFFs; a plain image (no
+/// projection to place the sun) without latitude/longitude is refused at submission naming
+/// latitude, and a sum without a day naming date.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sun_hours_and_insolation_over_http() {
+    use horizon_bake::params::BakeParams;
+    let srv = Server::start(|_| {}).await;
+    let c = client();
+    let png = terrain_png16(29, 21, 45);
+    let q = "method=exact&radius=8&edge=none&height_scale=20&outputs=sun_hours,insolation\
+             &date=2026-03-20&time_step_minutes=30&latitude=46.5&longitude=8.0";
+    let params = BakeParams::from_pairs(q.split('&').filter_map(|kv| kv.split_once('='))).unwrap();
+    let (map, _) =
+        horizon_bake::heightmap::decode(&png, params.channel, &Default::default()).unwrap();
+    let progress = horizon_bake::progress::Progress::new();
+    let (want, _, _) = horizon_bake::pipeline::terrain_files(&map, &params, &progress).unwrap();
+    assert_eq!(want.len(), 2);
+    let loc = submit_ok(&c, &srv, &png, &format!("?{q}")).await;
+    let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
+    assert_eq!(v["status"], "succeeded", "{v}");
+    for name in ["sun_hours", "insolation"] {
+        assert_eq!(v["links"][name], format!("{loc}/{name}"), "{v}");
+        let res = c.get(srv.url(&format!("{loc}/{name}"))).send().await.unwrap();
+        assert_eq!(res.status(), 200, "{name}");
+        let body = res.bytes().await.unwrap();
+        let f = want.iter().find(|f| f.name == format!("{name}.tif")).unwrap();
+        assert!(body[..] == f.bytes[..], "{name}.tif differs from the library's");
+    }
+    for (query, field) in [
+        ("method=exact&outputs=sun_hours&date=2026-03-20", "latitude"),
+        ("method=exact&outputs=sun_hours&latitude=46&longitude=8", "date"),
+        ("method=exact&outputs=insolation&date=2026-03-20&latitude=46", "longitude"),
+        ("method=exact&outputs=sun_hours&date_from=2026-03-20&date_to=2027-06-01&latitude=46&longitude=8", "date_to"),
+        ("method=exact&outputs=sun_hours&date=2026-03-20&time_step_minutes=7&latitude=46&longitude=8", "time_step_minutes"),
+    ] {
+        let res = c
+            .post(srv.url(&format!("/v1/bakes?{query}")))
+            .header("content-type", "image/png")
+            .body(png.clone())
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(res.status(), 422, "{query}");
+        let p: Value = res.json().await.unwrap();
+        assert_eq!(p["field"], field, "{query}: {p}");
+    }
+    srv.stop().await;
+}
+
 /// Issue 24: a bake with `outputs=angles,svf` (and issue 44's `horizon_distance`) serves the
 /// same GeoTIFFs as the library writes; shadow and profile are computed on request.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -380,6 +380,29 @@ def horizon_deg(col, row, phi, curvature=True, radius=math.inf, distance=False, 
     return deg
 
 
+# True azimuths (compass bands, every sun) through GDAL's projection (PROJ), not ours: the
+# texel centre to longitude/latitude, a 10 m step along azimuth theta on the WGS84 ellipsoid
+# (meridional and prime-vertical radii), back to the map; phi is that step's direction from
+# the grid's x axis (y north = up the image).
+from rasterio.warp import transform as warp_points  # noqa: E402
+
+A_WGS, E2_WGS = 6378137.0, 0.00669437999014
+
+
+def true_phi(col, row, theta_deg):
+    x = transform.c + (col + 0.5) * transform.a
+    y = transform.f + (row + 0.5) * transform.e
+    (lon,), (lat,) = warp_points(crs, "EPSG:4326", [x], [y])
+    sl = math.sin(math.radians(lat))
+    w_ = math.sqrt(1 - E2_WGS * sl * sl)
+    m_r, n_r = A_WGS * (1 - E2_WGS) / w_ ** 3, A_WGS / w_
+    th = math.radians(theta_deg)
+    lat2 = lat + math.degrees(10.0 * math.cos(th) / m_r)
+    lon2 = lon + math.degrees(10.0 * math.sin(th) / (n_r * math.cos(math.radians(lat))))
+    (x2,), (y2,) = warp_points("EPSG:4326", crs, [lon2], [lat2])
+    return math.atan2(y2 - y, x2 - x)
+
+
 rng = np.random.default_rng(24)
 valid = np.argwhere(~holes)
 pick = valid[rng.choice(len(valid), 120, replace=False)]
@@ -424,7 +447,7 @@ if p.returncode == 0:
     check((prof["x"], prof["y"]) == (col, row), f"--at-map lands on texel ({col}, {row})")
     az = np.array([q["azimuth"] for q in prof["profile"]])
     el = np.array([q["elevation"] for q in prof["profile"]])
-    ref = np.array([horizon_deg(col, row, math.radians(90 - a)) for a in az])
+    ref = np.array([horizon_deg(col, row, true_phi(col, row, a)) for a in az])
     check(len(az) == 360 and np.abs(el - ref).max() <= 0.01,
           f"profile: 360 azimuths within 0.01 deg of the reference (max {np.abs(el - ref).max():.5f})")
     csv = subprocess.run([BIN, "profile", UTM, "--at", f"{col},{row}", "--bins", "8"],
@@ -446,10 +469,11 @@ if code == 0:
         sh = o.read(1)
     check(np.all(sh[holes] == 255) and np.all(np.isin(sh[~holes], [0, 1])),
           "shadow.tif: 255 exactly at holes, 0/1 elsewhere")
-    phi_sun = math.radians(90 - SUN_AZ)
+    # The sun's azimuth is true (SPEC 3.7): 2.19 deg off grid north here, so before the
+    # conversion the grid ray put texels on the wrong side of the terminator.
     agree = total = 0
     for row, col in pick:
-        ref = horizon_deg(col, row, phi_sun)
+        ref = horizon_deg(col, row, true_phi(col, row, SUN_AZ))
         if abs(ref - SUN_EL) < 0.01:
             continue
         total += 1
@@ -479,10 +503,9 @@ if p.returncode == 0:
           "SPA sun position within 0.01 deg of pvlib's")
     with rasterio.open(SHADOW2) as o:
         sh2 = o.read(1)
-    phi = math.radians(90 - pv_az)
     agree = total = 0
     for row, col in pick:
-        ref = horizon_deg(col, row, phi)
+        ref = horizon_deg(col, row, true_phi(col, row, pv_az))
         total += 1
         agree += int(sh2[row, col] == (1 if pv_el > ref else 0))
     print(f"shadow at pvlib's sun: {agree}/{total} texels agree; "
@@ -498,9 +521,21 @@ check(code == 0, f"north_cw bake (exit {code} {err[:200]})")
 if code == 0:
     with rasterio.open(os.path.join(OUT2, "angles.tif")) as a:
         north = a.read().astype(np.float64)
-    same = all(np.allclose(north[n][~holes], np.radians(ang[(BINS // 4 - n) % BINS][~holes]),
-                           atol=2e-6) for n in range(BINS))
-    check(same, "north_cw band n = east_ccw band (bins/4 - n), in radians")
+    # Band n is the horizon at true azimuth n * 360 / bins: the reference ray at GDAL's phi
+    # of that azimuth at each texel (2.2 deg off the grid's bins/4 - n here).
+    b = json.load(open(os.path.join(OUT2, "bake.json")))
+    nb = b["products"]["angles.tif"]
+    check(nb["north"] == "true" and "true north" in nb["bands"][0],
+          f"north_cw bands say true north: {nb['north']}, {nb['bands'][0]}")
+    tn = np.array([[abs(math.degrees(north[n, row, col])
+                        - horizon_deg(col, row, true_phi(col, row, n * 360.0 / BINS)))
+                    for n in range(BINS)] for row, col in pick[:40]])
+    renumbered = max(np.abs(north[n][~holes] - np.radians(ang[(BINS // 4 - n) % BINS][~holes])).max()
+                     for n in range(BINS))
+    print(f"north_cw true-north bands vs reference on 40 texels: max {tn.max():.5f} deg; "
+          f"from the renumbered grid bins up to {math.degrees(renumbered):.3f} deg")
+    check(tn.max() <= 0.01, f"north_cw bands = the reference at true azimuths (max {tn.max():.5f})")
+    check(math.degrees(renumbered) > 0.05, "north_cw bands are not the grid's bins renumbered")
 
 # --- 7 azimuths (not a multiple of 16) with march, and SVF visual ---
 OUT3 = os.path.join(WORK, "utm_march")
@@ -563,7 +598,9 @@ if code == 0 and code2 == 0:
             rasterio.open(SHADOW3) as o:
         ch = np.concatenate([l0.read(), l1.read()]).astype(np.float64) / 255.0  # 8 channels
         sh3 = o.read(1)
-    pos = ((90.0 - SUN_AZ) % 360.0) / 45.0  # SPEC 2: channel c at c*45 deg, east_ccw, y up
+    # SPEC 2: channel c at c*45 deg, east_ccw, y up; the layers are decoded for one light, the
+    # sun's true azimuth turned to the grid at the map's centre.
+    pos = (math.degrees(true_phi(W // 2, H // 2, SUN_AZ)) % 360.0) / 45.0
     c, t = int(pos) % 8, pos - int(pos)
     s = (1 - t) * ch[c] + t * ch[(c + 1) % 8]
     want = (math.sin(math.radians(EL3)) > s).astype(np.uint8)
@@ -685,6 +722,75 @@ if code == 0:
     check(flat_d.max() > 1e-3, "the tilted SVF is not the horizontal one")
     check(np.all(svf_t[holes] == -9999), "tilted svf: holes nodata")
     check("tilted" in descr_t, f"svf.tif says tilted: {descr_t}")
+
+# --- sun hours and insolation (issue 44): pvlib's SPA and clear sky, the reference ray ---
+# One local mean solar day sampled every 10 min at the middle of each step, at the DEM's centre
+# (GDAL's inverse projection of it); a step counts where pvlib's apparent elevation is above 0
+# and above the reference horizon at GDAL's phi of pvlib's azimuth. Insolation adds pvlib's
+# simplified Solis DNI at the texel's pressure (alt2pres) times the cosine of incidence on
+# numpy's central-difference normal.
+OUTS = os.path.join(WORK, "sun")
+DAY = "2026-06-21"
+code, err = run("bake", UTM, "-o", OUTS, "--format", "geotiff", "--outputs",
+                "sun_hours,insolation", "--date", DAY)
+check(code == 0, f"sun_hours,insolation bake (exit {code} {err[:200]})")
+if code == 0:
+    bs = json.load(open(os.path.join(OUTS, "bake.json")))
+    place = bs["products"]["sun_hours.tif"]["place"]
+    cx = transform.c + W / 2 * transform.a
+    cy = transform.f + H / 2 * transform.e
+    (clon,), (clat,) = warp_points(crs, "EPSG:4326", [cx], [cy])
+    check(abs(place["latitude"] - clat) < 1e-5 and abs(place["longitude"] - clon) < 1e-5,
+          f"the sun's place is the DEM's centre ({place}, GDAL {clat:.6f}, {clon:.6f})")
+    with rasterio.open(os.path.join(OUTS, "sun_hours.tif")) as o, \
+            rasterio.open(os.path.join(OUTS, "insolation.tif")) as q:
+        hours = o.read(1).astype(np.float64)
+        ins = q.read(1).astype(np.float64)
+        check(o.crs == crs and o.nodata == -9999, "sun_hours.tif keeps the CRS and nodata")
+    midnight = pd.Timestamp(DAY, tz="UTC") - pd.Timedelta(hours=clon / 15.0)
+    times = pd.DatetimeIndex([midnight + pd.Timedelta(minutes=10 * (k + 0.5)) for k in range(144)])
+    sp = pvlib.solarposition.spa_python(times, clat, clon, altitude=0, pressure=101325,
+                                        temperature=12)
+    up = sp[sp["apparent_elevation"] > 0]
+    az_s, el_s = up["azimuth"].to_numpy(), up["apparent_elevation"].to_numpy()
+    gx = np.zeros_like(dem)
+    gy = np.zeros_like(dem)
+    gx[:, 1:-1] = (dem[:, 2:] - dem[:, :-2]) / (2 * cell)
+    gy[1:-1, :] = (dem[:-2, :] - dem[2:, :]) / (2 * cell)
+    inner = np.zeros_like(holes)
+    inner[1:-1, 1:-1] = ~(holes[1:-1, 1:-1] | holes[:-2, 1:-1] | holes[2:, 1:-1]
+                          | holes[1:-1, :-2] | holes[1:-1, 2:])
+    cand = np.argwhere(inner)
+    sample = cand[rng.choice(len(cand), 20, replace=False)]
+    h_err, e_err = [], []
+    for row, col in sample:
+        nrm = np.array([-gx[row, col], -gy[row, col], 1.0])
+        nrm /= np.linalg.norm(nrm)
+        pres = pvlib.atmosphere.alt2pres(float(dem[row, col]))
+        lit_n, wh, one_step = 0, 0.0, 0.0
+        for a_, e_ in zip(az_s, el_s):
+            phi = true_phi(col, row, a_)
+            if e_ <= horizon_deg(col, row, phi):
+                continue
+            lit_n += 1
+            dni = float(pvlib.clearsky.simplified_solis(e_, pressure=pres)["dni"])
+            ce = math.cos(math.radians(e_))
+            sun_v = np.array([ce * math.cos(phi), ce * math.sin(phi), math.sin(math.radians(e_))])
+            part = dni * max(0.0, float(nrm @ sun_v)) / 6.0
+            wh += part
+            one_step = max(one_step, part)
+        h_err.append(abs(hours[row, col] - lit_n / 6.0))
+        e_err.append(abs(ins[row, col] - wh) - one_step)
+    h_err, e_err = np.array(h_err), np.array(e_err)
+    print(f"sun hours vs pvlib + reference ray on {len(sample)} texels: max |d| {h_err.max():.3f} h "
+          f"(one step 0.167 h); insolation max |d| - one step {e_err.max():.1f} Wh/m2; "
+          f"map mean {hours[~holes].mean():.2f} h, {ins[~holes].mean():.0f} Wh/m2")
+    check(h_err.max() <= 1 / 6 + 1e-6, f"sun hours within one 10-min step (max {h_err.max():.3f} h)")
+    check(e_err.max() <= 0.01 * 8000, f"insolation within one step + 1 % of pvlib's (max {e_err.max():.1f})")
+    check(np.all(hours[holes] == -9999) and np.all(ins[holes] == -9999), "sun products: holes nodata")
+    code, err = run("bake", UTM, "-o", os.path.join(WORK, "sun_nodate"), "--format", "geotiff",
+                    "--outputs", "sun_hours")
+    check(code == 2 and "date" in err, f"sun_hours without a date is refused naming date ({err[:120]})")
 
 if failures:
     print(f"{len(failures)} check(s) failed")

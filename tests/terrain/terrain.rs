@@ -11,6 +11,7 @@ use horizon_bake::kernels::exact::ExactHorizon;
 use horizon_bake::kernels::Grid;
 use horizon_bake::params::{BakeParams, Channel, Edge, NoData, Reduce, YAxis};
 use horizon_bake::progress::Progress;
+use horizon_bake::terrain::sun::SunAzimuth;
 use horizon_bake::Error;
 
 /// A gray float32 TIFF of `values` (no georeferencing), written by the `tiff` crate.
@@ -457,11 +458,11 @@ fn lengyel_shadow_is_lz_above_the_decoded_layers() {
         };
         let p = with(&[("method", "lengyel")]);
         let az = 200.0f64; // east_ccw: 250° from north, clockwise (y up)
-        let got = bake::shadow(&map, &p, az, el, &pr).unwrap();
+        let got = bake::shadow(&map, &p, SunAzimuth::Grid(az), el, &pr).unwrap();
         let compass = bake::shadow(
             &map,
             &with(&[("method", "lengyel"), ("azimuth_from", "north_cw")]),
-            250.0,
+            SunAzimuth::True(250.0),
             el,
             &pr,
         )
@@ -504,7 +505,8 @@ fn lengyel_shadow_is_lz_above_the_decoded_layers() {
         assert!(lit > 100 && dark > 100, "{encoding}: {lit} lit, {dark} shadowed");
         // The exact ray at the same radius disagrees somewhere: the layers are 8 channels of a
         // bin maximum, not the horizon at the sun's azimuth.
-        let ray = bake::shadow(&map, &with(&[("method", "exact")]), az, el, &pr).unwrap();
+        let ray = bake::shadow(&map, &with(&[("method", "exact")]), SunAzimuth::Grid(az), el, &pr)
+            .unwrap();
         let differ = ray.iter().zip(&got).filter(|(a, b)| a != b).count();
         eprintln!("{encoding}: lengyel {lit} lit, {dark} shadowed; differs from the exact ray on {differ} texels");
         assert!(differ > 0, "{encoding}: the lengyel shadow equals the exact ray's");

@@ -276,6 +276,19 @@ impl<'a> ExactHorizon<'a> {
         }
     }
 
+    /// [`ExactHorizon::horizon_and_distance`] at any azimuth `phi` (radians).
+    pub fn horizon_and_distance_at(&self, x: usize, y: usize, phi: f64) -> (f64, f64) {
+        assert!(x < self.grid.width && y < self.grid.height, "texel outside the grid");
+        let (dx, dy) = direction(phi, self.grid.row_step());
+        let ray = self.ray(x, y, dx, dy);
+        let (t, s) = self.walk(&ray, 0.0, 0.0);
+        if t > 0.0 {
+            (t, s)
+        } else {
+            (0.0, 0.0)
+        }
+    }
+
     /// Per-bin sin α of texel (x, y) into `s` (`bins` long), one scalar walk per azimuth (the
     /// vectorised path is [`HorizonRows::rows`]).
     pub fn texel_bins(&self, x: usize, y: usize, s: &mut [f32]) {

@@ -279,6 +279,14 @@ impl BakeResource {
                     links.insert(sign.to_owned(), format!("{base}/{sign}"));
                 }
             }
+            for (on, name) in [
+                (outputs.is_some_and(|o| o.sun_hours), "sun_hours"),
+                (outputs.is_some_and(|o| o.insolation), "insolation"),
+            ] {
+                if on {
+                    links.insert(name.to_owned(), format!("{base}/{name}"));
+                }
+            }
             // The surface maps (SPEC §3.8).
             for (on, name) in [
                 (outputs.is_some_and(|o| o.normal), "normal"),

@@ -224,14 +224,13 @@ pub async fn shadow(
     let rec = finished(&st, &id).await?;
     let params = params_of(&rec).map_err(store_err)?;
     let get = |k: &str| q.get(k).map(String::as_str);
-    let (az, el, _) = crate::terrain::sun::resolve(
+    let sun = crate::terrain::sun::SunQuery::parse(
         get("sun_azimuth"),
         get("sun_elevation"),
         get("sun_time"),
         get("latitude"),
         get("longitude"),
         params.azimuth_from,
-        params.y_axis,
     )
     .map_err(Problem::from)?;
     let bake_params: Vec<String> = rec.params.iter().map(|(k, v)| format!("{k}={v}")).collect();
@@ -239,7 +238,7 @@ pub async fn shadow(
         "shadow",
         &rec.input_blob,
         &bake_params.join("&"),
-        &format!("{az}|{el}|{as_png}"),
+        &format!("{sun:?}|{as_png}"),
     ]);
     const SHADOW_CACHE: &str = "private, max-age=86400";
     if etag_matches(&headers, &etag) {
@@ -254,9 +253,9 @@ pub async fn shadow(
         let (map, _, _held) = decode_stored(st, &rec, &params)?;
         crate::heightmap::georef::apply_dem_defaults(&mut params, map.terrain.georef.as_ref())?;
         if as_png {
-            crate::pipeline::shadow_png(&map, &params, az, el, &progress)
+            crate::pipeline::shadow_png(&map, &params, &sun, &progress)
         } else {
-            crate::pipeline::shadow_tif(&map, &params, az, el, &progress)
+            crate::pipeline::shadow_tif(&map, &params, &sun, &progress)
         }
     })
     .await?;

@@ -568,6 +568,26 @@ pub async fn openness_negative(
     stored_file(&st, &id, q, &headers, file, "openness", "image/tiff").await
 }
 
+/// `GET /v1/bakes/{id}/sun_hours`: `sun_hours.tif` (SPEC §3.7).
+pub async fn sun_hours(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    stored_file(&st, &id, q, &headers, "sun_hours.tif", "sun_hours", "image/tiff").await
+}
+
+/// `GET /v1/bakes/{id}/insolation`: `insolation.tif` (SPEC §3.7).
+pub async fn insolation(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    Query(q): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+) -> Answer {
+    stored_file(&st, &id, q, &headers, "insolation.tif", "insolation", "image/tiff").await
+}
+
 /// `GET /v1/bakes/{id}/svf`: `svf.tif`, the sky-view factor (SPEC §3.7); `format=png` renders
 /// it as an 8-bit grey + alpha PNG for a browser ([`crate::pipeline::svf_png`], on the preview
 /// pool), its strong ETag derived from the stored file's.
