@@ -70,7 +70,8 @@ PARAMETERS = (
     "height_scale", "channel", "edge", "y_axis", "method", "radius", "bins", "reduce",
     "min_elevation_deg", "encoding", "outputs", "fourier_terms", "fourier_range", "nodata",
     "cell_size", "max_distance", "earth_curvature", "refraction", "angle_unit", "azimuth_from",
-    "svf_model", "band", "normal_convention", "bent_normal_encoding",
+    "svf_model", "band", "normal_convention", "bent_normal_encoding", "date", "date_from",
+    "date_to", "time_step_minutes", "latitude", "longitude",
 )
 
 ProgressCallback = Callable[[float], Optional[bool]]
@@ -226,6 +227,17 @@ class BakeResult:
     angles: Optional[np.ndarray] = None
     #: Sky-view factor ``(H, W)`` float32; holes hold ``product_nodata``.
     svf: Optional[np.ndarray] = None
+    #: ``outputs`` ``horizon_distance``: ``(bins, H, W)`` float32, in ``angles``' band order,
+    #: the distance in map units to the point that sets each horizon (``product_nodata`` where
+    #: the horizon is 0 and at holes).
+    horizon_distance: Optional[np.ndarray] = None
+    #: ``outputs`` ``openness``: positive and negative openness ``(H, W)`` float32, degrees.
+    openness_positive: Optional[np.ndarray] = None
+    openness_negative: Optional[np.ndarray] = None
+    #: ``outputs`` ``sun_hours`` / ``insolation`` over ``date`` (or ``date_from``..``date_to``):
+    #: hours of direct sun and the clear-sky direct beam on the surface in Wh/m², ``(H, W)``.
+    sun_hours: Optional[np.ndarray] = None
+    insolation: Optional[np.ndarray] = None
     #: The surface maps (SPEC §3.8), the values of ``normal.png``, ``ao.png`` and
     #: ``bent_normal.png``: ``normal`` ``(H, W, 3)`` uint8 ((n + 1) / 2, y as
     #: ``normal_convention``), ``ao`` ``(H, W)`` uint8, ``bent_normal`` ``(H, W, 3)`` (``(H, W,

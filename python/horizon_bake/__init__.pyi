@@ -32,6 +32,11 @@ class BakeResult:
     fourier: Optional[Dict[str, Any]]
     angles: Optional[np.ndarray]
     svf: Optional[np.ndarray]
+    horizon_distance: Optional[np.ndarray]
+    openness_positive: Optional[np.ndarray]
+    openness_negative: Optional[np.ndarray]
+    sun_hours: Optional[np.ndarray]
+    insolation: Optional[np.ndarray]
     normal: Optional[np.ndarray]
     ao: Optional[np.ndarray]
     bent_normal: Optional[np.ndarray]
@@ -77,6 +82,12 @@ def bake(
     band: Union[int, str, None] = ...,
     normal_convention: Optional[str] = ...,
     bent_normal_encoding: Optional[str] = ...,
+    date: Optional[str] = ...,
+    date_from: Optional[str] = ...,
+    date_to: Optional[str] = ...,
+    time_step_minutes: Optional[int] = ...,
+    latitude: Optional[float] = ...,
+    longitude: Optional[float] = ...,
 ) -> BakeResult: ...
 def terrain(
     dem: Any,

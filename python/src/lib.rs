@@ -374,6 +374,19 @@ fn bake_array<'py>(
         if let Some(s) = t.svf {
             out.set_item("svf", array(py, s, &[t.height, t.width])?)?;
         }
+        if let Some(d) = t.distance {
+            out.set_item("horizon_distance", array(py, d, &[t.bins, t.height, t.width])?)?;
+        }
+        if let Some([pos, neg]) = t.openness {
+            out.set_item("openness_positive", array(py, pos, &[t.height, t.width])?)?;
+            out.set_item("openness_negative", array(py, neg, &[t.height, t.width])?)?;
+        }
+        if let Some(v) = t.sun_hours {
+            out.set_item("sun_hours", array(py, v, &[t.height, t.width])?)?;
+        }
+        if let Some(v) = t.insolation {
+            out.set_item("insolation", array(py, v, &[t.height, t.width])?)?;
+        }
         out.set_item("product_nodata", t.nodata)?;
     }
     if let Some(m) = made.surface {

@@ -57,6 +57,30 @@ def test_terrain_equals_the_clis_geotiffs(cli, utm_tif, tmp_path):
     assert at == t and acrs == crs
 
 
+def test_the_other_terrain_products_equal_the_clis(cli, utm_tif, tmp_path):
+    """Issue 44's products from an array: horizon distance, openness, sun hours, insolation."""
+    flags = ["--bins", "8", "--max-distance", "2000", "--date", "2026-06-21",
+             "--time-step-minutes", "60"]
+    outputs = "horizon_distance,openness,sun_hours,insolation"
+    p = run_cli(cli, "bake", utm_tif, "-o", str(tmp_path / "cli"), "--outputs", outputs,
+                "--format", "geotiff", *flags)
+    assert p.returncode == 0, p.stderr
+    with rasterio.open(utm_tif) as src:
+        dem, t, crs, nd = src.read(1), src.transform, src.crs, src.nodata
+    r = hb.terrain(dem, transform=t, crs=crs, nodata=nd, outputs=outputs, bins=8,
+                   max_distance=2000, date="2026-06-21", time_step_minutes=60)
+    assert (r.params["date_from"], r.params["date_to"], r.params["time_step_minutes"]) == \
+        ("2026-06-21", "2026-06-21", "60")
+    for name, got in [("horizon_distance", r.horizon_distance),
+                      ("openness_positive", r.openness_positive),
+                      ("openness_negative", r.openness_negative),
+                      ("sun_hours", r.sun_hours), ("insolation", r.insolation)]:
+        want = read(tmp_path / "cli" / f"{name}.tif")[0]
+        want = want if name == "horizon_distance" else want[0]
+        assert np.array_equal(got, want, equal_nan=True), name
+    assert 10 < float(np.median(r.sun_hours[r.sun_hours != nd])) <= 16.5
+
+
 def test_rasterio_adapter_keeps_crs_transform_and_nodata(utm_tif, tmp_path):
     from horizon_bake import rasterio as hbr
 

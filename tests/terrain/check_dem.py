@@ -481,6 +481,16 @@ if code == 0:
     print(f"shadow agrees with the reference on {agree}/{total} texels; "
           f"{np.mean(sh[~holes] == 0):.1%} of the map in shadow")
     check(agree == total, "shadow = (sun above the reference horizon at the sun's azimuth)")
+    # What the grid's azimuth (the sun's compass azimuth read as a grid one, as before true
+    # north) would give: 90 - az counter-clockwise from the grid's x axis.
+    GRIDSH = os.path.join(WORK, "shadow_grid.tif")
+    code, err = run("shadow", UTM, "-o", GRIDSH, "--sun-azimuth", str(90.0 - SUN_AZ),
+                    "--sun-elevation", str(SUN_EL))
+    with rasterio.open(GRIDSH) as o:
+        flips = int(np.sum(o.read(1)[~holes] != sh[~holes]))
+    print(f"true vs grid north at {math.degrees(true_phi(W // 2, H // 2, 0.0)) - 90:.2f} deg of "
+          f"convergence: {flips} of {int((~holes).sum())} texels flip")
+    check(code == 0 and flips > 0, "the shadow at the true azimuth is not the grid azimuth's")
 
 # --- the sun of a time and place (NREL SPA) against pvlib's SPA, and its shadow ---
 import pandas as pd  # noqa: E402  (pvlib brings it)
