@@ -99,6 +99,9 @@ pub struct PreviewParams {
     pub contact_sheet: u32,
     /// Half the azimuth span of a contact sheet, in degrees (tiles cover azimuth ± spread).
     pub sheet_spread: f64,
+    /// `baked`: the ambient and environment terms are multiplied by the bake's ambient
+    /// occlusion (`ao.png`, SPEC §3.8), as an engine applies an AO map; `none` (default).
+    pub ambient_occlusion: bool,
 }
 
 impl Default for PreviewParams {
@@ -122,6 +125,7 @@ impl Default for PreviewParams {
             cube_size: 16,
             contact_sheet: 0,
             sheet_spread: 60.0,
+            ambient_occlusion: false,
         }
     }
 }
@@ -146,6 +150,7 @@ pub const PREVIEW_PARAM_NAMES: &[&str] = &[
     "cube_size",
     "contact_sheet",
     "sheet_spread",
+    "ambient_occlusion",
 ];
 
 use crate::params::parse_f64 as num;
@@ -269,6 +274,13 @@ impl PreviewParams {
                 }
                 self.parallax_strength = s;
             }
+            "ambient_occlusion" => {
+                self.ambient_occlusion = match lower.as_str() {
+                    "none" => false,
+                    "baked" => true,
+                    _ => return Err(Error::param(key, format!("`{value}` is not one of none, baked"))),
+                }
+            }
             "horizon_occlusion" => {
                 let f = num(key, value)?;
                 if !(0.0..=1000.0).contains(&f) {
@@ -354,6 +366,8 @@ pub fn from_angles(azimuth: f64, elevation: f64) -> [f64; 3] {
 pub struct Baked<'a> {
     pub horizon: Option<&'a HorizonLayers>,
     pub fourier: Option<&'a FourierLayers>,
+    /// `ao.png`'s values (SPEC §3.8), one per texel, for `ambient_occlusion=baked`.
+    pub ao: Option<&'a [u8]>,
 }
 
 /// An 8-bit sRGB RGBA image (alpha always 255), row-major from the top.
@@ -448,6 +462,8 @@ pub struct Scene<'a> {
     fourier:
         Option<(Texture<'a>, Texture<'a>, Option<Texture<'a>>, usize, crate::params::FourierRange)>,
     cube: CubeMap,
+    /// The ambient occlusion as a one-channel texture (`ambient_occlusion=baked`).
+    ao: Option<Texture<'a>>,
     params: PreviewParams,
 }
 
@@ -530,9 +546,30 @@ impl<'a> Scene<'a> {
         } else {
             None
         };
+        let ao = if params.ambient_occlusion {
+            let a = baked.ao.ok_or_else(|| {
+                Error::param("ambient_occlusion", "the ambient occlusion was not baked")
+            })?;
+            if a.len() != map.width * map.height {
+                return Err(Error::param(
+                    "ambient_occlusion",
+                    "the ambient occlusion does not match the height map's size",
+                ));
+            }
+            Some(Texture {
+                width: map.width,
+                height: map.height,
+                channels: 1,
+                samples: Samples::U8(a),
+                wrap,
+            })
+        } else {
+            None
+        };
         Ok(Scene {
             width: map.width,
             height: map.height,
+            ao,
             hmin: lo as f64,
             hmax: hi as f64,
             normals,
@@ -662,7 +699,16 @@ impl<'a> Scene<'a> {
                 let nv = dot(n, v);
                 let refl_z = 2.0 * nv * n[2] - v[2];
                 let ho = (1.0 + p.horizon_occlusion * refl_z).clamp(0.0, 1.0);
-                let lit = |f: f64| ALBEDO * (AMBIENT + f * ndl) + (f * spec + ENV_REFLECTION) * ho;
+                // An AO map darkens the light that comes from everywhere (ambient and the
+                // environment's reflection), not the sun's, which F already shadows.
+                let occ = self.ao.as_ref().map_or(1.0, |t| {
+                    let mut a = [0f32; 4];
+                    t.sample(x, r, &mut a);
+                    a[0] as f64
+                });
+                let lit = |f: f64| {
+                    ALBEDO * (AMBIENT * occ + f * ndl) + (f * spec + ENV_REFLECTION * occ) * ho
+                };
                 let rgb = match p.shading {
                     Shading::None => [lit(1.0); 3],
                     Shading::Horizon => {
@@ -774,7 +820,15 @@ pub fn render_baking(
         Shading::Fourier => Some(bake::bake_fourier(map, bake, progress)?.0),
         _ => None,
     };
-    let baked = Baked { horizon: horizon.as_ref(), fourier: fourier.as_ref() };
+    let ao = if params.ambient_occlusion {
+        // The bake's own AO map (SPEC §3.8), from the same method, radius and bins.
+        let mut p = bake.clone();
+        p.outputs = crate::params::Outputs { ao: true, ..crate::params::Outputs::NONE };
+        bake::bake_surface(map, &p, progress)?.0.ao
+    } else {
+        None
+    };
+    let baked = Baked { horizon: horizon.as_ref(), fourier: fourier.as_ref(), ao: ao.as_deref() };
     render_cancelable(map, bake, params, baked, progress)
 }
 

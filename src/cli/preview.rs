@@ -86,6 +86,10 @@ pub struct PreviewFlags {
     /// Half the azimuth span of the contact sheet in degrees (default 60).
     #[arg(long)]
     pub sheet_spread: Option<String>,
+    /// none (default) or baked: ambient and environment light times the bake's AO map
+    /// (ao.png of the same method, radius and bins).
+    #[arg(long)]
+    pub ambient_occlusion: Option<String>,
 
     /// Bake parameters (SPEC §5), the same flags as `horizon-bake bake`.
     #[command(flatten)]
@@ -117,6 +121,7 @@ impl PreviewFlags {
             ("cube_size", &self.cube_size),
             ("contact_sheet", &self.contact_sheet),
             ("sheet_spread", &self.sheet_spread),
+            ("ambient_occlusion", &self.ambient_occlusion),
         ];
         let bake = self.bake.params()?;
         let mut preview = PreviewParams::default();

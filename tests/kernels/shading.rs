@@ -371,7 +371,7 @@ fn flat_map_is_uniform_at_every_awkward_direction() {
         let (horizon, _) =
             bake::bake_horizon(&map, &bake, Precisions::ALL, &Progress::new()).unwrap();
         let (fourier, _) = bake::bake_fourier(&map, &bake, &Progress::new()).unwrap();
-        let baked = Baked { horizon: Some(&horizon), fourier: Some(&fourier) };
+        let baked = Baked { horizon: Some(&horizon), fourier: Some(&fourier), ao: None };
         for (name, l) in awkward_lights() {
             let light = format!("{},{},{}", l[0], l[1], l[2]);
             let none = preview::render(
@@ -468,7 +468,7 @@ fn no_speckles_at_awkward_directions() {
     let bake = bake_params(&[("height_scale", "4"), ("radius", "12")]);
     let (horizon, _) = bake::bake_horizon(&map, &bake, Precisions::U8, &Progress::new()).unwrap();
     let (fourier, _) = bake::bake_fourier(&map, &bake, &Progress::new()).unwrap();
-    let baked = Baked { horizon: Some(&horizon), fourier: Some(&fourier) };
+    let baked = Baked { horizon: Some(&horizon), fourier: Some(&fourier), ao: None };
     let lights = awkward_lights();
     for (name, l) in lights.iter().filter(|(n, _)| !n.starts_with("bin edge") || n.ends_with('1')) {
         for shading in ["horizon", "fourier", "raytraced"] {
@@ -798,4 +798,46 @@ fn cube_size_table() {
         let (worst, mean, over) = cube_against_analytic(size);
         println!("| {size} | {worst:.4} | {mean:.4} | {:.2} % |", 100.0 * over);
     }
+}
+
+/// Issue 45 ("the preview shows them"): `ambient_occlusion=baked` multiplies the ambient and
+/// environment light by the bake's own AO map. With the light below the surface (no direct
+/// term) every pixel is exactly the unoccluded colour times ao.png's value at its texel, in
+/// linear light; a pit is darker, and the map's open flat corner is unchanged.
+#[test]
+fn the_preview_applies_the_bake_s_ambient_occlusion() {
+    let map = bump_map(48);
+    // The bump inverted: a pit, whose floor sees less of the sky.
+    let pit = HeightMap { values: map.values.iter().map(|v| 1.0 - v).collect(), ..map.clone() };
+    let bake = bake_params(&[("method", "exact"), ("radius", "16"), ("height_scale", "12")]);
+    let below = [("shading", "none"), ("light", "0,0,-1")];
+    let plain = render(&pit, &bake, &below);
+    let with_ao = render(&pit, &bake, &[below[0], below[1], ("ambient_occlusion", "baked")]);
+    let mut only_ao = bake.clone();
+    only_ao.outputs =
+        horizon_bake::params::Outputs { ao: true, ..horizon_bake::params::Outputs::NONE };
+    let ao = bake::bake_surface(&pit, &only_ao, &Progress::new()).unwrap().0.ao.unwrap();
+    let linear = |v: u8| {
+        let s = v as f64 / 255.0;
+        if s <= 0.04045 {
+            s / 12.92
+        } else {
+            ((s + 0.055) / 1.055).powf(2.4)
+        }
+    };
+    let (mut darker, mut worst) = (0, 0i32);
+    for (t, &occ) in ao.iter().enumerate() {
+        let (a, b) = (plain.rgba[t * 4], with_ao.rgba[t * 4]);
+        let want = preview::srgb8(linear(a) * occ as f64 / 255.0);
+        // The plain pixel is itself rounded: allow one level either way.
+        worst = worst.max((want as i32 - b as i32).abs());
+        darker += usize::from(b < a);
+        assert!(b <= a, "texel {t}: {b} brighter than {a} without AO");
+    }
+    assert!(worst <= 1, "AO-lit pixels off the plain colour × ao by {worst} levels");
+    assert!(darker > 100, "only {darker} texels darker with the AO");
+    assert_eq!(ao[0], 255, "the flat corner sees the whole sky");
+    assert_eq!(plain.rgba[..4], with_ao.rgba[..4], "the open corner is unchanged");
+    let mut p = PreviewParams::default();
+    assert!(p.set("ambient_occlusion", "sometimes").is_err());
 }
