@@ -21,7 +21,6 @@ pub use crate::layers::{HorizonLayers, Precisions, Sample};
 
 mod rays;
 pub use rays::{centre_lat_lon, compass_of, horizon_profile, shadow, MAX_SUN_RAYS};
-use rays::{horizon_distances, openness_planes};
 
 /// How the radius was resolved (reported with the bake).
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -870,43 +869,11 @@ pub fn bake_terrain(
         ang =
             Some(rays::true_north_angles(&rays, params, &compass, 0..h, holes, nodata, progress)?);
     }
-    let bands = true_bands.then_some(&compass);
-    let distance = if params.outputs.horizon_distance {
-        Some(horizon_distances(&rays, params, bands, holes, nodata, progress)?)
-    } else {
-        None
-    };
-    let [sun_hours, insolation] = if params.outputs.sun() {
-        let place = match (params.latitude, params.longitude) {
-            (Some(a), Some(o)) => (a, o),
-            _ => centre_lat_lon(map).ok_or_else(|| {
-                crate::Error::param(
-                    "latitude",
-                    "sun_hours and insolation need the sun's place: give latitude and \
-                     longitude, or a DEM whose projection places its centre",
-                )
-            })?,
-        };
-        let step = params.time_step_minutes.unwrap_or(crate::params::DEFAULT_TIME_STEP_MINUTES);
-        let (from, to) = (params.date_from.as_deref(), params.date_to.as_deref());
-        let (Some(from), Some(to)) = (from, to) else {
-            return Err(crate::Error::param("date", "sun_hours and insolation need a date"));
-        };
-        let suns = crate::terrain::sun::day_steps(from, to, step, place.0, place.1)?;
-        let metres: Vec<f32> =
-            map.values.iter().map(|v| (f64::from(*v) * params.linear_unit_m) as f32).collect();
-        let step_hours = f64::from(step) / 60.0;
-        rays::sun_planes(
-            &rays, &grid, params, &compass, &suns, step_hours, &metres, holes, nodata, progress,
-        )?
-    } else {
-        [None, None]
-    };
-    let openness = if params.outputs.openness {
-        Some(openness_planes(grid, params, radius.texels, holes, nodata, progress)?)
-    } else {
-        None
-    };
+    let metres = || map.values.iter().map(|v| (f64::from(*v) * params.linear_unit_m) as f32);
+    let extra = rays::RaySet { kernel: &rays, grid, compass: &compass, true_bands, holes, nodata };
+    let more =
+        extra.products(params, radius.texels, 0..h, metres, centre_lat_lon(map), progress)?;
+    let rays::RayProducts { distance, openness, sun_hours, insolation } = more;
     let products = TerrainProducts {
         width: w,
         height: h,
@@ -921,6 +888,14 @@ pub fn bake_terrain(
         nodata,
     };
     Ok((products, radius))
+}
+
+/// Where a window lies in the map its georeferencing describes: its first texel and the map's
+/// size (true north and the sun's place are the whole map's, SPEC §3.7, §7.1).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct WindowPlace {
+    pub origin: (usize, usize),
+    pub map: (usize, usize),
 }
 
 /// `angles` (band-major) and `svf` planes, each when asked.
@@ -1232,7 +1207,7 @@ pub fn bake_terrain_window(
     window: HeightMap,
     params: &BakeParams,
     interior: (usize, usize, usize, usize),
-    origin: Option<(usize, usize)>,
+    place: Option<WindowPlace>,
     range: (f32, f32),
     radius: u32,
     progress: &Progress,
@@ -1245,15 +1220,18 @@ pub fn bake_terrain_window(
     let holes = window.terrain.holes.take();
     let nodata = window.terrain.nodata.map_or(f32::NAN, |v| v as f32);
     let georef = window.terrain.georef.take();
+    let (origin, map_size) = place.map_or(((0, 0), (ww, wh)), |p| (p.origin, p.map));
     let (compass, north) = crate::heightmap::north::compass(
         georef.as_ref(),
-        origin.unwrap_or((0, 0)),
+        origin,
         (ww, wh),
+        map_size,
         params.y_axis,
     );
-    let true_bands =
-        params.outputs.angles && params.azimuth_from == AzimuthFrom::NorthCw && compass.is_true();
-    if true_bands && origin.is_none() {
+    let true_bands = (params.outputs.angles || params.outputs.horizon_distance)
+        && params.azimuth_from == AzimuthFrom::NorthCw
+        && compass.is_true();
+    if true_bands && place.is_none() {
         return Err(crate::Error::param(
             "azimuth_from",
             "north_cw bands are true azimuths, turned per texel by the map's projection, and a \
@@ -1261,6 +1239,11 @@ pub fn bake_terrain_window(
              (grid azimuths), or bake the whole map",
         ));
     }
+    let metres: Vec<f32> = if params.outputs.sun() {
+        window.values.iter().map(|v| (f64::from(*v) * params.linear_unit_m) as f32).collect()
+    } else {
+        Vec::new()
+    };
     let heights = window.into_scaled(params.height_scale);
     let grid = Grid::new(ww, wh, &heights, params.edge, params.y_axis).with_range(range.0, range.1);
     let kernel = make_kernel_for(params, grid, radius, progress, holes.as_deref());
@@ -1276,10 +1259,13 @@ pub fn bake_terrain_window(
     let normals = NormalSource { grid: &grid, holes: holes.as_deref(), row0: oy };
     let mut kernel_params = params.clone();
     kernel_params.outputs.angles &= !true_bands;
-    let (mut ang, sv) =
-        terrain_planes(&rows, &kernel_params, row_holes, nodata, &normals, progress)?;
-    if true_bands {
-        let k = rays::ray_kernel(grid, params, radius, holes.as_deref());
+    let (mut ang, sv) = if kernel_params.outputs.angles || params.outputs.svf {
+        terrain_planes(&rows, &kernel_params, row_holes, nodata, &normals, progress)?
+    } else {
+        (None, None)
+    };
+    let k = rays::ray_kernel(grid, params, radius, holes.as_deref());
+    if true_bands && params.outputs.angles {
         let a = rays::true_north_angles(
             &k,
             params,
@@ -1291,6 +1277,17 @@ pub fn bake_terrain_window(
         )?;
         ang = Some(a);
     }
+    let extra = rays::RaySet {
+        kernel: &k,
+        grid,
+        compass: &compass,
+        true_bands,
+        holes: holes.as_deref(),
+        nodata,
+    };
+    let centre = rays::centre_of(georef.as_ref(), map_size);
+    let more =
+        extra.products(params, radius, oy..oy + ih, || metres.iter().copied(), centre, progress)?;
     // Keep the interior's columns, plane by plane, in place (each row moves to the left).
     let cut = |mut v: Vec<f32>| {
         let planes = v.len() / (ww * ih);
@@ -1308,11 +1305,10 @@ pub fn bake_terrain_window(
         angles: ang.map(cut),
         bins: nb,
         svf: sv.map(cut),
-        // Refused for tiled bakes (pipeline::tiled): no window gives them.
-        distance: None,
-        openness: None,
-        sun_hours: None,
-        insolation: None,
+        distance: more.distance.map(cut),
+        openness: more.openness.map(|[p, n]| [cut(p), cut(n)]),
+        sun_hours: more.sun_hours.map(cut),
+        insolation: more.insolation.map(cut),
         north: georef.is_some().then_some(north),
         nodata,
     })

@@ -25,28 +25,30 @@ use crate::terrain::sun::SunAzimuth;
 ///
 /// # Errors
 /// [`crate::Error::Canceled`].
-pub(super) fn openness_planes(
+fn openness_planes(
     grid: Grid<'_>,
     params: &BakeParams,
     radius: u32,
+    rows: std::ops::Range<usize>,
     holes: Option<&[bool]>,
     nodata: f32,
     progress: &Progress,
 ) -> Result<[Vec<f32>; 2]> {
     use rayon::prelude::*;
-    let (w, h) = (grid.width, grid.height);
+    let (w, h) = (grid.width, rows.len());
     let inverted: Vec<f32> = grid.heights.iter().map(|v| -v).collect();
-    let grids = [grid, Grid::new(w, h, &inverted, params.edge, params.y_axis)];
+    let grids = [grid, Grid::new(w, grid.height, &inverted, params.edge, params.y_axis)];
     let nb = params.bins as usize;
     let phis: Vec<f64> = (0..nb).map(|n| n as f64 * std::f64::consts::TAU / nb as f64).collect();
     let r = f64::from(radius);
     let mut planes = [vec![nodata; w * h], vec![nodata; w * h]];
     progress.start(Stage::Bake, 2 * h as u64);
     for (g, plane) in grids.iter().zip(planes.iter_mut()) {
-        plane.par_chunks_mut(w).enumerate().try_for_each(|(y, row)| {
+        plane.par_chunks_mut(w).enumerate().try_for_each(|(j, row)| {
             if progress.is_canceled() {
                 return Err(crate::Error::Canceled);
             }
+            let y = rows.start + j;
             for (x, o) in row.iter_mut().enumerate() {
                 if holes.is_some_and(|m| m[y * w + x]) {
                     continue;
@@ -77,25 +79,28 @@ pub(super) fn openness_planes(
 ///
 /// # Errors
 /// [`crate::Error::Canceled`].
-pub(super) fn horizon_distances(
+#[allow(clippy::too_many_arguments)]
+fn horizon_distances(
     k: &kernels::exact::ExactHorizon<'_>,
     params: &BakeParams,
     true_bands: Option<&Compass>,
+    rows: std::ops::Range<usize>,
     holes: Option<&[bool]>,
     nodata: f32,
     progress: &Progress,
 ) -> Result<Vec<f32>> {
     use rayon::prelude::*;
-    let (w, h, nb) = (k.width(), k.height(), params.bins as usize);
+    let (w, h, nb) = (k.width(), rows.len(), params.bins as usize);
     let order = crate::terrain::angles::band_bins(nb, params.azimuth_from, params.y_axis);
     let unit = params.cell_size.unwrap_or(1.0);
     // Texel-major rows (each texel's bands together), then transposed to band planes.
     let mut texels = vec![nodata; w * h * nb];
     progress.start(Stage::Bake, h as u64);
-    texels.par_chunks_mut(w * nb).enumerate().try_for_each(|(y, row)| {
+    texels.par_chunks_mut(w * nb).enumerate().try_for_each(|(j, row)| {
         if progress.is_canceled() {
             return Err(crate::Error::Canceled);
         }
+        let y = rows.start + j;
         for (x, bands) in row.chunks_exact_mut(nb).enumerate() {
             if holes.is_some_and(|m| m[y * w + x]) {
                 continue;
@@ -119,6 +124,91 @@ pub(super) fn horizon_distances(
         Ok(())
     })?;
     Ok(transpose_bands(&texels, nb))
+}
+
+/// The per-texel ray products of one map or window, each when `params.outputs` asks.
+pub struct RayProducts {
+    pub distance: Option<Vec<f32>>,
+    pub openness: Option<[Vec<f32>; 2]>,
+    pub sun_hours: Option<Vec<f32>>,
+    pub insolation: Option<Vec<f32>>,
+}
+
+/// What the ray products of a map or a tile's window share: the exact kernel over its grid,
+/// the compass over it, whether compass bands are true azimuths, holes and nodata.
+pub struct RaySet<'a> {
+    pub kernel: &'a kernels::exact::ExactHorizon<'a>,
+    pub grid: Grid<'a>,
+    pub compass: &'a Compass,
+    pub true_bands: bool,
+    pub holes: Option<&'a [bool]>,
+    pub nodata: f32,
+}
+
+impl RaySet<'_> {
+    /// `horizon_distance`, `openness`, `sun_hours` and `insolation` of the grid's `rows` (every
+    /// column), as `params.outputs` asks; `metres` gives the heights in metres (for the air
+    /// pressure), `centre` the map's centre (the sun's default place).
+    ///
+    /// # Errors
+    /// [`crate::Error::Canceled`] and the products' refusals.
+    pub fn products<I: Iterator<Item = f32>>(
+        &self,
+        params: &BakeParams,
+        radius: u32,
+        rows: std::ops::Range<usize>,
+        metres: impl FnOnce() -> I,
+        centre: Option<(f64, f64)>,
+        progress: &Progress,
+    ) -> Result<RayProducts> {
+        let o = params.outputs;
+        let (holes, nodata) = (self.holes, self.nodata);
+        let bands = self.true_bands.then_some(self.compass);
+        let distance = match o.horizon_distance {
+            true => Some(horizon_distances(
+                self.kernel,
+                params,
+                bands,
+                rows.clone(),
+                holes,
+                nodata,
+                progress,
+            )?),
+            false => None,
+        };
+        let openness = match o.openness {
+            true => Some(openness_planes(
+                self.grid,
+                params,
+                radius,
+                rows.clone(),
+                holes,
+                nodata,
+                progress,
+            )?),
+            false => None,
+        };
+        let [sun_hours, insolation] = if o.sun() {
+            let (suns, step_hours) = sun_steps(params, centre)?;
+            let metres: Vec<f32> = metres().collect();
+            sun_planes(
+                self.kernel,
+                &self.grid,
+                params,
+                self.compass,
+                &suns,
+                step_hours,
+                &metres,
+                rows,
+                holes,
+                nodata,
+                progress,
+            )?
+        } else {
+            [None, None]
+        };
+        Ok(RayProducts { distance, openness, sun_hours, insolation })
+    }
 }
 
 /// The exact horizon profile (SPEC §3.7) of texel (`x`, `y`): (azimuth, elevation) in degrees
@@ -163,15 +253,51 @@ pub fn horizon_profile(
 /// The compass of a whole map (SPEC §3.7 "True and grid north"): compass azimuths through its
 /// projection per texel, or on the grid, and what bake.json says of it.
 pub fn compass_of(map: &HeightMap, params: &BakeParams) -> (Compass, NorthReport) {
-    north::compass(map.terrain.georef.as_ref(), (0, 0), (map.width, map.height), params.y_axis)
+    let size = (map.width, map.height);
+    north::compass(map.terrain.georef.as_ref(), (0, 0), size, size, params.y_axis)
 }
 
 /// The latitude and longitude (degrees) of a DEM's centre, where its projection places it.
 pub fn centre_lat_lon(map: &HeightMap) -> Option<(f64, f64)> {
-    let g = map.terrain.georef.as_ref().filter(|g| g.is_dem())?;
+    centre_of(map.terrain.georef.as_ref(), (map.width, map.height))
+}
+
+/// [`centre_lat_lon`] of a `size` map georeferenced by `georef`.
+pub fn centre_of(
+    georef: Option<&crate::heightmap::georef::Georef>,
+    size: (usize, usize),
+) -> Option<(f64, f64)> {
+    let g = georef.filter(|g| g.is_dem())?;
     let geo = north::Geodesy::of(g).ok()?;
-    let (lon, lat) = geo.lon_lat(map.width as f64 / 2.0, map.height as f64 / 2.0)?;
+    let (lon, lat) = geo.lon_lat(size.0 as f64 / 2.0, size.1 as f64 / 2.0)?;
     Some((lat, lon))
+}
+
+/// The sun positions of `params`' days (SPEC §3.7 `sun_hours`, `insolation`) at its
+/// `latitude`/`longitude`, else `centre`, and the hours each step stands for.
+///
+/// # Errors
+/// [`crate::Error::Param`] naming `latitude` (no place) or `date`.
+pub(super) fn sun_steps(
+    params: &BakeParams,
+    centre: Option<(f64, f64)>,
+) -> Result<(Vec<crate::terrain::sun::Sun>, f64)> {
+    let place = match (params.latitude, params.longitude) {
+        (Some(a), Some(o)) => (a, o),
+        _ => centre.ok_or_else(|| {
+            crate::Error::param(
+                "latitude",
+                "sun_hours and insolation need the sun's place: give latitude and longitude, \
+                 or a DEM whose projection places its centre",
+            )
+        })?,
+    };
+    let step = params.time_step_minutes.unwrap_or(crate::params::DEFAULT_TIME_STEP_MINUTES);
+    let (Some(from), Some(to)) = (params.date_from.as_deref(), params.date_to.as_deref()) else {
+        return Err(crate::Error::param("date", "sun_hours and insolation need a date"));
+    };
+    let suns = crate::terrain::sun::day_steps(from, to, step, place.0, place.1)?;
+    Ok((suns, f64::from(step) / 60.0))
 }
 
 /// The exact kernel of the per-texel rays: the bake's radius (none at `unlimited`), curvature
@@ -262,7 +388,7 @@ pub const MAX_SUN_RAYS: u64 = 1 << 30;
 /// [`crate::Error::Canceled`]; [`crate::Error::Param`] naming `time_step_minutes` above
 /// [`MAX_SUN_RAYS`].
 #[allow(clippy::too_many_arguments)]
-pub(super) fn sun_planes(
+fn sun_planes(
     k: &kernels::exact::ExactHorizon<'_>,
     grid: &Grid<'_>,
     params: &BakeParams,
@@ -270,14 +396,16 @@ pub(super) fn sun_planes(
     suns: &[crate::terrain::sun::Sun],
     step_hours: f64,
     metres: &[f32],
+    rows: std::ops::Range<usize>,
     holes: Option<&[bool]>,
     nodata: f32,
     progress: &Progress,
 ) -> Result<[Option<Vec<f32>>; 2]> {
     use crate::terrain::{shadow::lit, sun::SunAzimuth};
     use rayon::prelude::*;
-    let (w, h) = (grid.width, grid.height);
-    let valid = holes.map_or(w * h, |m| m.iter().filter(|&&b| !b).count());
+    let (w, h) = (grid.width, rows.len());
+    let rows_of = |m: &[bool]| m[rows.start * w..rows.end * w].iter().filter(|&&b| !b).count();
+    let valid = holes.map_or(w * h, rows_of);
     let rays = valid as u64 * suns.len() as u64;
     if rays > MAX_SUN_RAYS {
         return Err(crate::Error::param(
@@ -294,10 +422,11 @@ pub(super) fn sun_planes(
     let mut energy = vec![nodata; w * h];
     progress.start(Stage::Bake, h as u64);
     hours.par_chunks_mut(w).zip(energy.par_chunks_mut(w)).enumerate().try_for_each(
-        |(y, (hrow, erow))| {
+        |(j, (hrow, erow))| {
             if progress.is_canceled() {
                 return Err(crate::Error::Canceled);
             }
+            let y = rows.start + j;
             for x in 0..w {
                 if holes.is_some_and(|m| m[y * w + x]) {
                     continue;

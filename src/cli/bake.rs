@@ -420,7 +420,14 @@ pub fn run(args: BakeArgs) -> Result<()> {
     let bytes = std::fs::read(&args.input)
         .map_err(|e| Error::InvalidInput(format!("cannot read {}: {e}", args.input.display())))?;
     let (map, info) = heightmap::decode_for(&bytes, &mut params, &args.limits())?;
-    let warnings = map.dem_warnings();
+    let mut warnings = map.dem_warnings();
+    // A DEM whose projection cannot be read is baked on grid north (SPEC §3.7): said where it
+    // matters, compass bands and the sun.
+    let compass_used = params.outputs.sun()
+        || (params.outputs.terrain() && params.azimuth_from == crate::params::AzimuthFrom::NorthCw);
+    if let Some(why) = crate::bake::compass_of(&map, &params).1.reason.filter(|_| compass_used) {
+        warnings.push(format!("azimuths are taken from grid north: {why}"));
+    }
     for w in &warnings {
         eprintln!("warning: {w}");
     }

@@ -89,6 +89,14 @@ pub mod tag {
     pub const ANGLES: u32 = 10;
     /// Terrain `svf`: 1 plane, 1 channel, f32.
     pub const SVF: u32 = 11;
+    /// Terrain `horizon_distance`: one plane per bin, 1 channel, f32.
+    pub const DISTANCE: u32 = 12;
+    /// Terrain `openness`: positive and negative, 1 plane each, f32.
+    pub const OPENNESS_POSITIVE: u32 = 13;
+    pub const OPENNESS_NEGATIVE: u32 = 14;
+    /// Terrain `sun_hours` and `insolation`: 1 plane each, f32.
+    pub const SUN_HOURS: u32 = 15;
+    pub const INSOLATION: u32 = 16;
 }
 
 /// One plane of a tile result section.

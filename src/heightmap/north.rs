@@ -147,9 +147,15 @@ fn phi_of(dc: f64, dr: f64, y_axis: YAxis) -> f64 {
 }
 
 /// True north over a window of a map: the frames of [`Geodesy::frame`] on a lattice, for
-/// per-texel conversion of true azimuths to the kernels' φ.
+/// per-texel conversion of true azimuths to the kernels' φ. The lattice is the whole map's
+/// (nodes at map texels 32·i, the last clamped to the map's last texel), whatever the window,
+/// so a tile turns each azimuth exactly as the whole map does (SPEC §7.1: tiled bytes are the
+/// untiled bake's).
 #[derive(Debug, Clone)]
 pub struct TrueNorth {
+    /// The window's first texel in the map, and the map lattice's first node of the window.
+    origin: (usize, usize),
+    first: (usize, usize),
     /// Lattice nodes across and down, and their frames, row-major.
     cols: usize,
     rows: usize,
@@ -166,26 +172,32 @@ impl TrueNorth {
         geo: &Geodesy,
         (x0, y0): (usize, usize),
         (w, h): (usize, usize),
+        (mw, mh): (usize, usize),
         y_axis: YAxis,
     ) -> Option<TrueNorth> {
-        let cols = w.div_ceil(LATTICE) + 1;
-        let rows = h.div_ceil(LATTICE) + 1;
+        let first = (x0 / LATTICE, y0 / LATTICE);
+        let cols = (x0 + w.max(1) - 1) / LATTICE + 2 - first.0;
+        let rows = (y0 + h.max(1) - 1) / LATTICE + 2 - first.1;
         let mut frames = Vec::with_capacity(cols * rows);
         for j in 0..rows {
             for i in 0..cols {
-                let c = (x0 + (i * LATTICE).min(w.saturating_sub(1))) as f64 + 0.5;
-                let r = (y0 + (j * LATTICE).min(h.saturating_sub(1))) as f64 + 0.5;
+                let c = ((first.0 + i) * LATTICE).min(mw.saturating_sub(1)) as f64 + 0.5;
+                let r = ((first.1 + j) * LATTICE).min(mh.saturating_sub(1)) as f64 + 0.5;
                 frames.push(geo.frame(c, r)?);
             }
         }
-        Some(TrueNorth { cols, rows, frames, y_axis, crs: geo.crs.clone() })
+        let crs = geo.crs.clone();
+        Some(TrueNorth { origin: (x0, y0), first, cols, rows, frames, y_axis, crs })
     }
 
     /// The interpolated frame at window texel (`x`, `y`).
     fn frame_at(&self, x: usize, y: usize) -> [f64; 4] {
-        let (fx, fy) = (x as f64 / LATTICE as f64, y as f64 / LATTICE as f64);
-        let (i, j) = ((fx as usize).min(self.cols - 2), (fy as usize).min(self.rows - 2));
+        let (mx, my) = (self.origin.0 + x, self.origin.1 + y);
+        let (fx, fy) = (mx as f64 / LATTICE as f64, my as f64 / LATTICE as f64);
+        let i = (fx as usize).clamp(self.first.0, self.first.0 + self.cols - 2);
+        let j = (fy as usize).clamp(self.first.1, self.first.1 + self.rows - 2);
         let (u, v) = ((fx - i as f64).min(1.0), (fy - j as f64).min(1.0));
+        let (i, j) = (i - self.first.0, j - self.first.1);
         let at = |a: usize, b: usize| &self.frames[b * self.cols + a];
         let (f00, f10, f01, f11) = (at(i, j), at(i + 1, j), at(i, j + 1), at(i + 1, j + 1));
         std::array::from_fn(|k| {
@@ -253,13 +265,14 @@ pub struct NorthReport {
     pub reason: Option<String>,
 }
 
-/// The compass of the `w` × `h` window at (`x0`, `y0`) of a map georeferenced by `georef`, and
-/// what to report; a map without a DEM's georeferencing is on grid north without a reason (an
+/// The compass of the `size` window at `origin` of a `map`-sized map georeferenced by
+/// `georef`, and what to report; a map without a DEM's georeferencing is on grid north without a reason (an
 /// image's "north" is up by definition).
 pub fn compass(
     georef: Option<&Georef>,
     origin: (usize, usize),
     size: (usize, usize),
+    map: (usize, usize),
     y_axis: YAxis,
 ) -> (Compass, NorthReport) {
     let grid = |reason: Option<String>| {
@@ -273,9 +286,11 @@ pub fn compass(
         Ok(geo) => geo,
         Err(why) => return grid(Some(why)),
     };
-    match TrueNorth::new(&geo, origin, size, y_axis) {
+    match TrueNorth::new(&geo, origin, size, map, y_axis) {
         Some(t) => {
-            let bearing = t.north_bearing_deg(size.0 / 2, size.1 / 2);
+            // The map's centre, whatever the window (a tile reports the whole map's).
+            let centre = TrueNorth::new(&geo, (0, 0), map, map, y_axis);
+            let bearing = centre.map_or(f64::NAN, |c| c.north_bearing_deg(map.0 / 2, map.1 / 2));
             let report = NorthReport {
                 reference: "true",
                 north_bearing_deg: Some((bearing * 1e6).round() / 1e6),
@@ -312,7 +327,7 @@ mod tests {
         let geo = Geodesy::of(&g).unwrap();
         let (lon, lat) = geo.lon_lat(0.5, 0.5).unwrap();
         assert!((lon - 11.627_001).abs() < 1e-5 && (lat - 46.923_381).abs() < 1e-5, "{lon} {lat}");
-        let t = TrueNorth::new(&geo, (0, 0), (64, 64), YAxis::Up).unwrap();
+        let t = TrueNorth::new(&geo, (0, 0), (64, 64), (64, 64), YAxis::Up).unwrap();
         let b = t.north_bearing_deg(0, 0);
         assert!((b + 1.919_50).abs() < 1e-4, "{b}");
         // Conformal: east is north turned 90°, at the same scale.
@@ -322,7 +337,7 @@ mod tests {
         // True azimuth 0 is grid bearing -1.92°: φ = 90° + 1.92° with y up, -90° + 1.92°... down.
         let up = t.phi(0, 0, 0.0).to_degrees();
         assert!((up - (90.0 + 1.919_50)).abs() < 1e-4, "{up}");
-        let down = TrueNorth::new(&geo, (0, 0), (64, 64), YAxis::Down).unwrap();
+        let down = TrueNorth::new(&geo, (0, 0), (64, 64), (64, 64), YAxis::Down).unwrap();
         let d = down.phi(0, 0, 0.0).to_degrees();
         assert!((d - (-90.0 - 1.919_50)).abs() < 1e-4, "{d}");
     }
@@ -331,7 +346,7 @@ mod tests {
     fn on_the_central_meridian_and_on_a_lat_lon_grid_true_is_grid() {
         // Texel (0, 0)'s centre is 15 m east of the central meridian: 0.0001° of convergence.
         let g = utm32(500_000.0, 5_200_000.0, 30.0);
-        let (c, report) = compass(Some(&g), (0, 0), (1, 1), YAxis::Up);
+        let (c, report) = compass(Some(&g), (0, 0), (1, 1), (1, 1), YAxis::Up);
         assert_eq!(report.reference, "true");
         for theta in [0.0, 37.0, 90.0, 200.0] {
             let grid =
@@ -346,7 +361,7 @@ mod tests {
             0,
             None,
         );
-        let (c, report) = compass(Some(&ll), (0, 0), (100, 100), YAxis::Up);
+        let (c, report) = compass(Some(&ll), (0, 0), (100, 100), (100, 100), YAxis::Up);
         assert_eq!(report.reference, "true");
         assert!((c.phi(50, 50, 0.0).to_degrees() - 90.0).abs() < 1e-6);
     }
@@ -355,21 +370,26 @@ mod tests {
     fn the_lattice_interpolates_within_a_hundredth_of_a_degree() {
         let g = utm32(680_000.0, 5_250_000.0, 30.0);
         let geo = Geodesy::of(&g).unwrap();
-        let t = TrueNorth::new(&geo, (100, 40), (300, 200), YAxis::Up).unwrap();
+        let t = TrueNorth::new(&geo, (100, 40), (300, 200), (500, 300), YAxis::Up).unwrap();
+        let whole = TrueNorth::new(&geo, (0, 0), (500, 300), (500, 300), YAxis::Up).unwrap();
         for (x, y) in [(0, 0), (17, 5), (150, 99), (299, 199), (211, 3)] {
             let f = geo.frame((100 + x) as f64 + 0.5, (40 + y) as f64 + 0.5).unwrap();
             let exact = f[0].atan2(-f[1]).to_degrees();
             assert!((t.north_bearing_deg(x, y) - exact).abs() < 1e-2, "({x}, {y})");
+            // A window turns azimuths exactly as the whole map (tiles' bytes are the map's).
+            for theta in [0.0, 123.4] {
+                assert_eq!(t.phi(x, y, theta), whole.phi(100 + x, 40 + y, theta));
+            }
         }
     }
 
     #[test]
     fn a_map_without_a_projection_is_on_grid_north_and_says_why() {
         let mut g = utm32(500_000.0, 5_200_000.0, 30.0);
-        let (_, r) = compass(None, (0, 0), (8, 8), YAxis::Up);
+        let (_, r) = compass(None, (0, 0), (8, 8), (8, 8), YAxis::Up);
         assert_eq!((r.reference, r.reason), ("grid", None));
         g = Georef { geo_keys: None, ..g };
-        let (_, r) = compass(Some(&g), (0, 0), (8, 8), YAxis::Up);
+        let (_, r) = compass(Some(&g), (0, 0), (8, 8), (8, 8), YAxis::Up);
         assert_eq!(r.reference, "grid");
         let user = Georef::from_gdal(
             [0.0, 1.0, 0.0, 0.0, 0.0, -1.0],
@@ -378,7 +398,7 @@ mod tests {
             9001,
             None,
         );
-        let (c, r) = compass(Some(&user), (0, 0), (8, 8), YAxis::Up);
+        let (c, r) = compass(Some(&user), (0, 0), (8, 8), (8, 8), YAxis::Up);
         assert!(!c.is_true() && r.reason.unwrap().contains("user-defined"));
     }
 }

@@ -29,8 +29,8 @@ pub mod terrain;
 pub mod tiled;
 
 pub use terrain::{
-    angle_descriptions, shadow_grey, shadow_png, shadow_tif, svf_description, svf_grey, svf_png,
-    terrain_files,
+    angle_descriptions, distance_descriptions, distance_unit, openness_description, shadow_grey,
+    shadow_png, shadow_tif, sun_description, svf_description, svf_grey, svf_png, terrain_files,
 };
 
 /// Where a bake's files go.

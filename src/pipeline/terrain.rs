@@ -69,7 +69,7 @@ pub fn terrain_files(
         );
     }
     if let Some(d) = &p.distance {
-        let unit = distance_unit(map, params);
+        let unit = distance_unit(map.terrain.georef.as_ref(), params);
         let descriptions = distance_descriptions(params, p.bins, &unit, true_north);
         let bands: Vec<geotiff::Band<'_>> = d
             .chunks_exact(plane)
@@ -98,14 +98,13 @@ pub fn terrain_files(
         );
     }
     if let Some([pos, neg]) = &p.openness {
-        let within = format!("{} azimuths within {} texels", p.bins, radius.texels);
         for (name, plane, sign) in
             [("openness_positive.tif", pos, "positive"), ("openness_negative.tif", neg, "negative")]
         {
             if progress.is_canceled() {
                 return Err(Error::Canceled);
             }
-            let description = format!("{sign} openness, degrees ({within})");
+            let description = openness_description(sign, p.bins, radius.texels);
             let bands = [geotiff::Band { plane, description: description.clone() }];
             let bytes = geotiff::encode(p.width, p.height, &bands, georef, p.nodata)?;
             files.push(OutFile { name, bytes });
@@ -134,8 +133,8 @@ pub fn terrain_files(
         let step = params.time_step_minutes.unwrap_or(crate::params::DEFAULT_TIME_STEP_MINUTES);
         let (from, to) = (params.date_from.as_deref(), params.date_to.as_deref());
         let (from, to) = (from.unwrap_or_default(), to.unwrap_or_default());
-        let days = if from == to { from.to_owned() } else { format!("{from} to {to}") };
-        let description = format!("{what}, {unit}, {days}, every {step} min");
+        let description = sun_description(params, name == "insolation.tif");
+        let _ = what;
         let bands = [geotiff::Band { plane, description: description.clone() }];
         let bytes = geotiff::encode(p.width, p.height, &bands, georef, p.nodata)?;
         files.push(OutFile { name, bytes });
@@ -180,6 +179,25 @@ pub fn terrain_files(
     Ok((files, radius, serde_json::Value::Object(info)))
 }
 
+/// The band description of `openness_{sign}.tif`.
+pub fn openness_description(sign: &str, bins: usize, radius: u32) -> String {
+    format!("{sign} openness, degrees ({bins} azimuths within {radius} texels)")
+}
+
+/// The band description of `sun_hours.tif` (or, `insolation`, of `insolation.tif`).
+pub fn sun_description(params: &BakeParams, insolation: bool) -> String {
+    let (what, unit) = if insolation {
+        ("clear-sky direct beam on the surface", "Wh/m²")
+    } else {
+        ("hours of direct sun", "hours")
+    };
+    let step = params.time_step_minutes.unwrap_or(crate::params::DEFAULT_TIME_STEP_MINUTES);
+    let from = params.date_from.as_deref().unwrap_or_default();
+    let to = params.date_to.as_deref().unwrap_or_default();
+    let days = if from == to { from.to_owned() } else { format!("{from} to {to}") };
+    format!("{what}, {unit}, {days}, every {step} min")
+}
+
 /// What a product's azimuths count from, for bake.json: `east_ccw` is the grid's x axis;
 /// `north_cw` is true north where the map's projection gives it, else grid north.
 fn north_of(params: &BakeParams, true_north: bool) -> &'static str {
@@ -201,8 +219,11 @@ fn band_from(params: &BakeParams, true_north: bool) -> &'static str {
 
 /// The unit of `horizon_distance.tif`: the CRS's linear unit when `cell_size` came from it (or
 /// was given), texels otherwise.
-fn distance_unit(map: &HeightMap, params: &BakeParams) -> String {
-    match (params.cell_size, map.terrain.georef.as_ref()) {
+pub fn distance_unit(
+    georef: Option<&crate::heightmap::georef::Georef>,
+    params: &BakeParams,
+) -> String {
+    match (params.cell_size, georef) {
         (Some(c), Some(g)) => g.report(Some(c)).units.unwrap_or_else(|| "map units".to_owned()),
         (Some(_), None) => "map units (cell_size)".to_owned(),
         (None, _) => "texels".to_owned(),
@@ -210,7 +231,7 @@ fn distance_unit(map: &HeightMap, params: &BakeParams) -> String {
 }
 
 /// The band descriptions of `horizon_distance.tif` at `bins` azimuths.
-fn distance_descriptions(
+pub fn distance_descriptions(
     params: &BakeParams,
     bins: usize,
     unit: &str,

@@ -105,12 +105,15 @@ pub fn check(
         ));
     }
     let o = params.outputs;
-    if o.fourier || o.surface() || o.horizon_distance || o.openness || o.sun() {
+    // horizon_distance is the walk's arg max, which a tile's window can pick differently from
+    // the whole map's where two points of a ray tie to the last bit (the walk's positions are
+    // the window's, their rounding too): not byte-identical, so not tiled.
+    if o.fourier || o.surface() || o.horizon_distance {
         return Err(Error::param(
             "outputs",
             "a tiled bake (map above --tile-above) produces the horizon layers and the terrain \
-             products (angles, svf); not fourier, nor yet the surface maps (normal, ao, \
-             bent_normal), horizon_distance, openness, sun_hours or insolation",
+             products angles, svf, openness, sun_hours and insolation; not fourier, \
+             horizon_distance, nor yet the surface maps (normal, ao, bent_normal)",
         ));
     }
     // Each terrain product is one classic GeoTIFF, assembled tile by tile: the untiled bake's
@@ -319,25 +322,44 @@ impl Tiler for PipelineTiler {
             let georef = stats.as_ref().and_then(|s| s.georef.clone());
             let nodata = stats.as_ref().and_then(|s| s.nodata).map_or(f32::NAN, |v| v as f32);
             let nb = params.bins as usize;
+            let o = params.outputs;
+            use assemble::tag;
             let files = [
-                (params.outputs.angles, "angles.tif", assemble::tag::ANGLES),
-                (params.outputs.svf, "svf.tif", assemble::tag::SVF),
+                (o.angles, "angles.tif", tag::ANGLES),
+                (o.svf, "svf.tif", tag::SVF),
+                (o.horizon_distance, "horizon_distance.tif", tag::DISTANCE),
+                (o.openness, "openness_positive.tif", tag::OPENNESS_POSITIVE),
+                (o.openness, "openness_negative.tif", tag::OPENNESS_NEGATIVE),
+                (o.sun_hours, "sun_hours.tif", tag::SUN_HOURS),
+                (o.insolation, "insolation.tif", tag::INSOLATION),
             ];
             progress.start(Stage::Encode, files.iter().filter(|f| f.0).count() as u64);
+            let (compass, _) = crate::heightmap::north::compass(
+                georef.as_ref(),
+                (0, 0),
+                (w, h),
+                (w, h),
+                params.y_axis,
+            );
+            let true_north = compass.is_true();
             for (wanted, name, tag) in files {
                 if !wanted {
                     continue;
                 }
-                let names = if tag == assemble::tag::ANGLES {
-                    let (compass, _) = crate::heightmap::north::compass(
-                        georef.as_ref(),
-                        (0, 0),
-                        (w, h),
-                        params.y_axis,
-                    );
-                    crate::pipeline::angle_descriptions(&params, nb, compass.is_true())
-                } else {
-                    vec![crate::pipeline::svf_description(&params, nb)]
+                // The untiled bake's band descriptions (pipeline::terrain_files).
+                let names = match tag {
+                    tag::ANGLES => crate::pipeline::angle_descriptions(&params, nb, true_north),
+                    tag::SVF => vec![crate::pipeline::svf_description(&params, nb)],
+                    tag::DISTANCE => {
+                        let unit = crate::pipeline::distance_unit(georef.as_ref(), &params);
+                        crate::pipeline::distance_descriptions(&params, nb, &unit, true_north)
+                    }
+                    tag::OPENNESS_POSITIVE | tag::OPENNESS_NEGATIVE => {
+                        let sign =
+                            if tag == tag::OPENNESS_POSITIVE { "positive" } else { "negative" };
+                        vec![crate::pipeline::openness_description(sign, nb, ctx.radius)]
+                    }
+                    _ => vec![crate::pipeline::sun_description(&params, tag == tag::INSOLATION)],
                 };
                 let mut rows = TileRows::new(read(), pieces_of(&pieces), w, h)?;
                 let mut src = |b: usize, y: usize, out: &mut [f32]| {
@@ -510,7 +532,10 @@ pub fn bake_tile_into<W: Write>(
     // The terrain products first (as the untiled bake does): the horizon bake consumes the window.
     let (range, radius) = (ctx.range, ctx.radius);
     // Where the window lies in the map its georeferencing describes (compass bands, SPEC §3.7).
-    let origin = Some((g.window_x as usize, g.window_y as usize));
+    let origin = Some(bake::WindowPlace {
+        origin: (g.window_x as usize, g.window_y as usize),
+        map: (ctx.plan.width as usize, ctx.plan.height as usize),
+    });
     let mut window = Some(window);
     let terrain = if params.outputs.terrain() {
         let w = if params.outputs.horizon { window.clone() } else { window.take() };
@@ -539,6 +564,21 @@ pub fn bake_tile_into<W: Write>(
         if let Some(v) = &t.svf {
             let planes = vec![Plane::F32(v)];
             sections.push(Section { tag: assemble::tag::SVF, channels: 1, planes });
+        }
+        if let Some(d) = &t.distance {
+            let planes = d.chunks_exact(plane).map(Plane::F32).collect();
+            sections.push(Section { tag: assemble::tag::DISTANCE, channels: 1, planes });
+        }
+        let singles = [
+            (t.openness.as_ref().map(|o| &o[0]), assemble::tag::OPENNESS_POSITIVE),
+            (t.openness.as_ref().map(|o| &o[1]), assemble::tag::OPENNESS_NEGATIVE),
+            (t.sun_hours.as_ref(), assemble::tag::SUN_HOURS),
+            (t.insolation.as_ref(), assemble::tag::INSOLATION),
+        ];
+        for (v, tag) in singles {
+            if let Some(v) = v {
+                sections.push(Section { tag, channels: 1, planes: vec![Plane::F32(v)] });
+            }
         }
     }
     if let Some([l0, l1]) = &layers.u8 {

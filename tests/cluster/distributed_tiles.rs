@@ -500,8 +500,11 @@ async fn tiled_terrain_geotiffs_are_the_cli_s_bytes() {
     .unwrap();
     // `svf_model=tilted` (issue 44) needs each texel's normal: from the tile's window, the
     // same as the whole map's (the hole across the seam makes some one-sided).
-    let q = "radius=24&method=march&edge=wrap&bins=16&outputs=horizon,angles,svf&nodata=0\
-             &svf_model=tilted";
+    // Issue 44's ray products too ("same tiling as angles"): each tile walks its own rays
+    // within its halo; the sun at a given place (a PNG has no projection to place it).
+    let q = "radius=24&method=march&edge=wrap&bins=16&outputs=horizon,angles,svf,\
+             openness,sun_hours,insolation&nodata=0&svf_model=tilted\
+             &date=2026-06-21&time_step_minutes=120&latitude=46&longitude=8";
     let (s, v) = submit(&c, cl.base(api), &png, q).await;
     assert_eq!(s, 202, "{v}");
     let id = v["id"].as_str().unwrap().to_owned();
@@ -529,9 +532,11 @@ async fn tiled_terrain_geotiffs_are_the_cli_s_bytes() {
     std::fs::write(&input, &png).unwrap();
     let st = Command::new(BIN)
         .args(["bake", input.to_str().unwrap(), "-o", out.to_str().unwrap()])
-        .args(["--format", "png8,geotiff", "--outputs", "horizon,angles,svf", "--bins", "16"])
+        .args(["--format", "png8,geotiff", "--bins", "16"])
+        .args(["--outputs", "horizon,angles,svf,openness,sun_hours,insolation"])
         .args(["--radius", "24", "--method", "march", "--edge", "wrap", "--nodata", "0"])
-        .args(["--svf-model", "tilted"])
+        .args(["--svf-model", "tilted", "--date", "2026-06-21", "--time-step-minutes", "120"])
+        .args(["--latitude", "46", "--longitude", "8"])
         .status()
         .unwrap();
     assert!(st.success());
@@ -539,6 +544,10 @@ async fn tiled_terrain_geotiffs_are_the_cli_s_bytes() {
     assert!(angles == file("angles.tif"), "angles.tif differs from the CLI's");
     assert!(svf == file("svf.tif"), "svf.tif differs from the CLI's");
     assert!(ours == [file("horizon_0.png"), file("horizon_1.png")], "layers differ");
+    for what in ["openness_positive", "openness_negative", "sun_hours", "insolation"] {
+        let tiled = get(what).await;
+        assert!(tiled == file(&format!("{what}.tif")), "{what}.tif differs from the CLI's");
+    }
 
     if !support::has_rasterio() {
         return;

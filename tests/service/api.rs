@@ -519,17 +519,22 @@ async fn a_drain_waits_for_a_retention_sweep_in_flight() {
     assert_eq!(s, 202);
     let loc = h["location"].to_str().unwrap().to_owned();
     let t = Instant::now();
+    let mut last = String::new();
     loop {
-        let (s, _, _) = oneshot(&app, Request::get(&loc).body(Body::empty()).unwrap()).await;
+        let (s, _, body) = oneshot(&app, Request::get(&loc).body(Body::empty()).unwrap()).await;
         if s == 404 {
             break;
         }
+        last = String::from_utf8_lossy(&body).chars().take(400).collect();
         assert!(t.elapsed() < Duration::from_secs(30), "not removed");
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
     // The record is gone and its blobs wait at the gate: the sweep is in flight.
     let left = blob_files(dir.path()).len();
-    assert!(left > 1, "the sweep should still be deleting: {left} blob files left");
+    assert!(
+        left > 1,
+        "the sweep should still be deleting: {left} blob files left; last seen {last}"
+    );
     let drain = tokio::spawn({
         let st = st.clone();
         async move { st.drain().await }

@@ -512,3 +512,89 @@ fn lengyel_shadow_is_lz_above_the_decoded_layers() {
         assert!(differ > 0, "{encoding}: the lengyel shadow equals the exact ray's");
     }
 }
+
+/// Issue 44 ("same tiling as angles"): a tile's window gives the whole map's horizon distance,
+/// openness, sun hours, insolation and true-north compass bands, bit for bit, on a UTM DEM
+/// 2.6° east of its central meridian (1.9° of convergence): true north and the sun's place are
+/// the whole map's, whatever the window.
+#[test]
+fn a_window_gives_the_whole_map_s_ray_products() {
+    use horizon_bake::heightmap::georef::CrsModel;
+    let (w, h) = (70usize, 54usize);
+    let mut rng = crate::support::Rng(44);
+    let v: Vec<f32> = (0..w * h)
+        .map(|i| {
+            let (x, y) = ((i % w) as f32, (i / w) as f32);
+            300.0 * ((x * 0.21).sin() * (y * 0.17).cos()) + 40.0 * rng.f32()
+        })
+        .collect();
+    let mut map = horizon_bake::heightmap::HeightMap::from_values(w, h, v).unwrap();
+    let g = Georef::from_gdal(
+        [700_000.0, 100.0, 0.0, 5_200_000.0, 0.0, -100.0],
+        Some(CrsModel::Projected),
+        32632,
+        9001,
+        None,
+    );
+    map.terrain.georef = Some(g.clone());
+    let q = "method=exact&radius=6&bins=8&azimuth_from=north_cw&date=2026-06-21\
+             &time_step_minutes=60&outputs=angles,horizon_distance,openness,sun_hours,insolation";
+    let mut p = params(&q.split('&').filter_map(|kv| kv.split_once('=')).collect::<Vec<_>>());
+    apply_dem_defaults(&mut p, Some(&g)).unwrap();
+    let pr = Progress::new();
+    let (whole, radius) = bake::bake_terrain(&map, &p, &pr).unwrap();
+    assert_eq!(radius.texels, 6);
+    assert_eq!(whole.north.as_ref().unwrap().reference, "true");
+    let heights = map.scaled(p.height_scale);
+    let range = Grid::new(w, h, &heights, p.edge, p.y_axis).range();
+    let r = 6 + 1;
+    for (x0, y0, iw, ih) in [(0usize, 0usize, 24usize, 20usize), (24, 20, 24, 20), (48, 40, 22, 14)]
+    {
+        let (wx, wy) = (x0.saturating_sub(r), y0.saturating_sub(r));
+        let (wx1, wy1) = ((x0 + iw + r).min(w), (y0 + ih + r).min(h));
+        let (ww, wh) = (wx1 - wx, wy1 - wy);
+        let vals: Vec<f32> =
+            (wy..wy1).flat_map(|y| map.values[y * w + wx..y * w + wx1].to_vec()).collect();
+        let mut win = horizon_bake::heightmap::HeightMap::from_values(ww, wh, vals).unwrap();
+        win.terrain.georef = Some(g.clone());
+        let place = bake::WindowPlace { origin: (wx, wy), map: (w, h) };
+        let t = bake::bake_terrain_window(
+            win,
+            &p,
+            (x0 - wx, y0 - wy, iw, ih),
+            Some(place),
+            range,
+            6,
+            &pr,
+        )
+        .unwrap();
+        let crop = |v: &[f32], planes: usize| -> Vec<f32> {
+            (0..planes)
+                .flat_map(|k| {
+                    (y0..y0 + ih).flat_map(move |y| {
+                        let at = k * w * h + y * w + x0;
+                        v[at..at + iw].to_vec()
+                    })
+                })
+                .collect()
+        };
+        let same = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits());
+        let nb = 8;
+        assert!(same(t.angles.as_ref().unwrap(), &crop(whole.angles.as_ref().unwrap(), nb)));
+        assert!(same(t.distance.as_ref().unwrap(), &crop(whole.distance.as_ref().unwrap(), nb)));
+        let (o, wo) = (t.openness.as_ref().unwrap(), whole.openness.as_ref().unwrap());
+        assert!(same(&o[0], &crop(&wo[0], 1)) && same(&o[1], &crop(&wo[1], 1)));
+        assert!(same(t.sun_hours.as_ref().unwrap(), &crop(whole.sun_hours.as_ref().unwrap(), 1)));
+        assert!(same(t.insolation.as_ref().unwrap(), &crop(whole.insolation.as_ref().unwrap(), 1)));
+    }
+    // Compass bands are true azimuths: not the grid's bins renumbered.
+    let mut grid_p = p.clone();
+    grid_p.azimuth_from = horizon_bake::params::AzimuthFrom::EastCcw;
+    grid_p.outputs =
+        horizon_bake::params::Outputs { angles: true, ..horizon_bake::params::Outputs::NONE };
+    let (g_ang, _) = bake::bake_terrain(&map, &grid_p, &pr).unwrap();
+    let (a, b) = (whole.angles.unwrap(), g_ang.angles.unwrap());
+    let north_band = &a[..w * h];
+    let grid_north = &b[2 * w * h..3 * w * h]; // east_ccw bin 2 = 90°: grid north
+    assert!(north_band.iter().zip(grid_north).any(|(x, y)| (x - y).abs() > 1e-3));
+}
