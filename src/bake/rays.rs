@@ -89,11 +89,44 @@ fn horizon_distances(
     nodata: f32,
     progress: &Progress,
 ) -> Result<Vec<f32>> {
-    use rayon::prelude::*;
-    let (w, h, nb) = (k.width(), rows.len(), params.bins as usize);
+    let nb = params.bins as usize;
     let order = crate::terrain::angles::band_bins(nb, params.azimuth_from, params.y_axis);
     let unit = params.cell_size.unwrap_or(1.0);
-    // Texel-major rows (each texel's bands together), then transposed to band planes.
+    per_texel_bands(k.width(), rows, nb, holes, nodata, progress, |x, y, bands| {
+        for (band, o) in bands.iter_mut().enumerate() {
+            let (t, s) = match true_bands {
+                // Compass bands on a projected map: the true azimuth's φ at this texel.
+                Some(c) => k.horizon_and_distance_at(
+                    x,
+                    y,
+                    c.phi(x, y, crate::terrain::angles::band_azimuth_deg(band, nb)),
+                ),
+                None => k.horizon_and_distance(x, y, order[band]),
+            };
+            if t > 0.0 {
+                *o = (s * unit) as f32;
+            }
+        }
+    })
+}
+
+/// Band-major planes of `nb` values per texel of `rows` (every column of a `w`-wide grid), a
+/// texel's bands set by `texel(x, y, bands)` (holes keep `nodata`), row by row on the pool with
+/// cancellation between rows; texel-major while computed, then transposed.
+///
+/// # Errors
+/// [`crate::Error::Canceled`].
+fn per_texel_bands(
+    w: usize,
+    rows: std::ops::Range<usize>,
+    nb: usize,
+    holes: Option<&[bool]>,
+    nodata: f32,
+    progress: &Progress,
+    texel: impl Fn(usize, usize, &mut [f32]) + Sync,
+) -> Result<Vec<f32>> {
+    use rayon::prelude::*;
+    let h = rows.len();
     let mut texels = vec![nodata; w * h * nb];
     progress.start(Stage::Bake, h as u64);
     texels.par_chunks_mut(w * nb).enumerate().try_for_each(|(j, row)| {
@@ -102,22 +135,8 @@ fn horizon_distances(
         }
         let y = rows.start + j;
         for (x, bands) in row.chunks_exact_mut(nb).enumerate() {
-            if holes.is_some_and(|m| m[y * w + x]) {
-                continue;
-            }
-            for (band, o) in bands.iter_mut().enumerate() {
-                let (t, s) = match true_bands {
-                    // Compass bands on a projected map: the true azimuth's φ at this texel.
-                    Some(c) => k.horizon_and_distance_at(
-                        x,
-                        y,
-                        c.phi(x, y, crate::terrain::angles::band_azimuth_deg(band, nb)),
-                    ),
-                    None => k.horizon_and_distance(x, y, order[band]),
-                };
-                if t > 0.0 {
-                    *o = (s * unit) as f32;
-                }
+            if !holes.is_some_and(|m| m[y * w + x]) {
+                texel(x, y, bands);
             }
         }
         progress.advance(1);
@@ -332,32 +351,13 @@ pub(super) fn true_north_angles(
     nodata: f32,
     progress: &Progress,
 ) -> Result<Vec<f32>> {
-    use rayon::prelude::*;
-    let (w, nb) = (k.width(), params.bins as usize);
-    let h = rows.len();
-    let mut texels = vec![nodata; w * h * nb];
-    progress.start(Stage::Bake, h as u64);
-    texels.par_chunks_mut(w * nb).enumerate().try_for_each(|(j, row)| {
-        if progress.is_canceled() {
-            return Err(crate::Error::Canceled);
+    let nb = params.bins as usize;
+    per_texel_bands(k.width(), rows, nb, holes, nodata, progress, |x, y, bands| {
+        for (n, o) in bands.iter_mut().enumerate() {
+            let phi = compass.phi(x, y, crate::terrain::angles::band_azimuth_deg(n, nb));
+            *o = crate::terrain::angles::angle(k.horizon_sin(x, y, phi) as f32, params.angle_unit);
         }
-        let y = rows.start + j;
-        for (x, bands) in row.chunks_exact_mut(nb).enumerate() {
-            if holes.is_some_and(|m| m[y * w + x]) {
-                continue;
-            }
-            for (n, o) in bands.iter_mut().enumerate() {
-                let phi = compass.phi(x, y, crate::terrain::angles::band_azimuth_deg(n, nb));
-                *o = crate::terrain::angles::angle(
-                    k.horizon_sin(x, y, phi) as f32,
-                    params.angle_unit,
-                );
-            }
-        }
-        progress.advance(1);
-        Ok(())
-    })?;
-    Ok(transpose_bands(&texels, nb))
+    })
 }
 
 /// Texel-major bands (each texel's `nb` values together) as band-major planes.

@@ -265,21 +265,18 @@ impl<'a> ExactHorizon<'a> {
     /// of the ray that sets it (the walk's arg max: SPEC §3.7 `horizon_distance`); (0, 0) when
     /// nothing rises above the horizontal.
     pub fn horizon_and_distance(&self, x: usize, y: usize, n: usize) -> (f64, f64) {
-        assert!(x < self.grid.width && y < self.grid.height, "texel outside the grid");
         let (dx, dy) = self.dirs[n];
-        let ray = self.ray(x, y, dx, dy);
-        let (t, s) = self.walk(&ray, 0.0, 0.0);
-        if t > 0.0 {
-            (t, s)
-        } else {
-            (0.0, 0.0)
-        }
+        self.distance_along(x, y, dx, dy)
     }
 
     /// [`ExactHorizon::horizon_and_distance`] at any azimuth `phi` (radians).
     pub fn horizon_and_distance_at(&self, x: usize, y: usize, phi: f64) -> (f64, f64) {
-        assert!(x < self.grid.width && y < self.grid.height, "texel outside the grid");
         let (dx, dy) = direction(phi, self.grid.row_step());
+        self.distance_along(x, y, dx, dy)
+    }
+
+    fn distance_along(&self, x: usize, y: usize, dx: f64, dy: f64) -> (f64, f64) {
+        assert!(x < self.grid.width && y < self.grid.height, "texel outside the grid");
         let ray = self.ray(x, y, dx, dy);
         let (t, s) = self.walk(&ray, 0.0, 0.0);
         if t > 0.0 {
