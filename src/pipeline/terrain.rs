@@ -121,11 +121,9 @@ pub fn terrain_files(
             );
         }
     }
-    let sun = [
-        ("sun_hours.tif", &p.sun_hours, "hours of direct sun", "hours"),
-        ("insolation.tif", &p.insolation, "clear-sky direct beam on the surface", "Wh/m²"),
-    ];
-    for (name, plane, what, unit) in sun {
+    let sun =
+        [("sun_hours.tif", &p.sun_hours, "hours"), ("insolation.tif", &p.insolation, "Wh/m²")];
+    for (name, plane, unit) in sun {
         let Some(plane) = plane else { continue };
         if progress.is_canceled() {
             return Err(Error::Canceled);
@@ -134,7 +132,6 @@ pub fn terrain_files(
         let (from, to) = (params.date_from.as_deref(), params.date_to.as_deref());
         let (from, to) = (from.unwrap_or_default(), to.unwrap_or_default());
         let description = sun_description(params, name == "insolation.tif");
-        let _ = what;
         let bands = [geotiff::Band { plane, description: description.clone() }];
         let bytes = geotiff::encode(p.width, p.height, &bands, georef, p.nodata)?;
         files.push(OutFile { name, bytes });
