@@ -538,18 +538,28 @@ where
     T: Sample,
     S: FnMut(LayerRows<'_, T>) -> Result<()> + Send,
 {
-    Ok(stream_horizon_tapped(map, params, false, progress, sink)?.0)
+    Ok(stream_horizon_tapped(map, params, Surface::None, progress, sink)?.0)
 }
 
-/// [`stream_horizon`], and with `surface` the surface maps `params.outputs` asks for (SPEC
-/// §3.8) from the same kernel pass (each band's horizons feed them as they are computed).
+/// What of the surface maps (SPEC §3.8) a bake keeps beside its horizons: none, their bytes
+/// (8-bit files and textures), or their bytes and unquantised values (16-bit PNG, EXR).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Surface {
+    None,
+    Bytes,
+    Values,
+}
+
+/// [`stream_horizon`], and unless `surface` is [`Surface::None`] the surface maps
+/// `params.outputs` asks for (SPEC §3.8) from the same kernel pass (each band's horizons feed
+/// them as they are computed).
 ///
 /// # Errors
 /// As [`stream_horizon`].
 pub fn stream_horizon_tapped<T, S>(
     map: HeightMap,
     params: &BakeParams,
-    surface: bool,
+    surface: Surface,
     progress: &Progress,
     sink: S,
 ) -> Result<(ResolvedRadius, Option<SurfaceMaps>)>
@@ -565,8 +575,8 @@ where
     let grid = Grid::new(w, h, &heights, params.edge, params.y_axis);
     let mut kernel = make_kernel_for(params, grid, radius.texels, progress, holes.as_deref());
     let mut maps = None;
-    if surface {
-        let job = SurfaceJob::new(params, kernel.bins());
+    if surface != Surface::None {
+        let job = SurfaceJob::new(params, kernel.bins()).with_values(surface == Surface::Values);
         let shared = Arc::new(Mutex::new(job.maps(w, h)));
         maps = Some(shared.clone());
         let holes = holes.as_deref();
@@ -986,7 +996,23 @@ pub struct SurfaceMaps {
     pub ao: Option<Vec<u8>>,
     /// RGB8 (`rgb`; `rg` with blue 0) or RGBA8 (`rgb_ao`) as `bent_normal_encoding` says.
     pub bent_normal: Option<Vec<u8>>,
+    /// The same maps unquantised (what the bytes round), when the bake writes 16-bit PNGs or
+    /// EXR: f32 in [0, 1], the channels as above.
+    pub values: Option<SurfaceValues>,
 }
+
+/// The surface maps as f32 values in [0, 1] ((v + 1) / 2 for the vectors, the AO as it is),
+/// each when asked, with the channels of [`SurfaceMaps`]'s bytes.
+#[derive(Debug, Clone, Default)]
+pub struct SurfaceValues {
+    pub normal: Option<Vec<f32>>,
+    pub ao: Option<Vec<f32>>,
+    pub bent_normal: Option<Vec<f32>>,
+}
+
+/// The rows one call of [`SurfaceJob::rows`] fills: the bytes of the three maps, and their
+/// values when the bake keeps those too.
+type SurfaceOut<'o> = ([Option<&'o mut [u8]>; 3], [Option<&'o mut [f32]>; 3]);
 
 impl SurfaceMaps {
     /// Channels per texel of `bent_normal` with `encoding`.
@@ -1010,6 +1036,8 @@ pub struct SurfaceJob {
     /// The azimuths the horizons are at.
     dirs: crate::terrain::surface::BinDirs,
     bent_channels: usize,
+    /// Keep the unquantised values too ([`SurfaceMaps::values`]).
+    values: bool,
 }
 
 impl SurfaceJob {
@@ -1024,7 +1052,14 @@ impl SurfaceJob {
             per_bin,
             dirs: surface::BinDirs::new(if per_bin { bins } else { 8 }),
             bent_channels: SurfaceMaps::bent_channels(params.bent_normal_encoding),
+            values: false,
         }
+    }
+
+    /// Keeps the unquantised values too (for 16-bit PNG and EXR files).
+    pub fn with_values(mut self, values: bool) -> Self {
+        self.values = values;
+        self
     }
 
     /// Empty maps of `w × h` texels for what is asked.
@@ -1036,6 +1071,11 @@ impl SurfaceJob {
             normal: o.normal.then(|| vec![0u8; w * h * 3]),
             ao: o.ao.then(|| vec![0u8; w * h]),
             bent_normal: o.bent_normal.then(|| vec![0u8; w * h * self.bent_channels]),
+            values: self.values.then(|| SurfaceValues {
+                normal: o.normal.then(|| vec![0f32; w * h * 3]),
+                ao: o.ao.then(|| vec![0f32; w * h]),
+                bent_normal: o.bent_normal.then(|| vec![0f32; w * h * self.bent_channels]),
+            }),
         }
     }
 
@@ -1052,12 +1092,14 @@ impl SurfaceJob {
         channels: &[f32],
         bins: Option<&[f32]>,
         nb: usize,
-        mut out: [Option<&mut [u8]>; 3],
+        out: SurfaceOut<'_>,
     ) {
         use crate::params::BentNormalEncoding;
         use crate::terrain::surface;
         let w = grid.width;
         let ch = self.bent_channels;
+        let (mut out, mut vals) = out;
+        let rg = self.encoding == BentNormalEncoding::Rg;
         for t in 0..rows * w {
             let (x, y) = (t % w, y0 + t / w);
             if holes.is_some_and(|m| m[y * w + x]) {
@@ -1066,6 +1108,9 @@ impl SurfaceJob {
             let n = surface::normal(grid, holes, x, y);
             if let Some(o) = out[0].as_deref_mut() {
                 o[t * 3..t * 3 + 3].copy_from_slice(&surface::encode_unit(n, self.flip_y));
+            }
+            if let Some(o) = vals[0].as_deref_mut() {
+                o[t * 3..t * 3 + 3].copy_from_slice(&surface::unit_values(n, self.flip_y));
             }
             if out[1].is_none() && out[2].is_none() {
                 continue;
@@ -1078,12 +1123,18 @@ impl SurfaceJob {
             if let Some(o) = out[1].as_deref_mut() {
                 o[t] = surface::encode_unorm(occ.ao);
             }
+            if let Some(o) = vals[1].as_deref_mut() {
+                o[t] = occ.ao.clamp(0.0, 1.0) as f32;
+            }
             if let Some(o) = out[2].as_deref_mut() {
                 let v = surface::encode_unit(occ.bent, self.flip_y);
-                let (z, a) = match self.encoding {
-                    BentNormalEncoding::Rg => (0, 0),
-                    _ => (v[2], surface::encode_unorm(occ.ao)),
-                };
+                let (z, a) = if rg { (0, 0) } else { (v[2], surface::encode_unorm(occ.ao)) };
+                o[t * ch..(t + 1) * ch].copy_from_slice(&[v[0], v[1], z, a][..ch]);
+            }
+            if let Some(o) = vals[2].as_deref_mut() {
+                let v = surface::unit_values(occ.bent, self.flip_y);
+                let ao = occ.ao.clamp(0.0, 1.0) as f32;
+                let (z, a) = if rg { (0.0, 0.0) } else { (v[2], ao) };
                 o[t * ch..(t + 1) * ch].copy_from_slice(&[v[0], v[1], z, a][..ch]);
             }
         }
@@ -1103,6 +1154,19 @@ pub fn bake_surface(
     params: &BakeParams,
     progress: &Progress,
 ) -> Result<(SurfaceMaps, ResolvedRadius)> {
+    bake_surface_as(map, params, Surface::Bytes, progress)
+}
+
+/// [`bake_surface`], keeping the unquantised values too with [`Surface::Values`].
+///
+/// # Errors
+/// [`crate::Error::Canceled`].
+pub fn bake_surface_as(
+    map: &HeightMap,
+    params: &BakeParams,
+    keep: Surface,
+    progress: &Progress,
+) -> Result<(SurfaceMaps, ResolvedRadius)> {
     let (w, h) = (map.width, map.height);
     let heights = map.scaled(params.height_scale);
     check_scaled(&heights)?;
@@ -1111,22 +1175,39 @@ pub fn bake_surface(
     let holes = map.terrain.holes.as_deref();
     let kernel = make_kernel_for(params, grid, radius.texels, progress, holes);
     let nb = kernel.bins();
-    let job = SurfaceJob::new(params, nb);
+    let job = SurfaceJob::new(params, nb).with_values(keep == Surface::Values);
     let mut maps = job.maps(w, h);
     let band = kernels::band_rows_for(kernel.as_ref());
     progress.start(Stage::Bake, h as u64);
     {
         let ch = job.bent_channels;
-        let normal_rows = maps.normal.as_mut().map(|p| split(p, band * w * 3));
-        let ao_rows = maps.ao.as_mut().map(|p| split(p, band * w));
-        let bent_rows = maps.bent_normal.as_mut().map(|p| split(p, band * w * ch));
+        let per = [3, 1, ch];
+        let values = maps.values.as_mut();
+        let [vn, va, vb] = match values {
+            Some(v) => [v.normal.as_mut(), v.ao.as_mut(), v.bent_normal.as_mut()],
+            None => [None, None, None],
+        };
+        let byte_rows = [maps.normal.as_mut(), maps.ao.as_mut(), maps.bent_normal.as_mut()];
+        let byte_rows: Vec<Option<Vec<Mutex<&mut [u8]>>>> = byte_rows
+            .into_iter()
+            .zip(per)
+            .map(|(m, c)| m.map(|p| split(p, band * w * c)))
+            .collect();
+        let value_rows: Vec<Option<Vec<Mutex<&mut [f32]>>>> = [vn, va, vb]
+            .into_iter()
+            .zip(per)
+            .map(|(m, c)| m.map(|p| split(p, band * w * c)))
+            .collect();
         kernels::run_bands(kernel.as_ref(), band, job.per_bin, progress, |bi, b: Band<'_>| {
-            let mut nr = normal_rows.as_ref().and_then(|r| r[bi].lock().ok());
-            let mut ar = ao_rows.as_ref().and_then(|r| r[bi].lock().ok());
-            let mut br = bent_rows.as_ref().and_then(|r| r[bi].lock().ok());
-            let out = [nr.as_deref_mut(), ar.as_deref_mut(), br.as_deref_mut()]
-                .map(|o| o.map(|s: &mut &mut [u8]| &mut **s));
-            job.rows(&grid, holes, b.y0, b.rows, b.channels, b.bins, nb, out);
+            let mut bytes: Vec<_> =
+                byte_rows.iter().map(|r| r.as_ref().and_then(|r| r[bi].lock().ok())).collect();
+            let mut vals: Vec<_> =
+                value_rows.iter().map(|r| r.as_ref().and_then(|r| r[bi].lock().ok())).collect();
+            let mut it = bytes.iter_mut().map(|o| o.as_deref_mut().map(|s| &mut **s));
+            let out = [it.next().flatten(), it.next().flatten(), it.next().flatten()];
+            let mut it = vals.iter_mut().map(|o| o.as_deref_mut().map(|s| &mut **s));
+            let val = [it.next().flatten(), it.next().flatten(), it.next().flatten()];
+            job.rows(&grid, holes, b.y0, b.rows, b.channels, b.bins, nb, (out, val));
         })?;
     }
     Ok((maps, radius))
@@ -1173,17 +1254,27 @@ impl HorizonRows for SurfaceTap<'_> {
         let mut band = self.job.maps(w, rows);
         let out =
             [band.normal.as_deref_mut(), band.ao.as_deref_mut(), band.bent_normal.as_deref_mut()];
-        self.job.rows(&self.grid, self.holes, y0, rows, channels, bins.as_deref(), nb, out);
+        let val = match band.values.as_mut() {
+            Some(v) => [v.normal.as_deref_mut(), v.ao.as_deref_mut(), v.bent_normal.as_deref_mut()],
+            None => [None, None, None],
+        };
+        self.job.rows(&self.grid, self.holes, y0, rows, channels, bins.as_deref(), nb, (out, val));
         let mut maps = self.maps.lock().unwrap_or_else(|e| e.into_inner());
         let ch = self.job.bent_channels;
-        let put = |to: &mut Option<Vec<u8>>, from: Option<Vec<u8>>, per: usize| {
+        fn put<V: Copy>(to: &mut Option<Vec<V>>, from: Option<Vec<V>>, at: usize) {
             if let (Some(to), Some(from)) = (to.as_mut(), from) {
-                to[y0 * w * per..(y0 + rows) * w * per].copy_from_slice(&from);
+                to[at..at + from.len()].copy_from_slice(&from);
             }
-        };
-        put(&mut maps.normal, band.normal.take(), 3);
-        put(&mut maps.ao, band.ao.take(), 1);
-        put(&mut maps.bent_normal, band.bent_normal.take(), ch);
+        }
+        let at = y0 * w;
+        put(&mut maps.normal, band.normal.take(), at * 3);
+        put(&mut maps.ao, band.ao.take(), at);
+        put(&mut maps.bent_normal, band.bent_normal.take(), at * ch);
+        if let (Some(to), Some(from)) = (maps.values.as_mut(), band.values.take()) {
+            put(&mut to.normal, from.normal, at * 3);
+            put(&mut to.ao, from.ao, at);
+            put(&mut to.bent_normal, from.bent_normal, at * ch);
+        }
         drop(maps);
         OWN.with(|o| {
             let mut kept = o.borrow_mut();

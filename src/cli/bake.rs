@@ -398,16 +398,17 @@ pub fn run(args: BakeArgs) -> Result<()> {
     }
     formats.exr_precision =
         crate::encode::exr::ExrPrecision::parse("exr_precision", &args.exr_precision)?;
-    crate::pipeline::surface::check_surface_formats(&params, &formats)?;
-    // Without the horizon output there are no layers to write as png16, EXR, KTX2 or DDS;
-    // writing none while bake.json lists them would be a lie, so the combination is refused.
-    // (png8, the default, stays accepted: the Fourier files are 8-bit PNGs.)
-    if !params.outputs.horizon && (formats.png16 || formats.exr || formats.ktx2 || formats.dds) {
+    // Without the horizon output or a surface map there is nothing to write as png16, EXR,
+    // KTX2 or DDS; writing none while bake.json lists them would be a lie, so the combination
+    // is refused. (png8, the default, stays accepted: the Fourier files are 8-bit PNGs.)
+    let takes_formats = params.outputs.horizon || params.outputs.surface();
+    if !takes_formats && (formats.png16 || formats.exr || formats.ktx2 || formats.dds) {
         return Err(Error::param(
             "format",
             format!(
-                "`{}` names horizon-layer formats, but --outputs has no `horizon`; \
-                 add it (--outputs horizon,fourier) or drop --format",
+                "`{}` names formats of the horizon layers and surface maps, but --outputs has \
+                 neither; add one (--outputs horizon,fourier or normal, ao, bent_normal) or drop \
+                 --format",
                 args.format
             ),
         ));

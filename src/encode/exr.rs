@@ -73,21 +73,55 @@ pub fn encode_rgba_as(
     data: &[f32],
     precision: ExrPrecision,
 ) -> Result<Vec<u8>> {
+    encode_channels(width, height, 4, data, precision)
+}
+
+/// The channel names of an image of `channels` components per pixel, in the components'
+/// order: Y (grey), R G B, or R G B A.
+fn channel_names(channels: usize) -> Option<&'static [&'static str]> {
+    match channels {
+        1 => Some(&["Y"]),
+        3 => Some(&["R", "G", "B"]),
+        4 => Some(&["R", "G", "B", "A"]),
+        _ => None,
+    }
+}
+
+/// Encodes `width · height · channels` f32 samples (1: Y, 3: RGB, 4: RGBA, interleaved,
+/// row-major from the top row) as OpenEXR in `precision`, as [`encode_rgba_as`] writes RGBA.
+///
+/// # Errors
+/// [`Error::Internal`] on a size mismatch, another channel count or a size the format cannot
+/// describe.
+pub fn encode_channels(
+    width: usize,
+    height: usize,
+    channels: usize,
+    data: &[f32],
+    precision: ExrPrecision,
+) -> Result<Vec<u8>> {
     use rayon::prelude::*;
-    if width == 0 || height == 0 || data.len() != width * height * 4 {
+    let Some(names) = channel_names(channels) else {
+        return Err(Error::Internal(format!("exr: {channels} channels")));
+    };
+    if width == 0 || height == 0 || data.len() != width * height * channels {
         return Err(Error::Internal("exr: buffer size mismatch".into()));
     }
+    // The file lists channels by name (A, B, G, R; or Y), each row's planes in that order.
+    let mut order: Vec<(&str, usize)> = names.iter().copied().zip(0..).collect();
+    order.sort_by_key(|&(n, _)| n);
     let sample = match precision {
         ExrPrecision::Half => 2,
         ExrPrecision::Float => 4,
     };
-    let row_bytes = width * 4 * sample;
+    let row_bytes = width * channels * sample;
     let (Ok(w), Ok(h), Ok(row_len)) =
         (i32::try_from(width), i32::try_from(height), i32::try_from(row_bytes))
     else {
         return Err(Error::Internal(format!("exr: {width}×{height} is too large")));
     };
-    let header = scanline_header(w, h, precision);
+    let sorted: Vec<&str> = order.iter().map(|&(n, _)| n).collect();
+    let header = scanline_header(w, h, &sorted, precision);
     let chunk = 8 + row_bytes;
     let first = header.len() + 8 * height;
     let mut out = vec![0u8; first + chunk * height];
@@ -95,21 +129,21 @@ pub fn encode_rgba_as(
     for (y, slot) in out[header.len()..first].chunks_exact_mut(8).enumerate() {
         slot.copy_from_slice(&((first + y * chunk) as u64).to_le_bytes());
     }
-    out[first..].par_chunks_mut(chunk).zip(data.par_chunks(width * 4)).enumerate().for_each(
+    out[first..].par_chunks_mut(chunk).zip(data.par_chunks(width * channels)).enumerate().for_each(
         |(y, (dst, src))| {
             dst[..4].copy_from_slice(&(y as i32).to_le_bytes());
             dst[4..8].copy_from_slice(&row_len.to_le_bytes());
             let planes = &mut dst[8..];
-            // Channels in name order: A, B, G, R = RGBA components 3, 2, 1, 0.
-            for (plane, c) in planes.chunks_exact_mut(width * sample).zip([3usize, 2, 1, 0]) {
+            // Channels in name order (RGBA: A, B, G, R = components 3, 2, 1, 0).
+            for (plane, &(_, c)) in planes.chunks_exact_mut(width * sample).zip(&order) {
                 match precision {
                     ExrPrecision::Float => {
-                        for (d, px) in plane.chunks_exact_mut(4).zip(src.chunks_exact(4)) {
+                        for (d, px) in plane.chunks_exact_mut(4).zip(src.chunks_exact(channels)) {
                             d.copy_from_slice(&px[c].to_le_bytes());
                         }
                     }
                     ExrPrecision::Half => {
-                        for (d, px) in plane.chunks_exact_mut(2).zip(src.chunks_exact(4)) {
+                        for (d, px) in plane.chunks_exact_mut(2).zip(src.chunks_exact(channels)) {
                             d.copy_from_slice(&f16::from_f32(px[c]).to_bits().to_le_bytes());
                         }
                     }
@@ -121,8 +155,8 @@ pub fn encode_rgba_as(
 }
 
 /// The magic number, version 2 (single-part scanline), and the required attributes of a
-/// `width × height` RGBA image without compression, increasing y.
-fn scanline_header(width: i32, height: i32, precision: ExrPrecision) -> Vec<u8> {
+/// `width × height` image of the channels `names` (sorted) without compression, increasing y.
+fn scanline_header(width: i32, height: i32, names: &[&str], precision: ExrPrecision) -> Vec<u8> {
     fn attr(out: &mut Vec<u8>, name: &str, kind: &str, value: &[u8]) {
         out.extend_from_slice(name.as_bytes());
         out.push(0);
@@ -136,7 +170,7 @@ fn scanline_header(width: i32, height: i32, precision: ExrPrecision) -> Vec<u8> 
         ExrPrecision::Float => 2,
     };
     let mut chlist = Vec::new();
-    for name in ["A", "B", "G", "R"] {
+    for name in names {
         chlist.extend_from_slice(name.as_bytes());
         chlist.push(0);
         chlist.extend_from_slice(&pixel_type.to_le_bytes());
@@ -193,6 +227,27 @@ mod tests {
                 assert_eq!(got, &want, "{w}×{h} half {name}");
             }
         }
+    }
+
+    /// Grey and RGB images (the surface maps, SPEC §3.8) read back with their channels' names
+    /// and values; other counts are refused.
+    #[test]
+    fn grey_and_rgb_read_back_with_the_exr_crate() {
+        let (w, h) = (5usize, 3usize);
+        for (ch, names) in [(1usize, &["Y"][..]), (3, &["R", "G", "B"][..])] {
+            let data: Vec<f32> = (0..w * h * ch).map(|k| k as f32 / 7.0).collect();
+            let img = read_any(&encode_channels(w, h, ch, &data, ExrPrecision::Float).unwrap());
+            assert_eq!(img.len(), ch);
+            for (c, name) in names.iter().enumerate() {
+                let FlatSamples::F32(got) = &img.iter().find(|(n, _)| n == name).unwrap().1 else {
+                    panic!("{name} is not f32")
+                };
+                let want: Vec<f32> = data.chunks_exact(ch).map(|p| p[c]).collect();
+                assert_eq!(got, &want, "{ch} channels, {name}");
+            }
+        }
+        assert!(encode_channels(w, h, 2, &vec![0.0; w * h * 2], ExrPrecision::Float).is_err());
+        assert!(encode_channels(w, h, 3, &vec![0.0; w * h], ExrPrecision::Float).is_err());
     }
 
     fn read_any(bytes: &[u8]) -> Vec<(String, FlatSamples)> {

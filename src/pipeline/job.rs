@@ -318,6 +318,17 @@ pub fn result_name(formats: &Formats, file: &str) -> String {
         let opts = formats.texture.for_container(ext == "ktx2");
         return texture_result_name(ext, &opts, layer);
     }
+    // A 16-bit surface map is `{map}.png16` (the CLI's `normal.png` in either depth), so that
+    // its download answers for the depth it has.
+    if formats.png16 {
+        if let Some(stem) = ["normal.png", "ao.png", "bent_normal.png"]
+            .iter()
+            .find(|n| **n == file)
+            .and_then(|n| n.strip_suffix(".png"))
+        {
+            return format!("{stem}.png16");
+        }
+    }
     let half = formats.exr_precision == ExrPrecision::Half;
     let pick = match file {
         "horizon_0.png" if formats.png16 => 2,

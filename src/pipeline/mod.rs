@@ -99,6 +99,26 @@ pub fn streamable(formats: &Formats) -> bool {
     (formats.png8 || formats.png16) && !(formats.exr || formats.ktx2 || formats.dds)
 }
 
+/// What of the surface maps a bake with `params` must keep for `formats`: their values too
+/// where a 16-bit PNG, an EXR or a 16-bit or float texture of them is written (SPEC §3.8: the
+/// formats of the layers).
+pub fn surface_keep(params: &BakeParams, formats: &Formats) -> bake::Surface {
+    if !params.outputs.surface() {
+        bake::Surface::None
+    } else if formats.png16
+        || formats.exr
+        || ((formats.ktx2 || formats.dds)
+            && matches!(
+                formats.texture.precision,
+                crate::encode::TexturePrecision::Unorm16 | crate::encode::TexturePrecision::Float32
+            ))
+    {
+        bake::Surface::Values
+    } else {
+        bake::Surface::Bytes
+    }
+}
+
 /// Bakes `map` with `params` into the files `formats` and `params.outputs` ask for, into `sink`.
 ///
 /// # Errors
@@ -155,10 +175,11 @@ pub fn produce<S: Sink>(
         }
         let fourier_ms = ms(t);
         let t = Instant::now();
+        let kept = surface_keep(params, formats);
         let (writers, r, surface) = if formats.png16 {
-            stream_into::<u16, S>(map, params, progress, sink)?
+            stream_into::<u16, S>(map, params, kept, progress, sink)?
         } else {
-            stream_into::<u8, S>(map, params, progress, sink)?
+            stream_into::<u8, S>(map, params, kept, progress, sink)?
         };
         let bake_ms = ms(t);
         let mut products = products.clone();
@@ -352,12 +373,12 @@ fn keep<S: Sink>(sink: &mut S, files: Vec<OutFile>, names: &mut Vec<&'static str
 fn stream_into<T: Sample + png::PngSample, S: Sink>(
     map: HeightMap,
     params: &BakeParams,
+    surface: bake::Surface,
     progress: &Progress,
     sink: &mut S,
 ) -> Result<(Streamed<S>, ResolvedRadius, Option<bake::SurfaceMaps>)> {
     const NAMES: [&str; 2] = ["horizon_0.png", "horizon_1.png"];
     let outs = [sink.writer(NAMES[0])?, sink.writer(NAMES[1])?];
-    let surface = params.outputs.surface();
     let ([a, b], radius, maps) =
         stream_horizon_pngs_tapped::<T, _>(map, params, surface, progress, outs)?;
     Ok(([(NAMES[0], a), (NAMES[1], b)], radius, maps))
@@ -381,11 +402,11 @@ where
     W: std::io::Write + Send + 'static,
 {
     let (files, radius, _) =
-        stream_horizon_pngs_tapped::<T, W>(map, params, false, progress, outs)?;
+        stream_horizon_pngs_tapped::<T, W>(map, params, bake::Surface::None, progress, outs)?;
     Ok((files, radius))
 }
 
-/// [`stream_horizon_pngs`], and with `surface` the surface maps from the same kernel pass
+/// [`stream_horizon_pngs`], and the surface maps `surface` keeps from the same kernel pass
 /// ([`bake::stream_horizon_tapped`]).
 ///
 /// # Errors
@@ -393,7 +414,7 @@ where
 pub fn stream_horizon_pngs_tapped<T, W>(
     map: HeightMap,
     params: &BakeParams,
-    surface: bool,
+    surface: bake::Surface,
     progress: &Progress,
     outs: [W; 2],
 ) -> Result<([W; 2], ResolvedRadius, Option<bake::SurfaceMaps>)>

@@ -298,6 +298,22 @@ pub fn encode_unorm(v: f64) -> u8 {
     (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
 }
 
+/// What [`encode_unit`] quantises, unquantised: ((v + 1) / 2) per component in [0, 1], y
+/// negated when `flip_y`, a component within 1e-6 of 0 taken as 0 (so flat is exactly 0.5,
+/// 0.5, 1). The 16-bit PNG and EXR surface maps hold these (SPEC §3.8: formats as the layers).
+pub fn unit_values(v: [f64; 3], flip_y: bool) -> [f32; 3] {
+    let y = if flip_y { -v[1] } else { v[1] };
+    [v[0], y, v[2]].map(|c| {
+        let c = if c.abs() < 1e-6 { 0.0 } else { c.clamp(-1.0, 1.0) };
+        ((c + 1.0) * 0.5) as f32
+    })
+}
+
+/// A value in [0, 1] as a 16-bit sample: floor(v·65535 + 0.5), SPEC §2's 16-bit rule.
+pub fn encode_unorm16(v: f32) -> u16 {
+    (f64::from(v).clamp(0.0, 1.0) * 65535.0 + 0.5) as u16
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -465,5 +481,30 @@ mod tests {
         assert_eq!(encode_unit([-1e-7, 1e-7, 1.0], true), [128, 128, 255]);
         assert_eq!(encode_unorm(1.0), 255);
         assert_eq!(encode_unorm(0.5), 128);
+    }
+
+    /// The 16-bit and float maps hold what the bytes quantise: the byte of each value is the
+    /// byte [`encode_unit`] writes, and the 16-bit sample is SPEC §2's floor(v·65535 + 0.5).
+    #[test]
+    fn values_are_what_the_bytes_quantise() {
+        let mut rnd = xorshift(7);
+        for _ in 0..2000 {
+            let v = unit([rnd() * 2.0 - 1.0, rnd() * 2.0 - 1.0, rnd()]);
+            for flip in [false, true] {
+                let f = unit_values(v, flip);
+                let b = encode_unit(v, flip);
+                for c in 0..3 {
+                    // The same rounding from the f32 value, but at a tie the f64 decides.
+                    let from_f = (f64::from(f[c]) * 255.0 + 0.5).floor();
+                    assert!((from_f - f64::from(b[c])).abs() <= 1.0, "{v:?} {c}");
+                    let want = (f64::from(f[c]) * 65535.0 + 0.5).floor() as u16;
+                    assert_eq!(encode_unorm16(f[c]), want);
+                }
+            }
+        }
+        assert_eq!(unit_values([1e-7, -1e-7, 1.0], true), [0.5, 0.5, 1.0]);
+        assert_eq!(encode_unorm16(0.5), 32768);
+        assert_eq!(encode_unorm16(1.0), 65535);
+        assert_eq!(encode_unorm16(-0.1), 0);
     }
 }

@@ -235,13 +235,29 @@ fn the_same_pass_as_the_horizon_layers_gives_the_same_maps() {
         .unwrap();
         let p = Progress::new();
         let (alone, _) = bake_surface(map, &params, &p).unwrap();
-        let (layers, _, tapped) =
-            stream_horizon_pngs_tapped::<u8, _>(map.clone(), &params, true, &p, [vec![], vec![]])
-                .unwrap();
+        let (layers, _, tapped) = stream_horizon_pngs_tapped::<u8, _>(
+            map.clone(),
+            &params,
+            horizon_bake::bake::Surface::Bytes,
+            &p,
+            [vec![], vec![]],
+        )
+        .unwrap();
         let tapped = tapped.unwrap();
         assert!(alone.normal == tapped.normal, "{method}: normal");
         assert!(alone.ao == tapped.ao, "{method}: ao");
         assert!(alone.bent_normal == tapped.bent_normal, "{method}: bent");
+        // The values the 16-bit PNGs and EXRs take, streamed with 16-bit layers, too.
+        let keep = horizon_bake::bake::Surface::Values;
+        let (alone_v, _) = horizon_bake::bake::bake_surface_as(map, &params, keep, &p).unwrap();
+        let (_, _, tapped_v) =
+            stream_horizon_pngs_tapped::<u16, _>(map.clone(), &params, keep, &p, [vec![], vec![]])
+                .unwrap();
+        let (a, t) = (alone_v.values.unwrap(), tapped_v.unwrap().values.unwrap());
+        assert!(a.normal.is_some() && a.ao.is_some() && a.bent_normal.is_some(), "{method}");
+        assert!(a.normal == t.normal && a.ao == t.ao, "{method}: normal and ao values");
+        assert!(a.bent_normal == t.bent_normal, "{method}: bent normal values");
+        assert!(alone_v.normal == alone.normal, "{method}: the bytes do not depend on the values");
         if let Some(m) = &map.terrain.holes {
             // Every output of a hole is 0 (SPEC §2), and a hole's neighbour is still surface.
             let (n, a) = (alone.normal.as_ref().unwrap(), alone.ao.as_ref().unwrap());
@@ -264,4 +280,185 @@ fn pngs(
     params: &BakeParams,
 ) -> (Vec<horizon_bake::encode::OutFile>, horizon_bake::bake::ResolvedRadius, serde_json::Value) {
     surface_files(map, params, &horizon_bake::encode::Formats::default(), &Progress::new()).unwrap()
+}
+
+/// The samples of channel `name` of an EXR file, as f32 (half samples widened), read by the
+/// `exr` crate.
+fn exr_channel(bytes: &[u8], name: &str) -> Vec<f32> {
+    use exr::prelude::*;
+    let img = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .from_buffered(std::io::Cursor::new(bytes))
+        .unwrap();
+    let c = img.layer_data.channel_data.list.iter().find(|c| c.name.to_string() == name).unwrap();
+    match &c.sample_data {
+        FlatSamples::F32(v) => v.clone(),
+        FlatSamples::F16(v) => v.iter().map(|h| h.to_f32()).collect(),
+        FlatSamples::U32(_) => panic!("{name}: u32 samples"),
+    }
+}
+
+/// Issue 45: the surface maps in the layers' other formats (SPEC §3.8). `png16` writes 16-bit
+/// PNGs under the same names, `exr` float or half EXRs of the same values unquantised
+/// (normal and bent normal RGB(A), the AO as one Y channel), each read by a decoder we did not
+/// write: every 16-bit sample is floor(v·65535 + 0.5) of the EXR's value, and every 8-bit
+/// byte of the default bake is that value's byte (a level at most where f32 rounding meets a
+/// tie); the half EXR holds the float one's values as halves.
+#[test]
+fn sixteen_bit_and_exr_surface_maps_hold_the_8_bit_maps_values() {
+    use horizon_bake::encode::exr::ExrPrecision;
+    use horizon_bake::encode::Formats;
+    let (w, h) = (37, 29);
+    let mut rng = Rng(4516);
+    let map = HeightMap::from_values(w, h, waves(&mut rng, w, h, 4, 0.4)).unwrap();
+    for (edge, encoding) in [("wrap", "rgb_ao"), ("none", "rgb"), ("wrap", "rg")] {
+        let params = BakeParams::from_pairs([
+            ("method", "exact"),
+            ("radius", "12"),
+            ("height_scale", "20"),
+            ("edge", edge),
+            ("normal_convention", "directx"),
+            ("bent_normal_encoding", encoding),
+            ("outputs", "normal,ao,bent_normal"),
+        ])
+        .unwrap();
+        let p = Progress::new();
+        let bake = |list: &str, half: bool| {
+            let mut f = Formats::parse(list, Default::default()).unwrap();
+            if half {
+                f.exr_precision = ExrPrecision::Half;
+            }
+            let (files, _, info) = surface_files(&map, &params, &f, &p).unwrap();
+            let files: std::collections::BTreeMap<&str, Vec<u8>> =
+                files.into_iter().map(|f| (f.name, f.bytes)).collect();
+            (files, info)
+        };
+        let (eight, _) = bake("png8", false);
+        let (deep, info) = bake("png16,exr", false);
+        let (half, _) = bake("exr", true);
+        let names: Vec<&str> = deep.keys().copied().collect();
+        assert_eq!(
+            names,
+            ["ao.exr", "ao.png", "bent_normal.exr", "bent_normal.png", "normal.exr", "normal.png"],
+            "{edge} {encoding}"
+        );
+        assert_eq!(half.len(), 3, "an EXR-only bake writes the EXRs alone");
+        assert_eq!(info["normal.png"]["depth"], "16-bit");
+        assert_eq!(info["ao.exr"]["depth"], "float32");
+        let bent_ch = if encoding == "rgb_ao" { 4 } else { 3 };
+        for (stem, names) in [
+            ("normal", &["R", "G", "B"][..]),
+            ("ao", &["Y"][..]),
+            ("bent_normal", &["R", "G", "B", "A"][..bent_ch]),
+        ] {
+            let ch = names.len();
+            let chans: Vec<Vec<f32>> =
+                names.iter().map(|n| exr_channel(&deep[&*format!("{stem}.exr")], n)).collect();
+            let halves: Vec<Vec<f32>> =
+                names.iter().map(|n| exr_channel(&half[&*format!("{stem}.exr")], n)).collect();
+            let png16: Vec<u16> = decode(&deep[&*format!("{stem}.png")])
+                .into_bytes()
+                .chunks_exact(2)
+                .map(|b| u16::from_ne_bytes([b[0], b[1]]))
+                .collect();
+            let png8 = decode(&eight[&*format!("{stem}.png")]).into_bytes();
+            assert_eq!(png16.len(), w * h * ch, "{stem}: a 16-bit PNG of {ch} channels");
+            assert_eq!(png8.len(), w * h * ch, "{stem}: an 8-bit PNG of {ch} channels");
+            let mut ties = 0;
+            for t in 0..w * h {
+                for c in 0..ch {
+                    let v = chans[c][t];
+                    assert!((0.0..=1.0).contains(&v), "{stem} {t} {c}: {v}");
+                    let k = t * ch + c;
+                    assert_eq!(
+                        png16[k],
+                        (f64::from(v) * 65535.0 + 0.5).floor() as u16,
+                        "{stem} {k}"
+                    );
+                    let byte = (f64::from(v) * 255.0 + 0.5).floor();
+                    let d = (byte - f64::from(png8[k])).abs();
+                    assert!(d <= 1.0, "{stem} {k}: {v} against byte {}", png8[k]);
+                    ties += usize::from(d > 0.0);
+                    let hv = exr::prelude::f16::from_f32(v).to_f32();
+                    assert_eq!(halves[c][t].to_bits(), hv.to_bits(), "{stem} half {k}");
+                }
+            }
+            assert!(ties * 1000 <= w * h * ch, "{stem}: {ties} bytes off their value's");
+            if encoding == "rg" && stem == "bent_normal" {
+                assert!(chans[2].iter().all(|&b| b == 0.0), "rg: blue 0 as in the PNG");
+            }
+        }
+        // As KTX2 and DDS textures in 16 bits and float (SPEC §3.8: as the layers): RGBA16 the
+        // 16-bit PNG's samples, RGBA32F the EXR's values, alpha 1 where the map has none, read
+        // by the `ktx2` and `ddsfile` crates.
+        for (precision, format) in [
+            ("unorm16", ktx2::Format::R16G16B16A16_UNORM),
+            ("float32", ktx2::Format::R32G32B32A32_SFLOAT),
+        ] {
+            let mut f = Formats::parse("ktx2,dds", Default::default()).unwrap();
+            f.texture.precision = horizon_bake::encode::TexturePrecision::parse(precision).unwrap();
+            let (files, _, info) = surface_files(&map, &params, &f, &p).unwrap();
+            let files: std::collections::BTreeMap<&str, Vec<u8>> =
+                files.into_iter().map(|f| (f.name, f.bytes)).collect();
+            assert_eq!(files.len(), 6, "{precision}: {:?}", files.keys());
+            assert_eq!(info["normal.ktx2"]["texture_precision"], precision);
+            for stem in ["normal", "ao", "bent_normal"] {
+                let ktx = &files[&*format!("{stem}.ktx2")];
+                let r = ktx2::Reader::new(&ktx[..]).unwrap();
+                assert_eq!(r.header().format, Some(format), "{stem} {precision}");
+                assert_eq!(r.header().layer_count, 0, "{stem}: a 2D texture");
+                let data = r.levels().next().unwrap().data;
+                let want: Vec<f32> = match stem {
+                    "ao" => exr_channel(&deep["ao.exr"], "Y")
+                        .iter()
+                        .flat_map(|&a| [a, a, a, 1.0])
+                        .collect(),
+                    _ => {
+                        let names = ["R", "G", "B", "A"];
+                        let ch = if stem == "normal" { 3 } else { bent_ch };
+                        let c: Vec<Vec<f32>> = names[..ch]
+                            .iter()
+                            .map(|n| exr_channel(&deep[&*format!("{stem}.exr")], n))
+                            .collect();
+                        (0..w * h)
+                            .flat_map(|t| [0, 1, 2, 3].map(|k| c.get(k).map_or(1.0, |c| c[t])))
+                            .collect()
+                    }
+                };
+                let got: Vec<f32> = if precision == "unorm16" {
+                    data.chunks_exact(2).map(|b| u16::from_le_bytes([b[0], b[1]]) as f32).collect()
+                } else {
+                    data.chunks_exact(4)
+                        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                        .collect()
+                };
+                assert_eq!(got.len(), want.len(), "{stem} {precision}");
+                for (k, (&g, &v)) in got.iter().zip(&want).enumerate() {
+                    let v = if precision == "unorm16" {
+                        (f64::from(v) * 65535.0 + 0.5).floor() as f32
+                    } else {
+                        v
+                    };
+                    assert_eq!(g.to_bits(), v.to_bits(), "{stem} {precision} {k}");
+                }
+                let dds = ddsfile::Dds::read(&files[&*format!("{stem}.dds")][..]).unwrap();
+                assert_eq!(
+                    &dds.data[..],
+                    data,
+                    "{stem} {precision}: the DDS holds the same texels"
+                );
+            }
+        }
+        // The AO is the same in its own map and in the bent normal's alpha.
+        if encoding == "rgb_ao" {
+            assert_eq!(
+                exr_channel(&deep["ao.exr"], "Y"),
+                exr_channel(&deep["bent_normal.exr"], "A")
+            );
+        }
+    }
 }

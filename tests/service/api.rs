@@ -1254,7 +1254,8 @@ async fn dem_resource_and_png_renderings() {
 
 /// Issue 45: a bake with the surface maps in `outputs` serves `normal.png`, `ao.png` and
 /// `bent_normal.png` byte-identical to the CLI's, links them, answers 409 for one it did not
-/// compute, and a tiled map asking for them is a 422 naming `outputs`.
+/// compute; the same for their textures, 16-bit PNGs and EXRs; and a tiled map asking for them
+/// is a 422 naming `outputs`.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn surface_maps_over_http_are_the_cli_s_files() {
     let srv = Server::start(|c| {
@@ -1323,17 +1324,63 @@ async fn surface_maps_over_http_are_the_cli_s_files() {
             assert!(body[..] == cli[..], "{name}.{ext} differs from the CLI's");
         }
     }
-    // 8-bit maps: a 16-bit texture is refused at submission, naming the option.
-    let res = c
-        .post(srv.url(&format!("/v1/bakes{q}&formats=ktx2&texture_precision=unorm16")))
-        .header("content-type", "image/png")
-        .body(png.clone())
-        .send()
-        .await
+    // 16-bit PNGs and EXRs, of a bake with no horizon output: the CLI's files, the PNG by
+    // default (the 16-bit one, there being no 8-bit one), each format by name; the 8-bit PNG
+    // it did not write is a 409.
+    let out = dir.path().join("deep");
+    let st = std::process::Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
+        .args(["bake", input.to_str().unwrap(), "-o", out.to_str().unwrap()])
+        .args(["--outputs", "normal,ao,bent_normal", "--format", "png16,exr"])
+        .args(flags)
+        .status()
         .unwrap();
-    assert_eq!(res.status(), 422);
-    let p: Value = res.json().await.unwrap();
-    assert_eq!(p["field"], "texture_precision", "{p}");
+    assert!(st.success());
+    let q3 = "?method=march&radius=12&bent_normal_encoding=rgb_ao&outputs=normal,ao,bent_normal\
+              &formats=png16,exr";
+    let loc = submit_ok(&c, &srv, &png, q3).await;
+    let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
+    assert_eq!(v["status"], "succeeded", "{v}");
+    for name in ["normal", "ao", "bent_normal"] {
+        for (query, file, ctype) in [
+            ("", "png", "image/png"),
+            ("?format=png16", "png", "image/png"),
+            ("?format=png", "png", "image/png"),
+            ("?format=exr", "exr", "image/x-exr"),
+        ] {
+            let res = c.get(srv.url(&format!("{loc}/{name}{query}"))).send().await.unwrap();
+            assert_eq!(res.status(), 200, "{name}{query}");
+            assert_eq!(res.headers()["content-type"], ctype, "{name}{query}");
+            let body = res.bytes().await.unwrap();
+            let cli = std::fs::read(out.join(format!("{name}.{file}"))).unwrap();
+            assert!(body[..] == cli[..], "{name}{query} differs from the CLI's {name}.{file}");
+        }
+        let res = c.get(srv.url(&format!("{loc}/{name}?format=png8"))).send().await.unwrap();
+        assert_eq!(res.status(), 409, "{name}: no 8-bit PNG was written");
+        let p: Value = res.json().await.unwrap();
+        assert!(p["detail"].as_str().unwrap().contains("png8"), "{p}");
+    }
+    // The same bake with 8-bit PNGs is another bake, not this one.
+    let q4 = "?method=march&radius=12&bent_normal_encoding=rgb_ao&outputs=normal,ao,bent_normal";
+    let loc8 = submit_ok(&c, &srv, &png, q4).await;
+    assert_ne!(loc8, loc, "png16,exr and png8 surface maps are different bakes");
+    // A 16-bit texture of the maps (SPEC §3.8: as the layers): the CLI's file.
+    let out16 = dir.path().join("tex16");
+    let st = std::process::Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
+        .args(["bake", input.to_str().unwrap(), "-o", out16.to_str().unwrap()])
+        .args(["--outputs", "horizon,normal,ao,bent_normal", "--format", "ktx2"])
+        .args(["--texture-precision", "unorm16"])
+        .args(flags)
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let loc =
+        submit_ok(&c, &srv, &png, &format!("{q}&formats=ktx2&texture_precision=unorm16")).await;
+    let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
+    assert_eq!(v["status"], "succeeded", "{v}");
+    let res = c.get(srv.url(&format!("{loc}/normal?format=ktx2"))).send().await.unwrap();
+    assert_eq!(res.status(), 200);
+    let body = res.bytes().await.unwrap();
+    assert!(body[..] == std::fs::read(out16.join("normal.ktx2")).unwrap()[..], "normal.ktx2");
     // Above --tile-above (64²): refused before it is queued.
     let res = c
         .post(srv.url("/v1/bakes?method=march&radius=4&outputs=horizon,ao"))

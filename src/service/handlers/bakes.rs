@@ -501,12 +501,12 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
     // (Those a DEM's defaults may change wait for them: the decode checks again.)
     params.check_before_input().map_err(Problem::from)?;
     let formats = delivery.resolve()?;
-    crate::pipeline::surface::check_surface_formats(&params, &formats).map_err(Problem::from)?;
-    if !params.outputs.horizon && formats != Formats::default() {
-        // As the CLI: a format of horizon layers that a Fourier-only bake would never write.
+    if !(params.outputs.horizon || params.outputs.surface()) && formats != Formats::default() {
+        // As the CLI: a format of horizon layers or surface maps that a bake of neither (a
+        // Fourier-only or terrain bake) would never write.
         return Err(Problem::param(
             "formats",
-            "applies to horizon layers, and `outputs` does not include horizon",
+            "applies to horizon layers and surface maps, and `outputs` includes neither",
         ));
     }
     // Format and dimensions from the header against the limits, before any pixel allocation;
@@ -589,10 +589,10 @@ pub async fn submit(State(st): State<AppState>, req: Request) -> Answer {
     };
     let mut pairs: Vec<(String, String)> =
         params.to_pairs().into_iter().map(|(k, v)| (k.to_owned(), v)).collect();
-    if params.outputs.surface() && (formats.ktx2 || formats.dds) {
-        // The surface maps' textures are written by the bake itself (the horizon layers'
-        // variants are encoded on request instead), so a bake that wrote other ones, or none,
-        // is not this one.
+    if params.outputs.surface() && (formats.ktx2 || formats.dds || formats.png16 || formats.exr) {
+        // The surface maps' textures, 16-bit PNGs and EXRs are written by the bake itself (the
+        // horizon layers' variants are encoded on request instead), so a bake that wrote other
+        // ones, or none, is not this one.
         let texture =
             serde_json::to_string(&formats).map_err(|e| Error::Internal(e.to_string()))?;
         pairs.push(("surface_textures".to_owned(), texture));

@@ -440,8 +440,9 @@ async fn stored_file(
     blob_response(st, headers, hash, content_type, file).await
 }
 
-/// A surface map (SPEC §3.8) `what` of a bake: its PNG, or with `format=ktx2|dds` the 2D
-/// texture the bake wrote when its `formats` had that container (a 409 naming it otherwise).
+/// A surface map (SPEC §3.8) `what` of a bake, in the `format` its bake wrote it: `png` (its
+/// PNG, 8- or 16-bit), `png8`, `png16`, `exr`, `ktx2` or `dds` (the 2D texture); a 409 naming
+/// the format when the bake did not write it. Without `format`, its PNG, else its EXR.
 async fn surface_file(
     st: &AppState,
     id: &str,
@@ -450,45 +451,45 @@ async fn surface_file(
     what: &'static str,
 ) -> Answer {
     let mut q = q;
-    let format = match q.iter().position(|(k, _)| k == "format") {
-        Some(i) => q.remove(i).1,
-        None => "png".to_owned(),
-    };
-    let (ext, content_type) = match format.as_str() {
-        "png" => ("png", "image/png"),
-        "ktx2" => ("ktx2", KTX2_TYPE),
-        "dds" => ("dds", DDS_TYPE),
-        other => {
-            return Err(Problem::param("format", format!("`{other}` is not one of png, ktx2, dds")))
+    let format = q.iter().position(|(k, _)| k == "format").map(|i| q.remove(i).1);
+    known_query(q, &[])?;
+    // Result names in the order a format looks them up: the CLI's file names, but a 16-bit
+    // PNG is `{what}.png16` (the CLI writes `{what}.png` in either depth).
+    let (names, content_type): (&[&str], &'static str) = match format.as_deref() {
+        None => (&["png", "png16", "exr"], "image/png"),
+        Some("png") => (&["png", "png16"], "image/png"),
+        Some("png8") => (&["png"], "image/png"),
+        Some("png16") => (&["png16"], "image/png"),
+        Some("exr") => (&["exr"], EXR_TYPE),
+        Some("ktx2") => (&["ktx2"], KTX2_TYPE),
+        Some("dds") => (&["dds"], DDS_TYPE),
+        Some(other) => {
+            return Err(Problem::param(
+                "format",
+                format!("`{other}` is not one of png, png8, png16, exr, ktx2, dds"),
+            ))
         }
     };
-    let file: &'static str = match (what, ext) {
-        ("normal", "png") => "normal.png",
-        ("normal", "ktx2") => "normal.ktx2",
-        ("normal", _) => "normal.dds",
-        ("ao", "png") => "ao.png",
-        ("ao", "ktx2") => "ao.ktx2",
-        ("ao", _) => "ao.dds",
-        (_, "png") => "bent_normal.png",
-        (_, "ktx2") => "bent_normal.ktx2",
-        _ => "bent_normal.dds",
-    };
-    if ext != "png" {
-        known_query(q, &[])?;
-        let rec = finished(st, id).await?;
-        let Some(hash) = rec.results.get(file) else {
-            return Err(Problem::new(
-                StatusCode::CONFLICT,
-                "result_not_requested",
-                format!(
-                    "bake `{id}` did not write `{file}`; submit it with outputs including {what} \
-                     and formats including {ext}"
-                ),
-            ));
-        };
-        return blob_response(st, headers, hash, content_type, file).await;
+    let rec = finished(st, id).await?;
+    for ext in names {
+        let file = format!("{what}.{ext}");
+        if let Some(hash) = rec.results.get(file.as_str()) {
+            let content_type = if *ext == "exr" { EXR_TYPE } else { content_type };
+            return blob_response(st, headers, hash, content_type, &file).await;
+        }
     }
-    stored_file(st, id, q, headers, file, what, content_type).await
+    let Some(ext) = format else {
+        return Err(not_produced(id, what));
+    };
+    Err(Problem::new(
+        StatusCode::CONFLICT,
+        "result_not_requested",
+        format!(
+            "bake `{id}` did not write its {what} as {ext}; submit it with outputs including \
+             {what} and formats including {}",
+            if ext == "png" { "png8 or png16" } else { ext.as_str() }
+        ),
+    ))
 }
 
 /// `GET /v1/bakes/{id}/normal`: `normal.png`, the tangent-space normal map (SPEC §3.8);
@@ -763,4 +764,5 @@ pub async fn horizon_dds(
 }
 
 pub(super) const KTX2_TYPE: &str = "image/ktx2";
+pub(super) const EXR_TYPE: &str = "image/x-exr";
 pub(super) const DDS_TYPE: &str = "image/vnd-ms.dds";
