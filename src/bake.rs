@@ -1094,48 +1094,114 @@ impl SurfaceJob {
         nb: usize,
         out: SurfaceOut<'_>,
     ) {
+        // Compiled for AVX-512 where the CPU has it: the strips' f64 normals and encodings
+        // then run 8 lanes a vector (the same IEEE operations, so the same bytes).
+        #[cfg(target_arch = "x86_64")]
+        if self.dirs.isa() == crate::kernels::isa::Isa::Avx512 {
+            // SAFETY: `BinDirs` holds only a variant the CPU supports.
+            return unsafe { self.rows_avx512(grid, holes, y0, rows, channels, bins, nb, out) };
+        }
+        self.rows_body(grid, holes, y0, rows, channels, bins, nb, out);
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f")]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn rows_avx512(
+        &self,
+        grid: &Grid<'_>,
+        holes: Option<&[bool]>,
+        y0: usize,
+        rows: usize,
+        channels: &[f32],
+        bins: Option<&[f32]>,
+        nb: usize,
+        out: SurfaceOut<'_>,
+    ) {
+        self.rows_body(grid, holes, y0, rows, channels, bins, nb, out);
+    }
+
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn rows_body(
+        &self,
+        grid: &Grid<'_>,
+        holes: Option<&[bool]>,
+        y0: usize,
+        rows: usize,
+        channels: &[f32],
+        bins: Option<&[f32]>,
+        nb: usize,
+        out: SurfaceOut<'_>,
+    ) {
         use crate::params::BentNormalEncoding;
         use crate::terrain::surface;
         let w = grid.width;
         let ch = self.bent_channels;
         let (mut out, mut vals) = out;
         let rg = self.encoding == BentNormalEncoding::Rg;
-        for t in 0..rows * w {
-            let (x, y) = (t % w, y0 + t / w);
-            if holes.is_some_and(|m| m[y * w + x]) {
-                continue;
-            }
-            let n = surface::normal(grid, holes, x, y);
-            if let Some(o) = out[0].as_deref_mut() {
-                o[t * 3..t * 3 + 3].copy_from_slice(&surface::encode_unit(n, self.flip_y));
-            }
-            if let Some(o) = vals[0].as_deref_mut() {
-                o[t * 3..t * 3 + 3].copy_from_slice(&surface::unit_values(n, self.flip_y));
-            }
-            if out[1].is_none() && out[2].is_none() {
-                continue;
-            }
-            let s = match bins {
-                Some(b) if self.per_bin => &b[t * nb..(t + 1) * nb],
-                _ => &channels[t * 8..t * 8 + 8],
-            };
-            let occ = surface::occlusion_fast(s, n, &self.dirs);
-            if let Some(o) = out[1].as_deref_mut() {
-                o[t] = surface::encode_unorm(occ.ao);
-            }
-            if let Some(o) = vals[1].as_deref_mut() {
-                o[t] = occ.ao.clamp(0.0, 1.0) as f32;
-            }
-            if let Some(o) = out[2].as_deref_mut() {
-                let v = surface::encode_unit(occ.bent, self.flip_y);
-                let (z, a) = if rg { (0, 0) } else { (v[2], surface::encode_unorm(occ.ao)) };
-                o[t * ch..(t + 1) * ch].copy_from_slice(&[v[0], v[1], z, a][..ch]);
-            }
-            if let Some(o) = vals[2].as_deref_mut() {
-                let v = surface::unit_values(occ.bent, self.flip_y);
-                let ao = occ.ao.clamp(0.0, 1.0) as f32;
-                let (z, a) = if rg { (0.0, 0.0) } else { (v[2], ao) };
-                o[t * ch..(t + 1) * ch].copy_from_slice(&[v[0], v[1], z, a][..ch]);
+        let occluded =
+            out[1].is_some() || out[2].is_some() || vals[1].is_some() || vals[2].is_some();
+        let per = if self.per_bin && bins.is_some() { nb } else { 8 };
+        let from = match bins {
+            Some(b) if self.per_bin => b,
+            _ => channels,
+        };
+        let (mut ao, mut bent) = ([0.0f32; surface::STRIP], surface::StripNormals::default());
+        // A row at a time in strips of texels: their occlusion is one call, a lane per texel.
+        for r in 0..rows {
+            let y = y0 + r;
+            for x0 in (0..w).step_by(surface::STRIP) {
+                let lanes = surface::STRIP.min(w - x0);
+                let mut nn = surface::StripNormals::default();
+                let mut hole = [false; surface::STRIP];
+                // Inside the map with no holes, the strip's normals at once.
+                let mut strip = [[0.0; 3]; surface::STRIP];
+                let whole =
+                    holes.is_none() && surface::normals_strip(grid, x0, y, lanes, &mut strip);
+                for l in 0..lanes {
+                    let (x, t) = (x0 + l, r * w + x0 + l);
+                    hole[l] = holes.is_some_and(|m| m[y * w + x]);
+                    if hole[l] {
+                        nn.z[l] = 1.0;
+                        continue;
+                    }
+                    let n = if whole { strip[l] } else { surface::normal(grid, holes, x, y) };
+                    (nn.x[l], nn.y[l], nn.z[l]) = (n[0] as f32, n[1] as f32, n[2] as f32);
+                    if let Some(o) = out[0].as_deref_mut() {
+                        o[t * 3..t * 3 + 3].copy_from_slice(&surface::encode_unit(n, self.flip_y));
+                    }
+                    if let Some(o) = vals[0].as_deref_mut() {
+                        o[t * 3..t * 3 + 3].copy_from_slice(&surface::unit_values(n, self.flip_y));
+                    }
+                }
+                if !occluded || hole[..lanes].iter().all(|&h| h) {
+                    continue;
+                }
+                let k = (r * w + x0) * per;
+                let s = &from[k..k + lanes * per];
+                surface::occlusion_strip(s, lanes, &nn, &self.dirs, &mut ao, &mut bent);
+                for l in (0..lanes).filter(|&l| !hole[l]) {
+                    let t = r * w + x0 + l;
+                    let a = f64::from(ao[l]);
+                    let b = [f64::from(bent.x[l]), f64::from(bent.y[l]), f64::from(bent.z[l])];
+                    if let Some(o) = out[1].as_deref_mut() {
+                        o[t] = surface::encode_unorm(a);
+                    }
+                    if let Some(o) = vals[1].as_deref_mut() {
+                        o[t] = ao[l];
+                    }
+                    if let Some(o) = out[2].as_deref_mut() {
+                        let v = surface::encode_unit(b, self.flip_y);
+                        let (z, a) = if rg { (0, 0) } else { (v[2], surface::encode_unorm(a)) };
+                        o[t * ch..(t + 1) * ch].copy_from_slice(&[v[0], v[1], z, a][..ch]);
+                    }
+                    if let Some(o) = vals[2].as_deref_mut() {
+                        let v = surface::unit_values(b, self.flip_y);
+                        let (z, a) = if rg { (0.0, 0.0) } else { (v[2], ao[l]) };
+                        o[t * ch..(t + 1) * ch].copy_from_slice(&[v[0], v[1], z, a][..ch]);
+                    }
+                }
             }
         }
     }

@@ -288,33 +288,43 @@ pub fn surface_pngs(
     };
     let [ni, ai, bi] = surface_info(params);
     let maps = [
-        ("normal.png", png::PngColor::Rgb, &m.normal, values.and_then(|v| v.normal.as_ref()), ni),
-        ("ao.png", png::PngColor::Gray, &m.ao, values.and_then(|v| v.ao.as_ref()), ai),
+        ("normal.png", png::PngColor::Rgb, &m.normal, values.and_then(|v| v.normal.as_ref()), ()),
+        ("ao.png", png::PngColor::Gray, &m.ao, values.and_then(|v| v.ao.as_ref()), ()),
         (
             "bent_normal.png",
             bent_color,
             &m.bent_normal,
             values.and_then(|v| v.bent_normal.as_ref()),
-            bi,
+            (),
         ),
     ];
+    // The maps side by side on the pool: each encoder waits for its slowest piece at every
+    // batch, so one at a time left a core idle at each batch's end.
+    use rayon::prelude::*;
+    let encoded: Vec<Result<Option<(OutFile, &str)>>> = maps
+        .into_par_iter()
+        .map(|(name, color, bytes, vals, _)| {
+            let Some(bytes) = bytes else { return Ok(None) };
+            if progress.is_canceled() {
+                return Err(Error::Canceled);
+            }
+            let (png, depth) = match vals.filter(|_| sixteen) {
+                Some(v) => {
+                    let q: Vec<u16> =
+                        v.iter().map(|&x| crate::terrain::surface::encode_unorm16(x)).collect();
+                    (png::encode16(w, h, color, &q)?, "16-bit")
+                }
+                None => (png::encode8(w, h, color, bytes)?, "8-bit"),
+            };
+            Ok(Some((OutFile { name, bytes: png }, depth)))
+        })
+        .collect();
     let mut files = Vec::new();
     let mut info = serde_json::Map::new();
-    for (name, color, bytes, vals, (_, channels, rest)) in maps {
-        let Some(bytes) = bytes else { continue };
-        if progress.is_canceled() {
-            return Err(Error::Canceled);
-        }
-        let (png, depth) = match vals.filter(|_| sixteen) {
-            Some(v) => {
-                let q: Vec<u16> =
-                    v.iter().map(|&x| crate::terrain::surface::encode_unorm16(x)).collect();
-                (png::encode16(w, h, color, &q)?, "16-bit")
-            }
-            None => (png::encode8(w, h, color, bytes)?, "8-bit"),
-        };
-        files.push(OutFile { name, bytes: png });
-        info.insert(name.into(), described(channels, depth, &rest));
+    for (done, (_, channels, rest)) in encoded.into_iter().zip([ni, ai, bi]) {
+        let Some((file, depth)) = done? else { continue };
+        info.insert(file.name.into(), described(channels, depth, &rest));
+        files.push(file);
     }
     Ok((files, serde_json::Value::Object(info)))
 }
