@@ -37,8 +37,9 @@ pub struct BakeArgs {
     /// Output directory (created if missing; files in it with the same names are replaced).
     #[arg(short = 'o', long = "out")]
     pub out: PathBuf,
-    /// Comma list of png8 (default), png16, exr, ktx2, dds, geotiff (the terrain products of
-    /// --outputs angles,svf).
+    /// Comma list of png8 (default), png16, exr, ktx2, dds (the horizon layers and the surface
+    /// maps normal, ao, bent_normal alike), geotiff (the terrain products of --outputs
+    /// angles,svf).
     #[arg(long, default_value = "png8")]
     pub format: String,
     /// Sample type of horizon.ktx2 / horizon.dds: unorm8 (default), unorm16, float32, or the
