@@ -217,6 +217,31 @@ unsafe fn occlusion_avx2(s: &[f32], n: [f64; 3], dirs: &BinDirs) -> Occlusion {
 
 const THIRD: f32 = 1.0 / 3.0;
 
+/// One bin's terms of the closed form (see the module doc) in f32, with no branch: the AO
+/// integrand's integral from θ₁ = max(α, θ₀) to π/2, and the bent normal's horizontal part
+/// (along the bin's direction) and vertical part, for a = n_z, b = n·(cos φ, sin φ, 0) and the
+/// horizon `s` = sin α (clamped to [0, 1]; at the zenith every term is 0).
+#[inline(always)]
+fn bin_terms(a: f32, b: f32, s: f32) -> (f32, f32, f32) {
+    let sa = s.clamp(0.0, 1.0);
+    let ca = (1.0 - sa * sa).max(0.0).sqrt();
+    // One division per bin: the others are multiplications by reciprocals (a vector division
+    // costs as much as several of the rest).
+    let inv_r = 1.0 / (a * a + b * b).sqrt();
+    let s0 = -b * inv_r;
+    let below = s0 > sa;
+    let st = if below { s0 } else { sa };
+    let ct = if below { a * inv_r } else { ca };
+    let from = asin01(st);
+    let (st2, ct3) = (st * st, ct * ct * ct);
+    let st3 = st2 * st;
+    let ao =
+        a * 0.5 + b * std::f32::consts::FRAC_PI_4 - (a * st2 * 0.5 + b * (from + st * ct) * 0.5);
+    let horiz = b * (2.0 / 3.0) - (-a * ct3 * THIRD + b * (st - st3 * THIRD));
+    let vert = a * THIRD - (a * st3 * THIRD - b * ct3 * THIRD);
+    (ao, horiz, vert)
+}
+
 #[inline(always)]
 fn occlusion_body(s: &[f32], n: [f64; 3], dirs: &BinDirs) -> Occlusion {
     let bins = s.len();
@@ -232,22 +257,8 @@ fn occlusion_body(s: &[f32], n: [f64; 3], dirs: &BinDirs) -> Occlusion {
         for l in 0..LANES {
             let (cp, sp) = (cos[l], sin[l]);
             let b = nx * cp + ny * sp;
-            let sa = lane[l].clamp(0.0, 1.0);
-            let ca = (1.0 - sa * sa).max(0.0).sqrt();
-            // One division per bin: the others are multiplications by reciprocals (a vector
-            // division costs as much as several of the rest).
-            let inv_r = 1.0 / (a * a + b * b).sqrt();
-            let s0 = -b * inv_r;
-            let below = s0 > sa;
-            let st = if below { s0 } else { sa };
-            let ct = if below { a * inv_r } else { ca };
-            let from = asin01(st);
-            let (st2, ct3) = (st * st, ct * ct * ct);
-            let st3 = st2 * st;
-            ao[l] += a * 0.5 + b * std::f32::consts::FRAC_PI_4
-                - (a * st2 * 0.5 + b * (from + st * ct) * 0.5);
-            let horiz = b * (2.0 / 3.0) - (-a * ct3 * THIRD + b * (st - st3 * THIRD));
-            let vert = a * THIRD - (a * st3 * THIRD - b * ct3 * THIRD);
+            let (o, horiz, vert) = bin_terms(a, b, lane[l]);
+            ao[l] += o;
             bx[l] += horiz * cp;
             by[l] += horiz * sp;
             bz[l] += vert;
@@ -368,22 +379,9 @@ fn strip_body(
                 dirs.sin[(k0 + k) / LANES][(k0 + k) % LANES],
             );
             for l in 0..STRIP {
-                let a = a[l];
                 let b = nx[l] * cp + ny[l] * sp;
-                let sa = row[l].clamp(0.0, 1.0);
-                let ca = (1.0 - sa * sa).max(0.0).sqrt();
-                let inv_r = 1.0 / (a * a + b * b).sqrt();
-                let s0 = -b * inv_r;
-                let below = s0 > sa;
-                let st = if below { s0 } else { sa };
-                let ct = if below { a * inv_r } else { ca };
-                let from = asin01(st);
-                let (st2, ct3) = (st * st, ct * ct * ct);
-                let st3 = st2 * st;
-                ao[l] += a * 0.5 + b * std::f32::consts::FRAC_PI_4
-                    - (a * st2 * 0.5 + b * (from + st * ct) * 0.5);
-                let horiz = b * (2.0 / 3.0) - (-a * ct3 * THIRD + b * (st - st3 * THIRD));
-                let vert = a * THIRD - (a * st3 * THIRD - b * ct3 * THIRD);
+                let (o, horiz, vert) = bin_terms(a[l], b, row[l]);
+                ao[l] += o;
                 bx[l] += horiz * cp;
                 by[l] += horiz * sp;
                 bz[l] += vert;
