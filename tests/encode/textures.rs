@@ -365,13 +365,32 @@ fn surface_maps_as_ktx2_and_dds_hold_the_png_values() {
             }
         }
     }
+    // Float textures of the maps (SPEC §3.8: as the layers), once refused as "8-bit": RGBA32F
+    // holding what the 8-bit PNG rounds, alpha 1.
+    let x = dir.path().join("x");
     let o = Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
-        .args(["bake", input.to_str().unwrap(), "-o", dir.path().join("x").to_str().unwrap()])
-        .args(["--outputs", "horizon,ao", "--format", "ktx2", "--texture-precision", "float32"])
+        .args(["bake", input.to_str().unwrap(), "-o", x.to_str().unwrap()])
+        .args([
+            "--outputs",
+            "horizon,ao",
+            "--format",
+            "png8,ktx2",
+            "--texture-precision",
+            "float32",
+        ])
         .output()
         .unwrap();
-    assert_eq!(o.status.code(), Some(2));
-    assert!(String::from_utf8_lossy(&o.stderr).contains("texture_precision"));
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let bytes = std::fs::read(x.join("ao.ktx2")).unwrap();
+    let r = Reader::new(&bytes[..]).unwrap();
+    assert_eq!(r.header().format, Some(Format::R32G32B32A32_SFLOAT));
+    let want = rgba(&x, "ao.png");
+    let level = r.levels().next().unwrap().data;
+    for (k, (b, &p)) in level.chunks_exact(4).zip(&want).enumerate() {
+        let v = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+        let byte = (f64::from(v) * 255.0 + 0.5).floor();
+        assert!((byte - f64::from(p)).abs() <= 1.0, "ao.ktx2 {k}: {v} against {p}");
+    }
 }
 
 /// DDS with mips: data is layer-major (all levels of layer 0, then layer 1), the header counts
