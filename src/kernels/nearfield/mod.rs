@@ -37,6 +37,11 @@ pub(crate) struct NearField<'a> {
     /// the bilinear surface's only second-order term, so a piece (less the curvature drop)
     /// bulges above its chord only where twist·dx·dy is below the drop's c.
     twist: Vec<f32>,
+    /// With nodata holes ([`NearField::with_holes`]), per padded texel (r, c), 0 when the cell
+    /// it is the top left of is surface and −∞ when a corner of it is a hole: added to what the
+    /// crossing walk reads of that cell, it drops the cell as `exact`'s walk skips it. Empty
+    /// without holes.
+    hole_cells: Vec<f32>,
 }
 
 /// Where a piece of a direction leaves its cell, as [`NearField`]'s crossing walk reads it:
@@ -139,7 +144,84 @@ impl<'a> NearField<'a> {
                 *t = b[c + 1] - a[c + 1] - b[c] + a[c];
             }
         }
-        NearField { grid, near, dirs: dirs.to_vec(), cuts: cuts.to_vec(), hmax, xings, twist }
+        let (dirs, cuts) = (dirs.to_vec(), cuts.to_vec());
+        NearField { grid, near, dirs, cuts, hmax, xings, twist, hole_cells: Vec::new() }
+    }
+
+    /// Nodata holes (SPEC §2), one flag per texel (`holes[row · W + col]`): the cells that
+    /// touch a hole are no surface, as in `exact` (`ExactHorizon::with_holes`). The crossing
+    /// walk then honours them itself: a cell with a hole corner is never solved whole, and a
+    /// crossing counts only where a cell on either side of it is surface (the grid line
+    /// between two such cells is their edge; the bake's fill of the holes, far below the map,
+    /// otherwise lifts nothing). The cell walk (strips whose rays leave an `edge=none` surface
+    /// before the cut, or a near field too long for the cells' maxima) does not: see
+    /// [`NearField::honours_holes`].
+    pub(crate) fn with_holes(mut self, holes: &[bool]) -> Self {
+        let (w, h) = (self.grid.width, self.grid.height);
+        if holes.len() != w * h || !holes.contains(&true) {
+            return self;
+        }
+        let (pw, pad) = (self.near.pw, self.near.pad as i64);
+        let ph = self.near.padded.len() / pw;
+        let wrap = self.grid.edge == Edge::Wrap;
+        // The hole flag of padded texel (r, c), by the padding's own rule (wrapped or clamped).
+        let hole = |r: usize, c: usize| {
+            let (x, y) = (c as i64 - pad, r as i64 - pad);
+            let (x, y) = if wrap {
+                (x.rem_euclid(w as i64), y.rem_euclid(h as i64))
+            } else {
+                (x.clamp(0, w as i64 - 1), y.clamp(0, h as i64 - 1))
+            };
+            holes[y as usize * w + x as usize]
+        };
+        let row: Vec<Vec<bool>> = (0..ph).map(|r| (0..pw).map(|c| hole(r, c)).collect()).collect();
+        let mut cells = vec![f32::NEG_INFINITY; pw * ph];
+        for r in 0..ph - 1 {
+            let (a, b) = (&row[r], &row[r + 1]);
+            for (c, v) in cells[r * pw..][..pw - 1].iter_mut().enumerate() {
+                if !(a[c] || a[c + 1] || b[c] || b[c + 1]) {
+                    *v = 0.0;
+                }
+            }
+        }
+        self.hole_cells = cells;
+        self
+    }
+
+    /// Whether [`NearField::strip_from`] honours the holes of [`NearField::with_holes`] for
+    /// the strip at (`x`, `y`) along direction `n`: when it walks by crossings, and the
+    /// direction is neither along a grid axis nor a diagonal. An axis ray runs on the edge
+    /// between two cells, surface where either is (`exact` gives a cell with a hole that edge;
+    /// the crossing walk reads one side's cells). A diagonal ray passes through texels, where
+    /// four cells meet: which of them it touches, and so whether that texel counts when the
+    /// two it crosses have holes, is decided by the rounding of its step, which the crossing
+    /// walk (offsets from the strip) and `exact` (positions on the map) do not share. Elsewhere
+    /// (and without holes) a caller takes the texels near a hole from `exact`'s walk.
+    #[inline(always)]
+    pub(crate) fn honours_holes(&self, n: usize, x: usize, y: usize) -> bool {
+        let (dx, dy) = self.dirs[n];
+        !self.hole_cells.is_empty()
+            && !self.near.cmax.is_empty()
+            && dx != 0.0
+            && dy != 0.0
+            && (dx.abs() - dy.abs()).abs() > 1e-9
+            && !self.border(n, x, y)
+    }
+
+    /// With `edge=none`, whether some ray of the strip at (`x`, `y`) leaves the surface before
+    /// the cut of direction `n`. When the cut points of the strip's two end lanes are on the
+    /// surface, every lane's is (the surface is convex) and the rays all run to the cut.
+    #[inline(always)]
+    fn border(&self, n: usize, x: usize, y: usize) -> bool {
+        let lanes = LANES.min(self.grid.width - x);
+        let (dx, dy) = self.dirs[n];
+        let (cut, wm, hm) =
+            (self.cuts[n], (self.grid.width - 1) as f64, (self.grid.height - 1) as f64);
+        let inside = |xx: usize| {
+            let (px, py) = (xx as f64 + cut * dx, y as f64 + cut * dy);
+            (0.0..=wm).contains(&px) && (0.0..=hm).contains(&py)
+        };
+        self.grid.edge == Edge::None && !(inside(x) && inside(x + lanes - 1))
     }
 
     /// [`NearField::strip_from`] with the strip's heights looked up (for the tests).
@@ -204,20 +286,12 @@ impl<'a> NearField<'a> {
         best: &mut [f32; LANES],
         crossings: bool,
     ) {
-        let w = self.grid.width;
-        let lanes = LANES.min(w - x);
         let (dx, dy) = self.dirs[n];
         let mut count = [self.near.segs[n].len() as u32; LANES];
-        // With `edge=none`, rays that leave the surface before the cut stop there. When the
-        // cut points of the strip's two end lanes are on the surface, every lane's is (the
-        // surface is convex) and the rays all run to the cut, as `count` already says.
-        let (cut, wm, hm) = (self.cuts[n], (w - 1) as f64, (self.grid.height - 1) as f64);
-        let inside = |xx: usize| {
-            let (px, py) = (xx as f64 + cut * dx, y as f64 + cut * dy);
-            (0.0..=wm).contains(&px) && (0.0..=hm).contains(&py)
-        };
-        let border = self.grid.edge == Edge::None && !(inside(x) && inside(x + lanes - 1));
+        // With `edge=none`, rays that leave the surface before the cut stop there.
+        let border = self.border(n, x, y);
         if border {
+            let lanes = LANES.min(self.grid.width - x);
             for (i, c) in count.iter_mut().enumerate().take(lanes) {
                 let ray = Ray::new(&self.grid, x + i, y, dx, dy, Some(self.cuts[n]));
                 *c = self.near.count(n, ray.s_end);
@@ -244,7 +318,10 @@ impl<'a> NearField<'a> {
             Isa::Avx512 => unsafe { self.crossings_avx512(n, x, y, h0, best) },
             #[cfg(target_arch = "x86_64")]
             Isa::Avx2 => unsafe { self.crossings_avx2(n, x, y, h0, best) },
-            _ => self.crossings_body::<true>(n, x, y, h0, best),
+            _ if self.hole_cells.is_empty() => {
+                self.crossings_body::<true, false>(n, x, y, h0, best)
+            }
+            _ => self.crossings_body::<true, true>(n, x, y, h0, best),
         }
     }
 
@@ -258,7 +335,11 @@ impl<'a> NearField<'a> {
         h0: &[f32; LANES],
         best: &mut [f32; LANES],
     ) {
-        self.crossings_body::<true>(n, x, y, h0, best);
+        if self.hole_cells.is_empty() {
+            self.crossings_body::<true, false>(n, x, y, h0, best);
+        } else {
+            self.crossings_body::<true, true>(n, x, y, h0, best);
+        }
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -271,7 +352,11 @@ impl<'a> NearField<'a> {
         h0: &[f32; LANES],
         best: &mut [f32; LANES],
     ) {
-        self.crossings_body::<true>(n, x, y, h0, best);
+        if self.hole_cells.is_empty() {
+            self.crossings_body::<true, false>(n, x, y, h0, best);
+        } else {
+            self.crossings_body::<true, true>(n, x, y, h0, best);
+        }
     }
 
     /// The crossing walk without the pieces solved whole (the pieces' ends and the first
@@ -285,7 +370,7 @@ impl<'a> NearField<'a> {
         h0: &[f32; LANES],
         b: &mut [f32; LANES],
     ) {
-        self.crossings_body::<false>(n, x, y, h0, b);
+        self.crossings_body::<false, false>(n, x, y, h0, b);
     }
 
     /// The near field of a strip whose rays all run to the cut, by crossings. Along a piece
@@ -302,9 +387,10 @@ impl<'a> NearField<'a> {
     /// more than the piece. The first piece (from the texel itself, whose limit s → 0⁺ counts)
     /// is always solved whole. Measured at 2048² `unlimited` on fBm: 3.4 of 22.7 pieces a strip
     /// pass the bound, 1.05 also the stationary point's test (before the cull joined it); the
-    /// cell walk solved 9.4 whole after its culls.
+    /// cell walk solved 9.4 whole after its culls. `HOLES`: with [`NearField::with_holes`]'s
+    /// cells, which drop what lies on no surface.
     #[inline(always)]
-    fn crossings_body<const INTERIOR: bool>(
+    fn crossings_body<const INTERIOR: bool, const HOLES: bool>(
         &self,
         n: usize,
         x: usize,
@@ -329,6 +415,7 @@ impl<'a> NearField<'a> {
             (dx, dy, curv): (f32, f32, f32),
             inv_sb: f32,
             h0: &[f32; LANES],
+            valid: impl Fn(usize) -> bool,
             out: &mut [f32; LANES],
             first: bool,
         ) {
@@ -336,18 +423,22 @@ impl<'a> NearField<'a> {
             let row1 = &p[oc + pw..oc + pw + LANES + 1];
             let g = (seg.fx, seg.fy, dx, dy, curv);
             let (s_a, len) = (seg.s_a as f32, seg.len as f32);
-            let all = |_: usize| true;
             if first {
-                piece::<true>(row0, row1, g, s_a, len, inv_sb, h0, all, out);
+                piece::<true>(row0, row1, g, s_a, len, inv_sb, h0, valid, out);
             } else {
-                piece::<false>(row0, row1, g, s_a, len, inv_sb, h0, all, out);
+                piece::<false>(row0, row1, g, s_a, len, inv_sb, h0, valid, out);
             }
         }
+        let hc = &self.hole_cells[..];
+        let xings = &self.xings[n];
         let mut prev = [0.0f32; LANES];
-        for (k, (seg, xg)) in near.segs[n].iter().zip(&self.xings[n]).enumerate() {
+        for (k, (seg, xg)) in near.segs[n].iter().zip(xings).enumerate() {
             let oc = (base as isize + xg.cell as isize) as usize;
+            // Whether lane i's cell of this piece is surface (always, without holes).
+            let surface = |i: usize| !HOLES || hc[oc + i] == 0.0;
             if k == 0 || !xg.on_grid {
-                whole(p, (oc, pw), seg, (dx, dy, curv), xg.inv_sb, h0, &mut out, k == 0);
+                let first = k == 0;
+                whole(p, (oc, pw), seg, (dx, dy, curv), xg.inv_sb, h0, surface, &mut out, first);
                 if !xg.on_grid {
                     break;
                 }
@@ -359,6 +450,16 @@ impl<'a> NearField<'a> {
             // short-circuits was compiled as a masked gather.
             let Xing { f, drop, inv_sb, bulge, lift, margin, qi, .. } = *xg;
             let tw = &self.twist[oc..oc + LANES];
+            // With holes: 0 or −∞ for this piece's cell and for the next one (the crossing is
+            // the edge of both; at the last piece, the cut, only of this one).
+            let zeros = [0.0f32; LANES];
+            let (hk, hn): (&[f32], &[f32]) = if HOLES {
+                let next =
+                    xings.get(k + 1).map_or(oc, |x| (base as isize + x.cell as isize) as usize);
+                (&hc[oc..oc + LANES], &hc[next..next + LANES])
+            } else {
+                (&zeros, &zeros)
+            };
             let mut v = [0.0f32; LANES];
             let mut interior = false;
             for i in 0..LANES {
@@ -367,8 +468,10 @@ impl<'a> NearField<'a> {
                 // of 1e30, a tan α of 1e22.
                 let h = fmin(a[i] + (b[i] - a[i]) * f, fmax(a[i], b[i]));
                 v[i] = (h - (h0[i] + drop)) * inv_sb;
-                out[i] = fmax(v[i], out[i]);
-                let t = tw[i] * bulge + lift;
+                let on = if HOLES { v[i] + fmax(hk[i], hn[i]) } else { v[i] };
+                out[i] = fmax(on, out[i]);
+                // A hole's cell (−∞) is never solved whole.
+                let t = tw[i] * bulge + lift + hk[i];
                 interior |= (t > 0.0) & (fmax(prev[i], v[i]) + t + margin > out[i]);
             }
             if INTERIOR & interior & (k > 0) {
@@ -394,7 +497,7 @@ impl<'a> NearField<'a> {
                     stationary |= (d2 < 0.0) & (nn > -1e-3 * span) & (nn < 1.001 * span);
                 }
                 if kept & stationary {
-                    whole(p, (oc, pw), seg, (dx, dy, curv), inv_sb, h0, &mut out, false);
+                    whole(p, (oc, pw), seg, (dx, dy, curv), inv_sb, h0, surface, &mut out, false);
                 }
             }
             prev = v;
@@ -615,6 +718,96 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// With nodata holes ([`NearField::with_holes`]) the crossing walk gives what `exact`'s
+    /// hole-aware walk gives over the same cut, wherever it says it honours them: on smooth,
+    /// rough and spiky maps with blobs of holes filled far below as the bake fills them, with
+    /// and without the curvature drop, both edges, every ISA, with floors.
+    #[test]
+    fn crossings_with_holes_match_exact() {
+        use crate::kernels::exact::ExactHorizon;
+        use crate::params::Reduce;
+        let mut rnd = lcg(5150);
+        let (w, h) = (47usize, 31usize);
+        let mut compared = 0usize;
+        let mut by_holes = 0usize;
+        for kind in 0..3 {
+            let mut heights = near_map(kind, w, h, &mut rnd);
+            // Blobs of holes (discs of radius 1–4) and a few single texels.
+            let mut holes = vec![false; w * h];
+            for _ in 0..6 {
+                let (cx, cy, r) = (rnd() * w as f32, rnd() * h as f32, 1.0 + rnd() * 3.0);
+                for (k, o) in holes.iter_mut().enumerate() {
+                    let (dx, dy) = ((k % w) as f32 - cx, (k / w) as f32 - cy);
+                    *o |= dx * dx + dy * dy <= r * r || rnd() < 0.004;
+                }
+            }
+            let (lo, hi) = heights
+                .iter()
+                .zip(&holes)
+                .filter(|(_, &o)| !o)
+                .fold((f32::MAX, f32::MIN), |(a, b), (&v, _)| (a.min(v), b.max(v)));
+            let fill = crate::heightmap::hole_fill(lo, hi);
+            for (v, &o) in heights.iter_mut().zip(&holes) {
+                if o {
+                    *v = fill;
+                }
+            }
+            // Hole texels apart: every valid texel a cell or two from one.
+            let near = crate::kernels::near_holes(&holes, w, h, 18, true);
+            for edge in [Edge::Wrap, Edge::None] {
+                let g = Grid::new(w, h, &heights, edge, YAxis::Up);
+                let bins = 32;
+                let dirs: Vec<(f64, f64)> = (0..bins)
+                    .map(|n| direction(n as f64 * 2.0 * PI / bins as f64, g.row_step()))
+                    .collect();
+                let cuts = vec![16.0; bins];
+                for curv in [0.0, 2e-3] {
+                    let exact = ExactHorizon::new(g, Some(16), bins as u32, Reduce::Point)
+                        .with_curvature(curv)
+                        .with_holes(Some(&holes));
+                    for isa in [Isa::Avx512, Isa::Avx2, Isa::Baseline] {
+                        if !isa.supported() {
+                            continue;
+                        }
+                        let nf = NearField::new(g, &dirs, &cuts, curv, isa).with_holes(&holes);
+                        for y in 0..h {
+                            for x in (0..w).step_by(LANES) {
+                                for n in 0..bins {
+                                    if !nf.honours_holes(n, x, y) {
+                                        continue;
+                                    }
+                                    let f = rnd() * 0.3;
+                                    for floor in [0.0, f] {
+                                        let mut got = [floor; LANES];
+                                        nf.strip_from(n, x, y, &nf.lanes_h0(x, y), &mut got);
+                                        for (i, &v) in got.iter().enumerate().take(w - x) {
+                                            let t = y * w + x + i;
+                                            if holes[t] {
+                                                continue;
+                                            }
+                                            let want =
+                                                exact.tan_at(x + i, y, n, f64::from(floor)) as f32;
+                                            let tol = 1e-4 * (want.abs() + (hi - lo));
+                                            assert!(
+                                                (v - want).abs() <= tol,
+                                                "kind {kind} {edge:?} c {curv} {isa:?} ({}, {y}) \
+                                                 bin {n} floor {floor}: {v} vs {want}",
+                                                x + i,
+                                            );
+                                            compared += 1;
+                                            by_holes += usize::from(near[t]);
+                                        }
+                                    }
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        assert!(compared > 50_000 && by_holes > 20_000, "{compared} compared, {by_holes} near");
     }
 
     /// The cells' maxima ([`StripMarch::cmax`]) cull exactly the pieces the four corners culled: a

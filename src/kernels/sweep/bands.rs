@@ -120,27 +120,27 @@ impl Sweep<'_> {
                     }
                     let floor = best;
                     let k = y * w + x;
-                    // A strip whose every texel is a hole or within reach of one takes the
-                    // exact walk (or 0) below for each lane: its vector near field would be
-                    // computed only to be replaced.
-                    let replaced = self
-                        .holes
-                        .as_ref()
-                        .is_some_and(|hl| (k..k + lanes).all(|t| hl.near[t] || hl.mask[t]));
+                    // Near a hole: the vector near field honours the holes itself where it
+                    // walks by crossings; elsewhere (a strip whose rays leave an `edge=none`
+                    // surface early) the texels within reach of a hole take `exact`'s walk,
+                    // and a strip whose every texel does (or is a hole) skips the vector one.
+                    let (mut near_hole, mut scalar, mut replaced) = (false, false, false);
+                    if let Some(hl) = &self.holes {
+                        near_hole = hl.near[k..k + lanes].contains(&true);
+                        scalar = near_hole && !self.near.honours_holes(n, x, y);
+                        let exact_only = |t: usize| hl.mask[t] || (scalar && hl.near[t]);
+                        replaced = near_hole && (k..k + lanes).all(exact_only);
+                    }
                     if !replaced {
                         self.near.strip_from(n, x, y, &h0[j], &mut best);
                     }
-                    if let Some(hl) = &self.holes {
-                        if replaced || hl.near[k..k + lanes].contains(&true) {
-                            for i in 0..lanes {
-                                best[i] = if hl.mask[k + i] {
-                                    0.0
-                                } else if hl.near[k + i] {
-                                    let seed = f64::from(floor[i]);
-                                    hl.exact.tan_at(x + i, y, n, seed) as f32
-                                } else {
-                                    best[i]
-                                };
+                    if let Some(hl) = self.holes.as_ref().filter(|_| near_hole) {
+                        for i in 0..lanes {
+                            if hl.mask[k + i] {
+                                best[i] = 0.0;
+                            } else if scalar && hl.near[k + i] {
+                                let seed = f64::from(floor[i]);
+                                best[i] = hl.exact.tan_at(x + i, y, n, seed) as f32;
                             }
                         }
                     }

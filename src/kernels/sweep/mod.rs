@@ -348,9 +348,13 @@ impl<'a> Sweep<'a> {
     /// the far field needs: its samples lie on grid lines, a lerp of two texels, so one that
     /// touches a hole is lowered below every observer (but within 1/`HOLE_DEPTH` of a texel's
     /// end). The near field solves whole cells, whose bilinear twist the fill makes enormous,
-    /// so a texel whose near field can reach a hole (Chebyshev distance ≤ the near field's
-    /// reach + 1) takes it from the exact walk with the holes instead, over the same reach,
-    /// seeded with the far field; every other texel keeps the vector near field.
+    /// so it is told the holes (`NearField::with_holes`): its crossing walk never solves a cell
+    /// with a hole corner and counts a crossing only where a cell beside it is surface, as
+    /// `exact`'s walk does. Where it cannot (rays along a grid axis or a diagonal, and strips
+    /// whose rays leave an `edge=none` surface before the cut: `NearField::honours_holes`), a
+    /// texel whose near field can reach a hole (Chebyshev distance ≤ the near field's reach
+    /// + 1) takes it from the exact walk with the holes instead, over the same reach, seeded
+    /// with the far field.
     pub fn with_holes(mut self, holes: Option<&'a [bool]>) -> Self {
         let (w, h) = (self.grid.width, self.grid.height);
         let Some(mask) = holes.filter(|m| m.len() == w * h && m.iter().any(|&o| o)) else {
@@ -366,6 +370,7 @@ impl<'a> Sweep<'a> {
             None => exact,
         };
         let near = super::near_holes(mask, w, h, reach as usize + 1, self.grid.edge == Edge::Wrap);
+        self.near = self.near.with_holes(mask);
         self.holes = Some(Holes { exact, near, mask });
         self
     }
