@@ -42,6 +42,12 @@ pub(crate) struct NearField<'a> {
     /// crossing walk reads of that cell, it drops the cell as `exact`'s walk skips it. Empty
     /// without holes.
     hole_cells: Vec<f32>,
+    /// With holes, every direction's pieces and crossings out to the longest cut (rounded
+    /// up), the reach of `exact`'s walk that `sweep` took near holes before the crossing walk
+    /// honoured them: near a hole the far field's lines, a third of a texel beside the ray,
+    /// see a hole's edge where the ray does not, so there the exact part runs that far.
+    hole_segs: Vec<Vec<Seg>>,
+    hole_xings: Vec<Vec<Xing>>,
 }
 
 /// Where a piece of a direction leaves its cell, as [`NearField`]'s crossing walk reads it:
@@ -128,11 +134,24 @@ impl<'a> NearField<'a> {
         curv: f64,
         isa: Isa,
     ) -> Self {
-        let mut near = StripMarch::with_cuts(&grid, dirs, cuts);
+        Self::about(grid, dirs, cuts, curv, isa, grid.range())
+    }
+
+    /// [`NearField::new`] for a surface whose heights span `lo..=hi` (the grid's own range, or
+    /// with holes the range of the texels that are not).
+    fn about(
+        grid: Grid<'a>,
+        dirs: &[(f64, f64)],
+        cuts: &[f64],
+        curv: f64,
+        isa: Isa,
+        (lo, hi): (f32, f32),
+    ) -> Self {
+        let mut near = StripMarch::with_cuts_about(&grid, dirs, cuts, (lo, hi));
         near.curv = if curv.is_finite() && curv > 0.0 { curv as f32 } else { 0.0 };
         near.isa = near.isa.min(isa);
-        let hmax = (f64::from(grid.range().1) - near.reference) as f32;
-        let range = f64::from(grid.range().1 - grid.range().0);
+        let hmax = (f64::from(hi) - near.reference) as f32;
+        let range = f64::from(hi - lo);
         let xings =
             dirs.iter().zip(&near.segs).map(|(&d, g)| Xing::of(g, d, near.pw, near.curv, range));
         let xings = xings.collect();
@@ -145,7 +164,8 @@ impl<'a> NearField<'a> {
             }
         }
         let (dirs, cuts) = (dirs.to_vec(), cuts.to_vec());
-        NearField { grid, near, dirs, cuts, hmax, xings, twist, hole_cells: Vec::new() }
+        let (hole_cells, hole_segs, hole_xings) = (Vec::new(), Vec::new(), Vec::new());
+        NearField { grid, near, dirs, cuts, hmax, xings, twist, hole_cells, hole_segs, hole_xings }
     }
 
     /// Nodata holes (SPEC §2), one flag per texel (`holes[row · W + col]`): the cells that
@@ -153,14 +173,32 @@ impl<'a> NearField<'a> {
     /// walk then honours them itself: a cell with a hole corner is never solved whole, and a
     /// crossing counts only where a cell on either side of it is surface (the grid line
     /// between two such cells is their edge; the bake's fill of the holes, far below the map,
-    /// otherwise lifts nothing). The cell walk (strips whose rays leave an `edge=none` surface
-    /// before the cut, or a near field too long for the cells' maxima) does not: see
-    /// [`NearField::honours_holes`].
-    pub(crate) fn with_holes(mut self, holes: &[bool]) -> Self {
+    /// otherwise lifts nothing). [`NearField::strip_near_holes`] runs that walk;
+    /// [`NearField::strip_from`] stays the walk without holes.
+    ///
+    /// Heights are then taken about the middle of the surface's own range: about the middle
+    /// of a range that reached down to the fill, 1000 ranges below, the f32 lanes lost three
+    /// digits (tan α off by 6e-5 of the range, a few hundredths of a degree).
+    pub(crate) fn with_holes(self, holes: &[bool]) -> Self {
         let (w, h) = (self.grid.width, self.grid.height);
         if holes.len() != w * h || !holes.contains(&true) {
             return self;
         }
+        let surface = self.grid.heights.iter().zip(holes).filter(|(_, &o)| !o);
+        let (lo, hi) = surface
+            .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), (&v, _)| (a.min(v), b.max(v)));
+        let (grid, curv, isa) = (self.grid, f64::from(self.near.curv), self.near.isa);
+        let (dirs, cuts) = (self.dirs, self.cuts);
+        drop(self.near);
+        let mut near = Self::about(grid, &dirs, &cuts, curv, isa, (lo, hi));
+        near.fill_hole_cells(holes, (lo, hi));
+        near
+    }
+
+    /// [`NearField::with_holes`]'s cells and longer pieces, on a near field built about the
+    /// surface's range `lo..=hi`.
+    fn fill_hole_cells(&mut self, holes: &[bool], (lo, hi): (f32, f32)) {
+        let (w, h) = (self.grid.width, self.grid.height);
         let (pw, pad) = (self.near.pw, self.near.pad as i64);
         let ph = self.near.padded.len() / pw;
         let wrap = self.grid.edge == Edge::Wrap;
@@ -185,18 +223,25 @@ impl<'a> NearField<'a> {
             }
         }
         self.hole_cells = cells;
-        self
+        let reach = self.hole_reach();
+        let range = f64::from(hi - lo);
+        let pieces = |&(dx, dy): &(f64, f64)| StripMarch::pieces(dx, dy, reach);
+        self.hole_segs = self.dirs.iter().map(pieces).collect();
+        let xings = self.dirs.iter().zip(&self.hole_segs);
+        let (pw, curv) = (self.near.pw, self.near.curv);
+        self.hole_xings = xings.map(|(&d, g)| Xing::of(g, d, pw, curv, range)).collect();
     }
 
-    /// Whether [`NearField::strip_from`] honours the holes of [`NearField::with_holes`] for
-    /// the strip at (`x`, `y`) along direction `n`: when it walks by crossings, and the
+    /// Whether [`NearField::strip_near_holes`] may run for the strip at (`x`, `y`) along
+    /// direction `n` (with [`NearField::with_holes`]): where every ray runs to the reach (so it
+    /// walks by crossings, with the cells' maxima), and the
     /// direction is neither along a grid axis nor a diagonal. An axis ray runs on the edge
     /// between two cells, surface where either is (`exact` gives a cell with a hole that edge;
     /// the crossing walk reads one side's cells). A diagonal ray passes through texels, where
     /// four cells meet: which of them it touches, and so whether that texel counts when the
     /// two it crosses have holes, is decided by the rounding of its step, which the crossing
     /// walk (offsets from the strip) and `exact` (positions on the map) do not share. Elsewhere
-    /// (and without holes) a caller takes the texels near a hole from `exact`'s walk.
+    /// a caller takes the texels near a hole from `exact`'s walk.
     #[inline(always)]
     pub(crate) fn honours_holes(&self, n: usize, x: usize, y: usize) -> bool {
         let (dx, dy) = self.dirs[n];
@@ -205,18 +250,41 @@ impl<'a> NearField<'a> {
             && dx != 0.0
             && dy != 0.0
             && (dx.abs() - dy.abs()).abs() > 1e-9
-            && !self.border(n, x, y)
+            && !self.border(n, x, y, self.hole_reach())
     }
 
-    /// With `edge=none`, whether some ray of the strip at (`x`, `y`) leaves the surface before
-    /// the cut of direction `n`. When the cut points of the strip's two end lanes are on the
-    /// surface, every lane's is (the surface is convex) and the rays all run to the cut.
+    /// The longest cut, rounded up: how far [`NearField::strip_near_holes`] walks.
+    fn hole_reach(&self) -> f64 {
+        self.cuts.iter().copied().fold(0.0, f64::max).ceil()
+    }
+
+    /// [`NearField::strip_from`] for a strip near nodata holes, honouring them as `exact`'s
+    /// walk does (see [`NearField::with_holes`]), out to the longest cut in every direction
+    /// rather than the direction's own. Only where [`NearField::honours_holes`] says so.
     #[inline(always)]
-    fn border(&self, n: usize, x: usize, y: usize) -> bool {
+    pub(crate) fn strip_near_holes(
+        &self,
+        n: usize,
+        x: usize,
+        y: usize,
+        h0: &[f32; LANES],
+        best: &mut [f32; LANES],
+    ) {
+        debug_assert!(self.honours_holes(n, x, y));
+        self.crossings_with(n, x, y, h0, best, true);
+        for b in best.iter_mut() {
+            *b = b.max(0.0);
+        }
+    }
+
+    /// With `edge=none`, whether some ray of the strip at (`x`, `y`) along direction `n` leaves
+    /// the surface before arc length `cut`. When the cut points of the strip's two end lanes
+    /// are on the surface, every lane's is (the surface is convex) and the rays all run to it.
+    #[inline(always)]
+    fn border(&self, n: usize, x: usize, y: usize, cut: f64) -> bool {
         let lanes = LANES.min(self.grid.width - x);
         let (dx, dy) = self.dirs[n];
-        let (cut, wm, hm) =
-            (self.cuts[n], (self.grid.width - 1) as f64, (self.grid.height - 1) as f64);
+        let (wm, hm) = ((self.grid.width - 1) as f64, (self.grid.height - 1) as f64);
         let inside = |xx: usize| {
             let (px, py) = (xx as f64 + cut * dx, y as f64 + cut * dy);
             (0.0..=wm).contains(&px) && (0.0..=hm).contains(&py)
@@ -289,7 +357,7 @@ impl<'a> NearField<'a> {
         let (dx, dy) = self.dirs[n];
         let mut count = [self.near.segs[n].len() as u32; LANES];
         // With `edge=none`, rays that leave the surface before the cut stop there.
-        let border = self.border(n, x, y);
+        let border = self.border(n, x, y, self.cuts[n]);
         if border {
             let lanes = LANES.min(self.grid.width - x);
             for (i, c) in count.iter_mut().enumerate().take(lanes) {
@@ -312,16 +380,28 @@ impl<'a> NearField<'a> {
     /// instructions the CPU has.
     #[inline(always)]
     fn crossings(&self, n: usize, x: usize, y: usize, h0: &[f32; LANES], best: &mut [f32; LANES]) {
+        self.crossings_with(n, x, y, h0, best, false);
+    }
+
+    /// [`NearField::crossings`], or with `holes` the walk of [`NearField::strip_near_holes`].
+    #[inline(always)]
+    fn crossings_with(
+        &self,
+        n: usize,
+        x: usize,
+        y: usize,
+        h0: &[f32; LANES],
+        best: &mut [f32; LANES],
+        holes: bool,
+    ) {
         match self.near.isa {
             // SAFETY: the strip march's variant is one this CPU supports.
             #[cfg(target_arch = "x86_64")]
-            Isa::Avx512 => unsafe { self.crossings_avx512(n, x, y, h0, best) },
+            Isa::Avx512 => unsafe { self.crossings_avx512(n, x, y, h0, best, holes) },
             #[cfg(target_arch = "x86_64")]
-            Isa::Avx2 => unsafe { self.crossings_avx2(n, x, y, h0, best) },
-            _ if self.hole_cells.is_empty() => {
-                self.crossings_body::<true, false>(n, x, y, h0, best)
-            }
-            _ => self.crossings_body::<true, true>(n, x, y, h0, best),
+            Isa::Avx2 => unsafe { self.crossings_avx2(n, x, y, h0, best, holes) },
+            _ if holes => self.crossings_body::<true, true>(n, x, y, h0, best),
+            _ => self.crossings_body::<true, false>(n, x, y, h0, best),
         }
     }
 
@@ -334,11 +414,12 @@ impl<'a> NearField<'a> {
         y: usize,
         h0: &[f32; LANES],
         best: &mut [f32; LANES],
+        holes: bool,
     ) {
-        if self.hole_cells.is_empty() {
-            self.crossings_body::<true, false>(n, x, y, h0, best);
-        } else {
+        if holes {
             self.crossings_body::<true, true>(n, x, y, h0, best);
+        } else {
+            self.crossings_body::<true, false>(n, x, y, h0, best);
         }
     }
 
@@ -351,11 +432,12 @@ impl<'a> NearField<'a> {
         y: usize,
         h0: &[f32; LANES],
         best: &mut [f32; LANES],
+        holes: bool,
     ) {
-        if self.hole_cells.is_empty() {
-            self.crossings_body::<true, false>(n, x, y, h0, best);
-        } else {
+        if holes {
             self.crossings_body::<true, true>(n, x, y, h0, best);
+        } else {
+            self.crossings_body::<true, false>(n, x, y, h0, best);
         }
     }
 
@@ -430,9 +512,13 @@ impl<'a> NearField<'a> {
             }
         }
         let hc = &self.hole_cells[..];
-        let xings = &self.xings[n];
+        let (segs, xings) = if HOLES {
+            (&self.hole_segs[n], &self.hole_xings[n])
+        } else {
+            (&near.segs[n], &self.xings[n])
+        };
         let mut prev = [0.0f32; LANES];
-        for (k, (seg, xg)) in near.segs[n].iter().zip(xings).enumerate() {
+        for (k, (seg, xg)) in segs.iter().zip(xings).enumerate() {
             let oc = (base as isize + xg.cell as isize) as usize;
             // Whether lane i's cell of this piece is surface (always, without holes).
             let surface = |i: usize| !HOLES || hc[oc + i] == 0.0;
@@ -721,9 +807,10 @@ mod tests {
     }
 
     /// With nodata holes ([`NearField::with_holes`]) the crossing walk gives what `exact`'s
-    /// hole-aware walk gives over the same cut, wherever it says it honours them: on smooth,
+    /// hole-aware walk gives over the same reach, wherever it says it honours them: on smooth,
     /// rough and spiky maps with blobs of holes filled far below as the bake fills them, with
-    /// and without the curvature drop, both edges, every ISA, with floors.
+    /// and without the curvature drop, both edges, every ISA, with floors; to a few f32 ulp of
+    /// the surface's own range (the fill, 1000 ranges below, costs no precision).
     #[test]
     fn crossings_with_holes_match_exact() {
         use crate::kernels::exact::ExactHorizon;
@@ -762,9 +849,12 @@ mod tests {
                 let dirs: Vec<(f64, f64)> = (0..bins)
                     .map(|n| direction(n as f64 * 2.0 * PI / bins as f64, g.row_step()))
                     .collect();
-                let cuts = vec![16.0; bins];
+                // `sweep`'s cuts (16 steps of the major axis), so the walk near holes runs
+                // past a direction's own cut to the longest, as `exact` does over its radius.
+                let cuts: Vec<f64> = dirs.iter().map(|d| 16.0 / d.0.abs().max(d.1.abs())).collect();
+                let reach = cuts.iter().copied().fold(0.0, f64::max).ceil() as u32;
                 for curv in [0.0, 2e-3] {
-                    let exact = ExactHorizon::new(g, Some(16), bins as u32, Reduce::Point)
+                    let exact = ExactHorizon::new(g, Some(reach), bins as u32, Reduce::Point)
                         .with_curvature(curv)
                         .with_holes(Some(&holes));
                     for isa in [Isa::Avx512, Isa::Avx2, Isa::Baseline] {
@@ -781,7 +871,7 @@ mod tests {
                                     let f = rnd() * 0.3;
                                     for floor in [0.0, f] {
                                         let mut got = [floor; LANES];
-                                        nf.strip_from(n, x, y, &nf.lanes_h0(x, y), &mut got);
+                                        nf.strip_near_holes(n, x, y, &nf.lanes_h0(x, y), &mut got);
                                         for (i, &v) in got.iter().enumerate().take(w - x) {
                                             let t = y * w + x + i;
                                             if holes[t] {
@@ -789,7 +879,9 @@ mod tests {
                                             }
                                             let want =
                                                 exact.tan_at(x + i, y, n, f64::from(floor)) as f32;
-                                            let tol = 1e-4 * (want.abs() + (hi - lo));
+                                            // A few f32 ulp of the surface's range: the
+                                            // fill far below costs it no precision.
+                                            let tol = 8.0 * f32::EPSILON * (want.abs() + hi - lo);
                                             assert!(
                                                 (v - want).abs() <= tol,
                                                 "kind {kind} {edge:?} c {curv} {isa:?} ({}, {y}) \

@@ -222,13 +222,24 @@ impl StripMarch {
 
     /// [`StripMarch::new`] with its own cut per direction (`s_cut` is then the largest).
     pub(crate) fn with_cuts(grid: &Grid<'_>, dirs: &[(f64, f64)], cuts: &[f64]) -> StripMarch {
+        Self::with_cuts_about(grid, dirs, cuts, grid.range())
+    }
+
+    /// [`StripMarch::with_cuts`] with heights taken relative to the middle of `lo..=hi` rather
+    /// than of the grid's whole range (a map with holes: the middle of its surface's range, not
+    /// of the fill far below it, so the f32 lanes keep the surface's precision).
+    pub(crate) fn with_cuts_about(
+        grid: &Grid<'_>,
+        dirs: &[(f64, f64)],
+        cuts: &[f64],
+        (lo, hi): (f32, f32),
+    ) -> StripMarch {
         let s_cut = cuts.iter().copied().fold(0.0f64, f64::max);
         let (w, h) = (grid.width, grid.height);
         let pad = s_cut.ceil() as usize + 2;
         let pw = w + 2 * pad + LANES + 1;
         let ph = h + 2 * pad + 1;
         let mut padded = vec![0f32; pw * ph];
-        let (lo, hi) = grid.range();
         let reference = 0.5 * (f64::from(lo) + f64::from(hi));
         for r in 0..ph {
             for c in 0..pw {

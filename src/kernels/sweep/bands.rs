@@ -121,9 +121,10 @@ impl Sweep<'_> {
                     let floor = best;
                     let k = y * w + x;
                     // Near a hole: the vector near field honours the holes itself where it
-                    // walks by crossings; elsewhere (a strip whose rays leave an `edge=none`
-                    // surface early) the texels within reach of a hole take `exact`'s walk,
-                    // and a strip whose every texel does (or is a hole) skips the vector one.
+                    // walks by crossings (out to the reach `exact` would walk); elsewhere (axis
+                    // and diagonal bins, a strip whose rays leave an `edge=none` surface early)
+                    // the texels within reach of a hole take `exact`'s walk, and a strip whose
+                    // every texel does (or is a hole) skips the vector one.
                     let (mut near_hole, mut scalar, mut replaced) = (false, false, false);
                     if let Some(hl) = &self.holes {
                         near_hole = hl.near[k..k + lanes].contains(&true);
@@ -131,7 +132,9 @@ impl Sweep<'_> {
                         let exact_only = |t: usize| hl.mask[t] || (scalar && hl.near[t]);
                         replaced = near_hole && (k..k + lanes).all(exact_only);
                     }
-                    if !replaced {
+                    if near_hole && !scalar {
+                        self.near.strip_near_holes(n, x, y, &h0[j], &mut best);
+                    } else if !replaced {
                         self.near.strip_from(n, x, y, &h0[j], &mut best);
                     }
                     if let Some(hl) = self.holes.as_ref().filter(|_| near_hole) {
