@@ -350,10 +350,12 @@ impl<'a> Sweep<'a> {
     /// end). The near field solves whole cells, whose bilinear twist the fill makes enormous,
     /// so it is told the holes (`NearField::with_holes`): its crossing walk never solves a cell
     /// with a hole corner and counts a crossing only where a cell beside it is surface, as
-    /// `exact`'s walk does. Where it cannot (rays along a grid axis or a diagonal, and strips
-    /// whose rays leave an `edge=none` surface before the cut: `NearField::honours_holes`), a
-    /// texel whose near field can reach a hole (Chebyshev distance ≤ the near field's reach
-    /// + 1) takes it from the exact walk with the holes instead, over the same reach, seeded
+    /// `exact`'s walk does, and near a hole it runs out to the longest cut in every direction
+    /// (the far field's lines, a third of a texel beside the ray, see a hole's edge where the
+    /// ray does not). Where it cannot (rays along a grid axis or a diagonal, and strips whose
+    /// rays leave an `edge=none` surface before that reach: `NearField::honours_holes`), a
+    /// texel whose near field can reach a hole (a Chebyshev distance of at most the reach plus
+    /// one) takes it from the exact walk with the holes instead, over the same reach, seeded
     /// with the far field.
     pub fn with_holes(mut self, holes: Option<&'a [bool]>) -> Self {
         let (w, h) = (self.grid.width, self.grid.height);
