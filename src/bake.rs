@@ -131,9 +131,10 @@ pub fn fit_method(params: &mut BakeParams, width: u32, height: u32, tiled: bool)
 
 /// [`make_kernel`] for a map with nodata `holes`: `exact` skips the cells that touch a hole
 /// exactly (SPEC §2); the other methods see the holes' fill far below the map
-/// ([`crate::heightmap::HOLE_DEPTH`]), and `march` and `sweep` take the exact walk within
-/// their near reach of one ([`kernels::march::March::with_holes`],
-/// [`kernels::sweep::Sweep::with_holes`]). Outputs at holes are masked by the callers.
+/// ([`crate::heightmap::HOLE_DEPTH`]); `march` takes the exact walk within its near reach of
+/// one ([`kernels::march::March::with_holes`]), and `sweep`'s near field skips the cells that
+/// touch one itself ([`kernels::sweep::Sweep::with_holes`]). Outputs at holes are masked by the
+/// callers.
 pub fn make_kernel_for<'a>(
     params: &BakeParams,
     grid: Grid<'a>,
