@@ -18,7 +18,8 @@ use crate::terrain::sun::SunAzimuth;
 /// Positive and negative openness (SPEC §3.7, Yokoyama et al. 2002, as RVT computes them), in
 /// degrees: the mean over the `bins` azimuths of 90° − β_n, β_n the signed maximum elevation
 /// angle within `radius` texels (no clamp at 0), on the surface and on the inverted surface −h;
-/// by the plain cell walk over the bilinear surface ([`kernels::exact::signed_elevation`]),
+/// by the cell walk over the bilinear surface ([`kernels::exact::SignedElevations`]: the
+/// plain walk's values, sooner),
 /// without the earth-curvature drop (as RVT), holes no surface; an azimuth whose ray meets no
 /// surface (no length at an `edge=none` border, or holes only) is left out of the mean.
 /// `nodata` at holes.
@@ -36,7 +37,17 @@ fn openness_planes(
 ) -> Result<[Vec<f32>; 2]> {
     use rayon::prelude::*;
     let (w, h) = (grid.width, rows.len());
-    let inverted: Vec<f32> = grid.heights.iter().map(|v| -v).collect();
+    // The inverted surface's holes filled far below it again (−h would put them far above,
+    // and the walks' pyramid would then skip nothing near them).
+    let mut inverted: Vec<f32> = grid.heights.iter().map(|v| -v).collect();
+    if let Some(m) = holes {
+        let surface = inverted.iter().zip(m).filter(|(_, &o)| !o).map(|(&v, _)| v);
+        let (lo, hi) = surface.fold((f32::MAX, f32::MIN), |(a, b), v| (a.min(v), b.max(v)));
+        let fill = crate::heightmap::hole_fill(lo, hi.max(lo));
+        for (v, _) in inverted.iter_mut().zip(m).filter(|(_, &o)| o) {
+            *v = fill;
+        }
+    }
     let grids = [grid, Grid::new(w, grid.height, &inverted, params.edge, params.y_axis)];
     let nb = params.bins as usize;
     let phis: Vec<f64> = (0..nb).map(|n| n as f64 * std::f64::consts::TAU / nb as f64).collect();
@@ -44,6 +55,7 @@ fn openness_planes(
     let mut planes = [vec![nodata; w * h], vec![nodata; w * h]];
     progress.start(Stage::Bake, 2 * h as u64);
     for (g, plane) in grids.iter().zip(planes.iter_mut()) {
+        let walks = kernels::exact::SignedElevations::new(*g, holes, r);
         plane.par_chunks_mut(w).enumerate().try_for_each(|(j, row)| {
             if progress.is_canceled() {
                 return Err(crate::Error::Canceled);
@@ -55,7 +67,7 @@ fn openness_planes(
                 }
                 let (mut sum, mut n) = (0.0f64, 0usize);
                 for &phi in &phis {
-                    if let Some(beta) = kernels::exact::signed_elevation(g, holes, x, y, phi, r) {
+                    if let Some(beta) = walks.at(x, y, phi) {
                         sum += 90.0 - beta.to_degrees();
                         n += 1;
                     }

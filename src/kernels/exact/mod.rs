@@ -33,7 +33,7 @@ mod oracle;
 pub(crate) mod walk;
 
 pub use oracle::ExactMarch;
-pub use walk::{horizon_sin, signed_elevation};
+pub use walk::{horizon_sin, signed_elevation, SignedElevations};
 
 use super::nearfield::{StripMarch, LANES};
 use super::{reduce_into, Grid, HorizonRows};
