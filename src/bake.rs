@@ -107,10 +107,19 @@ pub fn make_kernel<'a>(
 /// # Errors
 /// [`Error::Param`] naming `method`.
 pub fn check_method_fits(params: &BakeParams, width: u32, height: u32) -> Result<()> {
-    if params.method == Method::Sweep {
+    if params.method == Method::Sweep && needs_table(params) {
         kernels::sweep::check_memory(width, height, params.bins)?;
     }
     Ok(())
+}
+
+/// Whether a `sweep` bake keeps its far-field table (W·H·bins, in memory or on disk): every
+/// output taken from its bands does (the horizon layers, Fourier, the surface maps, a
+/// `tilted` SVF); `angles` and a plain SVF alone come from its planes instead
+/// ([`kernels::sweep::Sweep::planes`]), whose memory does not grow with the bins.
+pub fn needs_table(params: &BakeParams) -> bool {
+    let o = &params.outputs;
+    o.horizon || o.fourier || o.normal || o.ao || o.bent_normal || !azimuth_major(params)
 }
 
 /// Settles the method of a bake of a `width`×`height` map, `tiled` when it is above
@@ -123,7 +132,9 @@ pub fn check_method_fits(params: &BakeParams, width: u32, height: u32) -> Result
 /// As [`check_method_fits`].
 pub fn fit_method(params: &mut BakeParams, width: u32, height: u32, tiled: bool) -> Result<()> {
     if params.method == Method::Sweep && !params.explicit.has("method") {
-        let fits = !tiled && kernels::sweep::check_memory(width, height, params.bins).is_ok();
+        let fits = !tiled
+            && (!needs_table(params)
+                || kernels::sweep::check_memory(width, height, params.bins).is_ok());
         params.set("method", if fits { "sweep" } else { "exact" })?;
     }
     check_method_fits(params, width, height)
@@ -159,25 +170,7 @@ pub fn make_kernel_for<'a>(
             )
         }
         // Cost independent of R: `unlimited` is the kernel's own (to the edge with edge=none).
-        Method::Sweep => {
-            let r = (params.radius != Radius::Unlimited || params.max_distance.is_some())
-                .then_some(radius);
-            let (w, h) = (grid.width as u32, grid.height as u32);
-            let spill = kernels::sweep::spills(w, h, params.bins).then(|| {
-                Arc::new(FileSpill::new(grid.width * grid.height, progress.scratch_dir()))
-                    as Arc<dyn kernels::sweep::FarSpill>
-            });
-            let opt = kernels::sweep::Options {
-                curvature: curvature(params),
-                isa: None,
-                progress: Some(progress.clone()),
-                spill,
-            };
-            Box::new(
-                kernels::sweep::Sweep::with_options(grid, r, params.bins, params.reduce, opt)
-                    .with_holes(holes),
-            )
-        }
+        Method::Sweep => Box::new(sweep_kernel(params, grid, radius, progress, holes, false)),
         // `unlimited` is max(W, H) texels here, as for Lengyel: a march's cost grows with R.
         Method::March => Box::new(
             kernels::march::March::new(grid, radius, params.bins, params.reduce)
@@ -186,6 +179,32 @@ pub fn make_kernel_for<'a>(
                 .with_holes(holes),
         ),
     }
+}
+
+/// The `sweep` kernel of [`make_kernel_for`]; `azimuth_major`: built to give its horizons plane
+/// by plane ([`kernels::sweep::Sweep::planes`]), with no far-field table in memory or on disk.
+fn sweep_kernel<'a>(
+    params: &BakeParams,
+    grid: Grid<'a>,
+    radius: u32,
+    progress: &Progress,
+    holes: Option<&'a [bool]>,
+    azimuth_major: bool,
+) -> kernels::sweep::Sweep<'a> {
+    let r = (params.radius != Radius::Unlimited || params.max_distance.is_some()).then_some(radius);
+    let (w, h) = (grid.width as u32, grid.height as u32);
+    let spill = (!azimuth_major && kernels::sweep::spills(w, h, params.bins)).then(|| {
+        Arc::new(FileSpill::new(grid.width * grid.height, progress.scratch_dir()))
+            as Arc<dyn kernels::sweep::FarSpill>
+    });
+    let opt = kernels::sweep::Options {
+        curvature: curvature(params),
+        isa: None,
+        progress: Some(progress.clone()),
+        spill,
+        azimuth_major,
+    };
+    kernels::sweep::Sweep::with_options(grid, r, params.bins, params.reduce, opt).with_holes(holes)
 }
 
 /// `sweep`'s far field in a temporary file, one plane of `plane` f32 per bin at offset
@@ -844,8 +863,17 @@ pub fn bake_terrain(
     check_scaled(&heights)?;
     let radius = resolve_radius(params, w, h, &heights);
     let grid = Grid::new(w, h, &heights, params.edge, params.y_axis);
-    let kernel =
-        make_kernel_for(params, grid, radius.texels, progress, map.terrain.holes.as_deref());
+    let holes = map.terrain.holes.as_deref();
+    // `sweep` gives its horizons plane by plane where the products only fold over bins: no
+    // far-field table (W·H·bins) in memory or on disk.
+    let (rows_kernel, planes_kernel);
+    let kernel: Horizons<'_> = if azimuth_major(params) {
+        planes_kernel = sweep_kernel(params, grid, radius.texels, progress, holes, true);
+        Horizons::Planes(&planes_kernel)
+    } else {
+        rows_kernel = make_kernel_for(params, grid, radius.texels, progress, holes);
+        Horizons::Rows(rows_kernel.as_ref())
+    };
     if kernel.bins() != nb {
         return Err(crate::Error::param(
             "bins",
@@ -853,7 +881,6 @@ pub fn bake_terrain(
                 .to_lowercase(),
         ));
     }
-    let holes = map.terrain.holes.as_deref();
     let nodata = map.terrain.nodata.map_or(f32::NAN, |v| v as f32);
     let normals = NormalSource { grid: &grid, holes, row0: 0 };
     let (compass, north) = compass_of(map, params);
@@ -863,7 +890,7 @@ pub fn bake_terrain(
     let mut kernel_params = params.clone();
     kernel_params.outputs.angles &= !true_bands;
     let (mut ang, sv) = if kernel_params.outputs.angles || params.outputs.svf {
-        terrain_planes(kernel.as_ref(), &kernel_params, holes, nodata, &normals, progress)?
+        terrain_planes(kernel, &kernel_params, holes, nodata, &normals, progress)?
     } else {
         (None, None)
     };
@@ -919,7 +946,7 @@ struct NormalSource<'a> {
 }
 
 fn terrain_planes(
-    kernel: &dyn HorizonRows,
+    kernel: Horizons<'_>,
     params: &BakeParams,
     holes: Option<&[bool]>,
     nodata: f32,
@@ -927,6 +954,10 @@ fn terrain_planes(
     progress: &Progress,
 ) -> Result<TerrainPlanes> {
     use crate::terrain::{angles, surface, svf};
+    let kernel = match kernel {
+        Horizons::Rows(k) => k,
+        Horizons::Planes(k) => return folded_planes(k, params, holes, nodata, progress),
+    };
     let tilted = params.svf_model == crate::params::SvfModel::Tilted;
     let dirs = surface::BinDirs::new(params.bins as usize);
     let (w, h, nb) = (kernel.width(), kernel.height(), params.bins as usize);
@@ -972,6 +1003,92 @@ fn terrain_planes(
                 }
             }
         })?;
+    }
+    Ok((ang, sv))
+}
+
+/// Where the terrain planes' horizons come from: a kernel's bands, or `sweep`'s planes.
+#[derive(Clone, Copy)]
+enum Horizons<'k> {
+    Rows(&'k dyn HorizonRows),
+    Planes(&'k kernels::sweep::Sweep<'k>),
+}
+
+impl Horizons<'_> {
+    fn bins(&self) -> usize {
+        match self {
+            Horizons::Rows(k) => k.bins(),
+            Horizons::Planes(k) => k.bins(),
+        }
+    }
+}
+
+/// Whether [`bake_terrain`]'s `angles` and `svf` come from `sweep`'s planes
+/// ([`folded_planes`]): `sweep`, and an SVF (if any) that is a plain sum over bins (`tilted`
+/// takes every bin of a texel at once, with its normal).
+fn azimuth_major(params: &BakeParams) -> bool {
+    params.method == Method::Sweep
+        && !(params.outputs.svf && params.svf_model == crate::params::SvfModel::Tilted)
+}
+
+/// [`terrain_planes`] from `sweep`'s planes, bin after bin ([`kernels::sweep::Sweep::planes`]):
+/// each bin's plane goes to its `angles` band, and the SVF's sum over bins is kept per texel
+/// in f64 and added to in the bins' order, as [`crate::terrain::svf::svf`] adds, so the values
+/// are those of the bands bit for bit with a memory of one plane per azimuth in flight.
+fn folded_planes(
+    kernel: &kernels::sweep::Sweep<'_>,
+    params: &BakeParams,
+    holes: Option<&[bool]>,
+    nodata: f32,
+    progress: &Progress,
+) -> Result<TerrainPlanes> {
+    use crate::terrain::angles;
+    let (w, h, nb) = (kernel.width(), kernel.height(), params.bins as usize);
+    let plane = w * h;
+    // Output band of each bin (`band_bins` gives the bin of each band).
+    let mut band_of = vec![0usize; nb];
+    for (band, &bin) in angles::band_bins(nb, params.azimuth_from, params.y_axis).iter().enumerate()
+    {
+        band_of[bin] = band;
+    }
+    let mut ang = params.outputs.angles.then(|| vec![0f32; plane * nb]);
+    let mut sums = params.outputs.svf.then(|| vec![0f64; plane]);
+    let visual = params.svf_model == crate::params::SvfModel::Visual;
+    let band = kernels::band_rows_for(kernel);
+    progress.start(Stage::Bake, (h * nb) as u64);
+    {
+        let ang_rows: Option<Vec<Vec<Mutex<&mut [f32]>>>> =
+            ang.as_mut().map(|a| a.chunks_mut(plane).map(|p| split(p, band * w)).collect());
+        let sum_rows = sums.as_mut().map(|s| split(s, band * w));
+        kernel.planes(band, progress, |b, n, s| {
+            if let Some(a) = &ang_rows {
+                if let Ok(mut p) = a[band_of[n]][b].lock() {
+                    for (o, &v) in p.iter_mut().zip(s) {
+                        *o = angles::angle(v, params.angle_unit);
+                    }
+                }
+            }
+            if let Some(mut acc) = sum_rows.as_ref().and_then(|r| r[b].lock().ok()) {
+                // The terms of `svf::svf`, in its order.
+                for (a, &v) in acc.iter_mut().zip(s) {
+                    let v = f64::from(v).clamp(0.0, 1.0);
+                    *a += if visual { 1.0 - v } else { 1.0 - v.powi(2) };
+                }
+            }
+        })?;
+    }
+    let sv = sums.map(|sums| {
+        let n = nb as f64;
+        let mut out: Vec<f32> = sums.iter().map(|&s| (s / n) as f32).collect();
+        if let Some(m) = holes {
+            out.iter_mut().zip(m).filter(|(_, &hole)| hole).for_each(|(o, _)| *o = nodata);
+        }
+        out
+    });
+    if let (Some(a), Some(m)) = (ang.as_mut(), holes) {
+        for p in a.chunks_exact_mut(plane) {
+            p.iter_mut().zip(m).filter(|(_, &hole)| hole).for_each(|(o, _)| *o = nodata);
+        }
     }
     Ok((ang, sv))
 }
@@ -1046,7 +1163,14 @@ pub fn bake_terrain_window(
     let mut kernel_params = params.clone();
     kernel_params.outputs.angles &= !true_bands;
     let (mut ang, sv) = if kernel_params.outputs.angles || params.outputs.svf {
-        terrain_planes(&rows, &kernel_params, row_holes, nodata, &normals, progress)?
+        terrain_planes(
+            Horizons::Rows(&rows),
+            &kernel_params,
+            row_holes,
+            nodata,
+            &normals,
+            progress,
+        )?
     } else {
         (None, None)
     };

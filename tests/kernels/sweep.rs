@@ -215,7 +215,7 @@ fn every_isa_matches_the_scalar_oracle_of_the_same_samples() {
             .map(|(t, n)| oracle(&g, t % w, t / w, n, bins, radius.map(f64::from), c))
             .collect();
         for &isa in &isas {
-            let opt = Options { curvature: c, isa: Some(isa), progress: None, spill: None };
+            let opt = Options { curvature: c, isa: Some(isa), ..Options::default() };
             let got = per_bin(&Sweep::with_options(g, radius, bins as u32, Reduce::Point, opt));
             // With the curvature the oracle scans the near field finely instead of solving it.
             let tol = if c > 0.0 { 5e-4 } else { 3e-5 };
@@ -519,6 +519,13 @@ fn only_a_far_field_too_big_even_for_the_disk_is_refused() {
         other => panic!("not refused: {other:?}"),
     }
     assert!(check_method_fits(&parse("method=sweep&bins=32"), 8192, 8192).is_ok());
+    // `angles` and a plain SVF alone keep no table (`Sweep::planes`): any bins at any size;
+    // a tilted SVF takes its bins from the bands, so it keeps one.
+    const { assert!(65_536u64 * 65_536 * 720 * 4 > MAX_SPILL_BYTES) };
+    let planes = parse("method=sweep&bins=720&outputs=angles,svf&reduce=point");
+    assert!(check_method_fits(&planes, 65_536, 65_536).is_ok());
+    let tilted = parse("method=sweep&bins=720&outputs=svf&svf_model=tilted&reduce=point");
+    assert!(check_method_fits(&tilted, 65_536, 65_536).is_err());
     // Other methods keep no such table.
     assert!(check_method_fits(&parse("method=march&radius=8&bins=256"), 8192, 8192).is_ok());
 }
@@ -600,6 +607,119 @@ fn a_spilled_far_field_gives_the_bits_of_the_table_in_memory() {
             assert!(got == want, "{w}×{h} {edge:?} R {radius:?}: file spill, band {band}");
         }
     }
+}
+
+/// Azimuth-major (`Options::azimuth_major`, no far-field table): `Sweep::planes` hands every
+/// bin of every band once, bins in the order 0, 1, … within each band, with the per-bin values
+/// of the table's bands bit for bit: random fBm, both edges, finite and unlimited radii, odd
+/// sizes, holes, curvature, every ISA, several band heights; its `rows` give nothing. A sink
+/// that sums in the bins' order therefore gets the bands' sums.
+#[test]
+fn azimuth_major_planes_give_the_bits_of_the_bands() {
+    use std::sync::Mutex;
+    let mut rng = Rng(0xa21);
+    let cases = [
+        (67, 45, Edge::Wrap, None, 32u32, false, 0.0),
+        (67, 45, Edge::None, None, 48, true, 0.0),
+        (50, 71, Edge::None, Some(30), 32, false, 1e-3),
+        (33, 1, Edge::Wrap, Some(20), 16, false, 0.0),
+        (40, 37, Edge::Wrap, Some(25), 360, true, 0.0),
+        (41, 36, Edge::Wrap, Some(25), 64, false, 2e-4),
+    ];
+    for (w, h, edge, radius, bins, with_holes, curvature) in cases {
+        let mut hts = fbm(&mut rng, w, h, 30.0);
+        let holes: Vec<bool> = (0..w * h).map(|_| with_holes && rng.f32() < 0.04).collect();
+        if with_holes {
+            fill_holes(&mut hts, &holes);
+        }
+        let holes = with_holes.then_some(holes.as_slice());
+        let g = Grid::new(w, h, &hts, edge, YAxis::Down);
+        for isa in [Isa::Avx512, Isa::Avx2, Isa::Baseline].into_iter().filter(|i| i.supported()) {
+            let opt = |azimuth_major| Options {
+                curvature,
+                isa: Some(isa),
+                azimuth_major,
+                ..Options::default()
+            };
+            let table =
+                Sweep::with_options(g, radius, bins, Reduce::Average, opt(false)).with_holes(holes);
+            let want = per_bin(&table);
+            let nb = bins as usize;
+            let lit = want.iter().filter(|&&v| v > 0.0).count();
+            assert!(lit > want.len() / 4, "the map casts horizons: {lit}");
+            let k =
+                Sweep::with_options(g, radius, bins, Reduce::Average, opt(true)).with_holes(holes);
+            assert!(k.is_azimuth_major() && !table.is_azimuth_major());
+            assert!(per_bin(&k).iter().all(|&v| v == 0.0), "rows give nothing");
+            for band in [1, 4, h] {
+                let got = Mutex::new(vec![f32::NAN; w * h * nb]);
+                let next = Mutex::new(vec![0usize; h.div_ceil(band)]);
+                let p = Progress::new();
+                p.start(horizon_bake::progress::Stage::Bake, (h * nb) as u64);
+                k.planes(band, &p, |b, n, s| {
+                    let mut next = next.lock().unwrap();
+                    assert_eq!(next[b], n, "band {b}: bins in order");
+                    next[b] += 1;
+                    assert_eq!(s.len(), band.min(h - b * band) * w);
+                    let mut got = got.lock().unwrap();
+                    for (t, &v) in s.iter().enumerate() {
+                        got[(b * band * w + t) * nb + n] = v;
+                    }
+                })
+                .unwrap();
+                assert!(next.into_inner().unwrap().iter().all(|&n| n == nb), "every bin");
+                assert_eq!(p.counts(), ((h * nb) as u64, (h * nb) as u64));
+                let got = got.into_inner().unwrap();
+                // The table sweeps an azimuth and its opposite in one pass where the window is
+                // finite on a wrapping map (`far_field_fast`'s mirror); with curvature its
+                // drop is then taken from the other end of the lines, which rounds otherwise
+                // in f32 than a sweep of its own (as the planes and a spilled table run).
+                let paired = edge == Edge::Wrap && radius.is_some() && curvature > 0.0;
+                let (worst, at) = got
+                    .iter()
+                    .zip(&want)
+                    .enumerate()
+                    .map(|(i, (&a, &b))| {
+                        (if a.to_bits() == b.to_bits() { 0.0 } else { (a - b).abs().max(1e-30) }, i)
+                    })
+                    .max_by(|a, b| a.0.total_cmp(&b.0))
+                    .unwrap();
+                let allowed = if paired { 1e-6 } else { 0.0 };
+                assert!(
+                    worst <= allowed,
+                    "{w}×{h} {edge:?} R {radius:?} {isa:?} band {band}: texel {} bin {}: {} vs {}",
+                    at / nb,
+                    at % nb,
+                    got[at],
+                    want[at]
+                );
+                if paired && band == 1 {
+                    eprintln!("{w}×{h} {edge:?} R {radius:?} {isa:?}: paired, {worst:e} at most");
+                }
+            }
+        }
+    }
+}
+
+/// A cancel stops the planes between azimuths or bands, with `Canceled`.
+#[test]
+fn canceled_planes_stop_with_canceled() {
+    let mut rng = Rng(3);
+    let hts = fbm(&mut rng, 64, 64, 30.0);
+    let g = Grid::new(64, 64, &hts, Edge::Wrap, YAxis::Up);
+    let opt = Options { azimuth_major: true, ..Options::default() };
+    let k = Sweep::with_options(g, None, 32, Reduce::Average, opt);
+    let p = Progress::new();
+    let handed = std::sync::atomic::AtomicUsize::new(0);
+    let r = k.planes(8, &p, |_, n, _| {
+        if n == 3 {
+            p.cancel();
+        }
+        handed.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    });
+    assert!(matches!(r, Err(horizon_bake::Error::Canceled)), "{r:?}");
+    let handed = handed.into_inner();
+    assert!(handed < 32 * 8, "stopped early: {handed}");
 }
 
 /// A file spill goes to the directory it is given (the service hands it its data directory's

@@ -179,30 +179,35 @@ fn a_dem_without_method_is_a_line_of_sight_to_the_edge() {
 }
 
 /// The DEM defaults' `sweep` becomes `exact` where `sweep` cannot run: a far field too large
-/// even for the disk, or a map baked in tiles; the choice is then marked given, so the stored
-/// parameters replay to it. A `sweep` the user asked for is refused instead.
+/// even for the disk (only for outputs taken from its bands: `angles` and a plain SVF come
+/// from its planes, with no table, at any size), or a map baked in tiles; the choice is then
+/// marked given, so the stored parameters replay to it. A `sweep` the user asked for is
+/// refused instead.
 #[test]
 fn the_default_sweep_gives_way_to_exact_where_it_cannot_run() {
     use horizon_bake::params::Method;
     let g = utm_georef(30.0, 30.0, 1);
-    let dem = || {
-        let mut p = params(&[("bins", "720"), ("outputs", "angles")]);
+    let dem = |outputs: &str, bins: &str| {
+        let mut p = params(&[("bins", bins), ("outputs", outputs)]);
         apply_dem_defaults(&mut p, Some(&g)).unwrap();
         p
     };
-    let mut p = dem();
+    let mut p = dem("angles", "720");
     bake::fit_method(&mut p, 500, 400, false).unwrap();
     assert_eq!(p.method, Method::Sweep);
     assert!(p.explicit.has("method"));
     let huge = 60_000;
-    assert!(horizon_bake::kernels::sweep::check_memory(huge, huge, 720).is_err());
-    let mut p = dem();
+    assert!(horizon_bake::kernels::sweep::check_memory(huge, huge, 256).is_err());
+    let mut p = dem("angles,svf", "720");
+    bake::fit_method(&mut p, huge, huge, false).unwrap();
+    assert_eq!(p.method, Method::Sweep, "angles and svf need no table");
+    let mut p = dem("horizon", "256");
     bake::fit_method(&mut p, huge, huge, false).unwrap();
     assert_eq!(p.method, Method::Exact);
-    let mut p = dem();
+    let mut p = dem("angles", "720");
     bake::fit_method(&mut p, 500, 400, true).unwrap();
     assert_eq!(p.method, Method::Exact);
-    let mut asked = params(&[("bins", "720"), ("outputs", "angles"), ("method", "sweep")]);
+    let mut asked = params(&[("bins", "256"), ("outputs", "horizon"), ("method", "sweep")]);
     apply_dem_defaults(&mut asked, Some(&g)).unwrap();
     let e = bake::fit_method(&mut asked, huge, huge, false).unwrap_err();
     assert!(matches!(&e, Error::Param { field, .. } if field == "method"), "{e}");
@@ -597,4 +602,92 @@ fn a_window_gives_the_whole_map_s_ray_products() {
     let north_band = &a[..w * h];
     let grid_north = &b[2 * w * h..3 * w * h]; // east_ccw bin 2 = 90°: grid north
     assert!(north_band.iter().zip(grid_north).any(|(x, y)| (x - y).abs() > 1e-3));
+}
+
+/// `sweep`'s `angles` and plain SVF come from its planes, azimuth by azimuth with no far-field
+/// table (`Sweep::planes`): the products equal, bit for bit, those folded from the table's
+/// per-bin bands as before (every band's angle, the SVF's sum in the bins' order), on a rough
+/// map with holes (nodata in both), both plain SVF models, compass and grid bands, degrees and
+/// sines, finite and unlimited radii; and `tilted` still reads the bands.
+#[test]
+fn sweep_products_from_planes_are_those_of_the_bands() {
+    use horizon_bake::terrain::{angles, svf};
+    let (w, h) = (53usize, 47usize);
+    let mut seed = 0x9A7Eu64;
+    let mut rnd = || {
+        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (seed >> 33) as f32 / (1u64 << 31) as f32
+    };
+    let v: Vec<f32> = (0..w * h)
+        .map(|k| {
+            let (x, y) = ((k % w) as f32, (k / w) as f32);
+            if rnd() < 0.03 {
+                -9999.0
+            } else {
+                9.0 * (x * 0.21).sin() * (y * 0.17).cos() + 4.0 * rnd()
+            }
+        })
+        .collect();
+    let map = decode_with(
+        &tiff_f32(w as u32, h as u32, &v),
+        Channel::Luma,
+        NoData::Value(-9999.0),
+        &Limits::default(),
+    )
+    .unwrap()
+    .0;
+    let holes = map.terrain.holes.clone().unwrap();
+    let pr = Progress::new();
+    let cases = [
+        ("unlimited", "radiative", "east_ccw", "degrees", "32", "none"),
+        ("24", "visual", "north_cw", "sin", "48", "wrap"),
+        ("unlimited", "radiative", "north_cw", "radians", "360", "none"),
+    ];
+    for (radius, model, from, unit, bins, edge) in cases {
+        let p = params(&[
+            ("method", "sweep"),
+            ("radius", radius),
+            ("height_scale", "1"),
+            ("outputs", "angles,svf"),
+            ("svf_model", model),
+            ("azimuth_from", from),
+            ("angle_unit", unit),
+            ("bins", bins),
+            ("edge", edge),
+            ("reduce", "point"),
+        ]);
+        let (t, r) = bake::bake_terrain(&map, &p, &pr).unwrap();
+        let heights = map.scaled(p.height_scale);
+        let g = Grid::new(w, h, &heights, p.edge, p.y_axis);
+        let k = bake::make_kernel_for(&p, g, r.texels, &pr, Some(&holes));
+        let nb = k.bins();
+        let mut per_bin = vec![0.0f32; w * h * nb];
+        let mut ch = vec![0.0f32; w * 8];
+        for y in 0..h {
+            k.rows(y, &mut ch, Some(&mut per_bin[y * w * nb..(y + 1) * w * nb]));
+        }
+        let order = angles::band_bins(nb, p.azimuth_from, p.y_axis);
+        let (got_a, got_s) = (t.angles.unwrap(), t.svf.unwrap());
+        let nodata = t.nodata;
+        assert!(nodata.is_finite());
+        let lit = per_bin.iter().filter(|&&s| s > 0.05).count();
+        assert!(lit > per_bin.len() / 5, "{radius} {bins}: the map casts horizons: {lit}");
+        for tx in 0..w * h {
+            let s = &per_bin[tx * nb..][..nb];
+            let want_s = if holes[tx] { nodata } else { svf::svf(s, p.svf_model) };
+            let ctx = format!("{radius} {model} {from} {unit} {bins} {edge}: texel {tx}");
+            assert_eq!(got_s[tx].to_bits(), want_s.to_bits(), "{ctx}: svf");
+            for (band, &bin) in order.iter().enumerate() {
+                let want = if holes[tx] { nodata } else { angles::angle(s[bin], p.angle_unit) };
+                assert_eq!(got_a[band * w * h + tx].to_bits(), want.to_bits(), "{ctx} band {band}");
+            }
+        }
+    }
+    // A tilted SVF takes every bin of a texel with its normal: the table's bands, as before.
+    let tilted = params(&[("method", "sweep"), ("outputs", "svf"), ("svf_model", "tilted")]);
+    assert!(bake::needs_table(&tilted));
+    let plain = params(&[("method", "sweep"), ("outputs", "angles,svf,openness")]);
+    assert!(!bake::needs_table(&plain));
+    let layers = params(&[("method", "sweep"), ("outputs", "horizon,svf")]);
+    assert!(bake::needs_table(&layers));
 }

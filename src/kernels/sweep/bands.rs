@@ -52,9 +52,6 @@ impl Sweep<'_> {
         let n_rows = channels.len() / (w * 8);
         // Bin-major (`strip[n][i]`: texel i's bin n), so the channel sums run across the strip.
         let mut strip = vec![[0.0f32; NEAR_LANES]; nb];
-        let mut best: [f32; NEAR_LANES];
-        let mut ep = [0.0f32; NEAR_LANES];
-        let mut sn = [0.0f32; NEAR_LANES];
         // `reduce=point` reads one bin per channel: the others are not computed unless asked.
         let step =
             if self.reduce == Reduce::Point && bins_out.is_none() && nb >= 8 { nb / 8 } else { 1 };
@@ -78,6 +75,13 @@ impl Sweep<'_> {
                 band = b;
                 (&band, n_rows * w, y0 * w)
             }
+            Far::Deferred => {
+                channels.fill(0.0);
+                if let Some(bo) = bins_out {
+                    bo.fill(0.0);
+                }
+                return;
+            }
         };
         // A row's strips bin by bin, then each strip's bins to its channels: bin by bin the
         // points at R lie on two rows and the far field on one, read left to right, which the
@@ -90,70 +94,13 @@ impl Sweep<'_> {
             let y = y0 + r;
             // The strips' heights, once for all bins: raw for the points at R, and as the
             // near field takes them.
-            for (j, (hs, h0)) in hs.iter_mut().zip(&mut h0).enumerate() {
-                let (x, lanes) = (j * NEAR_LANES, NEAR_LANES.min(w - j * NEAR_LANES));
-                hs[..lanes].copy_from_slice(&self.grid.heights[y * w + x..][..lanes]);
-                *h0 = self.near.lanes_h0(x, y);
-            }
+            self.row_heights(y, &mut hs, &mut h0);
             for n in (0..nb).step_by(step) {
                 if self.progress.as_ref().is_some_and(Progress::is_canceled) {
                     return;
                 }
                 let row = &far[n * plane + y * w - origin..][..w];
-                for j in 0..ns {
-                    let (x, lanes) = (j * NEAR_LANES, NEAR_LANES.min(w - j * NEAR_LANES));
-                    self.end_points(n, x, y, lanes, &hs[j], &mut ep);
-                    let fb = &row[x..x + lanes];
-                    // The far field and the point at R first: the near field then only solves
-                    // the pieces that could beat them (the max is the same but for the f32
-                    // rounding of a skipped piece's value).
-                    best = [0.0; NEAR_LANES];
-                    if let Ok(fb) = <&[f32; NEAR_LANES]>::try_from(fb) {
-                        // A whole strip: a loop of fixed length, which vectorises.
-                        for i in 0..NEAR_LANES {
-                            best[i] = best[i].max(fb[i]).max(ep[i]);
-                        }
-                    } else {
-                        for i in 0..lanes {
-                            best[i] = best[i].max(fb[i]).max(ep[i]);
-                        }
-                    }
-                    let floor = best;
-                    let k = y * w + x;
-                    // Near a hole: the vector near field honours the holes itself where it
-                    // walks by crossings (out to the reach `exact` would walk); elsewhere (axis
-                    // and diagonal bins, a strip whose rays leave an `edge=none` surface early)
-                    // the texels within reach of a hole take `exact`'s walk, and a strip whose
-                    // every texel does (or is a hole) skips the vector one.
-                    let (mut near_hole, mut scalar, mut replaced) = (false, false, false);
-                    if let Some(hl) = &self.holes {
-                        near_hole = hl.near[k..k + lanes].contains(&true);
-                        scalar = near_hole && !self.near.honours_holes(n, x, y);
-                        let exact_only = |t: usize| hl.mask[t] || (scalar && hl.near[t]);
-                        replaced = near_hole && (k..k + lanes).all(exact_only);
-                    }
-                    if near_hole && !scalar {
-                        self.near.strip_near_holes(n, x, y, &h0[j], &mut best);
-                    } else if !replaced {
-                        self.near.strip_from(n, x, y, &h0[j], &mut best);
-                    }
-                    if let Some(hl) = self.holes.as_ref().filter(|_| near_hole) {
-                        for i in 0..lanes {
-                            if hl.mask[k + i] {
-                                best[i] = 0.0;
-                            } else if scalar && hl.near[k + i] {
-                                let seed = f64::from(floor[i]);
-                                best[i] = hl.exact.tan_at(x + i, y, n, seed) as f32;
-                            }
-                        }
-                    }
-                    for i in 0..NEAR_LANES {
-                        // sin α in f32 (tan α ≥ 0; a vertical horizon, ∞, gives 1).
-                        let t = best[i].min(1e15);
-                        sn[i] = t / (1.0 + t * t).sqrt();
-                    }
-                    sines[n * ns + j] = sn;
-                }
+                self.row_bin(n, y, row, &hs, &h0, |j, sn| sines[n * ns + j] = sn);
             }
             for j in 0..ns {
                 let (x, lanes) = (j * NEAR_LANES, NEAR_LANES.min(w - j * NEAR_LANES));
@@ -170,6 +117,99 @@ impl Sweep<'_> {
                     }
                 }
             }
+        }
+    }
+
+    /// The strips' heights of row `y`, once for all bins: raw (`hs`, for the points at R) and
+    /// as the near field takes them (`h0`).
+    #[inline(always)]
+    pub(super) fn row_heights(
+        &self,
+        y: usize,
+        hs: &mut [[f32; NEAR_LANES]],
+        h0: &mut [[f32; NEAR_LANES]],
+    ) {
+        let w = self.grid.width;
+        for (j, (hs, h0)) in hs.iter_mut().zip(h0).enumerate() {
+            let (x, lanes) = (j * NEAR_LANES, NEAR_LANES.min(w - j * NEAR_LANES));
+            hs[..lanes].copy_from_slice(&self.grid.heights[y * w + x..][..lanes]);
+            *h0 = self.near.lanes_h0(x, y);
+        }
+    }
+
+    /// Row `y` at bin `n`, strip by strip: the far field (`row`, the row's W values of the
+    /// plane) and the point at R as a floor for the near field, then sin α, handed to
+    /// `put(strip, sines)` (lanes past the row's end unspecified). `hs` and `h0` are the row's
+    /// [`Sweep::row_heights`]. What the bands and the azimuth-major planes
+    /// ([`Sweep::planes`]) share, so both give the same bits.
+    #[inline(always)]
+    pub(super) fn row_bin(
+        &self,
+        n: usize,
+        y: usize,
+        row: &[f32],
+        hs: &[[f32; NEAR_LANES]],
+        h0: &[[f32; NEAR_LANES]],
+        mut put: impl FnMut(usize, [f32; NEAR_LANES]),
+    ) {
+        let w = self.grid.width;
+        let ns = w.div_ceil(NEAR_LANES);
+        let mut best: [f32; NEAR_LANES];
+        let mut ep = [0.0f32; NEAR_LANES];
+        let mut sn = [0.0f32; NEAR_LANES];
+        for j in 0..ns {
+            let (x, lanes) = (j * NEAR_LANES, NEAR_LANES.min(w - j * NEAR_LANES));
+            self.end_points(n, x, y, lanes, &hs[j], &mut ep);
+            let fb = &row[x..x + lanes];
+            // The far field and the point at R first: the near field then only solves
+            // the pieces that could beat them (the max is the same but for the f32
+            // rounding of a skipped piece's value).
+            best = [0.0; NEAR_LANES];
+            if let Ok(fb) = <&[f32; NEAR_LANES]>::try_from(fb) {
+                // A whole strip: a loop of fixed length, which vectorises.
+                for i in 0..NEAR_LANES {
+                    best[i] = best[i].max(fb[i]).max(ep[i]);
+                }
+            } else {
+                for i in 0..lanes {
+                    best[i] = best[i].max(fb[i]).max(ep[i]);
+                }
+            }
+            let floor = best;
+            let k = y * w + x;
+            // Near a hole: the vector near field honours the holes itself where it
+            // walks by crossings (out to the reach `exact` would walk); elsewhere (axis
+            // and diagonal bins, a strip whose rays leave an `edge=none` surface early)
+            // the texels within reach of a hole take `exact`'s walk, and a strip whose
+            // every texel does (or is a hole) skips the vector one.
+            let (mut near_hole, mut scalar, mut replaced) = (false, false, false);
+            if let Some(hl) = &self.holes {
+                near_hole = hl.near[k..k + lanes].contains(&true);
+                scalar = near_hole && !self.near.honours_holes(n, x, y);
+                let exact_only = |t: usize| hl.mask[t] || (scalar && hl.near[t]);
+                replaced = near_hole && (k..k + lanes).all(exact_only);
+            }
+            if near_hole && !scalar {
+                self.near.strip_near_holes(n, x, y, &h0[j], &mut best);
+            } else if !replaced {
+                self.near.strip_from(n, x, y, &h0[j], &mut best);
+            }
+            if let Some(hl) = self.holes.as_ref().filter(|_| near_hole) {
+                for i in 0..lanes {
+                    if hl.mask[k + i] {
+                        best[i] = 0.0;
+                    } else if scalar && hl.near[k + i] {
+                        let seed = f64::from(floor[i]);
+                        best[i] = hl.exact.tan_at(x + i, y, n, seed) as f32;
+                    }
+                }
+            }
+            for i in 0..NEAR_LANES {
+                // sin α in f32 (tan α ≥ 0; a vertical horizon, ∞, gives 1).
+                let t = best[i].min(1e15);
+                sn[i] = t / (1.0 + t * t).sqrt();
+            }
+            put(j, sn);
         }
     }
 }

@@ -42,6 +42,7 @@ mod bands;
 mod budget;
 mod hull;
 mod lines;
+mod planes;
 mod vector;
 
 #[cfg(target_arch = "x86_64")]
@@ -85,6 +86,8 @@ pub struct Sweep<'a> {
     wide: bool,
     /// With nodata holes (see [`Sweep::with_holes`]).
     holes: Option<Holes<'a>>,
+    /// Each bin's lines, for the azimuth-major planes ([`Sweep::planes`]).
+    lines_of: Vec<Lines>,
 }
 
 /// What the bands need near nodata holes: the exact walk over the near field's reach, which
@@ -101,6 +104,9 @@ enum Far {
     Memory(Vec<f32>),
     /// One plane of W·H per bin, in the caller's store.
     Spilled(Arc<dyn FarSpill>),
+    /// Not made: the kernel runs azimuth by azimuth ([`Sweep::planes`]) and holds one plane
+    /// per azimuth in flight, never the table.
+    Deferred,
 }
 
 /// A store for the far field's planes outside the process's memory (a temporary file, in
@@ -135,6 +141,11 @@ pub struct Options {
     /// Where the far field waits for the bands (`None`: in memory, 4·bins bytes per texel;
     /// see [`spills`] for when the bake provides one).
     pub spill: Option<Arc<dyn FarSpill>>,
+    /// Azimuth-major: no far-field table at all; the kernel gives its horizons plane by plane
+    /// ([`Sweep::planes`]), each azimuth swept when its plane is asked for, so its memory does
+    /// not grow with the bins. [`HorizonRows::rows`] then gives nothing (every value 0): only
+    /// a caller that folds planes asks for this.
+    pub azimuth_major: bool,
 }
 
 impl<'a> Sweep<'a> {
@@ -190,6 +201,7 @@ impl<'a> Sweep<'a> {
         let failure = Mutex::new(None);
         let failed = AtomicBool::new(false);
         let far = match opt.spill {
+            _ if opt.azimuth_major => Far::Deferred,
             None => {
                 let mut far = vec![0.0f32; w * h * bins];
                 // Both axes' padded lines at once, each filled line by line in parallel.
@@ -340,6 +352,7 @@ impl<'a> Sweep<'a> {
             curv,
             wide: fast,
             holes: None,
+            lines_of,
         }
     }
 
