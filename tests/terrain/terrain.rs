@@ -691,3 +691,81 @@ fn sweep_products_from_planes_are_those_of_the_bands() {
     let layers = params(&[("method", "sweep"), ("outputs", "horizon,svf")]);
     assert!(bake::needs_table(&layers));
 }
+
+/// Issue 41: 360 azimuths of a sky-view factor on a map whose table (700² × 360 × 4 bytes =
+/// 673 MiB) would have gone to a temporary file now bake with no file at all: the CLI
+/// succeeds with a `TMPDIR` where no file can be made, and its `svf.tif` (read back by the
+/// `tiff` crate) holds the library's values bit for bit, nodata at the holes. A tilted SVF,
+/// which still reads the table's bands, fails there naming the far field on disk: the check
+/// is the one the table would meet.
+#[test]
+fn svf_at_360_azimuths_needs_no_temporary_file() {
+    let (w, h) = (700usize, 700usize);
+    let v: Vec<f32> = (0..w * h)
+        .map(|k| {
+            let (x, y) = ((k % w) as f32, (k / w) as f32);
+            if (x - 300.0).powi(2) + (y - 420.0).powi(2) < 400.0 {
+                -9999.0
+            } else {
+                40.0 * (x * 0.013).sin() * (y * 0.011).cos() + 6.0 * (x * 0.07 + y * 0.05).sin()
+            }
+        })
+        .collect();
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("dem.tif");
+    std::fs::write(&input, tiff_f32(w as u32, h as u32, &v)).unwrap();
+    let blocker = dir.path().join("not-a-dir");
+    std::fs::write(&blocker, b"x").unwrap();
+    let bake = |model: &str, out: &std::path::Path| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_horizon-bake"))
+            .env("TMPDIR", blocker.join("tmp"))
+            .args(["bake", input.to_str().unwrap(), "-o", out.to_str().unwrap()])
+            .args(["--method", "sweep", "--radius", "unlimited", "--edge", "none"])
+            .args(["--height-scale", "1", "--bins", "360", "--outputs", "svf"])
+            .args(["--svf-model", model, "--nodata", "-9999", "--format", "geotiff"])
+            .output()
+            .unwrap()
+    };
+    assert!(horizon_bake::kernels::sweep::spills(w as u32, h as u32, 360));
+    let out = dir.path().join("plain");
+    let run = bake("radiative", &out);
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let file = std::fs::File::open(out.join("svf.tif")).unwrap();
+    let mut dec = tiff::decoder::Decoder::new(std::io::BufReader::new(file)).unwrap();
+    let tiff::decoder::DecodingResult::F32(got) = dec.read_image().unwrap() else {
+        panic!("svf.tif is not float32");
+    };
+    let map = decode_with(
+        &tiff_f32(w as u32, h as u32, &v),
+        Channel::Luma,
+        NoData::Value(-9999.0),
+        &Limits::default(),
+    )
+    .unwrap()
+    .0;
+    let p = params(&[
+        ("method", "sweep"),
+        ("radius", "unlimited"),
+        ("edge", "none"),
+        ("height_scale", "1"),
+        ("bins", "360"),
+        ("outputs", "svf"),
+    ]);
+    let (t, _) = bake::bake_terrain(&map, &p, &Progress::new()).unwrap();
+    let want = t.svf.unwrap();
+    assert_eq!(got.len(), want.len());
+    let holes = map.terrain.holes.clone().unwrap();
+    assert!(holes.iter().filter(|&&o| o).count() > 1000);
+    for (k, (a, b)) in got.iter().zip(&want).enumerate() {
+        if holes[k] {
+            assert_eq!(*a, -9999.0, "texel {k}: nodata");
+        } else {
+            assert_eq!(a.to_bits(), b.to_bits(), "texel {k}");
+        }
+    }
+    let shaded = want.iter().zip(&holes).filter(|(&s, &o)| !o && s < 0.97).count();
+    assert!(shaded > w * h / 10, "the map hides some sky: {shaded}");
+    let tilted = bake("tilted", &dir.path().join("tilted"));
+    let err = String::from_utf8_lossy(&tilted.stderr);
+    assert!(!tilted.status.success() && err.contains("far field on disk"), "{err}");
+}

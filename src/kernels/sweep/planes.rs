@@ -77,8 +77,11 @@ impl Sweep<'_> {
             (0..slots).map(|_| (Vec::new(), Scratch::default())).collect();
         let ns = w.div_ceil(NEAR_LANES);
         // The padded lines of the axes the azimuths in flight sweep along: made when a chunk
-        // first needs them, dropped when one no longer does (the bins run around the circle,
-        // so an axis comes back at most three times).
+        // first needs them; on a big map dropped when one no longer does (the bins run around
+        // the circle, so an axis comes back at most twice, each time made again: about 0.07 s
+        // of the pool at 2048², a tenth of a 32-bin bake's difference to the table when they
+        // were dropped there too).
+        let keep_both = 2 * plane * 4 <= PAIR_SCRATCH_BYTES;
         let mut majors: [Option<MajorLines>; 2] = [None, None];
         let order: Vec<usize> = (0..nb).collect();
         for chunk in order.chunks(slots) {
@@ -88,7 +91,7 @@ impl Sweep<'_> {
             if self.wide {
                 for (a, ml) in majors.iter_mut().enumerate() {
                     let used = chunk.iter().any(|&n| usize::from(self.lines_of[n].major_x) == a);
-                    if !used {
+                    if !used && !keep_both {
                         *ml = None;
                     } else if ml.is_none() {
                         *ml = Some(MajorLines::new(&self.grid, a == 1));
