@@ -651,12 +651,20 @@ fn azimuth_major_planes_give_the_bits_of_the_bands() {
                 Sweep::with_options(g, radius, bins, Reduce::Average, opt(true)).with_holes(holes);
             assert!(k.is_azimuth_major() && !table.is_azimuth_major());
             assert!(per_bin(&k).iter().all(|&v| v == 0.0), "rows give nothing");
-            for band in [1, 4, h] {
+            // On a pool of one thread one azimuth is in flight, and those along x hand their
+            // rows on as they sweep (`Sweep::streamed_x`), as on a big map.
+            let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+            for (band, pool) in [(1, None), (4, None), (h, None), (1, Some(&one)), (7, Some(&one))]
+            {
                 let got = Mutex::new(vec![f32::NAN; w * h * nb]);
                 let next = Mutex::new(vec![0usize; h.div_ceil(band)]);
                 let p = Progress::new();
                 p.start(horizon_bake::progress::Stage::Bake, (h * nb) as u64);
-                k.planes(band, &p, |b, n, s| {
+                let run = |sink: &(dyn Fn(usize, usize, &[f32]) + Sync)| match pool {
+                    Some(pool) => pool.install(|| k.planes(band, &p, sink)),
+                    None => k.planes(band, &p, sink),
+                };
+                run(&|b, n, s| {
                     let mut next = next.lock().unwrap();
                     assert_eq!(next[b], n, "band {b}: bins in order");
                     next[b] += 1;
@@ -687,7 +695,8 @@ fn azimuth_major_planes_give_the_bits_of_the_bands() {
                 let allowed = if paired { 1e-6 } else { 0.0 };
                 assert!(
                     worst <= allowed,
-                    "{w}×{h} {edge:?} R {radius:?} {isa:?} band {band}: texel {} bin {}: {} vs {}",
+                    "{w}×{h} {edge:?} R {radius:?} {isa:?} band {band} one thread {}: texel {} bin {}: {} vs {}",
+                    pool.is_some(),
                     at / nb,
                     at % nb,
                     got[at],

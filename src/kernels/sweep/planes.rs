@@ -9,7 +9,9 @@
 //! band by band (the same [`Sweep::row_bin`] as the bands, so the same bits), and the sink gets
 //! sin α for those rows before the next azimuth is swept. Memory: one plane and the sweep's
 //! scratch per azimuth in flight (as many in flight as threads, while they fit in
-//! [`SPILL_SWEEP_BYTES`]), whatever the bins.
+//! [`SPILL_SWEEP_BYTES`]), whatever the bins; with one in flight (a big map), an azimuth swept
+//! along x hands its rows on as it transposes them ([`Sweep::streamed_x`]), so that its plane
+//! is never whole either.
 
 use super::*;
 use crate::error::{Error, Result};
@@ -98,6 +100,19 @@ impl Sweep<'_> {
                     }
                 }
             }
+            // One azimuth at a time (a big map): a sweep along x hands its rows on as it
+            // transposes them, so its plane in the image layout is never whole; along y its
+            // sums are the plane itself, and the sums' scratch of the x sweeps is let go.
+            if slots == 1 && self.wide {
+                let n = chunk[0];
+                let (out, sc) = &mut work[0];
+                if let (true, Some(ml)) = (self.lines_of[n].major_x, &majors[1]) {
+                    *out = Vec::new();
+                    self.streamed_x(n, ml, sc, band, progress, sink, &canceled)?;
+                    continue;
+                }
+                sc.acc = Vec::new();
+            }
             {
                 let majors = &majors;
                 chunk.par_iter().zip(work.par_iter_mut()).for_each(|(&n, (out, sc))| {
@@ -130,16 +145,8 @@ impl Sweep<'_> {
                         let y0 = b * band;
                         let rows = band.min(h - y0);
                         for (k, &n) in chunk.iter().enumerate() {
-                            for r in 0..rows {
-                                let y = y0 + r;
-                                self.row_heights(y, hs, h0);
-                                let dst = &mut out[r * w..][..w];
-                                self.row_bin(n, y, &far[k][y * w..][..w], hs, h0, |j, sn| {
-                                    let x = j * NEAR_LANES;
-                                    let lanes = NEAR_LANES.min(w - x);
-                                    dst[x..x + lanes].copy_from_slice(&sn[..lanes]);
-                                });
-                            }
+                            let far = &far[k][y0 * w..][..rows * w];
+                            self.join_band(n, y0, far, hs, h0, &mut out[..rows * w]);
                             sink(b, n, &out[..rows * w]);
                             progress.advance(rows as u64);
                         }
@@ -147,6 +154,110 @@ impl Sweep<'_> {
                     },
                 )?;
             }
+        }
+        Ok(())
+    }
+
+    /// Band rows `y0 ..` of bin `n` from their far-field rows `far` (as many rows as `out`
+    /// holds, row-major): the near field and the point at R joined in ([`Sweep::row_bin`]).
+    #[inline(always)]
+    fn join_band(
+        &self,
+        n: usize,
+        y0: usize,
+        far: &[f32],
+        hs: &mut [[f32; NEAR_LANES]],
+        h0: &mut [[f32; NEAR_LANES]],
+        out: &mut [f32],
+    ) {
+        let w = self.grid.width;
+        for (r, (dst, far)) in out.chunks_exact_mut(w).zip(far.chunks_exact(w)).enumerate() {
+            let y = y0 + r;
+            self.row_heights(y, hs, h0);
+            self.row_bin(n, y, far, hs, h0, |j, sn| {
+                let x = j * NEAR_LANES;
+                let lanes = NEAR_LANES.min(w - x);
+                dst[x..x + lanes].copy_from_slice(&sn[..lanes]);
+            });
+        }
+    }
+
+    /// Bin `n`, swept along x, with its rows handed on as the sweep transposes them
+    /// (`far_field_fast`'s emit, 16 rows at a time, top to bottom): they wait in a buffer of
+    /// a few bands per thread, and each time it holds whole bands those are joined on the
+    /// pool and handed to `sink`, as [`Sweep::planes_body`] does from a whole plane.
+    #[allow(clippy::too_many_arguments)] // the bin, its sweep's inputs and where it goes
+    #[inline(always)]
+    fn streamed_x(
+        &self,
+        n: usize,
+        ml: &MajorLines,
+        sc: &mut Scratch,
+        band: usize,
+        progress: &Progress,
+        sink: &(dyn Fn(usize, usize, &[f32]) + Sync),
+        canceled: &(dyn Fn() -> bool + Sync),
+    ) -> Result<()> {
+        let (w, h) = (self.grid.width, self.grid.height);
+        let ns = w.div_ceil(NEAR_LANES);
+        let group = (4 * rayon::current_num_threads().max(1) * band).min(h);
+        let mut buf = vec![0.0f32; (group + EMIT_ROWS) * w];
+        // Rows held, and the first of them.
+        let (mut held, mut first) = (0usize, 0usize);
+        let mut stopped = false;
+        let join = |buf: &[f32], first: usize, rows: usize| {
+            let b0 = first / band;
+            (b0..b0 + rows.div_ceil(band)).into_par_iter().for_each_init(
+                || {
+                    let strips = vec![[0.0f32; NEAR_LANES]; ns];
+                    (strips.clone(), strips, vec![0.0f32; band * w])
+                },
+                |(hs, h0, out), b| {
+                    let y0 = b * band;
+                    let rows = band.min(h - y0);
+                    let far = &buf[(y0 - first) * w..][..rows * w];
+                    self.join_band(n, y0, far, hs, h0, &mut out[..rows * w]);
+                    sink(b, n, &out[..rows * w]);
+                    progress.advance(rows as u64);
+                },
+            );
+        };
+        let mut emit = |start: usize, values: &[f32]| {
+            if stopped {
+                return;
+            }
+            debug_assert_eq!(start, (first + held) * w);
+            let rows = values.len() / w;
+            buf[held * w..(held + rows) * w].copy_from_slice(values);
+            held += rows;
+            let end = first + held == h;
+            if held >= group || end {
+                if canceled() {
+                    stopped = true;
+                    return;
+                }
+                // Whole bands only, but for the map's last.
+                let whole = if end { held } else { held / band * band };
+                join(&buf[..whole * w], first, whole);
+                buf.copy_within(whole * w..held * w, 0);
+                (first, held) = (first + whole, held - whole);
+            }
+        };
+        let lines = self.lines_of[n];
+        far_field_fast(
+            &self.grid,
+            ml,
+            lines,
+            self.reach,
+            self.curv,
+            &mut [],
+            sc,
+            Some(&mut emit),
+            false,
+            None,
+        );
+        if stopped || canceled() {
+            return Err(Error::Canceled);
         }
         Ok(())
     }
