@@ -15,14 +15,9 @@ use horizon_bake::params::BakeParams;
 use horizon_bake::progress::Progress;
 use std::time::Instant;
 
-fn status(key: &str) -> u64 {
-    let s = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
-    s.lines()
-        .find(|l| l.starts_with(key))
-        .and_then(|l| l.split_whitespace().nth(1))
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(0)
-}
+#[path = "common/proc_status.rs"]
+mod proc_status;
+use proc_status::status;
 
 /// (svf model, bins): `radiative` comes from the planes, `tilted` from the table.
 const CASES: [(&str, u32); 4] =

@@ -17,14 +17,9 @@ use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tower::ServiceExt;
 
-fn status(key: &str) -> u64 {
-    let s = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
-    s.lines()
-        .find(|l| l.starts_with(key))
-        .and_then(|l| l.split_whitespace().nth(1))
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(0)
-}
+#[path = "../../benches/common/proc_status.rs"]
+mod proc_status;
+use proc_status::status;
 
 /// A valid PNG signature and IHDR of a `w × h` 16-bit grey image, then `len` bytes in all
 /// (the rest zeros: only the header is read at submission).

@@ -22,6 +22,26 @@ fn tiff_f32(w: u32, h: u32, values: &[f32]) -> Vec<u8> {
     buf.into_inner()
 }
 
+/// Uniform numbers in [0, 1) from a linear congruential generator seeded with `seed`.
+fn lcg(mut seed: u64) -> impl FnMut() -> f32 {
+    move || {
+        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (seed >> 33) as f32 / (1u64 << 31) as f32
+    }
+}
+
+/// A float32 TIFF of `v` (`w × h`) decoded with −9999 as nodata, as a DEM with holes.
+fn dem_of(w: usize, h: usize, v: &[f32]) -> horizon_bake::heightmap::HeightMap {
+    decode_with(
+        &tiff_f32(w as u32, h as u32, v),
+        Channel::Luma,
+        NoData::Value(-9999.0),
+        &Limits::default(),
+    )
+    .unwrap()
+    .0
+}
+
 /// A signed 16-bit TIFF, as SRTM tiles are.
 fn tiff_i16(w: u32, h: u32, values: &[i16]) -> Vec<u8> {
     let mut buf = std::io::Cursor::new(Vec::new());
@@ -321,21 +341,10 @@ fn a_hole_casts_no_shadow_and_has_no_value() {
 fn hole_ridden_maps_never_show_values_in_holes() {
     // Rough random terrain with a fifth of it missing, every method.
     let (w, h) = (37, 29);
-    let mut seed = 24u64;
-    let mut rnd = || {
-        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-        (seed >> 33) as f32 / (1u64 << 31) as f32
-    };
+    let mut rnd = lcg(24u64);
     let v: Vec<f32> =
         (0..w * h).map(|_| if rnd() < 0.2 { -9999.0 } else { rnd() * 30.0 }).collect();
-    let map = decode_with(
-        &tiff_f32(w as u32, h as u32, &v),
-        Channel::Luma,
-        NoData::Value(-9999.0),
-        &Limits::default(),
-    )
-    .unwrap()
-    .0;
+    let map = dem_of(w, h, &v);
     let holes = map.terrain.holes.clone().unwrap();
     for method in ["exact", "march", "lengyel"] {
         let p = params(&[
@@ -429,11 +438,7 @@ fn lengyel_shadow_is_lz_above_the_decoded_layers() {
     // by its position between them (§3.3's factors written out), against sin e; on a rough map
     // with holes, every texel, both encodings, both azimuth conventions.
     let (w, h) = (48usize, 40usize);
-    let mut seed = 0x5AD0u64;
-    let mut rnd = || {
-        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-        (seed >> 33) as f32 / (1u64 << 31) as f32
-    };
+    let mut rnd = lcg(0x5AD0u64);
     let v: Vec<f32> = (0..w * h)
         .map(|k| {
             let (x, y) = ((k % w) as f32, (k / w) as f32);
@@ -444,14 +449,7 @@ fn lengyel_shadow_is_lz_above_the_decoded_layers() {
             }
         })
         .collect();
-    let map = decode_with(
-        &tiff_f32(w as u32, h as u32, &v),
-        Channel::Luma,
-        NoData::Value(-9999.0),
-        &Limits::default(),
-    )
-    .unwrap()
-    .0;
+    let map = dem_of(w, h, &v);
     let holes = map.terrain.holes.clone().unwrap();
     let pr = Progress::new();
     for (encoding, el) in [("linear", 14.0f64), ("sqrt", 27.0)] {
@@ -613,11 +611,7 @@ fn a_window_gives_the_whole_map_s_ray_products() {
 fn sweep_products_from_planes_are_those_of_the_bands() {
     use horizon_bake::terrain::{angles, svf};
     let (w, h) = (53usize, 47usize);
-    let mut seed = 0x9A7Eu64;
-    let mut rnd = || {
-        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-        (seed >> 33) as f32 / (1u64 << 31) as f32
-    };
+    let mut rnd = lcg(0x9A7Eu64);
     let v: Vec<f32> = (0..w * h)
         .map(|k| {
             let (x, y) = ((k % w) as f32, (k / w) as f32);
@@ -628,14 +622,7 @@ fn sweep_products_from_planes_are_those_of_the_bands() {
             }
         })
         .collect();
-    let map = decode_with(
-        &tiff_f32(w as u32, h as u32, &v),
-        Channel::Luma,
-        NoData::Value(-9999.0),
-        &Limits::default(),
-    )
-    .unwrap()
-    .0;
+    let map = dem_of(w, h, &v);
     let holes = map.terrain.holes.clone().unwrap();
     let pr = Progress::new();
     let cases = [
@@ -735,14 +722,7 @@ fn svf_at_360_azimuths_needs_no_temporary_file() {
     let tiff::decoder::DecodingResult::F32(got) = dec.read_image().unwrap() else {
         panic!("svf.tif is not float32");
     };
-    let map = decode_with(
-        &tiff_f32(w as u32, h as u32, &v),
-        Channel::Luma,
-        NoData::Value(-9999.0),
-        &Limits::default(),
-    )
-    .unwrap()
-    .0;
+    let map = dem_of(w, h, &v);
     let p = params(&[
         ("method", "sweep"),
         ("radius", "unlimited"),
