@@ -886,7 +886,8 @@ pub fn bake_terrain(
     let (compass, north) = compass_of(map, params);
     // Compass bands on a projected map are true azimuths, turned per texel: rays of their own.
     let true_bands = params.azimuth_from == AzimuthFrom::NorthCw && compass.is_true();
-    let rays = rays::ray_kernel(grid, params, radius.texels, holes);
+    let rays = rays::needs_rays(params, true_bands)
+        .then(|| rays::ray_kernel(grid, params, radius.texels, holes));
     let mut kernel_params = params.clone();
     kernel_params.outputs.angles &= !true_bands;
     let (mut ang, sv) = if kernel_params.outputs.angles || params.outputs.svf {
@@ -894,14 +895,20 @@ pub fn bake_terrain(
     } else {
         (None, None)
     };
-    if params.outputs.angles && true_bands {
-        ang =
-            Some(rays::true_north_angles(&rays, params, &compass, 0..h, holes, nodata, progress)?);
-    }
     let metres = || map.values.iter().map(|v| (f64::from(*v) * params.linear_unit_m) as f32);
-    let extra = rays::RaySet { kernel: &rays, grid, compass: &compass, true_bands, holes, nodata };
-    let more =
-        extra.products(params, radius.texels, 0..h, metres, centre_lat_lon(map), progress)?;
+    let more = match &rays {
+        Some(rays) => {
+            if params.outputs.angles && true_bands {
+                let a =
+                    rays::true_north_angles(rays, params, &compass, 0..h, holes, nodata, progress);
+                ang = Some(a?);
+            }
+            let extra =
+                rays::RaySet { kernel: rays, grid, compass: &compass, true_bands, holes, nodata };
+            extra.products(params, radius.texels, 0..h, metres, centre_lat_lon(map), progress)?
+        }
+        None => rays::RayProducts::default(),
+    };
     let rays::RayProducts { distance, openness, sun_hours, insolation } = more;
     let products = TerrainProducts {
         width: w,
@@ -1174,30 +1181,33 @@ pub fn bake_terrain_window(
     } else {
         (None, None)
     };
-    let k = rays::ray_kernel(grid, params, radius, holes.as_deref());
-    if true_bands && params.outputs.angles {
-        let a = rays::true_north_angles(
-            &k,
-            params,
-            &compass,
-            oy..oy + ih,
-            holes.as_deref(),
+    let more = if rays::needs_rays(params, true_bands) {
+        let k = rays::ray_kernel(grid, params, radius, holes.as_deref());
+        if true_bands && params.outputs.angles {
+            let a = rays::true_north_angles(
+                &k,
+                params,
+                &compass,
+                oy..oy + ih,
+                holes.as_deref(),
+                nodata,
+                progress,
+            )?;
+            ang = Some(a);
+        }
+        let extra = rays::RaySet {
+            kernel: &k,
+            grid,
+            compass: &compass,
+            true_bands,
+            holes: holes.as_deref(),
             nodata,
-            progress,
-        )?;
-        ang = Some(a);
-    }
-    let extra = rays::RaySet {
-        kernel: &k,
-        grid,
-        compass: &compass,
-        true_bands,
-        holes: holes.as_deref(),
-        nodata,
+        };
+        let centre = rays::centre_of(georef.as_ref(), map_size);
+        extra.products(params, radius, oy..oy + ih, || metres.iter().copied(), centre, progress)?
+    } else {
+        rays::RayProducts::default()
     };
-    let centre = rays::centre_of(georef.as_ref(), map_size);
-    let more =
-        extra.products(params, radius, oy..oy + ih, || metres.iter().copied(), centre, progress)?;
     // Keep the interior's columns, plane by plane, in place (each row moves to the left).
     let cut = |mut v: Vec<f32>| {
         let planes = v.len() / (ww * ih);

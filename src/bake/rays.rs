@@ -158,6 +158,7 @@ fn per_texel_bands(
 }
 
 /// The per-texel ray products of one map or window, each when `params.outputs` asks.
+#[derive(Default)]
 pub struct RayProducts {
     pub distance: Option<Vec<f32>>,
     pub openness: Option<[Vec<f32>; 2]>,
@@ -329,6 +330,14 @@ pub(super) fn sun_steps(
     };
     let suns = crate::terrain::sun::day_steps(from, to, step, place.0, place.1)?;
     Ok((suns, f64::from(step) / 60.0))
+}
+
+/// Whether a terrain bake casts rays of its own ([`ray_kernel`]): `angles` in true compass
+/// bands (`true_bands`), or any of the ray products. Otherwise the kernel is never built (its
+/// padded copy of the map is a few bytes a texel, of a bake that would not read it).
+pub(super) fn needs_rays(params: &BakeParams, true_bands: bool) -> bool {
+    let o = params.outputs;
+    (o.angles && true_bands) || o.horizon_distance || o.openness || o.sun_hours || o.insolation
 }
 
 /// The exact kernel of the per-texel rays: the bake's radius (none at `unlimited`), curvature
