@@ -450,6 +450,8 @@ struct SlowDeletes(horizon_bake::jobs::blob::FsBlobStore, std::sync::Arc<Gate>);
 struct Gate {
     open: std::sync::Mutex<bool>,
     opened: std::sync::Condvar,
+    /// Set once a delete is waiting at the gate.
+    entered: std::sync::atomic::AtomicBool,
 }
 
 impl Gate {
@@ -458,6 +460,7 @@ impl Gate {
         self.opened.notify_all();
     }
     fn wait(&self) {
+        self.entered.store(true, std::sync::atomic::Ordering::SeqCst);
         let g = self.open.lock().unwrap();
         let _g = self.opened.wait_timeout_while(g, Duration::from_secs(60), |open| !*open).unwrap();
     }
@@ -544,6 +547,53 @@ async fn a_drain_waits_for_a_retention_sweep_in_flight() {
     gate.open();
     tokio::time::timeout(Duration::from_secs(60), drain).await.unwrap().unwrap();
     assert!(blob_files(dir.path()).is_empty(), "{:?}", blob_files(dir.path()));
+}
+
+/// A blob deletion holds the embedded repository's mutex across its store calls (here, at the
+/// gate); the calls that need that mutex meanwhile must wait off the runtime. They used to take
+/// it on the runtime thread, so on this one-thread runtime nothing else ran, timers included,
+/// until the deletion ended (60 s, the gate's timeout). With two runtime threads it took two
+/// such calls: the flake of the drain test above, whose 10 ms poll slept through the sweep.
+#[tokio::test(flavor = "current_thread")]
+async fn a_slow_blob_deletion_does_not_stall_the_runtime() {
+    use horizon_bake::jobs::blob::{BlobStore, FsBlobStore};
+    use horizon_bake::jobs::repo::{EmbeddedRepo, JobRepo};
+    use std::sync::atomic::Ordering;
+    use std::sync::Arc;
+    let dir = tempfile::tempdir().unwrap();
+    let repo = Arc::new(EmbeddedRepo::open(&dir.path().join("bakes.redb")).unwrap());
+    let gate = Arc::new(Gate::default());
+    let store = FsBlobStore::open(&dir.path().join("blobs")).unwrap();
+    let blobs: Arc<dyn BlobStore> = Arc::new(SlowDeletes(store, gate.clone()));
+    let (gone, kept) = ("a".repeat(64), "b".repeat(64));
+    let deleting = tokio::spawn({
+        let (repo, blobs, gone) = (repo.clone(), blobs.clone(), gone.clone());
+        async move { repo.delete_blobs_if_unused(vec![gone], blobs).await }
+    });
+    let t = Instant::now();
+    while !gate.entered.load(Ordering::SeqCst) {
+        assert!(t.elapsed() < Duration::from_secs(30), "the deletion never reached the store");
+        tokio::time::sleep(Duration::from_millis(1)).await;
+    }
+    // The deletion holds the mutex: pins, tile reads and releases queue behind it.
+    let waiting = tokio::spawn({
+        let (repo, kept) = (repo.clone(), kept.clone());
+        async move {
+            repo.pin_blob(&kept, "upload-1").await?;
+            let tiles = repo.tiles("no-such-bake").await?;
+            let held = repo.release_pins("upload-1").await?;
+            Ok::<_, horizon_bake::error::Error>((tiles.len(), held))
+        }
+    });
+    let t = Instant::now();
+    tokio::time::sleep(Duration::from_millis(20)).await;
+    let slept = t.elapsed();
+    let overtook = waiting.is_finished();
+    gate.open();
+    assert!(slept < Duration::from_secs(10), "a 20 ms sleep took {slept:?}: the runtime stalled");
+    assert!(!overtook, "the pin went past a deletion holding the mutex");
+    assert_eq!(deleting.await.unwrap().unwrap(), 1);
+    assert_eq!(waiting.await.unwrap().unwrap(), (0, vec![kept]));
 }
 
 #[test]

@@ -11,6 +11,11 @@
 //! insert of a submission, a completion and its fencing check, and a blob deletion with the
 //! reference scan and pin check that justify it (a record that references a blob commits under
 //! the same mutex, so the scan cannot miss it).
+//!
+//! That deletion holds the mutex across its store calls, which take as long as the disk (or the
+//! test's gate) does. So no runtime thread ever waits on the mutex: [`EmbeddedRepo::with_mem`]
+//! takes it in place only when it is free, and otherwise waits on a blocking thread. A runtime
+//! thread parked on it would stop the timers and sockets of every task scheduled there.
 
 use crate::error::{Error, Result};
 use crate::jobs::blob::BlobStore;
@@ -20,7 +25,7 @@ use crate::jobs::repo::redb::{BakeStore, RedbStore};
 use crate::jobs::repo::{Beat, CancelResult, Claim, Counts, JobRepo, Outcome, Submitted};
 use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
 use std::path::Path;
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex, MutexGuard, TryLockError};
 use std::time::Duration;
 use tokio::sync::broadcast;
 
@@ -95,6 +100,24 @@ impl EmbeddedRepo {
         })
         .await
         .map_err(|e| Error::Internal(format!("blocking task failed: {e}")))?
+    }
+
+    /// Runs `f` on the memory state: here when the mutex is free (the usual case, no thread
+    /// hop), else on a blocking thread, so a long holder never parks a runtime thread.
+    async fn with_mem<T, F>(&self, f: F) -> Result<T>
+    where
+        T: Send + 'static,
+        F: FnOnce(&mut Mem) -> T + Send + 'static,
+    {
+        match self.mem.try_lock() {
+            Ok(mut g) => return Ok(f(&mut g)),
+            Err(TryLockError::Poisoned(e)) => return Ok(f(&mut e.into_inner())),
+            Err(TryLockError::WouldBlock) => {}
+        }
+        let mem = self.mem.clone();
+        tokio::task::spawn_blocking(move || f(&mut lock(&mem)))
+            .await
+            .map_err(|e| Error::Internal(format!("blocking task failed: {e}")))
     }
 
     async fn read<T, F>(&self, f: F) -> Result<T>
@@ -175,29 +198,29 @@ impl JobRepo for EmbeddedRepo {
 
     async fn get(&self, id: &str) -> Result<Option<BakeRecord>> {
         let id = id.to_owned();
-        let mem = self.mem.clone();
-        let rec = self.read(move |store| store.get(&id)).await?;
-        Ok(rec.map(|mut r| {
-            if r.status == Status::Running {
-                if let Some((_, p, _)) = lock(&mem).claims.get(&r.id) {
-                    r.progress = *p;
-                }
+        let Some(mut r) = self.read(move |store| store.get(&id)).await? else { return Ok(None) };
+        if r.status == Status::Running {
+            let id = r.id.clone();
+            if let Some(p) = self.with_mem(move |mem| mem.claims.get(&id).map(|c| c.1)).await? {
+                r.progress = p;
             }
-            r
-        }))
+        }
+        Ok(Some(r))
     }
 
     async fn query(&self, q: &ListQuery) -> Result<Listing> {
         let q = q.clone();
-        let mem = self.mem.clone();
-        let mut page = self.read(move |store| store.query(&q)).await?;
-        let g = lock(&mem);
-        for r in &mut page.items {
-            if let Some((_, p, _)) = g.claims.get(&r.id) {
-                r.progress = *p;
+        let page = self.read(move |store| store.query(&q)).await?;
+        self.with_mem(move |mem| {
+            let mut page = page;
+            for r in &mut page.items {
+                if let Some((_, p, _)) = mem.claims.get(&r.id) {
+                    r.progress = *p;
+                }
             }
-        }
-        Ok(page)
+            page
+        })
+        .await
     }
 
     async fn claim(&self, worker: &str, _lease: Duration) -> Result<Option<Claim>> {
@@ -242,17 +265,17 @@ impl JobRepo for EmbeddedRepo {
         progress: LiveProgress,
         _lease: Duration,
     ) -> Result<Beat> {
-        let beat = {
-            let mut g = lock(&self.mem);
-            match g.claims.get_mut(&claim.id) {
-                Some(c) if c.0 == claim.attempt => {
+        let (id, attempt) = (claim.id.clone(), claim.attempt);
+        let beat = self
+            .with_mem(move |mem| match mem.claims.get_mut(&id) {
+                Some(c) if c.0 == attempt => {
                     let changed = c.1 != Some(progress);
                     c.1 = Some(progress);
                     (Beat::Alive { cancel: c.2 }, changed)
                 }
                 _ => (Beat::Lost, false),
-            }
-        };
+            })
+            .await?;
         if beat.1 {
             self.notify(&claim.id);
         }
@@ -426,20 +449,26 @@ impl JobRepo for EmbeddedRepo {
     }
 
     async fn pin_blob(&self, hash: &str, owner: &str) -> Result<()> {
-        lock(&self.mem)
-            .pins
-            .entry(hash.to_owned())
-            .or_default()
-            .insert(owner.to_owned(), now_ms() + PIN_TTL_MS);
-        Ok(())
+        let (hash, owner) = (hash.to_owned(), owner.to_owned());
+        self.with_mem(move |mem| {
+            mem.pins.entry(hash).or_default().insert(owner, now_ms() + PIN_TTL_MS);
+        })
+        .await
     }
 
     async fn release_pins(&self, owner: &str) -> Result<Vec<String>> {
-        let mut g = lock(&self.mem);
-        let held: Vec<String> =
-            g.pins.iter().filter(|(_, o)| o.contains_key(owner)).map(|(h, _)| h.clone()).collect();
-        unpin(&mut g, held.clone(), owner);
-        Ok(held)
+        let owner = owner.to_owned();
+        self.with_mem(move |mem| {
+            let held: Vec<String> = mem
+                .pins
+                .iter()
+                .filter(|(_, o)| o.contains_key(&owner))
+                .map(|(h, _)| h.clone())
+                .collect();
+            unpin(mem, held.clone(), &owner);
+            held
+        })
+        .await
     }
 
     async fn delete_blobs_if_unused(
@@ -491,60 +520,66 @@ impl JobRepo for EmbeddedRepo {
 
     async fn add_tiles(&self, claim: &Claim, tiles: Vec<TileRecord>) -> Result<bool> {
         let (id, attempt, owner) = (claim.id.clone(), claim.attempt, claim.owner());
-        let added = {
-            let mut g = lock(&self.mem);
-            if g.claims.get(&id).map(|c| c.0) != Some(attempt) {
-                false
-            } else {
+        let key = id.clone();
+        let added = self
+            .with_mem(move |mem| {
+                if mem.claims.get(&key).map(|c| c.0) != Some(attempt) {
+                    return false;
+                }
                 let hashes: Vec<String> = tiles.iter().map(|t| t.input_blob.clone()).collect();
-                let entry = g.tiles.entry(id.clone()).or_default();
+                let entry = mem.tiles.entry(key).or_default();
                 for t in tiles {
                     if !entry.iter().any(|(e, _)| e.index == t.index) {
                         entry.push((t, false));
                     }
                 }
                 entry.sort_by_key(|(t, _)| t.index);
-                unpin(&mut g, hashes, &owner);
+                unpin(mem, hashes, &owner);
                 true
-            }
-        };
+            })
+            .await?;
         self.notify(&id);
         Ok(added)
     }
 
     async fn tiles(&self, id: &str) -> Result<Vec<TileRecord>> {
-        let g = lock(&self.mem);
-        Ok(g.tiles
-            .get(id)
-            .map(|ts| ts.iter().map(|(t, _)| t.clone()).collect())
-            .unwrap_or_default())
+        let id = id.to_owned();
+        self.with_mem(move |mem| {
+            mem.tiles
+                .get(&id)
+                .map(|ts| ts.iter().map(|(t, _)| t.clone()).collect())
+                .unwrap_or_default()
+        })
+        .await
     }
 
     async fn claim_tile(&self, worker: &str, _lease: Duration) -> Result<Option<TileClaim>> {
-        let claim = {
-            let mut g = lock(&self.mem);
-            let Mem { claims, tiles, .. } = &mut *g;
-            let mut found = None;
-            for (bid, ts) in tiles.iter_mut() {
-                if claims.get(bid).is_none_or(|c| c.2) {
-                    continue;
+        let worker = worker.to_owned();
+        let claim = self
+            .with_mem(move |mem| {
+                let Mem { claims, tiles, .. } = mem;
+                let mut found = None;
+                for (bid, ts) in tiles.iter_mut() {
+                    if claims.get(bid).is_none_or(|c| c.2) {
+                        continue;
+                    }
+                    if let Some((t, _)) = ts.iter_mut().find(|(t, _)| t.status == Status::Queued) {
+                        t.status = Status::Running;
+                        t.attempts += 1;
+                        t.worker = Some(worker.clone());
+                        found = Some(TileClaim {
+                            bake_id: bid.clone(),
+                            index: t.index,
+                            attempt: t.attempts,
+                            worker: worker.clone(),
+                            tile: t.clone(),
+                        });
+                        break;
+                    }
                 }
-                if let Some((t, _)) = ts.iter_mut().find(|(t, _)| t.status == Status::Queued) {
-                    t.status = Status::Running;
-                    t.attempts += 1;
-                    t.worker = Some(worker.to_owned());
-                    found = Some(TileClaim {
-                        bake_id: bid.clone(),
-                        index: t.index,
-                        attempt: t.attempts,
-                        worker: worker.to_owned(),
-                        tile: t.clone(),
-                    });
-                    break;
-                }
-            }
-            found
-        };
+                found
+            })
+            .await?;
         if let Some(c) = &claim {
             self.notify(&c.bake_id);
         }
@@ -552,22 +587,25 @@ impl JobRepo for EmbeddedRepo {
     }
 
     async fn heartbeat_tile(&self, claim: &TileClaim, _lease: Duration) -> Result<Beat> {
-        let g = lock(&self.mem);
-        let bake_stop = g.claims.get(&claim.bake_id).is_none_or(|c| c.2);
-        let tile = g
-            .tiles
-            .get(&claim.bake_id)
-            .and_then(|ts| ts.iter().find(|(t, _)| t.index == claim.index));
-        Ok(match tile {
-            Some((t, cancel))
-                if t.status == Status::Running
-                    && t.attempts == claim.attempt
-                    && t.worker.as_deref() == Some(claim.worker.as_str()) =>
-            {
-                Beat::Alive { cancel: *cancel || bake_stop }
+        let claim = claim.clone();
+        self.with_mem(move |g| {
+            let bake_stop = g.claims.get(&claim.bake_id).is_none_or(|c| c.2);
+            let tile = g
+                .tiles
+                .get(&claim.bake_id)
+                .and_then(|ts| ts.iter().find(|(t, _)| t.index == claim.index));
+            match tile {
+                Some((t, cancel))
+                    if t.status == Status::Running
+                        && t.attempts == claim.attempt
+                        && t.worker.as_deref() == Some(claim.worker.as_str()) =>
+                {
+                    Beat::Alive { cancel: *cancel || bake_stop }
+                }
+                _ => Beat::Lost,
             }
-            _ => Beat::Lost,
         })
+        .await
     }
 
     async fn complete_tile(
@@ -576,40 +614,45 @@ impl JobRepo for EmbeddedRepo {
         outcome: TileOutcome,
         max_attempts: u32,
     ) -> Result<bool> {
-        let done = {
-            let mut g = lock(&self.mem);
-            let owner = claim.owner();
-            let slot = g
-                .tiles
-                .get_mut(&claim.bake_id)
-                .and_then(|ts| ts.iter_mut().find(|(t, _)| t.index == claim.index));
-            match slot {
-                Some((t, cancel))
-                    if t.status == Status::Running
-                        && t.attempts == claim.attempt
-                        && t.worker.as_deref() == Some(claim.worker.as_str()) =>
-                {
-                    *t = outcome.apply(t.clone(), claim, max_attempts);
-                    *cancel = false;
-                    let results: Vec<String> = t.results.values().cloned().collect();
-                    unpin(&mut g, results, &owner);
-                    true
+        let c = claim.clone();
+        let done = self
+            .with_mem(move |g| {
+                let claim = &c;
+                let owner = claim.owner();
+                let slot = g
+                    .tiles
+                    .get_mut(&claim.bake_id)
+                    .and_then(|ts| ts.iter_mut().find(|(t, _)| t.index == claim.index));
+                match slot {
+                    Some((t, cancel))
+                        if t.status == Status::Running
+                            && t.attempts == claim.attempt
+                            && t.worker.as_deref() == Some(claim.worker.as_str()) =>
+                    {
+                        *t = outcome.apply(t.clone(), claim, max_attempts);
+                        *cancel = false;
+                        let results: Vec<String> = t.results.values().cloned().collect();
+                        unpin(g, results, &owner);
+                        true
+                    }
+                    _ => false,
                 }
-                _ => false,
-            }
-        };
+            })
+            .await?;
         self.notify(&claim.bake_id);
         Ok(done)
     }
 
     async fn cancel_tiles(&self, id: &str) -> Result<()> {
-        cancel_tiles_in(&mut lock(&self.mem), id);
+        let key = id.to_owned();
+        self.with_mem(move |mem| cancel_tiles_in(mem, &key)).await?;
         self.notify(id);
         Ok(())
     }
 
     async fn remove_tiles(&self, id: &str) -> Result<Vec<String>> {
-        let removed = lock(&self.mem).tiles.remove(id).unwrap_or_default();
+        let id = id.to_owned();
+        let removed = self.with_mem(move |mem| mem.tiles.remove(&id).unwrap_or_default()).await?;
         Ok(removed.iter().flat_map(|(t, _)| t.blobs().map(str::to_owned)).collect())
     }
 
