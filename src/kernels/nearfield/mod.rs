@@ -15,6 +15,7 @@ use crate::kernels::exact::walk::Ray;
 use crate::kernels::isa::Isa;
 use crate::kernels::Grid;
 use crate::params::Edge;
+use std::sync::Arc;
 use strip::{fmax, fmin, piece, Seg};
 
 /// Texels per strip of [`NearField::strip`].
@@ -27,12 +28,14 @@ pub(crate) const NEAR_LANES: usize = LANES;
 pub(crate) struct NearField<'a> {
     grid: Grid<'a>,
     near: StripMarch,
-    dirs: Vec<(f64, f64)>,
-    cuts: Vec<f64>,
+    /// Shared (`Arc`) with the near field's row windows ([`NearField::rows`]), as are
+    /// `xings`, `hole_segs` and `hole_xings`.
+    dirs: Arc<Vec<(f64, f64)>>,
+    cuts: Arc<Vec<f64>>,
     /// Highest height of the map relative to `near.reference`.
     hmax: f32,
     /// Per direction and piece, its exit crossing ([`Xing`]), for the crossing walk.
-    xings: Vec<Vec<Xing>>,
+    xings: Arc<Vec<Vec<Xing>>>,
     /// Per padded texel (r, c), the twist k3 − k1 − k2 + k0 of the cell it is the top left of:
     /// the bilinear surface's only second-order term, so a piece (less the curvature drop)
     /// bulges above its chord only where twist·dx·dy is below the drop's c.
@@ -42,12 +45,14 @@ pub(crate) struct NearField<'a> {
     /// crossing walk reads of that cell, it drops the cell as `exact`'s walk skips it. Empty
     /// without holes.
     hole_cells: Vec<f32>,
+    /// The holes' flags (one per texel of the grid), kept to make a window's `hole_cells`.
+    holes: Option<&'a [bool]>,
     /// With holes, every direction's pieces and crossings out to the longest cut (rounded
     /// up), the reach of `exact`'s walk that `sweep` took near holes before the crossing walk
     /// honoured them: near a hole the far field's lines, a third of a texel beside the ray,
     /// see a hole's edge where the ray does not, so there the exact part runs that far.
-    hole_segs: Vec<Vec<Seg>>,
-    hole_xings: Vec<Vec<Xing>>,
+    hole_segs: Arc<Vec<Vec<Seg>>>,
+    hole_xings: Arc<Vec<Vec<Xing>>>,
 }
 
 /// Where a piece of a direction leaves its cell, as [`NearField`]'s crossing walk reads it:
@@ -134,11 +139,24 @@ impl<'a> NearField<'a> {
         curv: f64,
         isa: Isa,
     ) -> Self {
-        Self::about(grid, dirs, cuts, curv, isa, grid.range())
+        Self::about(grid, dirs, cuts, curv, isa, grid.range(), true)
+    }
+
+    /// [`NearField::new`] with no rows: its strips run only on the windows it makes
+    /// ([`NearField::rows`]), so a caller that joins band by band holds a band's padded rows,
+    /// twists and cell maxima rather than the whole map's (12 bytes a texel).
+    pub(crate) fn without_rows(
+        grid: Grid<'a>,
+        dirs: &[(f64, f64)],
+        cuts: &[f64],
+        curv: f64,
+        isa: Isa,
+    ) -> Self {
+        Self::about(grid, dirs, cuts, curv, isa, grid.range(), false)
     }
 
     /// [`NearField::new`] for a surface whose heights span `lo..=hi` (the grid's own range, or
-    /// with holes the range of the texels that are not).
+    /// with holes the range of the texels that are not), with every row's tables or none.
     fn about(
         grid: Grid<'a>,
         dirs: &[(f64, f64)],
@@ -146,26 +164,74 @@ impl<'a> NearField<'a> {
         curv: f64,
         isa: Isa,
         (lo, hi): (f32, f32),
+        rows: bool,
     ) -> Self {
-        let mut near = StripMarch::with_cuts_about(&grid, dirs, cuts, (lo, hi));
+        let mut near = StripMarch::without_rows(&grid, dirs, cuts, (lo, hi));
         near.curv = if curv.is_finite() && curv > 0.0 { curv as f32 } else { 0.0 };
         near.isa = near.isa.min(isa);
         let hmax = (f64::from(hi) - near.reference) as f32;
         let range = f64::from(hi - lo);
         let xings =
-            dirs.iter().zip(&near.segs).map(|(&d, g)| Xing::of(g, d, near.pw, near.curv, range));
-        let xings = xings.collect();
-        let (pw, p) = (near.pw, &near.padded);
+            dirs.iter().zip(&*near.segs).map(|(&d, g)| Xing::of(g, d, near.pw, near.curv, range));
+        let xings = Arc::new(xings.collect());
+        let (dirs, cuts) = (Arc::new(dirs.to_vec()), Arc::new(cuts.to_vec()));
+        let (hole_segs, hole_xings) = (Arc::default(), Arc::default());
+        let mut field = NearField {
+            grid,
+            near,
+            dirs,
+            cuts,
+            hmax,
+            xings,
+            twist: Vec::new(),
+            hole_cells: Vec::new(),
+            holes: None,
+            hole_segs,
+            hole_xings,
+        };
+        if rows {
+            field.near.fill_rows(&grid, 0, field.near.padded_rows(&grid));
+            field.fill_twist();
+        }
+        field
+    }
+
+    /// The twists of the padded rows the march holds.
+    fn fill_twist(&mut self) {
+        let (pw, p) = (self.near.pw, &self.near.padded);
         let mut twist = vec![0.0f32; p.len()];
-        for r in 0..p.len() / pw - 1 {
+        for r in 0..(p.len() / pw).saturating_sub(1) {
             let (a, b) = (&p[r * pw..][..pw], &p[(r + 1) * pw..][..pw]);
             for (c, t) in twist[r * pw..][..pw - 1].iter_mut().enumerate() {
                 *t = b[c + 1] - a[c + 1] - b[c] + a[c];
             }
         }
-        let (dirs, cuts) = (dirs.to_vec(), cuts.to_vec());
-        let (hole_cells, hole_segs, hole_xings) = (Vec::new(), Vec::new(), Vec::new());
-        NearField { grid, near, dirs, cuts, hmax, xings, twist, hole_cells, hole_segs, hole_xings }
+        self.twist = twist;
+    }
+
+    /// The near field of texel rows `y0..y1` alone, with the tables of the padded rows their
+    /// rays read: its strips there give the bits of the whole map's near field (the same
+    /// heights, pieces and crossings; see [`StripMarch::rows`]). Cheap but for those tables:
+    /// everything else is shared.
+    pub(crate) fn rows(&self, y0: usize, y1: usize) -> NearField<'a> {
+        let mut field = NearField {
+            grid: self.grid,
+            near: self.near.rows(&self.grid, y0, y1),
+            dirs: Arc::clone(&self.dirs),
+            cuts: Arc::clone(&self.cuts),
+            hmax: self.hmax,
+            xings: Arc::clone(&self.xings),
+            twist: Vec::new(),
+            hole_cells: Vec::new(),
+            holes: self.holes,
+            hole_segs: Arc::clone(&self.hole_segs),
+            hole_xings: Arc::clone(&self.hole_xings),
+        };
+        field.fill_twist();
+        if let Some(holes) = self.holes {
+            field.fill_hole_rows(holes);
+        }
+        field
     }
 
     /// Nodata holes (SPEC §2), one flag per texel (`holes[row · W + col]`): the cells that
@@ -179,7 +245,7 @@ impl<'a> NearField<'a> {
     /// Heights are then taken about the middle of the surface's own range: about the middle
     /// of a range that reached down to the fill, 1000 ranges below, the f32 lanes lost three
     /// digits (tan α off by 6e-5 of the range, a few hundredths of a degree).
-    pub(crate) fn with_holes(self, holes: &[bool]) -> Self {
+    pub(crate) fn with_holes(self, holes: &'a [bool]) -> Self {
         let (w, h) = (self.grid.width, self.grid.height);
         if holes.len() != w * h || !holes.contains(&true) {
             return self;
@@ -188,34 +254,33 @@ impl<'a> NearField<'a> {
         let (lo, hi) = surface
             .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), (&v, _)| (a.min(v), b.max(v)));
         let (grid, curv, isa) = (self.grid, f64::from(self.near.curv), self.near.isa);
+        let rows = !self.near.padded.is_empty();
         let (dirs, cuts) = (self.dirs, self.cuts);
         drop(self.near);
-        let mut near = Self::about(grid, &dirs, &cuts, curv, isa, (lo, hi));
-        near.fill_hole_cells(holes, (lo, hi));
+        let mut near = Self::about(grid, &dirs, &cuts, curv, isa, (lo, hi), rows);
+        near.holes = Some(holes);
+        near.fill_hole_pieces((lo, hi));
+        if rows {
+            near.fill_hole_rows(holes);
+        }
         near
     }
 
-    /// [`NearField::with_holes`]'s cells and longer pieces, on a near field built about the
-    /// surface's range `lo..=hi`.
-    fn fill_hole_cells(&mut self, holes: &[bool], (lo, hi): (f32, f32)) {
-        let (w, h) = (self.grid.width, self.grid.height);
-        let (pw, pad) = (self.near.pw, self.near.pad as i64);
+    /// [`NearField::with_holes`]'s cells, for the padded rows the march holds.
+    fn fill_hole_rows(&mut self, holes: &[bool]) {
+        let w = self.grid.width;
+        let (pw, pad, r0) = (self.near.pw, self.near.pad, self.near.r0);
         let ph = self.near.padded.len() / pw;
-        let wrap = self.grid.edge == Edge::Wrap;
-        // The hole flag of padded texel (r, c), by the padding's own rule (wrapped or clamped).
-        let hole = |r: usize, c: usize| {
-            let (x, y) = (c as i64 - pad, r as i64 - pad);
-            let (x, y) = if wrap {
-                (x.rem_euclid(w as i64), y.rem_euclid(h as i64))
-            } else {
-                (x.clamp(0, w as i64 - 1), y.clamp(0, h as i64 - 1))
-            };
-            holes[y as usize * w + x as usize]
+        let xs = strip::padded_columns(&self.grid, pad, pw);
+        // The hole flags of padded row r, by the padding's own rule (wrapped or clamped).
+        let flags = |r: usize| {
+            let src = &holes[strip::padded_row(&self.grid, pad, r0 + r) * w..][..w];
+            xs.iter().map(|&x| src[x]).collect::<Vec<bool>>()
         };
-        let row: Vec<Vec<bool>> = (0..ph).map(|r| (0..pw).map(|c| hole(r, c)).collect()).collect();
         let mut cells = vec![f32::NEG_INFINITY; pw * ph];
-        for r in 0..ph - 1 {
-            let (a, b) = (&row[r], &row[r + 1]);
+        let mut b = flags(0);
+        for r in 0..ph.saturating_sub(1) {
+            let a = std::mem::replace(&mut b, flags(r + 1));
             for (c, v) in cells[r * pw..][..pw - 1].iter_mut().enumerate() {
                 if !(a[c] || a[c + 1] || b[c] || b[c + 1]) {
                     *v = 0.0;
@@ -223,13 +288,19 @@ impl<'a> NearField<'a> {
             }
         }
         self.hole_cells = cells;
+    }
+
+    /// [`NearField::with_holes`]'s longer pieces, on a near field built about the surface's
+    /// range `lo..=hi`.
+    fn fill_hole_pieces(&mut self, (lo, hi): (f32, f32)) {
         let reach = self.hole_reach();
         let range = f64::from(hi - lo);
         let pieces = |&(dx, dy): &(f64, f64)| StripMarch::pieces(dx, dy, reach);
-        self.hole_segs = self.dirs.iter().map(pieces).collect();
-        let xings = self.dirs.iter().zip(&self.hole_segs);
+        let segs: Vec<Vec<Seg>> = self.dirs.iter().map(pieces).collect();
         let (pw, curv) = (self.near.pw, self.near.curv);
-        self.hole_xings = xings.map(|(&d, g)| Xing::of(g, d, pw, curv, range)).collect();
+        let xings = self.dirs.iter().zip(&segs).map(|(&d, g)| Xing::of(g, d, pw, curv, range));
+        self.hole_xings = Arc::new(xings.collect());
+        self.hole_segs = Arc::new(segs);
     }
 
     /// Whether [`NearField::strip_near_holes`] may run for the strip at (`x`, `y`) along
@@ -245,8 +316,8 @@ impl<'a> NearField<'a> {
     #[inline(always)]
     pub(crate) fn honours_holes(&self, n: usize, x: usize, y: usize) -> bool {
         let (dx, dy) = self.dirs[n];
-        !self.hole_cells.is_empty()
-            && !self.near.cmax.is_empty()
+        self.holes.is_some()
+            && self.near.cells
             && dx != 0.0
             && dy != 0.0
             && (dx.abs() - dy.abs()).abs() > 1e-9
@@ -366,7 +437,7 @@ impl<'a> NearField<'a> {
             }
         }
         // The crossing walk reads the cells' maxima, kept while the near field is short.
-        if border || !crossings || self.near.cmax.is_empty() {
+        if border || !crossings || !self.near.cells {
             self.near.strip(n, (dx, dy), x, y, h0, &count, self.hmax, best);
         } else {
             self.crossings(n, x, y, h0, best);
@@ -482,7 +553,7 @@ impl<'a> NearField<'a> {
     ) {
         let near = &self.near;
         let (pw, p) = (near.pw, &near.padded[..]);
-        let base = (y + near.pad) * pw + x + near.pad;
+        let base = (y + near.pad - near.r0) * pw + x + near.pad;
         let (dx, dy) = (self.dirs[n].0 as f32, self.dirs[n].1 as f32);
         let curv = near.curv;
         let mut out = *best;
@@ -900,6 +971,101 @@ mod tests {
             }
         }
         assert!(compared > 50_000 && by_holes > 20_000, "{compared} compared, {by_holes} near");
+    }
+
+    /// A window of rows ([`NearField::rows`]) gives the bits of the whole map's near field on
+    /// its rows: by the cell walk and by crossings, near holes and away from them, with and
+    /// without curvature and floors, both edges, every ISA, windows at the top, in the middle
+    /// and at the bottom of the map; and it holds only the padded rows its rays read.
+    #[test]
+    fn a_window_of_rows_gives_the_bits_of_the_whole() {
+        let mut rnd = lcg(7707);
+        let (w, h) = (45usize, 83usize);
+        let mut compared = 0usize;
+        for kind in 0..3 {
+            let mut heights = near_map(kind, w, h, &mut rnd);
+            let mut holes = vec![false; w * h];
+            for _ in 0..4 {
+                let (cx, cy, r) = (rnd() * w as f32, rnd() * h as f32, 1.0 + rnd() * 3.0);
+                for (k, o) in holes.iter_mut().enumerate() {
+                    let (dx, dy) = ((k % w) as f32 - cx, (k / w) as f32 - cy);
+                    *o |= dx * dx + dy * dy <= r * r;
+                }
+            }
+            let fill = crate::heightmap::hole_fill(-10.0, 30.0);
+            for (v, &o) in heights.iter_mut().zip(&holes) {
+                if o {
+                    *v = fill;
+                }
+            }
+            for edge in [Edge::Wrap, Edge::None] {
+                let g = Grid::new(w, h, &heights, edge, YAxis::Up);
+                let (dirs, cuts) = near_dirs(&g, 24);
+                for (with_holes, curv) in [(false, 0.0), (true, 0.0), (true, 2e-3), (false, 2e-3)] {
+                    for isa in [Isa::Avx512, Isa::Avx2, Isa::Baseline] {
+                        if !isa.supported() {
+                            continue;
+                        }
+                        let make = |rows: bool| {
+                            let f = if rows {
+                                NearField::new(g, &dirs, &cuts, curv, isa)
+                            } else {
+                                NearField::without_rows(g, &dirs, &cuts, curv, isa)
+                            };
+                            if with_holes {
+                                f.with_holes(&holes)
+                            } else {
+                                f
+                            }
+                        };
+                        let (whole, lazy) = (make(true), make(false));
+                        assert!(lazy.near.padded.is_empty() && lazy.twist.is_empty());
+                        for (y0, y1) in [(0, 7), (30, 46), (h - 5, h), (0, h)] {
+                            let win = lazy.rows(y0, y1);
+                            if y1 - y0 < h {
+                                assert!(win.near.padded.len() < whole.near.padded.len() / 2);
+                            }
+                            for y in y0..y1 {
+                                for x in (0..w).step_by(LANES) {
+                                    let h0 = whole.lanes_h0(x, y);
+                                    for n in 0..dirs.len() {
+                                        let floor = [rnd() * 0.2; LANES];
+                                        for f in [[0.0; LANES], floor] {
+                                            let (mut a, mut b) = (f, f);
+                                            whole.strip_from(n, x, y, &h0, &mut a);
+                                            win.strip_from(n, x, y, &h0, &mut b);
+                                            let at = || {
+                                                format!(
+                                                    "kind {kind} {edge:?} holes {with_holes} c \
+                                                     {curv} {isa:?} ({x}, {y}) bin {n}"
+                                                )
+                                            };
+                                            let lanes = LANES.min(w - x);
+                                            assert_eq!(a[..lanes], b[..lanes], "{}", at());
+                                            let hon = whole.honours_holes(n, x, y);
+                                            assert_eq!(hon, win.honours_holes(n, x, y), "{}", at());
+                                            if hon {
+                                                let (mut a, mut b) = (f, f);
+                                                whole.strip_near_holes(n, x, y, &h0, &mut a);
+                                                win.strip_near_holes(n, x, y, &h0, &mut b);
+                                                assert_eq!(
+                                                    a[..lanes],
+                                                    b[..lanes],
+                                                    "{} holes",
+                                                    at()
+                                                );
+                                            }
+                                            compared += lanes;
+                                        }
+                                    }
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        assert!(compared > 100_000, "{compared}");
     }
 
     /// The cells' maxima ([`StripMarch::cmax`]) cull exactly the pieces the four corners culled: a

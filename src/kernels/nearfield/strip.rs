@@ -5,6 +5,7 @@
 use crate::kernels::isa::Isa;
 use crate::kernels::Grid;
 use crate::params::Edge;
+use std::sync::Arc;
 
 /// Texels per strip of the near-field march: one AVX-512 vector of f32, two AVX2 vectors.
 pub(crate) const LANES: usize = 16;
@@ -29,11 +30,16 @@ pub(crate) struct Seg {
 /// wraps or clamps.
 #[derive(Debug, Clone)]
 pub(crate) struct StripMarch {
-    pub(crate) segs: Vec<Vec<Seg>>,
+    /// Shared (`Arc`) with the march's row windows ([`StripMarch::rows`]), as are `spans` and
+    /// `culls`: what does not depend on the rows is made once.
+    pub(crate) segs: Arc<Vec<Vec<Seg>>>,
     pub(crate) s_cut: f64,
     pub(crate) pad: usize,
     pub(crate) pw: usize,
+    /// Padded rows `r0 ..` of the map (padded row r is texel row r − `pad`): all of them, or
+    /// a window's ([`StripMarch::rows`]).
     pub(crate) padded: Vec<f32>,
+    pub(crate) r0: usize,
     /// Subtracted from every height in `padded` (and from the lanes' h0): the middle of the
     /// map's range. The f32 lanes interpolate heights before subtracting h0, so absolute
     /// heights of 1e4 (a DEM in metres) would cost 1e-3 of precision; centred, the error
@@ -41,7 +47,7 @@ pub(crate) struct StripMarch {
     pub(crate) reference: f64,
     /// Per direction, the pieces grouped into spans that one bound can cull together (see
     /// [`Spans`]).
-    pub(crate) spans: Vec<Spans>,
+    pub(crate) spans: Arc<Vec<Spans>>,
     /// Block maxima of `padded`, for the spans' bounds.
     pub(crate) blocks: PadPyramid,
     /// Per padded texel (r, c), the largest of the four corners of the cell it is the top left
@@ -49,10 +55,13 @@ pub(crate) struct StripMarch {
     /// values, so the same culls). Empty when the padding is wide (`exact`'s long near field:
     /// another copy of a padded 8192² map would cost 0.4 GB); [`CELL_MAX_PAD`].
     pub(crate) cmax: Vec<f32>,
+    /// Whether the padding is narrow enough for `cmax` ([`CELL_MAX_PAD`]); the crossing walk
+    /// needs it. `cmax` is then filled wherever `padded` is.
+    pub(crate) cells: bool,
     /// Per direction and piece, where its cell lies in the padded layout relative to the
     /// strip's first texel (cyo·pw + cxo) and its s_a in f32: all a piece's cull reads
     /// (empty without `cmax`).
-    pub(crate) culls: Vec<Vec<(i32, f32)>>,
+    pub(crate) culls: Arc<Vec<Vec<(i32, f32)>>>,
     /// The compiled variant the strips run ([`Isa::detect`], or narrower when asked).
     pub(crate) isa: Isa,
     /// Earth-curvature drop per texel² in the pieces' closed form (0: flat).
@@ -159,6 +168,29 @@ impl Spans {
     }
 }
 
+/// The map column of each padded column, by the padding's rule: wrapped, or clamped for
+/// `edge=none` (where the padding is masked out).
+pub(crate) fn padded_columns(grid: &Grid<'_>, pad: usize, pw: usize) -> Vec<usize> {
+    let w = grid.width as i64;
+    let col = |c: usize| {
+        let x = c as i64 - pad as i64;
+        match grid.edge {
+            Edge::Wrap => x.rem_euclid(w),
+            Edge::None => x.clamp(0, w - 1),
+        }
+    };
+    (0..pw).map(|c| col(c) as usize).collect()
+}
+
+/// The map row of padded row `r`, by the same rule.
+pub(crate) fn padded_row(grid: &Grid<'_>, pad: usize, r: usize) -> usize {
+    let (y, h) = (r as i64 - pad as i64, grid.height as i64);
+    (match grid.edge {
+        Edge::Wrap => y.rem_euclid(h),
+        Edge::None => y.clamp(0, h - 1),
+    }) as usize
+}
+
 /// Maxima of 4^k × 4^k blocks of the padded heights (level k ≥ 1; level 0 is the heights).
 #[derive(Debug, Clone, Default)]
 pub(crate) struct PadPyramid {
@@ -232,60 +264,122 @@ impl StripMarch {
         grid: &Grid<'_>,
         dirs: &[(f64, f64)],
         cuts: &[f64],
+        lohi: (f32, f32),
+    ) -> StripMarch {
+        let mut march = Self::without_rows(grid, dirs, cuts, lohi);
+        march.fill_rows(grid, 0, march.padded_rows(grid));
+        march
+    }
+
+    /// [`StripMarch::with_cuts_about`] with no padded rows yet: the pieces, spans and culls
+    /// alone, for a caller that makes the rows of each band it runs ([`StripMarch::rows`]).
+    pub(crate) fn without_rows(
+        grid: &Grid<'_>,
+        dirs: &[(f64, f64)],
+        cuts: &[f64],
         (lo, hi): (f32, f32),
     ) -> StripMarch {
         let s_cut = cuts.iter().copied().fold(0.0f64, f64::max);
-        let (w, h) = (grid.width, grid.height);
         let pad = s_cut.ceil() as usize + 2;
-        let pw = w + 2 * pad + LANES + 1;
-        let ph = h + 2 * pad + 1;
-        let mut padded = vec![0f32; pw * ph];
+        let pw = grid.width + 2 * pad + LANES + 1;
         let reference = 0.5 * (f64::from(lo) + f64::from(hi));
-        for r in 0..ph {
-            for c in 0..pw {
-                let (x, y) = (c as i64 - pad as i64, r as i64 - pad as i64);
-                let (x, y) = match grid.edge {
-                    Edge::Wrap => (x.rem_euclid(w as i64), y.rem_euclid(h as i64)),
-                    Edge::None => (x.clamp(0, w as i64 - 1), y.clamp(0, h as i64 - 1)),
-                };
-                padded[r * pw + c] =
-                    (f64::from(grid.heights[y as usize * w + x as usize]) - reference) as f32;
-            }
-        }
         let segs: Vec<Vec<Seg>> =
             dirs.iter().zip(cuts).map(|(&(dx, dy), &cut)| Self::pieces(dx, dy, cut)).collect();
-        // Levels up to blocks of 4^5 = 1024: a span's box is at most about s_cut / 2 on a side.
-        let top = (1..=5).take_while(|&k| (1usize << (2 * (k - 1))) < pad).count();
-        let blocks = PadPyramid::new(&padded, pw, ph, top);
+        let top = Self::levels(pad);
         let spans = segs.iter().map(|g| Spans::new(g, top)).collect();
-        let mut cmax = Vec::new();
+        let cells = pad <= CELL_MAX_PAD;
         let mut culls = Vec::new();
-        if pad <= CELL_MAX_PAD {
+        if cells {
             culls = segs
                 .iter()
                 .map(|d| d.iter().map(|g| (g.cyo * pw as i32 + g.cxo, g.s_a as f32)).collect())
                 .collect();
-            cmax = vec![f32::INFINITY; pw * ph];
-            for r in 0..ph - 1 {
+        }
+        StripMarch {
+            segs: Arc::new(segs),
+            s_cut,
+            pad,
+            pw,
+            padded: Vec::new(),
+            r0: 0,
+            reference,
+            spans: Arc::new(spans),
+            blocks: PadPyramid::default(),
+            cmax: Vec::new(),
+            cells,
+            culls: Arc::new(culls),
+            isa: Isa::detect(),
+            curv: 0.0,
+        }
+    }
+
+    /// Levels of [`PadPyramid`] for a padding: up to blocks of 4^5 = 1024, a span's box being
+    /// at most about s_cut / 2 on a side.
+    fn levels(pad: usize) -> usize {
+        (1..=5).take_while(|&k| (1usize << (2 * (k - 1))) < pad).count()
+    }
+
+    /// Padded rows of the whole map.
+    pub(crate) fn padded_rows(&self, grid: &Grid<'_>) -> usize {
+        grid.height + 2 * self.pad + 1
+    }
+
+    /// Padded rows `ra..rb` of `grid` (and their block and cell maxima), replacing any held.
+    pub(crate) fn fill_rows(&mut self, grid: &Grid<'_>, ra: usize, rb: usize) {
+        let (w, pad, pw) = (grid.width, self.pad, self.pw);
+        let ph = rb - ra;
+        let reference = self.reference;
+        let mut padded = vec![0f32; pw * ph];
+        let xs = padded_columns(grid, pad, pw);
+        for (r, out) in padded.chunks_exact_mut(pw).enumerate() {
+            let src = &grid.heights[padded_row(grid, pad, ra + r) * w..][..w];
+            for (o, &x) in out.iter_mut().zip(&xs) {
+                *o = (f64::from(src[x]) - reference) as f32;
+            }
+        }
+        self.blocks = PadPyramid::new(&padded, pw, ph, Self::levels(pad));
+        self.cmax = Vec::new();
+        if self.cells {
+            let mut cmax = vec![f32::INFINITY; pw * ph];
+            for r in 0..ph.saturating_sub(1) {
                 let (a, b) = (&padded[r * pw..][..pw], &padded[(r + 1) * pw..][..pw]);
                 for (c, m) in cmax[r * pw..][..pw - 1].iter_mut().enumerate() {
                     *m = a[c].max(a[c + 1]).max(b[c]).max(b[c + 1]);
                 }
             }
+            self.cmax = cmax;
         }
+        self.padded = padded;
+        self.r0 = ra;
+    }
+
+    /// The march over texel rows `y0..y1` alone: the padded rows their rays read (`y0 ..
+    /// y1 + 2·pad + 1`), with the same pieces. Every lane of those rows gets the bits of the
+    /// whole map's march: the heights are the same, and the block maxima only cull what a
+    /// piece's own cull would (see [`StripMarch::culled`]), whatever the blocks' alignment.
+    pub(crate) fn rows(&self, grid: &Grid<'_>, y0: usize, y1: usize) -> StripMarch {
+        let mut m = self.clone_light();
+        m.fill_rows(grid, y0, (y1 + 2 * self.pad + 1).min(self.padded_rows(grid)));
+        m
+    }
+
+    /// A copy without the rows (the `Arc`s shared).
+    fn clone_light(&self) -> StripMarch {
         StripMarch {
-            segs,
-            s_cut,
-            pad,
-            pw,
-            padded,
-            reference,
-            spans,
-            blocks,
-            cmax,
-            culls,
-            isa: Isa::detect(),
-            curv: 0.0,
+            segs: Arc::clone(&self.segs),
+            s_cut: self.s_cut,
+            pad: self.pad,
+            pw: self.pw,
+            padded: Vec::new(),
+            r0: 0,
+            reference: self.reference,
+            spans: Arc::clone(&self.spans),
+            blocks: PadPyramid::default(),
+            cmax: Vec::new(),
+            cells: self.cells,
+            culls: Arc::clone(&self.culls),
+            isa: self.isa,
+            curv: self.curv,
         }
     }
 
@@ -406,7 +500,7 @@ impl StripMarch {
         best: &mut [f32; LANES],
     ) {
         let base_c = (x + self.pad) as i64;
-        let base_r = (y + self.pad) as i64;
+        let base_r = (y + self.pad - self.r0) as i64;
         let cx = Strip {
             n,
             d: (d.0 as f32, d.1 as f32),
@@ -474,7 +568,7 @@ impl StripMarch {
     /// [`StripMarch::run_cells`].
     #[inline(always)]
     pub(crate) fn run(&self, cx: &Strip<'_>, a: usize, b: usize, best: &mut [f32; LANES]) -> bool {
-        if !self.cmax.is_empty() {
+        if self.cells {
             return self.run_cells(cx, a, b, best);
         }
         let (dx, dy) = cx.d;

@@ -100,7 +100,7 @@ impl Sweep<'_> {
                     return;
                 }
                 let row = &far[n * plane + y * w - origin..][..w];
-                self.row_bin(n, y, row, &hs, &h0, |j, sn| sines[n * ns + j] = sn);
+                self.row_bin(&self.near, n, y, row, &hs, &h0, |j, sn| sines[n * ns + j] = sn);
             }
             for j in 0..ns {
                 let (x, lanes) = (j * NEAR_LANES, NEAR_LANES.min(w - j * NEAR_LANES));
@@ -140,11 +140,14 @@ impl Sweep<'_> {
     /// Row `y` at bin `n`, strip by strip: the far field (`row`, the row's W values of the
     /// plane) and the point at R as a floor for the near field, then sin α, handed to
     /// `put(strip, sines)` (lanes past the row's end unspecified). `hs` and `h0` are the row's
-    /// [`Sweep::row_heights`]. What the bands and the azimuth-major planes
+    /// [`Sweep::row_heights`]; `near` the kernel's near field or a window of it holding row
+    /// `y` ([`NearField::rows`]). What the bands and the azimuth-major planes
     /// ([`Sweep::planes`]) share, so both give the same bits.
+    #[allow(clippy::too_many_arguments)] // the row, its bin, its inputs and where it goes
     #[inline(always)]
     pub(super) fn row_bin(
         &self,
+        near: &NearField<'_>,
         n: usize,
         y: usize,
         row: &[f32],
@@ -185,14 +188,14 @@ impl Sweep<'_> {
             let (mut near_hole, mut scalar, mut replaced) = (false, false, false);
             if let Some(hl) = &self.holes {
                 near_hole = hl.near[k..k + lanes].contains(&true);
-                scalar = near_hole && !self.near.honours_holes(n, x, y);
+                scalar = near_hole && !near.honours_holes(n, x, y);
                 let exact_only = |t: usize| hl.mask[t] || (scalar && hl.near[t]);
                 replaced = near_hole && (k..k + lanes).all(exact_only);
             }
             if near_hole && !scalar {
-                self.near.strip_near_holes(n, x, y, &h0[j], &mut best);
+                near.strip_near_holes(n, x, y, &h0[j], &mut best);
             } else if !replaced {
-                self.near.strip_from(n, x, y, &h0[j], &mut best);
+                near.strip_from(n, x, y, &h0[j], &mut best);
             }
             if let Some(hl) = self.holes.as_ref().filter(|_| near_hole) {
                 for i in 0..lanes {

@@ -62,6 +62,11 @@ pub const SUB: usize = 3;
 /// Whether the far field also samples halfway between major grid lines; off by measurement
 /// (docs/sweep.md, "Constants").
 pub const MIDS: bool = false;
+/// Rows per window of the near field's tables in [`Sweep::planes`] (they read 37 more): the
+/// whole map's are 12 bytes a texel, a window's at 8192 columns 13 MB, and made again per
+/// azimuth they cost about as much as the rows they read (docs/sweep.md, "Memory without a
+/// table").
+pub const NEAR_WINDOW_ROWS: usize = 256;
 
 /// The sweep kernel prepared for one grid.
 pub struct Sweep<'a> {
@@ -336,7 +341,13 @@ impl<'a> Sweep<'a> {
                 Far::Spilled(store)
             }
         };
-        let near = near.unwrap_or_else(make_near);
+        // Azimuth-major, the near field's tables are made per window of rows as the planes
+        // are joined ([`Sweep::planes`]), never for the whole map.
+        let near = match near {
+            Some(near) => near,
+            None if opt.azimuth_major => NearField::without_rows(grid, &dirs, &cuts, curv, isa),
+            None => make_near(),
+        };
         Sweep {
             grid,
             bins,

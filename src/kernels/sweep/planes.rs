@@ -77,7 +77,6 @@ impl Sweep<'_> {
             .clamp(1, rayon::current_num_threads().max(1));
         let mut work: Vec<(Vec<f32>, Scratch)> =
             (0..slots).map(|_| (Vec::new(), Scratch::default())).collect();
-        let ns = w.div_ceil(NEAR_LANES);
         // The padded lines of the axes the azimuths in flight sweep along: made when a chunk
         // first needs them; on a big map dropped when one no longer does (the bins run around
         // the circle, so an axis comes back at most twice, each time made again: about 0.07 s
@@ -133,36 +132,78 @@ impl Sweep<'_> {
                     return Err(Error::Canceled);
                 }
                 let far: Vec<&[f32]> = work[..chunk.len()].iter().map(|(o, _)| &o[..]).collect();
-                (0..nbands).into_par_iter().try_for_each_init(
-                    || {
-                        let strips = vec![[0.0f32; NEAR_LANES]; ns];
-                        (strips.clone(), strips, vec![0.0f32; band * w])
-                    },
-                    |(hs, h0, out), b| {
-                        if canceled() {
-                            return Err(Error::Canceled);
-                        }
-                        let y0 = b * band;
-                        let rows = band.min(h - y0);
-                        for (k, &n) in chunk.iter().enumerate() {
-                            let far = &far[k][y0 * w..][..rows * w];
-                            self.join_band(n, y0, far, hs, h0, &mut out[..rows * w]);
-                            sink(b, n, &out[..rows * w]);
-                            progress.advance(rows as u64);
-                        }
-                        Ok(())
-                    },
-                )?;
+                let far_rows = |k: usize, y0: usize, rows: usize| &far[k][y0 * w..][..rows * w];
+                self.join_groups(chunk, 0..nbands, band, &far_rows, progress, sink, &canceled)?;
             }
         }
         Ok(())
     }
 
+    /// Bands `bands` of every bin of `chunk` from their far-field rows (`far(k, y0, rows)`:
+    /// rows `y0 ..` of `chunk[k]`'s plane), on the pool, handed to `sink` band by band and bin
+    /// by bin in `chunk`'s order. The near field's tables are made per group of bands
+    /// ([`Sweep::group_bands`]) for the rows it reads ([`NearField::rows`]), and let go after
+    /// it: the kernel never holds the whole map's (12 bytes a texel).
+    #[allow(clippy::too_many_arguments)] // the bins, the rows and where they go
+    #[inline(always)]
+    fn join_groups<'f>(
+        &self,
+        chunk: &[usize],
+        bands: std::ops::Range<usize>,
+        band: usize,
+        far: &(dyn Fn(usize, usize, usize) -> &'f [f32] + Sync),
+        progress: &Progress,
+        sink: &(dyn Fn(usize, usize, &[f32]) + Sync),
+        canceled: &(dyn Fn() -> bool + Sync),
+    ) -> Result<()> {
+        let (w, h) = (self.grid.width, self.grid.height);
+        let ns = w.div_ceil(NEAR_LANES);
+        let per = self.group_bands(band);
+        let groups: Vec<std::ops::Range<usize>> =
+            bands.clone().step_by(per).map(|g| g..(g + per).min(bands.end)).collect();
+        groups.into_par_iter().try_for_each_init(
+            || {
+                let strips = vec![[0.0f32; NEAR_LANES]; ns];
+                (strips.clone(), strips, vec![0.0f32; band * w])
+            },
+            |(hs, h0, out), g| {
+                if canceled() {
+                    return Err(Error::Canceled);
+                }
+                let near = self.near.rows(g.start * band, (g.end * band).min(h));
+                for b in g {
+                    let y0 = b * band;
+                    let rows = band.min(h - y0);
+                    for (k, &n) in chunk.iter().enumerate() {
+                        let out = &mut out[..rows * w];
+                        self.join_band(&near, n, y0, far(k, y0, rows), hs, h0, out);
+                        sink(b, n, out);
+                        progress.advance(rows as u64);
+                    }
+                }
+                Ok(())
+            },
+        )
+    }
+
+    /// Bands per window of the near field ([`Sweep::join_groups`]): about [`NEAR_WINDOW_ROWS`]
+    /// rows, fewer on a short map so that each thread still gets a few windows. A window
+    /// reads 2·pad + 1 more rows than it joins (37 at the default 16 steps), made again for
+    /// every azimuth.
+    pub(super) fn group_bands(&self, band: usize) -> usize {
+        let threads = rayon::current_num_threads().max(1);
+        let rows = (self.grid.height / (4 * threads)).clamp(16, NEAR_WINDOW_ROWS);
+        (rows / band.max(1)).max(1)
+    }
+
     /// Band rows `y0 ..` of bin `n` from their far-field rows `far` (as many rows as `out`
-    /// holds, row-major): the near field and the point at R joined in ([`Sweep::row_bin`]).
+    /// holds, row-major): the near field (`near`, holding those rows) and the point at R
+    /// joined in ([`Sweep::row_bin`]).
+    #[allow(clippy::too_many_arguments)] // the rows, their bin, their inputs and the output
     #[inline(always)]
     fn join_band(
         &self,
+        near: &NearField<'_>,
         n: usize,
         y0: usize,
         far: &[f32],
@@ -174,7 +215,7 @@ impl Sweep<'_> {
         for (r, (dst, far)) in out.chunks_exact_mut(w).zip(far.chunks_exact(w)).enumerate() {
             let y = y0 + r;
             self.row_heights(y, hs, h0);
-            self.row_bin(n, y, far, hs, h0, |j, sn| {
+            self.row_bin(near, n, y, far, hs, h0, |j, sn| {
                 let x = j * NEAR_LANES;
                 let lanes = NEAR_LANES.min(w - x);
                 dst[x..x + lanes].copy_from_slice(&sn[..lanes]);
@@ -199,28 +240,18 @@ impl Sweep<'_> {
         canceled: &(dyn Fn() -> bool + Sync),
     ) -> Result<()> {
         let (w, h) = (self.grid.width, self.grid.height);
-        let ns = w.div_ceil(NEAR_LANES);
-        let group = (4 * rayon::current_num_threads().max(1) * band).min(h);
+        // Whole windows of the near field at a time, two per thread.
+        let window = self.group_bands(band) * band;
+        let group = (2 * rayon::current_num_threads().max(1) * window).min(h);
         let mut buf = vec![0.0f32; (group + EMIT_ROWS) * w];
         // Rows held, and the first of them.
         let (mut held, mut first) = (0usize, 0usize);
         let mut stopped = false;
         let join = |buf: &[f32], first: usize, rows: usize| {
             let b0 = first / band;
-            (b0..b0 + rows.div_ceil(band)).into_par_iter().for_each_init(
-                || {
-                    let strips = vec![[0.0f32; NEAR_LANES]; ns];
-                    (strips.clone(), strips, vec![0.0f32; band * w])
-                },
-                |(hs, h0, out), b| {
-                    let y0 = b * band;
-                    let rows = band.min(h - y0);
-                    let far = &buf[(y0 - first) * w..][..rows * w];
-                    self.join_band(n, y0, far, hs, h0, &mut out[..rows * w]);
-                    sink(b, n, &out[..rows * w]);
-                    progress.advance(rows as u64);
-                },
-            );
+            let far = |_: usize, y0: usize, rows: usize| &buf[(y0 - first) * w..][..rows * w];
+            let bands = b0..b0 + rows.div_ceil(band);
+            self.join_groups(&[n], bands, band, &far, progress, sink, canceled)
         };
         let mut emit = |start: usize, values: &[f32]| {
             if stopped {
@@ -236,9 +267,12 @@ impl Sweep<'_> {
                     stopped = true;
                     return;
                 }
-                // Whole bands only, but for the map's last.
-                let whole = if end { held } else { held / band * band };
-                join(&buf[..whole * w], first, whole);
+                // Whole windows only, but for the map's last.
+                let whole = if end { held } else { held / window * window };
+                if join(&buf[..whole * w], first, whole).is_err() {
+                    stopped = true;
+                    return;
+                }
                 buf.copy_within(whole * w..held * w, 0);
                 (first, held) = (first + whole, held - whole);
             }
