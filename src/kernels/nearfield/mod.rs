@@ -1090,6 +1090,7 @@ mod tests {
                     assert!(!with.near.cmax.is_empty(), "a near field of 16 keeps the maxima");
                     let mut without = with.clone();
                     without.near.cmax = Vec::new();
+                    without.near.cells = false;
                     for y in 0..h {
                         for x in (0..w).step_by(LANES) {
                             for n in 0..dirs.len() {
@@ -1118,6 +1119,9 @@ mod tests {
         let flat = vec![0.0; w * h];
         let g = Grid::new(w, h, &flat, Edge::Wrap, YAxis::Up);
         let wide = StripMarch::new(&g, &[(1.0, 0.0)], 100.0);
-        assert!(wide.cmax.is_empty(), "a padding past CELL_MAX_PAD keeps no second copy");
+        assert!(
+            wide.cmax.is_empty() && !wide.cells,
+            "a padding past CELL_MAX_PAD keeps no second copy"
+        );
     }
 }
