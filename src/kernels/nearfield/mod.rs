@@ -28,7 +28,7 @@ pub(crate) const NEAR_LANES: usize = LANES;
 pub(crate) struct NearField<'a> {
     grid: Grid<'a>,
     near: StripMarch,
-    /// Shared (`Arc`) with the near field's row windows ([`NearField::rows`]), as are
+    /// Shared (`Arc`) with the near field's row windows ([`NearField::window`]), as are
     /// `xings`, `hole_segs` and `hole_xings`.
     dirs: Arc<Vec<(f64, f64)>>,
     cuts: Arc<Vec<f64>>,
@@ -143,7 +143,7 @@ impl<'a> NearField<'a> {
     }
 
     /// [`NearField::new`] with no rows: its strips run only on the windows it makes
-    /// ([`NearField::rows`]), so a caller that joins band by band holds a band's padded rows,
+    /// ([`NearField::refill`]), so a caller that joins band by band holds a band's padded rows,
     /// twists and cell maxima rather than the whole map's (12 bytes a texel).
     pub(crate) fn without_rows(
         grid: Grid<'a>,
@@ -199,7 +199,9 @@ impl<'a> NearField<'a> {
     /// The twists of the padded rows the march holds.
     fn fill_twist(&mut self) {
         let (pw, p) = (self.near.pw, &self.near.padded);
-        let mut twist = vec![0.0f32; p.len()];
+        let mut twist = std::mem::take(&mut self.twist);
+        twist.clear();
+        twist.resize(p.len(), 0.0);
         for r in 0..(p.len() / pw).saturating_sub(1) {
             let (a, b) = (&p[r * pw..][..pw], &p[(r + 1) * pw..][..pw]);
             for (c, t) in twist[r * pw..][..pw - 1].iter_mut().enumerate() {
@@ -209,14 +211,19 @@ impl<'a> NearField<'a> {
         self.twist = twist;
     }
 
-    /// The near field of texel rows `y0..y1` alone, with the tables of the padded rows their
-    /// rays read: its strips there give the bits of the whole map's near field (the same
-    /// heights, pieces and crossings; see [`StripMarch::rows`]). Cheap but for those tables:
-    /// everything else is shared.
+    /// A window ([`NearField::window`]) filled with rows `y0..y1` ([`NearField::refill`]).
+    #[cfg(test)]
     pub(crate) fn rows(&self, y0: usize, y1: usize) -> NearField<'a> {
-        let mut field = NearField {
+        let mut field = self.window();
+        field.refill(y0, y1);
+        field
+    }
+
+    /// A near field without rows that shares this one's pieces, for [`NearField::refill`].
+    pub(crate) fn window(&self) -> NearField<'a> {
+        NearField {
             grid: self.grid,
-            near: self.near.rows(&self.grid, y0, y1),
+            near: self.near.clone_light(),
             dirs: Arc::clone(&self.dirs),
             cuts: Arc::clone(&self.cuts),
             hmax: self.hmax,
@@ -226,12 +233,20 @@ impl<'a> NearField<'a> {
             holes: self.holes,
             hole_segs: Arc::clone(&self.hole_segs),
             hole_xings: Arc::clone(&self.hole_xings),
-        };
-        field.fill_twist();
-        if let Some(holes) = self.holes {
-            field.fill_hole_rows(holes);
         }
-        field
+    }
+
+    /// Makes this the near field of texel rows `y0..y1` alone, with the tables of the padded
+    /// rows their rays read: its strips there give the bits of the whole map's near field (the
+    /// same heights, pieces and crossings; see [`StripMarch::fill_window`]). The tables'
+    /// allocations are kept: a thread that runs window after window (one per azimuth and
+    /// group of bands) faults no new pages.
+    pub(crate) fn refill(&mut self, y0: usize, y1: usize) {
+        self.near.fill_window(&self.grid, y0, y1);
+        self.fill_twist();
+        if let Some(holes) = self.holes {
+            self.fill_hole_rows(holes);
+        }
     }
 
     /// Nodata holes (SPEC §2), one flag per texel (`holes[row · W + col]`): the cells that
@@ -277,7 +292,9 @@ impl<'a> NearField<'a> {
             let src = &holes[strip::padded_row(&self.grid, pad, r0 + r) * w..][..w];
             xs.iter().map(|&x| src[x]).collect::<Vec<bool>>()
         };
-        let mut cells = vec![f32::NEG_INFINITY; pw * ph];
+        let mut cells = std::mem::take(&mut self.hole_cells);
+        cells.clear();
+        cells.resize(pw * ph, f32::NEG_INFINITY);
         let mut b = flags(0);
         for r in 0..ph.saturating_sub(1) {
             let a = std::mem::replace(&mut b, flags(r + 1));

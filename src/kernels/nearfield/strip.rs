@@ -30,14 +30,14 @@ pub(crate) struct Seg {
 /// wraps or clamps.
 #[derive(Debug, Clone)]
 pub(crate) struct StripMarch {
-    /// Shared (`Arc`) with the march's row windows ([`StripMarch::rows`]), as are `spans` and
+    /// Shared (`Arc`) with the march's row windows ([`StripMarch::fill_window`]), as are `spans` and
     /// `culls`: what does not depend on the rows is made once.
     pub(crate) segs: Arc<Vec<Vec<Seg>>>,
     pub(crate) s_cut: f64,
     pub(crate) pad: usize,
     pub(crate) pw: usize,
     /// Padded rows `r0 ..` of the map (padded row r is texel row r − `pad`): all of them, or
-    /// a window's ([`StripMarch::rows`]).
+    /// a window's ([`StripMarch::fill_window`]).
     pub(crate) padded: Vec<f32>,
     pub(crate) r0: usize,
     /// Subtracted from every height in `padded` (and from the lanes' h0): the middle of the
@@ -199,23 +199,27 @@ pub(crate) struct PadPyramid {
 }
 
 impl PadPyramid {
-    pub(crate) fn new(padded: &[f32], pw: usize, ph: usize, top: usize) -> PadPyramid {
-        let mut levels: Vec<(usize, Vec<f32>)> = Vec::new();
+    /// Fills the levels up to `top` from `padded` (`pw` × `ph`), keeping the allocations
+    /// held (a window of rows made again per azimuth).
+    pub(crate) fn fill(&mut self, padded: &[f32], pw: usize, ph: usize, top: usize) {
+        self.levels.resize_with(top, Default::default);
         let (mut src_w, mut src_h) = (pw, ph);
-        for _ in 0..top {
+        for k in 0..top {
             let (nw, nh) = (src_w.div_ceil(4), src_h.div_ceil(4));
-            let src: &[f32] = levels.last().map_or(padded, |l| &l.1[..]);
-            let mut max = vec![f32::NEG_INFINITY; nw * nh];
-            for r in 0..src_h {
-                for c in 0..src_w {
-                    let m = &mut max[(r / 4) * nw + c / 4];
-                    *m = m.max(src[r * src_w + c]);
+            let (done, rest) = self.levels.split_at_mut(k);
+            let src: &[f32] = done.last().map_or(padded, |l| &l.1[..]);
+            let (lw, max) = &mut rest[0];
+            *lw = nw;
+            max.clear();
+            max.resize(nw * nh, f32::NEG_INFINITY);
+            for (r, row) in src.chunks_exact(src_w).take(src_h).enumerate() {
+                let out = &mut max[(r / 4) * nw..][..nw];
+                for (m, q) in out.iter_mut().zip(row.chunks(4)) {
+                    *m = q.iter().fold(*m, |a, &v| a.max(v));
                 }
             }
-            levels.push((nw, max));
             (src_w, src_h) = (nw, nh);
         }
-        PadPyramid { levels }
     }
 
     /// The largest padded height in columns `c0..=c1`, rows `r0..=r1`, read at `level`.
@@ -272,7 +276,7 @@ impl StripMarch {
     }
 
     /// [`StripMarch::with_cuts_about`] with no padded rows yet: the pieces, spans and culls
-    /// alone, for a caller that makes the rows of each band it runs ([`StripMarch::rows`]).
+    /// alone, for a caller that makes the rows of each band it runs ([`StripMarch::fill_window`]).
     pub(crate) fn without_rows(
         grid: &Grid<'_>,
         dirs: &[(f64, f64)],
@@ -325,46 +329,55 @@ impl StripMarch {
     }
 
     /// Padded rows `ra..rb` of `grid` (and their block and cell maxima), replacing any held.
+    /// The allocations held are kept: a window made again per azimuth costs no page faults.
     pub(crate) fn fill_rows(&mut self, grid: &Grid<'_>, ra: usize, rb: usize) {
         let (w, pad, pw) = (grid.width, self.pad, self.pw);
         let ph = rb - ra;
         let reference = self.reference;
-        let mut padded = vec![0f32; pw * ph];
+        let mut padded = std::mem::take(&mut self.padded);
+        padded.clear();
+        padded.resize(pw * ph, 0.0);
+        // The map's own columns are a run of each padded row (pad .. pad + W); only the
+        // padding goes through the edge rule.
         let xs = padded_columns(grid, pad, pw);
         for (r, out) in padded.chunks_exact_mut(pw).enumerate() {
             let src = &grid.heights[padded_row(grid, pad, ra + r) * w..][..w];
-            for (o, &x) in out.iter_mut().zip(&xs) {
-                *o = (f64::from(src[x]) - reference) as f32;
+            let centred = |v: f32| (f64::from(v) - reference) as f32;
+            for (o, &v) in out[pad..pad + w].iter_mut().zip(src) {
+                *o = centred(v);
+            }
+            for c in (0..pad).chain(pad + w..pw) {
+                out[c] = centred(src[xs[c]]);
             }
         }
-        self.blocks = PadPyramid::new(&padded, pw, ph, Self::levels(pad));
-        self.cmax = Vec::new();
+        self.blocks.fill(&padded, pw, ph, Self::levels(pad));
+        let mut cmax = std::mem::take(&mut self.cmax);
+        cmax.clear();
         if self.cells {
-            let mut cmax = vec![f32::INFINITY; pw * ph];
+            cmax.resize(pw * ph, f32::INFINITY);
             for r in 0..ph.saturating_sub(1) {
                 let (a, b) = (&padded[r * pw..][..pw], &padded[(r + 1) * pw..][..pw]);
-                for (c, m) in cmax[r * pw..][..pw - 1].iter_mut().enumerate() {
+                let out = &mut cmax[r * pw..][..pw - 1];
+                for (c, m) in out.iter_mut().enumerate() {
                     *m = a[c].max(a[c + 1]).max(b[c]).max(b[c + 1]);
                 }
             }
-            self.cmax = cmax;
         }
+        self.cmax = cmax;
         self.padded = padded;
         self.r0 = ra;
     }
 
-    /// The march over texel rows `y0..y1` alone: the padded rows their rays read (`y0 ..
-    /// y1 + 2·pad + 1`), with the same pieces. Every lane of those rows gets the bits of the
+    /// Makes this the march over texel rows `y0..y1` alone: the padded rows their rays read
+    /// (`y0 .. y1 + 2·pad + 1`), with the same pieces. Every lane of those rows gets the bits of the
     /// whole map's march: the heights are the same, and the block maxima only cull what a
     /// piece's own cull would (see [`StripMarch::culled`]), whatever the blocks' alignment.
-    pub(crate) fn rows(&self, grid: &Grid<'_>, y0: usize, y1: usize) -> StripMarch {
-        let mut m = self.clone_light();
-        m.fill_rows(grid, y0, (y1 + 2 * self.pad + 1).min(self.padded_rows(grid)));
-        m
+    pub(crate) fn fill_window(&mut self, grid: &Grid<'_>, y0: usize, y1: usize) {
+        self.fill_rows(grid, y0, (y1 + 2 * self.pad + 1).min(self.padded_rows(grid)));
     }
 
     /// A copy without the rows (the `Arc`s shared).
-    fn clone_light(&self) -> StripMarch {
+    pub(crate) fn clone_light(&self) -> StripMarch {
         StripMarch {
             segs: Arc::clone(&self.segs),
             s_cut: self.s_cut,

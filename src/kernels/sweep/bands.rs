@@ -141,7 +141,7 @@ impl Sweep<'_> {
     /// plane) and the point at R as a floor for the near field, then sin α, handed to
     /// `put(strip, sines)` (lanes past the row's end unspecified). `hs` and `h0` are the row's
     /// [`Sweep::row_heights`]; `near` the kernel's near field or a window of it holding row
-    /// `y` ([`NearField::rows`]). What the bands and the azimuth-major planes
+    /// `y` ([`NearField::refill`]). What the bands and the azimuth-major planes
     /// ([`Sweep::planes`]) share, so both give the same bits.
     #[allow(clippy::too_many_arguments)] // the row, its bin, its inputs and where it goes
     #[inline(always)]

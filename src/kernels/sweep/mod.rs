@@ -62,10 +62,10 @@ pub const SUB: usize = 3;
 /// Whether the far field also samples halfway between major grid lines; off by measurement
 /// (docs/sweep.md, "Constants").
 pub const MIDS: bool = false;
-/// Rows per window of the near field's tables in [`Sweep::planes`] (they read 37 more): the
-/// whole map's are 12 bytes a texel, a window's at 8192 columns 13 MB, and made again per
-/// azimuth they cost about as much as the rows they read (docs/sweep.md, "Memory without a
-/// table").
+/// Rows per window of the near field's tables in [`Sweep::planes`] (a window reads 2·pad + 1
+/// more, 37 at 16 steps): the whole map's tables are 12 bytes a texel, a window's at 8192
+/// columns about 30 MB. Fewer rows would make the overlap, remade with every chunk of
+/// azimuths, a larger share (docs/sweep.md, "Memory without a table", has the cost).
 pub const NEAR_WINDOW_ROWS: usize = 256;
 
 /// The sweep kernel prepared for one grid.
@@ -93,6 +93,10 @@ pub struct Sweep<'a> {
     holes: Option<Holes<'a>>,
     /// Each bin's lines, for the azimuth-major planes ([`Sweep::planes`]).
     lines_of: Vec<Lines>,
+    /// Windows of the near field's rows ([`NearField::window`]) that [`Sweep::planes`]' threads
+    /// fill group after group and hand back, so a window's tables are allocated once per
+    /// thread rather than once per azimuth; emptied when the planes end.
+    windows: Mutex<Vec<NearField<'a>>>,
 }
 
 /// What the bands need near nodata holes: the exact walk over the near field's reach, which
@@ -364,6 +368,7 @@ impl<'a> Sweep<'a> {
             wide: fast,
             holes: None,
             lines_of,
+            windows: Mutex::new(Vec::new()),
         }
     }
 

@@ -39,11 +39,16 @@ impl Sweep<'_> {
         S: Fn(usize, usize, &[f32]) + Sync,
     {
         #[cfg(target_arch = "x86_64")]
-        if self.wide {
+        let out = if self.wide {
             // SAFETY: `wide` only where the CPU has AVX-512F (see `Sweep::with_options`).
-            return unsafe { self.planes_avx512(band, progress, &sink) };
-        }
-        self.planes_body(band, progress, &sink)
+            unsafe { self.planes_avx512(band, progress, &sink) }
+        } else {
+            self.planes_body(band, progress, &sink)
+        };
+        #[cfg(not(target_arch = "x86_64"))]
+        let out = self.planes_body(band, progress, &sink);
+        self.windows.lock().unwrap_or_else(|e| e.into_inner()).clear();
+        out
     }
 
     /// [`Sweep::planes_body`] compiled for AVX-512 (the join, as [`Sweep::rows`] is).
@@ -142,7 +147,7 @@ impl Sweep<'_> {
     /// Bands `bands` of every bin of `chunk` from their far-field rows (`far(k, y0, rows)`:
     /// rows `y0 ..` of `chunk[k]`'s plane), on the pool, handed to `sink` band by band and bin
     /// by bin in `chunk`'s order. The near field's tables are made per group of bands
-    /// ([`Sweep::group_bands`]) for the rows it reads ([`NearField::rows`]), and let go after
+    /// ([`Sweep::group_bands`]) for the rows it reads ([`NearField::refill`]), and let go after
     /// it: the kernel never holds the whole map's (12 bytes a texel).
     #[allow(clippy::too_many_arguments)] // the bins, the rows and where they go
     #[inline(always)]
@@ -170,7 +175,9 @@ impl Sweep<'_> {
                 if canceled() {
                     return Err(Error::Canceled);
                 }
-                let near = self.near.rows(g.start * band, (g.end * band).min(h));
+                let pool = || self.windows.lock().unwrap_or_else(|e| e.into_inner());
+                let mut near = pool().pop().unwrap_or_else(|| self.near.window());
+                near.refill(g.start * band, (g.end * band).min(h));
                 for b in g {
                     let y0 = b * band;
                     let rows = band.min(h - y0);
@@ -181,6 +188,7 @@ impl Sweep<'_> {
                         progress.advance(rows as u64);
                     }
                 }
+                pool().push(near);
                 Ok(())
             },
         )
