@@ -166,10 +166,9 @@ pub struct RayProducts {
     pub insolation: Option<Vec<f32>>,
 }
 
-/// What the ray products of a map or a tile's window share: the exact kernel over its grid,
-/// the compass over it, whether compass bands are true azimuths, holes and nodata.
+/// What the rays of a map or a tile's window share: its grid, the compass over it, whether
+/// compass bands are true azimuths, holes and nodata.
 pub struct RaySet<'a> {
-    pub kernel: &'a kernels::exact::ExactHorizon<'a>,
     pub grid: Grid<'a>,
     pub compass: &'a Compass,
     pub true_bands: bool,
@@ -178,14 +177,54 @@ pub struct RaySet<'a> {
 }
 
 impl RaySet<'_> {
+    /// The rays a terrain bake casts of its own, of the grid's `rows` (every column): `angles`
+    /// in true compass bands (when `true_bands` and asked; band-major, `None` otherwise) and
+    /// the [`RayProducts`]. The exact ray kernel ([`ray_kernel`]) is built only when one of
+    /// them is asked ([`needs_rays`]). The one place [`super::bake_terrain`] and
+    /// [`super::bake_terrain_window`] cast rays, so the two cannot differ.
+    ///
+    /// # Errors
+    /// As [`RaySet::products`].
+    pub fn cast<I: Iterator<Item = f32>>(
+        &self,
+        params: &BakeParams,
+        radius: u32,
+        rows: std::ops::Range<usize>,
+        metres: impl FnOnce() -> I,
+        centre: Option<(f64, f64)>,
+        progress: &Progress,
+    ) -> Result<(Option<Vec<f32>>, RayProducts)> {
+        if !needs_rays(params, self.true_bands) {
+            return Ok((None, RayProducts::default()));
+        }
+        let k = ray_kernel(self.grid, params, radius, self.holes);
+        let angles = match params.outputs.angles && self.true_bands {
+            true => Some(true_north_angles(
+                &k,
+                params,
+                self.compass,
+                rows.clone(),
+                self.holes,
+                self.nodata,
+                progress,
+            )?),
+            false => None,
+        };
+        let more = self.products(&k, params, radius, rows, metres, centre, progress)?;
+        Ok((angles, more))
+    }
+
     /// `horizon_distance`, `openness`, `sun_hours` and `insolation` of the grid's `rows` (every
-    /// column), as `params.outputs` asks; `metres` gives the heights in metres (for the air
-    /// pressure), `centre` the map's centre (the sun's default place).
+    /// column) by the ray kernel `kernel`, as `params.outputs` asks; `metres` gives the
+    /// heights in metres (for the air pressure), `centre` the map's centre (the sun's default
+    /// place).
     ///
     /// # Errors
     /// [`crate::Error::Canceled`] and the products' refusals.
-    pub fn products<I: Iterator<Item = f32>>(
+    #[allow(clippy::too_many_arguments)] // the kernel, the rows and what the sun needs
+    fn products<I: Iterator<Item = f32>>(
         &self,
+        kernel: &kernels::exact::ExactHorizon<'_>,
         params: &BakeParams,
         radius: u32,
         rows: std::ops::Range<usize>,
@@ -198,7 +237,7 @@ impl RaySet<'_> {
         let bands = self.true_bands.then_some(self.compass);
         let distance = match o.horizon_distance {
             true => Some(horizon_distances(
-                self.kernel,
+                kernel,
                 params,
                 bands,
                 rows.clone(),
@@ -224,7 +263,7 @@ impl RaySet<'_> {
             let (suns, step_hours) = sun_steps(params, centre)?;
             let metres: Vec<f32> = metres().collect();
             sun_planes(
-                self.kernel,
+                kernel,
                 &self.grid,
                 params,
                 self.compass,
@@ -335,14 +374,14 @@ pub(super) fn sun_steps(
 /// Whether a terrain bake casts rays of its own ([`ray_kernel`]): `angles` in true compass
 /// bands (`true_bands`), or any of the ray products. Otherwise the kernel is never built (its
 /// padded copy of the map is a few bytes a texel, of a bake that would not read it).
-pub(super) fn needs_rays(params: &BakeParams, true_bands: bool) -> bool {
+fn needs_rays(params: &BakeParams, true_bands: bool) -> bool {
     let o = params.outputs;
     (o.angles && true_bands) || o.horizon_distance || o.openness || o.sun_hours || o.insolation
 }
 
 /// The exact kernel of the per-texel rays: the bake's radius (none at `unlimited`), curvature
 /// and holes.
-pub(super) fn ray_kernel<'a>(
+fn ray_kernel<'a>(
     grid: Grid<'a>,
     params: &BakeParams,
     radius: u32,
@@ -363,7 +402,7 @@ pub(super) fn ray_kernel<'a>(
 ///
 /// # Errors
 /// [`crate::Error::Canceled`].
-pub(super) fn true_north_angles(
+fn true_north_angles(
     k: &kernels::exact::ExactHorizon<'_>,
     params: &BakeParams,
     compass: &Compass,
