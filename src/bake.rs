@@ -809,7 +809,9 @@ pub fn bake_fourier(
 mod terrain;
 use terrain::azimuth_major;
 pub use terrain::MAX_ANGLE_VALUES;
-pub use terrain::{bake_terrain, bake_terrain_window, TerrainProducts, WindowPlace};
+pub use terrain::{
+    bake_terrain, bake_terrain_from, bake_terrain_window, TerrainProducts, WindowPlace,
+};
 
 mod surface;
 use surface::SurfaceTap;

@@ -141,8 +141,14 @@ impl HeightMap {
 
     /// Heights in texel units, scaled in place: the same values as [`HeightMap::scaled`] without
     /// a second full-size buffer (an 8192² map is 256 MiB of f32).
-    pub fn into_scaled(self, height_scale: f64) -> Vec<f32> {
-        let mut values = self.values;
+    pub fn into_scaled(mut self, height_scale: f64) -> Vec<f32> {
+        self.take_scaled(height_scale)
+    }
+
+    /// [`HeightMap::into_scaled`] that keeps the rest of the map (its size, georeferencing,
+    /// holes): the values are taken out, scaled in place and returned; `values` is left empty.
+    pub fn take_scaled(&mut self, height_scale: f64) -> Vec<f32> {
+        let mut values = std::mem::take(&mut self.values);
         for v in &mut values {
             *v = (*v as f64 * height_scale) as f32;
         }

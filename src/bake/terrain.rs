@@ -51,19 +51,36 @@ pub fn bake_terrain(
     params: &BakeParams,
     progress: &Progress,
 ) -> Result<(TerrainProducts, ResolvedRadius)> {
+    check_angles(map, params)?;
+    bake_terrain_from(map, map.scaled(params.height_scale), params, progress)
+}
+
+/// [`bake_terrain`] from the map's heights already scaled: `heights` is
+/// `map.scaled(params.height_scale)`, bit for bit. A caller done with the map's values hands
+/// them over scaled in place ([`HeightMap::take_scaled`]), so the bake holds one copy of the
+/// map rather than two (an 8192² DEM: 256 MiB). `map.values` is read again only for the sun
+/// products' heights in metres, so with `sun_hours` or `insolation` it must still hold them.
+///
+/// # Errors
+/// As [`bake_terrain`]; [`crate::Error::Internal`] when `heights` is not the map's size, or
+/// the sun products are asked of a map whose values were taken.
+pub fn bake_terrain_from(
+    map: &HeightMap,
+    heights: Vec<f32>,
+    params: &BakeParams,
+    progress: &Progress,
+) -> Result<(TerrainProducts, ResolvedRadius)> {
     let (w, h) = (map.width, map.height);
     let nb = params.bins as usize;
-    if params.outputs.angles && (w * h) as u64 * nb as u64 > MAX_ANGLE_VALUES {
-        return Err(crate::Error::param(
-            "bins",
-            format!(
-                "angles of a {w}×{h} map at {nb} bins are {} values, above the limit of \
-                 {MAX_ANGLE_VALUES}; use fewer bins or a smaller map",
-                (w * h) as u64 * nb as u64
-            ),
-        ));
+    check_angles(map, params)?;
+    let values = if params.outputs.sun() { map.values.len() } else { w * h };
+    if heights.len() != w * h || values != w * h {
+        return Err(crate::Error::Internal(format!(
+            "a {w}×{h} terrain bake was given {} heights and {} values",
+            heights.len(),
+            map.values.len()
+        )));
     }
-    let heights = map.scaled(params.height_scale);
     check_scaled(&heights)?;
     let radius = resolve_radius(params, w, h, &heights);
     let grid = Grid::new(w, h, &heights, params.edge, params.y_axis);
@@ -117,6 +134,22 @@ pub fn bake_terrain(
         nodata,
     };
     Ok((products, radius))
+}
+
+/// Refuses `angles` that would not fit ([`MAX_ANGLE_VALUES`]), before anything is made.
+fn check_angles(map: &HeightMap, params: &BakeParams) -> Result<()> {
+    let (w, h, nb) = (map.width, map.height, params.bins as usize);
+    if params.outputs.angles && (w * h) as u64 * nb as u64 > MAX_ANGLE_VALUES {
+        return Err(crate::Error::param(
+            "bins",
+            format!(
+                "angles of a {w}×{h} map at {nb} bins are {} values, above the limit of \
+                 {MAX_ANGLE_VALUES}; use fewer bins or a smaller map",
+                (w * h) as u64 * nb as u64
+            ),
+        ));
+    }
+    Ok(())
 }
 
 /// Where a window lies in the map its georeferencing describes: its first texel and the map's

@@ -124,7 +124,7 @@ pub fn surface_keep(params: &BakeParams, formats: &Formats) -> bake::Surface {
 /// # Errors
 /// [`Error::Canceled`] when `progress` is canceled, the kernels', encoders' and sink's errors.
 pub fn produce<S: Sink>(
-    map: HeightMap,
+    mut map: HeightMap,
     params: &BakeParams,
     formats: &Formats,
     progress: &Progress,
@@ -137,7 +137,13 @@ pub fn produce<S: Sink>(
     let mut terrain = None;
     if params.outputs.terrain() {
         let t = Instant::now();
-        let (files, r, products) = terrain_files(&map, params, progress)?;
+        // Nothing after the terrain products reads the map's values when they are the only
+        // outputs: the bake takes them, scaled in place (one copy of the map, not two). The
+        // sun products read them in metres.
+        let o = params.outputs;
+        let sole = !(o.horizon || o.fourier || o.surface() || o.sun());
+        let heights = sole.then(|| map.take_scaled(params.height_scale));
+        let (files, r, products) = terrain_files(&map, heights, params, progress)?;
         let bake_ms = ms(t);
         store_ms += keep(sink, files, &mut names)?;
         terrain = Some((r, products, bake_ms));

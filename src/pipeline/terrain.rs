@@ -7,17 +7,22 @@ use crate::terrain::sun::{SunAzimuth, SunQuery};
 
 /// Bakes the terrain products `params.outputs` asks for into GeoTIFFs (SPEC §3.7): `angles.tif`
 /// (one band per bin) and `svf.tif`, with the input's georeferencing; and what they hold, for
-/// bake.json.
+/// bake.json. `heights`: the map's heights scaled, when the caller took them out of the map
+/// ([`bake::bake_terrain_from`]); else they are scaled from a copy.
 ///
 /// # Errors
 /// Whatever the bake or the GeoTIFF encoder fails with.
 pub fn terrain_files(
     map: &HeightMap,
+    heights: Option<Vec<f32>>,
     params: &BakeParams,
     progress: &Progress,
 ) -> Result<(Vec<OutFile>, ResolvedRadius, serde_json::Value)> {
     use crate::encode::geotiff;
-    let (p, radius) = bake::bake_terrain(map, params, progress)?;
+    let (p, radius) = match heights {
+        Some(heights) => bake::bake_terrain_from(map, heights, params, progress)?,
+        None => bake::bake_terrain(map, params, progress)?,
+    };
     progress.start(Stage::Encode, 1);
     let georef = map.terrain.georef.as_ref();
     let plane = p.width * p.height;

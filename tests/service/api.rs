@@ -957,7 +957,8 @@ async fn openness_over_http() {
     let (map, _) =
         horizon_bake::heightmap::decode(&png, params.channel, &Default::default()).unwrap();
     let progress = horizon_bake::progress::Progress::new();
-    let (want, _, _) = horizon_bake::pipeline::terrain_files(&map, &params, &progress).unwrap();
+    let (want, _, _) =
+        horizon_bake::pipeline::terrain_files(&map, None, &params, &progress).unwrap();
     assert_eq!(want.len(), 2);
     let loc = submit_ok(&c, &srv, &png, &format!("?{q}")).await;
     let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
@@ -998,7 +999,8 @@ async fn sun_hours_and_insolation_over_http() {
     let (map, _) =
         horizon_bake::heightmap::decode(&png, params.channel, &Default::default()).unwrap();
     let progress = horizon_bake::progress::Progress::new();
-    let (want, _, _) = horizon_bake::pipeline::terrain_files(&map, &params, &progress).unwrap();
+    let (want, _, _) =
+        horizon_bake::pipeline::terrain_files(&map, None, &params, &progress).unwrap();
     assert_eq!(want.len(), 2);
     let loc = submit_ok(&c, &srv, &png, &format!("?{q}")).await;
     let v = wait_done(&c, &srv.url(&loc), Duration::from_secs(60)).await;
@@ -1046,7 +1048,8 @@ async fn terrain_products_over_http() {
     let (map, _) =
         horizon_bake::heightmap::decode(&png, params.channel, &Default::default()).unwrap();
     let progress = horizon_bake::progress::Progress::new();
-    let (want, _, _) = horizon_bake::pipeline::terrain_files(&map, &params, &progress).unwrap();
+    let (want, _, _) =
+        horizon_bake::pipeline::terrain_files(&map, None, &params, &progress).unwrap();
     let res = c
         .post(srv.url(&format!("/v1/bakes?{q}")))
         .header("content-type", "image/png")

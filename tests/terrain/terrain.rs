@@ -749,3 +749,45 @@ fn svf_at_360_azimuths_needs_no_temporary_file() {
     let err = String::from_utf8_lossy(&tilted.stderr);
     assert!(!tilted.status.success() && err.contains("far field on disk"), "{err}");
 }
+
+/// A terrain bake handed the map's values scaled in place (`take_scaled`, what the pipeline
+/// does when the terrain products are the only outputs) gives the bits of the bake that scales
+/// a copy, for `sweep`'s planes and `exact`'s rows, with holes; and a bake that would read the
+/// taken values (the sun products' heights in metres) is refused rather than run on nothing.
+#[test]
+fn a_bake_of_taken_values_gives_the_bits_of_a_copy() {
+    for method in ["sweep", "exact"] {
+        let p = params(&[
+            ("method", method),
+            ("radius", "unlimited"),
+            ("edge", "none"),
+            ("height_scale", "1"),
+            ("outputs", "angles,svf"),
+            ("bins", "16"),
+        ]);
+        let map = towered(true);
+        let (want, _) = bake::bake_terrain(&map, &p, &Progress::new()).unwrap();
+        let mut taken = map.clone();
+        let heights = taken.take_scaled(p.height_scale);
+        assert_eq!(heights, map.scaled(p.height_scale));
+        assert!(taken.values.is_empty());
+        let (got, _) = bake::bake_terrain_from(&taken, heights, &p, &Progress::new()).unwrap();
+        let bits = |v: &Option<Vec<f32>>| {
+            v.as_ref().unwrap().iter().map(|x| x.to_bits()).collect::<Vec<_>>()
+        };
+        assert_eq!(bits(&got.angles), bits(&want.angles), "{method} angles");
+        assert_eq!(bits(&got.svf), bits(&want.svf), "{method} svf");
+    }
+    let p = params(&[
+        ("method", "exact"),
+        ("height_scale", "1"),
+        ("outputs", "sun_hours"),
+        ("date", "2026-06-21"),
+        ("latitude", "46"),
+        ("longitude", "7"),
+    ]);
+    let mut taken = towered(false);
+    let heights = taken.take_scaled(p.height_scale);
+    let e = bake::bake_terrain_from(&taken, heights, &p, &Progress::new()).unwrap_err();
+    assert!(matches!(e, horizon_bake::Error::Internal(_)), "{e:?}");
+}
