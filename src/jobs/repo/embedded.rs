@@ -44,6 +44,17 @@ struct Mem {
     tiles: BTreeMap<String, Vec<(TileRecord, bool)>>,
 }
 
+/// The tile `claim` still holds: running, at the claim's attempt, by its worker (the fencing
+/// check of a tile's heartbeat and of its completion); `None` once it lost the tile.
+fn held_tile<'m>(mem: &'m mut Mem, claim: &TileClaim) -> Option<&'m mut (TileRecord, bool)> {
+    let tiles = mem.tiles.get_mut(&claim.bake_id)?;
+    tiles.iter_mut().find(|(t, _)| t.index == claim.index).filter(|(t, _)| {
+        t.status == Status::Running
+            && t.attempts == claim.attempt
+            && t.worker.as_deref() == Some(claim.worker.as_str())
+    })
+}
+
 fn cancel_tiles_in(mem: &mut Mem, id: &str) {
     if let Some(ts) = mem.tiles.get_mut(id) {
         for (t, cancel) in ts {
@@ -590,19 +601,9 @@ impl JobRepo for EmbeddedRepo {
         let claim = claim.clone();
         self.with_mem(move |g| {
             let bake_stop = g.claims.get(&claim.bake_id).is_none_or(|c| c.2);
-            let tile = g
-                .tiles
-                .get(&claim.bake_id)
-                .and_then(|ts| ts.iter().find(|(t, _)| t.index == claim.index));
-            match tile {
-                Some((t, cancel))
-                    if t.status == Status::Running
-                        && t.attempts == claim.attempt
-                        && t.worker.as_deref() == Some(claim.worker.as_str()) =>
-                {
-                    Beat::Alive { cancel: *cancel || bake_stop }
-                }
-                _ => Beat::Lost,
+            match held_tile(g, &claim) {
+                Some((_, cancel)) => Beat::Alive { cancel: *cancel || bake_stop },
+                None => Beat::Lost,
             }
         })
         .await
@@ -619,16 +620,8 @@ impl JobRepo for EmbeddedRepo {
             .with_mem(move |g| {
                 let claim = &c;
                 let owner = claim.owner();
-                let slot = g
-                    .tiles
-                    .get_mut(&claim.bake_id)
-                    .and_then(|ts| ts.iter_mut().find(|(t, _)| t.index == claim.index));
-                match slot {
-                    Some((t, cancel))
-                        if t.status == Status::Running
-                            && t.attempts == claim.attempt
-                            && t.worker.as_deref() == Some(claim.worker.as_str()) =>
-                    {
+                match held_tile(g, claim) {
+                    Some((t, cancel)) => {
                         *t = outcome.apply(t.clone(), claim, max_attempts);
                         *cancel = false;
                         let results: Vec<String> = t.results.values().cloned().collect();
