@@ -5,9 +5,9 @@
 use super::*;
 
 /// The sums of a far-field plane (`acc` if `via_acc`, else already in `out`; see
-/// [`SumLayout`]) divided by their weights where a role missed (`miss`), into `out` in the
-/// image layout, or band by band to `emit` (the sweeps along x only); `acc` and `miss` are
-/// left all zeros for the next plane. Along x, the sums are transposed 16×16 texels at a time
+/// [`SumLayout`]) divided by their weights where a role missed (`miss`, emptied), into `out`
+/// in the image layout, or band by band to `emit` (the sweeps along x only); `acc` is left
+/// all zeros for the next plane. Along x, the sums are transposed 16×16 texels at a time
 /// in registers (the scalar transpose was 4–5 % of a bake's profile).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
@@ -18,7 +18,7 @@ pub(super) unsafe fn finish_avx512(
     lay: SumLayout,
     emit: Option<Emit<'_>>,
     acc: &mut [f32],
-    miss: &mut [f32],
+    miss: &mut Vec<Miss>,
     out: &mut [f32],
     w: usize,
     h: usize,
@@ -26,6 +26,7 @@ pub(super) unsafe fn finish_avx512(
     use std::arch::x86_64::*;
     // Helpers, not closures: a closure is compiled without the function's target features.
     let mask = |n: usize| if n >= 16 { 0xffff } else { ((1u32 << n) - 1) as u16 };
+    apply_misses(miss, if via_acc { &mut *acc } else { &mut *out });
     if let (true, Some(emit)) = (major_x, emit) {
         // Transposed and normalised a band of rows at a time, each band handed on: no plane
         // in the image layout is ever whole. A band's rows lie in one chunk of the sums.
@@ -34,7 +35,7 @@ pub(super) unsafe fn finish_avx512(
             let ny = EMIT_ROWS.min(h - y0);
             for x0 in (0..w).step_by(16) {
                 let nx = 16.min(w - x0);
-                let t = take_block(lay, acc, miss, x0, y0, nx, ny, h);
+                let t = take_block(lay, acc, x0, y0, nx, ny, h);
                 for (j, &v) in t.iter().enumerate().take(ny) {
                     _mm512_mask_storeu_ps(buf.as_mut_ptr().add(j * w + x0), mask(nx), v);
                 }
@@ -47,7 +48,7 @@ pub(super) unsafe fn finish_avx512(
             let nx = 16.min(w - x0);
             for y0 in (0..h).step_by(16) {
                 let ny = 16.min(h - y0);
-                let t = take_block(lay, acc, miss, x0, y0, nx, ny, h);
+                let t = take_block(lay, acc, x0, y0, nx, ny, h);
                 for (j, &v) in t.iter().enumerate().take(ny) {
                     _mm512_mask_storeu_ps(op.add((y0 + j) * w + x0), mask(nx), v);
                 }
@@ -58,39 +59,44 @@ pub(super) unsafe fn finish_avx512(
         for y in 0..h {
             for x0 in (0..w).step_by(16) {
                 let n = 16.min(w - x0);
-                let v = take16(acc, miss, lay.at(y * lay.row(w), x0), n);
+                let v = take16(acc, lay.at(y * lay.row(w), x0), n);
                 _mm512_mask_storeu_ps(out.as_mut_ptr().add(y * w + x0), mask(n), v);
             }
         }
-    } else {
-        for (o, ws) in out.iter_mut().zip(miss.iter_mut()) {
-            if *ws > 0.0 {
-                *o /= *ws;
-            }
-            *ws = 0.0;
+    }
+}
+
+/// Divides each missed texel's sum by the weight of its roles that may have found something
+/// (its entries' `wt` added, 0 first: at most two a texel, so in any order the same bits), where
+/// that weight is above 0, and empties the list.
+fn apply_misses(miss: &mut Vec<Miss>, sums: &mut [f32]) {
+    miss.sort_unstable_by_key(|m| m.at);
+    let mut k = 0;
+    while k < miss.len() {
+        let at = miss[k].at;
+        let mut ws = 0.0f32;
+        while k < miss.len() && miss[k].at == at {
+            ws += miss[k].wt;
+            k += 1;
+        }
+        if ws > 0.0 {
+            sums[at] /= ws;
         }
     }
+    miss.clear();
 }
 
 /// The normalised sums of 16 texels at `o` (the first `n`; the rest 0), cleared.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 #[inline]
-pub(super) unsafe fn take16(
-    acc: &mut [f32],
-    miss: &mut [f32],
-    o: usize,
-    n: usize,
-) -> std::arch::x86_64::__m512 {
+pub(super) unsafe fn take16(acc: &mut [f32], o: usize, n: usize) -> std::arch::x86_64::__m512 {
     use std::arch::x86_64::*;
-    let zero = _mm512_setzero_ps();
     let m = if n >= 16 { 0xffff } else { ((1u32 << n) - 1) as u16 };
-    let (pa, pm) = (acc.as_mut_ptr().add(o), miss.as_mut_ptr().add(o));
-    let (a, ws) = (_mm512_maskz_loadu_ps(m, pa), _mm512_maskz_loadu_ps(m, pm));
-    _mm512_mask_storeu_ps(pa, m, zero);
-    _mm512_mask_storeu_ps(pm, m, zero);
-    let div = _mm512_cmp_ps_mask::<_CMP_GT_OQ>(ws, zero);
-    _mm512_mask_div_ps(a, div, a, ws)
+    let pa = acc.as_mut_ptr().add(o);
+    let a = _mm512_maskz_loadu_ps(m, pa);
+    _mm512_mask_storeu_ps(pa, m, _mm512_setzero_ps());
+    a
 }
 
 /// Along x: the normalised sums of columns x0 .. x0 + `nx` and rows y0 .. y0 + `ny` (minor
@@ -102,7 +108,6 @@ pub(super) unsafe fn take16(
 pub(super) unsafe fn take_block(
     lay: SumLayout,
     acc: &mut [f32],
-    miss: &mut [f32],
     x0: usize,
     y0: usize,
     nx: usize,
@@ -112,7 +117,7 @@ pub(super) unsafe fn take_block(
     use std::arch::x86_64::*;
     let mut r = [_mm512_setzero_ps(); 16];
     for (i, v) in r.iter_mut().enumerate().take(nx) {
-        *v = take16(acc, miss, lay.at((x0 + i) * lay.row(h), y0), ny);
+        *v = take16(acc, lay.at((x0 + i) * lay.row(h), y0), ny);
     }
     transpose16(r)
 }
@@ -224,8 +229,8 @@ pub(super) unsafe fn unpack(
 /// `G` groups of up to 16 lines of a family (group g: lines `gs[g].0 ..` `+ gs[g].1`, its
 /// tangents into batch slot `slot0 + g`; a group of 0 lines does nothing), swept in lockstep:
 /// the suffix (or whole-line) pass right to left, then with a finite window the prefix pass
-/// left to right, the weighted tangents into the slots (and the missing weights into
-/// `sc.miss`; major-line layout) by [`add_batch_avx512`].
+/// left to right, the weighted tangents into the slots (and the texels whose role found
+/// nothing listed in `sc.miss`) by [`add_batch_avx512`].
 ///
 /// Each lane's hull is a stack: the three vertices nearest the sweep's position in registers
 /// (t1, t2, t3: column and height), the rest in memory by depth ([`Scratch::st`], a region
@@ -887,7 +892,7 @@ pub(super) unsafe fn groups_avx512<const G: usize>(
 /// neighbours across the lines, so at each column they add into one run of the row: one page
 /// and a few adjacent cache lines for the whole batch. A texel's two roles weigh 1 in all, so
 /// only when a role finds nothing ahead (rare) is the other's weight, then the texel's whole
-/// valid weight, kept (`miss`; both missing sum to 1 over a sum of 0).
+/// valid weight, listed (`miss`; both missing sum to 1 over a sum of 0).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 pub(super) unsafe fn add_batch_avx512(
@@ -896,7 +901,7 @@ pub(super) unsafe fn add_batch_avx512(
     slot0: usize,
     sums: &mut [f32],
     sb: &[f32],
-    miss: &mut [f32],
+    miss: &mut Vec<Miss>,
 ) {
     use std::arch::x86_64::*;
     let ninf = _mm512_set1_ps(f32::NEG_INFINITY);
@@ -930,7 +935,12 @@ pub(super) unsafe fn add_batch_avx512(
                 add_lanes(f, q, b0, got, _mm512_mul_ps(wt, res), sums);
             }
             if tm & !got != 0 {
-                add_lanes(f, q, b0, tm & !got, _mm512_set1_ps(qc.other), miss);
+                let (runs, n) = lane_runs(f, b0, tm & !got);
+                for &(mm, o) in &runs[..n] {
+                    let at = f.abase[q as usize] as isize + o;
+                    let lanes = (0..16).filter(|l| mm >> l & 1 == 1);
+                    miss.extend(lanes.map(|l| Miss { at: (at + l) as usize, wt: qc.other }));
+                }
             }
         }
     }
@@ -950,31 +960,42 @@ pub(super) unsafe fn add_lanes(
 ) {
     use std::arch::x86_64::*;
     let base = f.abase[q as usize] as isize;
-    // Lanes b0 + l ≥ hb (only with `edge=wrap`) belong hb earlier.
+    let (runs, n) = lane_runs(f, b0, m);
+    for &(mm, o) in &runs[..n] {
+        // Masked lanes are neither read nor written, so the pointer may point before the
+        // slice for lanes that are masked off.
+        let p = dst.as_mut_ptr().wrapping_offset(base + o);
+        let old = _mm512_maskz_loadu_ps(mm, p);
+        _mm512_mask_storeu_ps(p, mm, _mm512_add_ps(old, v));
+    }
+}
+
+/// Where the lanes of `m` (texels b0 + lane of a query column) lie in the sums: up to four
+/// runs (mask, offset of lane 0 from the column's base), none empty, the first `n` of them.
+/// With `edge=wrap` the lanes b0 + l ≥ hb belong hb earlier; in chunks ([`SumLayout`]), the
+/// lanes from the next chunk's first texel on are that chunk's.
+#[inline(always)]
+pub(super) fn lane_runs(f: &Family<'_>, b0: i64, m: u16) -> ([(u16, isize); 4], usize) {
     let hi = if b0 + 16 > f.hb { lane_range(b0 - f.hb, f.hb, 16) } else { 0 };
+    let mut runs = [(0u16, 0isize); 4];
+    let mut n = 0;
     for (mm, off) in [(m & !hi, b0), (m & hi, b0 - f.hb)] {
         if mm == 0 {
             continue;
         }
-        // In chunks, the lanes from the next chunk's first texel on are that chunk's.
-        let (runs, n) = if f.lay.chunk == 0 {
-            ([(mm, off as isize), (0, 0)], 1)
+        let parts = if f.lay.chunk == 0 {
+            [(mm, off as isize), (0, 0)]
         } else {
             let (c, r) = (off.div_euclid(SUM_CHUNK as i64), off.rem_euclid(SUM_CHUNK as i64));
             let k = SUM_CHUNK as i64 - r;
             let lo = if k >= 16 { 0xffff } else { ((1u32 << k) - 1) as u16 };
             let at = |c: i64| c as isize * f.lay.chunk as isize + r as isize;
-            ([(mm & lo, at(c)), (mm & !lo, at(c + 1) - SUM_CHUNK as isize)], 2)
+            [(mm & lo, at(c)), (mm & !lo, at(c + 1) - SUM_CHUNK as isize)]
         };
-        for &(mm, o) in &runs[..n] {
-            if mm == 0 {
-                continue;
-            }
-            // Masked lanes are neither read nor written, so the pointer may point before the
-            // slice for lanes that are masked off.
-            let p = dst.as_mut_ptr().wrapping_offset(base + o);
-            let old = _mm512_maskz_loadu_ps(mm, p);
-            _mm512_mask_storeu_ps(p, mm, _mm512_add_ps(old, v));
+        for part in parts.into_iter().filter(|p| p.0 != 0) {
+            runs[n] = part;
+            n += 1;
         }
     }
+    (runs, n)
 }

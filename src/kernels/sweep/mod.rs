@@ -205,7 +205,7 @@ impl<'a> Sweep<'a> {
                          sc: &mut Scratch,
                          fresh: bool| match ml {
             Some(ml) => far_field_fast(&grid, ml, lines, reach, curv, out, sc, None, fresh, None),
-            None => far_field(&grid, lines, reach, curv, out, &mut sc.miss),
+            None => far_field(&grid, lines, reach, curv, out, &mut sc.wsum),
         };
         let failure = Mutex::new(None);
         let failed = AtomicBool::new(false);

@@ -135,7 +135,7 @@ impl Sweep<'_> {
                             None,
                         ),
                         None => {
-                            far_field(&self.grid, lines, self.reach, self.curv, out, &mut sc.miss)
+                            far_field(&self.grid, lines, self.reach, self.curv, out, &mut sc.wsum)
                         }
                     }
                 });

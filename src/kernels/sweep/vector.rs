@@ -99,12 +99,25 @@ pub(super) enum Task<'p> {
     NearTables,
 }
 
+/// A texel of a far-field plane one of whose two roles found nothing ahead: where its sum is
+/// (`at`, in the sums' layout) and the weight of the role that may have found something
+/// (`wt`), by which the sum is divided ([`finish_avx512`]). Only the texels within the near
+/// field's reach of a line's end miss (about `NEAR_STEPS` · (W + H) an azimuth), so they are
+/// listed rather than given a plane of weights, which cost 4 bytes a texel (268 MB at 8192²).
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Miss {
+    pub(super) at: usize,
+    pub(super) wt: f32,
+}
+
 /// Per-thread scratch of [`far_field_fast`].
 #[derive(Default)]
 pub(super) struct Scratch {
-    /// Per texel (major-line layout), when one of its roles found nothing ahead, the other's
-    /// weight (0: none missed, so the weights sum to 1).
-    pub(super) miss: Vec<f32>,
+    /// The texels (index into the sums) one of whose roles found nothing ahead, each with the
+    /// other role's weight ([`Miss`]).
+    pub(super) miss: Vec<Miss>,
+    /// The scalar far field's weight sums ([`super::hull::far_field`]).
+    pub(super) wsum: Vec<f32>,
     /// The hull stacks below their three registers, `st[depth·16 + lane]`: a vertex's column
     /// in the low 32 bits, the bits of its height in the high ones.
     pub(super) st: Vec<i64>,
@@ -118,7 +131,7 @@ pub(super) struct Scratch {
     pub(super) acc: Vec<f32>,
     /// The mirror azimuth's `acc` and `miss`, and its query columns and sums' offsets.
     pub(super) acc2: Vec<f32>,
-    pub(super) miss2: Vec<f32>,
+    pub(super) miss2: Vec<Miss>,
     pub(super) qs2: Vec<QCol>,
     pub(super) abase2: Vec<usize>,
     pub(super) fams: Vec<[(usize, i64, f64); 2]>,
@@ -270,11 +283,9 @@ pub(super) fn far_field_fast(
     for (p, (a, miss)) in
         [(&mut acc, &mut sc.miss), (&mut acc2, &mut sc.miss2)].into_iter().enumerate()
     {
-        if p < planes {
-            miss.resize(plane, 0.0);
-            if via_acc {
-                a.resize(plane, 0.0);
-            }
+        miss.clear();
+        if p < planes && via_acc {
+            a.resize(plane, 0.0);
         }
     }
     sc.st.resize(GROUPS * len as usize * FAR_LANES, 0);
