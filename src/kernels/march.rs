@@ -155,7 +155,7 @@ pub struct March<'a> {
     curv: f64,
     /// With nodata holes: the exact kernel (with the holes) and, per texel, whether a hole lies
     /// within R + 1 (see [`March::with_holes`]).
-    holes: Option<(ExactHorizon<'a>, Vec<bool>)>,
+    holes: Option<(ExactHorizon<'a>, super::Flags)>,
     /// Which bins the reduction reads: all of them, or one per channel for `reduce=point`
     /// (unless the per-bin values are asked for, as the Fourier output does).
     cast: Vec<bool>,
@@ -244,7 +244,7 @@ impl<'a> March<'a> {
         self.fallback = self.fallback.map(|f| f.with_holes(holes));
         self.holes = holes.map(|m| {
             let exact =
-                ExactHorizon::new(self.grid, Some(self.radius), self.bins as u32, self.reduce)
+                ExactHorizon::walker(self.grid, Some(self.radius), self.bins as u32, self.reduce)
                     .with_curvature(self.curv)
                     .with_holes(Some(m));
             let exact = match &self.progress {
@@ -732,15 +732,15 @@ impl HorizonRows for March<'_> {
                     // one's bytes. The march's lanes are independent of each other.
                     let row = (y0 + r) * w;
                     let span = row + x0..row + (x0 + lanes).min(w);
-                    let near_hole =
-                        self.holes.as_ref().filter(|(_, near)| near[span.clone()].contains(&true));
-                    let all_near = near_hole.is_some_and(|(_, near)| !near[span].contains(&false));
+                    let near_hole = self.holes.as_ref().filter(|(_, near)| near.any(span.clone()));
+                    let all_near =
+                        near_hole.is_some_and(|(_, near)| span.clone().all(|t| near.get(t)));
                     if !all_near {
                         let base = (r + self.pad) * self.stride + self.pad + x0;
                         self.strip(tiles, base, cast, &mut sbuf);
                     }
                     if let Some((exact, near)) = near_hole {
-                        for l in (0..lanes.min(w - x0)).filter(|&l| near[row + x0 + l]) {
+                        for l in (0..lanes.min(w - x0)).filter(|&l| near.get(row + x0 + l)) {
                             exact.texel_bins(x0 + l, y0 + r, &mut hbuf);
                             for (n, &v) in hbuf.iter().enumerate() {
                                 sbuf[n * lanes + l] = v;

@@ -334,20 +334,48 @@ pub fn reduce_point(bins: &[f32], out: &mut [f32; 8]) {
     }
 }
 
+/// One flag per texel, 64 to a word: the masks a kernel keeps for the whole bake (a `Vec<bool>`
+/// took a byte a texel, 67 MB at 8192²).
+#[derive(Clone, Debug, Default)]
+pub(crate) struct Flags {
+    words: Vec<u64>,
+}
+
+impl Flags {
+    /// `len` flags, all clear.
+    pub(crate) fn new(len: usize) -> Flags {
+        Flags { words: vec![0; len.div_ceil(64)] }
+    }
+
+    #[inline]
+    pub(crate) fn get(&self, i: usize) -> bool {
+        self.words[i >> 6] >> (i & 63) & 1 == 1
+    }
+
+    #[inline]
+    pub(crate) fn set(&mut self, i: usize) {
+        self.words[i >> 6] |= 1 << (i & 63);
+    }
+
+    /// Whether any flag of `r` is set.
+    #[inline]
+    pub(crate) fn any(&self, r: std::ops::Range<usize>) -> bool {
+        r.into_iter().any(|i| self.get(i))
+    }
+}
+
 /// Per texel: whether a hole lies within Chebyshev distance `r` (wrapped or clipped at the
 /// map's sides): a row pass and a column pass of sliding-window counts, O(W·H) whatever `r`.
-pub(crate) fn near_holes(holes: &[bool], w: usize, h: usize, r: usize, wrap: bool) -> Vec<bool> {
-    // One line of `len` flags, `stride` apart from `start`, dilated by `r` into `out`.
+pub(crate) fn near_holes(holes: &[bool], w: usize, h: usize, r: usize, wrap: bool) -> Flags {
+    // One line of `len` flags, `stride` apart from `start`, dilated by `r` (`set(i)` for
+    // each flag of the line that is set).
     fn dilate(
-        src: &[bool],
-        out: &mut [bool],
+        at: impl Fn(usize) -> bool,
+        mut set: impl FnMut(usize),
         len: usize,
-        start: usize,
-        stride: usize,
         r: usize,
         wrap: bool,
     ) {
-        let at = |i: usize| src[start + i * stride];
         let mut prefix = vec![0u32; len + 1];
         for i in 0..len {
             prefix[i + 1] = prefix[i] + u32::from(at(i));
@@ -369,16 +397,18 @@ pub(crate) fn near_holes(holes: &[bool], w: usize, h: usize, r: usize, wrap: boo
             } else {
                 count(i.saturating_sub(r), (i + r + 1).min(len)) > 0
             };
-            out[start + i * stride] = any;
+            if any {
+                set(i);
+            }
         }
     }
-    let mut across = vec![false; w * h];
+    let mut across = Flags::new(w * h);
     for y in 0..h {
-        dilate(holes, &mut across, w, y * w, 1, r, wrap);
+        dilate(|i| holes[y * w + i], |i| across.set(y * w + i), w, r, wrap);
     }
-    let mut near = vec![false; w * h];
+    let mut near = Flags::new(w * h);
     for x in 0..w {
-        dilate(&across, &mut near, h, x, w, r, wrap);
+        dilate(|i| across.get(i * w + x), |i| near.set(i * w + x), h, r, wrap);
     }
     near
 }

@@ -91,6 +91,8 @@ pub struct ExactHorizon<'a> {
     cols: Vec<u32>,
     rows: Vec<u32>,
     near: StripMarch,
+    /// Whether `near` has its padded rows (not for an [`ExactHorizon::walker`]).
+    strips: bool,
     /// Earth-curvature drop per texel² (see [`ExactHorizon::with_curvature`]).
     curv: f64,
     /// Nodata holes (see [`ExactHorizon::with_holes`]).
@@ -102,6 +104,18 @@ impl<'a> ExactHorizon<'a> {
     /// most max(`MAX_RADIUS`, W, H) (larger values are clamped; `params` rejects them); `bins`
     /// a multiple of 16 (validated by `params`).
     pub fn new(grid: Grid<'a>, radius: Option<u32>, bins: u32, reduce: Reduce) -> Self {
+        Self::build(grid, radius, bins, reduce, true)
+    }
+
+    /// [`ExactHorizon::new`] for a caller that only walks single rays ([`ExactHorizon::tan_at`],
+    /// [`ExactHorizon::horizon_and_distance`]): without the vectorised near field's padded
+    /// rows, which only [`HorizonRows::rows`] reads (8 bytes a texel: 545 MB at 8192², which
+    /// `sweep` on a map with holes held for nothing). Its `rows` must not be called.
+    pub(crate) fn walker(grid: Grid<'a>, radius: Option<u32>, bins: u32, reduce: Reduce) -> Self {
+        Self::build(grid, radius, bins, reduce, false)
+    }
+
+    fn build(grid: Grid<'a>, radius: Option<u32>, bins: u32, reduce: Reduce, strips: bool) -> Self {
         let (w, h) = (grid.width, grid.height);
         // Bounded so a caller bypassing `params` cannot ask for gigantic tables.
         let cap = crate::params::MAX_RADIUS.max(w.max(h) as u32);
@@ -135,7 +149,11 @@ impl<'a> ExactHorizon<'a> {
             Edge::None => radius.unwrap_or(f64::INFINITY),
         };
         let s_cut = r_all.min(NEAR_ARC);
-        let near = StripMarch::new(&grid, &dirs, s_cut);
+        let near = if strips {
+            StripMarch::new(&grid, &dirs, s_cut)
+        } else {
+            StripMarch::without_rows(&grid, &dirs, &vec![s_cut; dirs.len()], grid.range())
+        };
         ExactHorizon {
             grid,
             radius,
@@ -148,6 +166,7 @@ impl<'a> ExactHorizon<'a> {
             cols,
             rows,
             near,
+            strips,
             curv: 0.0,
             holes: None,
         }
@@ -324,6 +343,7 @@ impl HorizonRows for ExactHorizon<'_> {
             }
             return;
         }
+        assert!(self.strips, "ExactHorizon::walker runs single rays, not rows");
         // Per strip: LANES texels × bins values, texel-major.
         let mut strip = vec![0.0f32; LANES * nb];
         let near = &self.near;

@@ -977,7 +977,7 @@ mod tests {
                                                 x + i,
                                             );
                                             compared += 1;
-                                            by_holes += usize::from(near[t]);
+                                            by_holes += usize::from(near.get(t));
                                         }
                                     }
                                 }

@@ -187,9 +187,9 @@ impl Sweep<'_> {
             // every texel does (or is a hole) skips the vector one.
             let (mut near_hole, mut scalar, mut replaced) = (false, false, false);
             if let Some(hl) = &self.holes {
-                near_hole = hl.near[k..k + lanes].contains(&true);
+                near_hole = hl.near.any(k..k + lanes);
                 scalar = near_hole && !near.honours_holes(n, x, y);
-                let exact_only = |t: usize| hl.mask[t] || (scalar && hl.near[t]);
+                let exact_only = |t: usize| hl.mask[t] || (scalar && hl.near.get(t));
                 replaced = near_hole && (k..k + lanes).all(exact_only);
             }
             if near_hole && !scalar {
@@ -201,7 +201,7 @@ impl Sweep<'_> {
                 for i in 0..lanes {
                     if hl.mask[k + i] {
                         best[i] = 0.0;
-                    } else if scalar && hl.near[k + i] {
+                    } else if scalar && hl.near.get(k + i) {
                         let seed = f64::from(floor[i]);
                         best[i] = hl.exact.tan_at(x + i, y, n, seed) as f32;
                     }

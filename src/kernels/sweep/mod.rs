@@ -103,7 +103,7 @@ pub struct Sweep<'a> {
 /// skips the cells touching a hole, and per texel whether its near field can reach one.
 struct Holes<'a> {
     exact: exact::ExactHorizon<'a>,
-    near: Vec<bool>,
+    near: super::Flags,
     mask: &'a [bool],
 }
 
@@ -392,10 +392,14 @@ impl<'a> Sweep<'a> {
             return self;
         };
         let reach = self.cuts.iter().copied().fold(0.0, f64::max).ceil().max(1.0);
-        let exact =
-            exact::ExactHorizon::new(self.grid, Some(reach as u32), self.bins as u32, self.reduce)
-                .with_curvature(self.curv)
-                .with_holes(Some(mask));
+        let exact = exact::ExactHorizon::walker(
+            self.grid,
+            Some(reach as u32),
+            self.bins as u32,
+            self.reduce,
+        )
+        .with_curvature(self.curv)
+        .with_holes(Some(mask));
         let exact = match &self.progress {
             Some(p) => exact.with_cancel(p),
             None => exact,
