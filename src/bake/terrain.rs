@@ -266,7 +266,7 @@ pub(super) fn azimuth_major(params: &BakeParams) -> bool {
 
 /// [`terrain_planes`] from `sweep`'s planes, bin after bin ([`kernels::sweep::Sweep::planes`]):
 /// each bin's plane goes to its `angles` band, and the SVF's sum over bins is kept per texel
-/// in f64 and added to in the bins' order, as [`crate::terrain::svf::svf`] adds, so the values
+/// in f32 and added to in the bins' order, as [`crate::terrain::svf::svf`] adds, so the values
 /// are those of the bands bit for bit with a memory of one plane per azimuth in flight.
 fn folded_planes(
     kernel: &kernels::sweep::Sweep<'_>,
@@ -275,7 +275,7 @@ fn folded_planes(
     nodata: f32,
     progress: &Progress,
 ) -> Result<TerrainPlanes> {
-    use crate::terrain::angles;
+    use crate::terrain::{angles, svf};
     let (w, h, nb) = (kernel.width(), kernel.height(), params.bins as usize);
     let plane = w * h;
     // Output band of each bin (`band_bins` gives the bin of each band).
@@ -285,8 +285,7 @@ fn folded_planes(
         band_of[bin] = band;
     }
     let mut ang = params.outputs.angles.then(|| vec![0f32; plane * nb]);
-    let mut sums = params.outputs.svf.then(|| vec![0f64; plane]);
-    let visual = params.svf_model == crate::params::SvfModel::Visual;
+    let mut sums = params.outputs.svf.then(|| vec![0f32; plane]);
     let band = kernels::band_rows_for(kernel);
     progress.start(Stage::Bake, (h * nb) as u64);
     {
@@ -304,15 +303,13 @@ fn folded_planes(
             if let Some(mut acc) = sum_rows.as_ref().and_then(|r| r[b].lock().ok()) {
                 // The terms of `svf::svf`, in its order.
                 for (a, &v) in acc.iter_mut().zip(s) {
-                    let v = f64::from(v).clamp(0.0, 1.0);
-                    *a += if visual { 1.0 - v } else { 1.0 - v.powi(2) };
+                    *a += svf::blocked(v, params.svf_model);
                 }
             }
         })?;
     }
     let sv = sums.map(|sums| {
-        let n = nb as f64;
-        let mut out: Vec<f32> = sums.iter().map(|&s| (s / n) as f32).collect();
+        let mut out: Vec<f32> = sums.iter().map(|&s| svf::from_blocked(s, nb)).collect();
         if let Some(m) = holes {
             out.iter_mut().zip(m).filter(|(_, &hole)| hole).for_each(|(o, _)| *o = nodata);
         }
