@@ -158,7 +158,7 @@ impl Jobs {
                 if self.claim_taken(claim).await {
                     lost.store(true, Ordering::SeqCst);
                     tracing::info!(bake = %claim.id, attempt = claim.attempt,
-                        "the tiles went with the bake another claim finished: this one is stale");
+                        "the claim is stale: the tiles went with the bake another claim finished");
                     return Ended::Done(Err(Error::Canceled));
                 }
                 return Ended::Done(Err(Error::Internal(format!(

@@ -456,6 +456,8 @@ async fn a_stalled_coordinator_gives_the_bake_back() {
         assert_eq!(after[k], before[k], "{k} changed after the old coordinator resumed");
     }
     assert_eq!(row(db.clone(), id.clone()).await, row_before);
+    // Whichever way it learns (its heartbeat, its outcome, or the tiles gone with the bake the
+    // other claim finished), it says so in these words.
     assert!(
         cl.log(stalled).contains("lease lost") || cl.log(stalled).contains("claim is stale"),
         "the old coordinator never learned it lost the bake:\n{}",
