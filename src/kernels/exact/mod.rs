@@ -179,6 +179,12 @@ impl<'a> ExactHorizon<'a> {
     /// the scalar walk from the start, as with the curvature.
     pub fn with_holes(mut self, holes: Option<&'a [bool]>) -> Self {
         self.holes = holes.filter(|h| h.len() == self.grid.width * self.grid.height);
+        if self.holes.is_some() && self.strips {
+            // With holes every ray takes the scalar walk (see `rows`): the vectorised near
+            // field's padded rows (8 bytes a texel) are let go.
+            self.near = self.near.clone_light();
+            self.strips = false;
+        }
         self
     }
 
