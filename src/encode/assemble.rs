@@ -647,7 +647,7 @@ pub fn write_geotiff<W: Write>(
         out.write_all(&[0])?;
     }
     let names: Vec<&str> = descriptions.iter().map(String::as_str).collect();
-    let place = IfdAt { ifd, offsets: &offsets, counts: &counts };
+    let place = IfdAt { ifd, offsets: &offsets, counts: &counts, big: false };
     let text = geotiff::nodata_text(nodata);
     out.write_all(&geotiff::ifd_bytes(
         width,

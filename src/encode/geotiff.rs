@@ -35,6 +35,7 @@ const SHORT: u16 = 3;
 const LONG: u16 = 4;
 const ASCII: u16 = 2;
 const DOUBLE: u16 = 12;
+const LONG8: u16 = 16;
 
 struct Entry {
     tag: u16,
@@ -56,6 +57,15 @@ fn longs(tag: u16, v: &[u32]) -> Entry {
     Entry {
         tag,
         kind: LONG,
+        count: v.len() as u32,
+        data: v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+    }
+}
+
+fn long8s(tag: u16, v: &[u64]) -> Entry {
+    Entry {
+        tag,
+        kind: LONG8,
         count: v.len() as u32,
         data: v.iter().flat_map(|x| x.to_le_bytes()).collect(),
     }
@@ -108,6 +118,18 @@ pub(crate) fn tile_bytes(
     ty: usize,
     fill: f32,
 ) -> Vec<u8> {
+    tile_of(&|y| &plane[y * width..(y + 1) * width], width, height, tx, ty, fill)
+}
+
+/// [`tile_bytes`] of the plane whose row y is `row(y)`.
+fn tile_of<'p>(
+    row_of: &(dyn Fn(usize) -> &'p [f32] + 'p),
+    width: usize,
+    height: usize,
+    tx: usize,
+    ty: usize,
+    fill: f32,
+) -> Vec<u8> {
     let mut row = vec![fill; TILE];
     let mut bytes = vec![0u8; TILE * 4];
     let mut z = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::new(FLOAT_LEVEL));
@@ -117,7 +139,7 @@ pub(crate) fn tile_bytes(
         if y < height {
             let x0 = tx * TILE;
             let n = TILE.min(width - x0);
-            row[..n].copy_from_slice(&plane[y * width + x0..y * width + x0 + n]);
+            row[..n].copy_from_slice(&row_of(y)[x0..x0 + n]);
         }
         fp_predict(&row, &mut bytes);
         // Writing into a Vec cannot fail.
@@ -254,16 +276,43 @@ fn assemble(
     }
     let ifd = out.len();
     out[4..8].copy_from_slice(&(ifd as u32).to_le_bytes());
-    let at = IfdAt { ifd, offsets: &offsets, counts: &counts };
+    let at = IfdAt { ifd, offsets: &offsets, counts: &counts, big: false };
     out.extend(ifd_bytes(width, height, &at, descriptions, layout, georef, nodata));
     Ok(out)
 }
 
-/// Where the tiles of a file went: the IFD's offset, each tile's offset and byte count.
+/// Where the tiles of a file went: the IFD's offset, each tile's offset and byte count, and
+/// whether the file is a BigTIFF (64-bit offsets: [`header`]).
 pub(crate) struct IfdAt<'a> {
     pub ifd: usize,
     pub offsets: &'a [u64],
     pub counts: &'a [u32],
+    pub big: bool,
+}
+
+/// The header of a file whose IFD is at `ifd`: classic TIFF (8 bytes), or BigTIFF (16 bytes:
+/// version 43, 8-byte offsets), which GDAL and libtiff read, for a file past [`MAX_CLASSIC`].
+pub(crate) fn header(ifd: u64, big: bool) -> Vec<u8> {
+    let mut head = Vec::with_capacity(16);
+    if big {
+        head.extend_from_slice(b"II+\0");
+        head.extend_from_slice(&8u16.to_le_bytes());
+        head.extend_from_slice(&0u16.to_le_bytes());
+        head.extend_from_slice(&ifd.to_le_bytes());
+    } else {
+        head.extend_from_slice(b"II*\0");
+        head.extend_from_slice(&(ifd as u32).to_le_bytes());
+    }
+    head
+}
+
+/// Bytes of [`header`]: where the first tile starts.
+pub(crate) fn header_len(big: bool) -> u64 {
+    if big {
+        16
+    } else {
+        8
+    }
 }
 
 /// The IFD at `at.ifd` (word-aligned) and the values that do not fit in its entries, for tiles
@@ -290,7 +339,11 @@ pub(crate) fn ifd_bytes(
         shorts(317, &[layout.predictor]),
         longs(322, &[TILE as u32]),
         longs(323, &[TILE as u32]),
-        longs(324, &offsets.iter().map(|&o| o as u32).collect::<Vec<_>>()),
+        if at.big {
+            long8s(324, offsets)
+        } else {
+            longs(324, &offsets.iter().map(|&o| o as u32).collect::<Vec<_>>())
+        },
         longs(325, counts),
         shorts(339, &vec![layout.sample_format; spp as usize]),
         ascii(42112, &gdal_metadata(descriptions)),
@@ -321,20 +374,29 @@ pub(crate) fn ifd_bytes(
     }
     e.sort_by_key(|x| x.tag);
     let ifd = at.ifd;
-    let mut out = Vec::with_capacity(2 + 12 * e.len() + 4);
-    let mut extra = ifd + 2 + 12 * e.len() + 4;
+    // Classic: a 2-byte entry count, 12-byte entries (4-byte count and value), a 4-byte next
+    // offset; BigTIFF: 8, 20 (8 and 8) and 8.
+    let (head, entry, word) = if at.big { (8, 20, 8) } else { (2, 12, 4) };
+    let mut out = Vec::with_capacity(head + entry * e.len() + word);
+    let mut extra = ifd + head + entry * e.len() + word;
     let mut tail: Vec<u8> = Vec::new();
-    out.extend_from_slice(&(e.len() as u16).to_le_bytes());
+    let word_of =
+        |v: u64| if at.big { v.to_le_bytes().to_vec() } else { (v as u32).to_le_bytes().to_vec() };
+    if at.big {
+        out.extend_from_slice(&(e.len() as u64).to_le_bytes());
+    } else {
+        out.extend_from_slice(&(e.len() as u16).to_le_bytes());
+    }
     for x in &e {
         out.extend_from_slice(&x.tag.to_le_bytes());
         out.extend_from_slice(&x.kind.to_le_bytes());
-        out.extend_from_slice(&x.count.to_le_bytes());
-        if x.data.len() <= 4 {
-            let mut v = [0u8; 4];
+        out.extend(word_of(u64::from(x.count)));
+        if x.data.len() <= word {
+            let mut v = vec![0u8; word];
             v[..x.data.len()].copy_from_slice(&x.data);
             out.extend_from_slice(&v);
         } else {
-            out.extend_from_slice(&(extra as u32).to_le_bytes());
+            out.extend(word_of(extra as u64));
             tail.extend_from_slice(&x.data);
             extra += x.data.len();
             if x.data.len() % 2 == 1 {
@@ -343,9 +405,145 @@ pub(crate) fn ifd_bytes(
             }
         }
     }
-    out.extend_from_slice(&0u32.to_le_bytes());
+    out.extend(word_of(0));
     out.extend_from_slice(&tail);
     out
+}
+
+/// A float32 GeoTIFF written band by band in any order (`sweep`'s planes give the bins one
+/// after another), each band's tiles compressed as it comes and spooled to a temporary file, so
+/// no more than one band is ever in memory; [`Spool::finish`] writes header, tiles and IFD to
+/// any writer (the header names the IFD, which follows the tiles). Classic TIFF up to
+/// [`MAX_CLASSIC`], BigTIFF beyond; bands put in their order give the bytes of [`encode`].
+pub struct Spool {
+    tmp: std::io::BufWriter<std::fs::File>,
+    width: usize,
+    height: usize,
+    /// Per tile (band-major), its offset from the first tile's (`u64::MAX`: not put) and its
+    /// compressed bytes.
+    offsets: Vec<u64>,
+    counts: Vec<u32>,
+    at: u64,
+    nodata: f32,
+    /// Made BigTIFF whatever the size (tests).
+    force_big: bool,
+}
+
+impl Spool {
+    /// A spool for `bands` bands of `width` × `height`, its temporary file in `dir` (unlinked:
+    /// gone with the spool, or with the process).
+    ///
+    /// # Errors
+    /// [`Error::Io`] when no temporary file can be made in `dir`.
+    pub fn new(
+        dir: &std::path::Path,
+        width: usize,
+        height: usize,
+        bands: usize,
+        nodata: f32,
+    ) -> Result<Spool> {
+        if bands == 0 || width == 0 || height == 0 {
+            return Err(Error::Internal("a GeoTIFF with no band or no texel".into()));
+        }
+        std::fs::create_dir_all(dir)?;
+        let file = tempfile::tempfile_in(dir).map_err(|e| {
+            Error::Io(std::io::Error::new(
+                e.kind(),
+                format!("cannot create a temporary file in {}: {e}", dir.display()),
+            ))
+        })?;
+        let tiles = bands * width.div_ceil(TILE) * height.div_ceil(TILE);
+        Ok(Spool {
+            tmp: std::io::BufWriter::with_capacity(1 << 20, file),
+            width,
+            height,
+            offsets: vec![u64::MAX; tiles],
+            counts: vec![0; tiles],
+            at: 0,
+            nodata,
+            force_big: false,
+        })
+    }
+
+    /// Makes the file a BigTIFF whatever its size (so tests can read one back small).
+    pub fn force_big(mut self) -> Spool {
+        self.force_big = true;
+        self
+    }
+
+    /// Band `band`, its row y being `row(y)` (`width` values), compressed on the pool and
+    /// appended.
+    ///
+    /// # Errors
+    /// [`Error::Internal`] for a band out of range or put twice; [`Error::Io`].
+    pub fn put<'p>(
+        &mut self,
+        band: usize,
+        row: &(dyn Fn(usize) -> &'p [f32] + Sync + 'p),
+    ) -> Result<()> {
+        let (w, h) = (self.width, self.height);
+        let (tx, ty) = (w.div_ceil(TILE), h.div_ceil(TILE));
+        let first = band * tx * ty;
+        if first >= self.offsets.len() || self.offsets[first] != u64::MAX {
+            return Err(Error::Internal(format!("GeoTIFF band {band} out of range or put twice")));
+        }
+        let nodata = self.nodata;
+        for r in 0..ty {
+            let tiles: Vec<Vec<u8>> =
+                (0..tx).into_par_iter().map(|t| tile_of(row, w, h, t, r, nodata)).collect();
+            for (t, bytes) in tiles.into_iter().enumerate() {
+                self.offsets[first + r * tx + t] = self.at;
+                self.counts[first + r * tx + t] = bytes.len() as u32;
+                self.at += bytes.len() as u64;
+                self.tmp.write_all(&bytes)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Writes the file into `out`: header, the spooled tiles, the IFD with `descriptions` (one
+    /// per band), `georef`'s tags and GDAL_NODATA.
+    ///
+    /// # Errors
+    /// [`Error::Internal`] when a band was never put; [`Error::Io`].
+    pub fn finish<W: Write>(
+        self,
+        mut out: W,
+        descriptions: &[&str],
+        georef: Option<&Georef>,
+    ) -> Result<W> {
+        use std::io::{Seek, SeekFrom};
+        let tiles_per = self.offsets.len() / descriptions.len().max(1);
+        if descriptions.len() * tiles_per != self.offsets.len() || self.offsets.contains(&u64::MAX)
+        {
+            return Err(Error::Internal("a GeoTIFF band was never written".into()));
+        }
+        // The IFD's own size is bounded well within the 1 MiB MAX_CLASSIC keeps for it.
+        let big = self.force_big || 8 + self.at > MAX_CLASSIC;
+        let start = header_len(big);
+        let end = start + self.at;
+        let ifd = end + end % 2;
+        let mut tmp = self.tmp.into_inner().map_err(|e| Error::Io(e.into_error()))?;
+        out.write_all(&header(ifd, big))?;
+        tmp.seek(SeekFrom::Start(0))?;
+        std::io::copy(&mut tmp, &mut out)?;
+        if end % 2 == 1 {
+            out.write_all(&[0])?;
+        }
+        let offsets: Vec<u64> = self.offsets.iter().map(|o| o + start).collect();
+        let at = IfdAt { ifd: ifd as usize, offsets: &offsets, counts: &self.counts, big };
+        let text = nodata_text(self.nodata);
+        out.write_all(&ifd_bytes(
+            self.width,
+            self.height,
+            &at,
+            descriptions,
+            FLOAT32,
+            georef,
+            &text,
+        ))?;
+        Ok(out)
+    }
 }
 
 #[cfg(test)]
@@ -359,6 +557,66 @@ mod tests {
         fp_predict(&row, &mut out);
         // 1.0 = 0x3F800000: planes [3F 3F][80 80][00 00][00 00], then byte differences.
         assert_eq!(out, [0x3F, 0, 0x80u8.wrapping_sub(0x3F), 0, 0x80u8.wrapping_neg(), 0, 0, 0]);
+    }
+
+    /// A spool given its bands in order writes the bytes of `encode`; given them out of order,
+    /// the same tiles where the IFD says; BigTIFF (forced, so small) reads back with the `tiff`
+    /// crate pixel for pixel; a band put twice or never is refused.
+    #[test]
+    fn a_spool_writes_what_encode_does_in_any_order_and_as_bigtiff() {
+        let (w, h) = (700, 530);
+        let planes: Vec<Vec<f32>> = (0..3)
+            .map(|b| (0..w * h).map(|i| ((i * (b + 3)) % 977) as f32 * 0.37 - b as f32).collect())
+            .collect();
+        let names = ["a", "b", "c"];
+        let bands: Vec<Band<'_>> = planes
+            .iter()
+            .zip(names)
+            .map(|(p, n)| Band { plane: p, description: n.into() })
+            .collect();
+        let want = encode(w, h, &bands, None, -9999.0).unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let spooled = |order: &[usize], big: bool| {
+            let mut s = Spool::new(dir.path(), w, h, 3, -9999.0).unwrap();
+            if big {
+                s = s.force_big();
+            }
+            for &b in order {
+                let p = &planes[b];
+                s.put(b, &|y| &p[y * w..(y + 1) * w]).unwrap();
+            }
+            s.finish(Vec::new(), &names, None).unwrap()
+        };
+        assert_eq!(spooled(&[0, 1, 2], false), want);
+        // Out of order: the same tiles at other offsets, so the same length.
+        let shuffled = spooled(&[2, 0, 1], false);
+        assert_ne!(shuffled, want);
+        assert_eq!(shuffled.len(), want.len());
+        // A single band as BigTIFF, read back by the `tiff` crate.
+        let one = |big: bool| {
+            let mut s = Spool::new(dir.path(), w, h, 1, f32::NAN).unwrap();
+            if big {
+                s = s.force_big();
+            }
+            let p = &planes[1];
+            s.put(0, &|y| &p[y * w..(y + 1) * w]).unwrap();
+            s.finish(Vec::new(), &["b"], None).unwrap()
+        };
+        let big = one(true);
+        assert_eq!(&big[..4], b"II+\0");
+        assert_eq!(&one(false)[..4], b"II*\0");
+        let mut dec = tiff::decoder::Decoder::new(std::io::Cursor::new(&big)).unwrap();
+        assert_eq!(dec.dimensions().unwrap(), (w as u32, h as u32));
+        let tiff::decoder::DecodingResult::F32(got) = dec.read_image().unwrap() else {
+            panic!("not float32");
+        };
+        assert_eq!(got, planes[1]);
+        let mut s = Spool::new(dir.path(), w, h, 2, 0.0).unwrap();
+        let p = &planes[0];
+        s.put(1, &|y| &p[y * w..(y + 1) * w]).unwrap();
+        assert!(s.put(1, &|y| &p[y * w..(y + 1) * w]).is_err(), "a band put twice");
+        assert!(s.put(2, &|y| &p[y * w..(y + 1) * w]).is_err(), "a band out of range");
+        assert!(s.finish(Vec::new(), &["x", "y"], None).is_err(), "band 0 was never put");
     }
 
     #[test]
