@@ -37,6 +37,10 @@ impl Sink for Keep {
         self.0.push((file.name, file.bytes.len()));
         Ok(())
     }
+    fn finish_one(&mut self, name: &'static str, file: Vec<u8>) -> horizon_bake::Result<()> {
+        self.0.push((name, file.len()));
+        Ok(())
+    }
 }
 
 /// Best of 3 wall seconds of one bake, and the files it kept.

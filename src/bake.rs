@@ -810,7 +810,8 @@ mod terrain;
 use terrain::azimuth_major;
 pub use terrain::MAX_ANGLE_VALUES;
 pub use terrain::{
-    bake_terrain, bake_terrain_from, bake_terrain_window, TerrainProducts, WindowPlace,
+    bake_terrain, bake_terrain_from, bake_terrain_streamed, bake_terrain_window, streams_angles,
+    AngleBands, TerrainProducts, WindowPlace,
 };
 
 mod surface;

@@ -70,9 +70,57 @@ pub fn bake_terrain_from(
     params: &BakeParams,
     progress: &Progress,
 ) -> Result<(TerrainProducts, ResolvedRadius)> {
+    terrain_core(map, heights, params, progress, None)
+}
+
+/// Where [`bake_terrain_streamed`] hands the `angles`: each output band once, whole (its row y
+/// is `row(y)`: the map's width of values in `angle_unit`, holes at the nodata value), in the
+/// order the bins are swept.
+pub type AngleBands<'a> = &'a mut (dyn for<'p> FnMut(usize, &(dyn Fn(usize) -> &'p [f32] + Sync + 'p)) -> Result<()>
+             + 'a);
+
+/// Whether [`bake_terrain_streamed`] hands the `angles` on band by band ([`AngleBands`]) rather
+/// than in its products: `sweep`'s planes, unless the bands are true-north azimuths turned per
+/// texel (their own rays).
+pub fn streams_angles(map: &HeightMap, params: &BakeParams) -> bool {
+    params.outputs.angles && azimuth_major(params) && !true_bands(map, params)
+}
+
+/// Compass bands on a projected map are true azimuths, turned per texel: rays of their own.
+fn true_bands(map: &HeightMap, params: &BakeParams) -> bool {
+    params.azimuth_from == AzimuthFrom::NorthCw && compass_of(map, params).0.is_true()
+}
+
+/// [`bake_terrain_from`], with the `angles` handed to `angles` band by band as they are made
+/// where [`streams_angles`] says so (the products then hold none): one plane per bin in
+/// flight, not W·H·bins, so any bins fit at any size ([`MAX_ANGLE_VALUES`] holds only where
+/// they are not streamed).
+///
+/// # Errors
+/// As [`bake_terrain_from`], and what `angles` fails with.
+pub fn bake_terrain_streamed(
+    map: &HeightMap,
+    heights: Vec<f32>,
+    params: &BakeParams,
+    progress: &Progress,
+    angles: AngleBands<'_>,
+) -> Result<(TerrainProducts, ResolvedRadius)> {
+    terrain_core(map, heights, params, progress, Some(angles))
+}
+
+fn terrain_core(
+    map: &HeightMap,
+    heights: Vec<f32>,
+    params: &BakeParams,
+    progress: &Progress,
+    out: Option<AngleBands<'_>>,
+) -> Result<(TerrainProducts, ResolvedRadius)> {
     let (w, h) = (map.width, map.height);
     let nb = params.bins as usize;
-    check_angles(map, params)?;
+    let out = out.filter(|_| streams_angles(map, params));
+    if out.is_none() {
+        check_angles(map, params)?;
+    }
     let values = if params.outputs.sun() { map.values.len() } else { w * h };
     if heights.len() != w * h || values != w * h {
         return Err(crate::Error::Internal(format!(
@@ -105,12 +153,11 @@ pub fn bake_terrain_from(
     let nodata = map.terrain.nodata.map_or(f32::NAN, |v| v as f32);
     let normals = NormalSource { grid: &grid, holes, row0: 0 };
     let (compass, north) = compass_of(map, params);
-    // Compass bands on a projected map are true azimuths, turned per texel: rays of their own.
-    let true_bands = params.azimuth_from == AzimuthFrom::NorthCw && compass.is_true();
+    let true_bands = true_bands(map, params);
     let mut kernel_params = params.clone();
     kernel_params.outputs.angles &= !true_bands;
     let (mut ang, sv) = if kernel_params.outputs.angles || params.outputs.svf {
-        terrain_planes(kernel, &kernel_params, holes, nodata, &normals, progress)?
+        terrain_planes(kernel, &kernel_params, holes, nodata, &normals, progress, out)?
     } else {
         (None, None)
     };
@@ -185,11 +232,12 @@ fn terrain_planes(
     nodata: f32,
     normals: &NormalSource<'_>,
     progress: &Progress,
+    out: Option<AngleBands<'_>>,
 ) -> Result<TerrainPlanes> {
     use crate::terrain::{angles, surface, svf};
     let kernel = match kernel {
         Horizons::Rows(k) => k,
-        Horizons::Planes(k) => return folded_planes(k, params, holes, nodata, progress),
+        Horizons::Planes(k) => return folded_planes(k, params, holes, nodata, progress, out),
     };
     let tilted = params.svf_model == crate::params::SvfModel::Tilted;
     let dirs = surface::BinDirs::new(params.bins as usize);
@@ -274,6 +322,7 @@ fn folded_planes(
     holes: Option<&[bool]>,
     nodata: f32,
     progress: &Progress,
+    mut out: Option<AngleBands<'_>>,
 ) -> Result<TerrainPlanes> {
     use crate::terrain::{angles, svf};
     let (w, h, nb) = (kernel.width(), kernel.height(), params.bins as usize);
@@ -284,7 +333,11 @@ fn folded_planes(
     {
         band_of[bin] = band;
     }
-    let mut ang = params.outputs.angles.then(|| vec![0f32; plane * nb]);
+    // Streamed, the angles of the bins in flight only (bin n in plane n mod k: a chunk of
+    // bins is k consecutive ones), each handed on whole once its last band is in; else all.
+    let streamed = params.outputs.angles && out.is_some();
+    let in_flight = if streamed { kernel.planes_in_flight() } else { nb };
+    let mut ang = params.outputs.angles.then(|| vec![0f32; plane * in_flight]);
     let mut sums = params.outputs.svf.then(|| vec![0f32; plane]);
     let band = kernels::band_rows_for(kernel);
     progress.start(Stage::Bake, (h * nb) as u64);
@@ -292,21 +345,50 @@ fn folded_planes(
         let ang_rows: Option<Vec<Vec<Mutex<&mut [f32]>>>> =
             ang.as_mut().map(|a| a.chunks_mut(plane).map(|p| split(p, band * w)).collect());
         let sum_rows = sums.as_mut().map(|s| split(s, band * w));
-        kernel.planes(band, progress, |b, n, s| {
-            if let Some(a) = &ang_rows {
-                if let Ok(mut p) = a[band_of[n]][b].lock() {
-                    for (o, &v) in p.iter_mut().zip(s) {
-                        *o = angles::angle(v, params.angle_unit);
+        let slot = |n: usize| if streamed { n % in_flight } else { band_of[n] };
+        let done = |bins: &[usize]| -> Result<()> {
+            let (Some(put), Some(a)) = (out.as_mut(), ang_rows.as_ref()) else { return Ok(()) };
+            for &n in bins {
+                let mut rows: Vec<_> = a[slot(n)]
+                    .iter()
+                    .map(|m| m.lock().unwrap_or_else(|e| e.into_inner()))
+                    .collect();
+                if let Some(m) = holes {
+                    for (b, r) in rows.iter_mut().enumerate() {
+                        let m = &m[b * band * w..][..r.len()];
+                        r.iter_mut()
+                            .zip(m)
+                            .filter(|(_, &hole)| hole)
+                            .for_each(|(o, _)| *o = nodata);
                     }
                 }
+                put(band_of[n], &rows_of(&rows, band, w))?;
             }
-            if let Some(mut acc) = sum_rows.as_ref().and_then(|r| r[b].lock().ok()) {
-                // The terms of `svf::svf`, in its order.
-                for (a, &v) in acc.iter_mut().zip(s) {
-                    *a += svf::blocked(v, params.svf_model);
+            Ok(())
+        };
+        kernel.planes_then(
+            band,
+            progress,
+            |b, n, s| {
+                if let Some(a) = &ang_rows {
+                    if let Ok(mut p) = a[slot(n)][b].lock() {
+                        for (o, &v) in p.iter_mut().zip(s) {
+                            *o = angles::angle(v, params.angle_unit);
+                        }
+                    }
                 }
-            }
-        })?;
+                if let Some(mut acc) = sum_rows.as_ref().and_then(|r| r[b].lock().ok()) {
+                    // The terms of `svf::svf`, in its order.
+                    for (a, &v) in acc.iter_mut().zip(s) {
+                        *a += svf::blocked(v, params.svf_model);
+                    }
+                }
+            },
+            done,
+        )?;
+    }
+    if streamed {
+        ang = None;
     }
     let sv = sums.map(|sums| {
         let mut out: Vec<f32> = sums.iter().map(|&s| svf::from_blocked(s, nb)).collect();
@@ -321,6 +403,15 @@ fn folded_planes(
         }
     }
     Ok((ang, sv))
+}
+
+/// Row y of a plane held as bands of `band` rows of `w` values.
+fn rows_of<'r, 's: 'r, R: std::ops::Deref<Target = &'s mut [f32]> + Sync>(
+    bands: &'r [R],
+    band: usize,
+    w: usize,
+) -> impl Fn(usize) -> &'r [f32] + Sync + 'r {
+    move |y| &bands[y / band][(y % band) * w..][..w]
 }
 
 /// The terrain products (`angles`, `svf`) of the interior of one tile of a tiled bake (SPEC
@@ -396,6 +487,7 @@ pub fn bake_terrain_window(
             nodata,
             &normals,
             progress,
+            None,
         )?
     } else {
         (None, None)

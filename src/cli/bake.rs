@@ -338,6 +338,10 @@ impl pipeline::Sink for Staging {
     fn put(&mut self, file: OutFile) -> Result<()> {
         self.write(std::slice::from_ref(&file))
     }
+
+    fn finish_one(&mut self, name: &'static str, file: std::fs::File) -> Result<()> {
+        self.add(name, file)
+    }
 }
 
 /// Milliseconds of a duration, for `timings_ms`.

@@ -360,6 +360,13 @@ impl crate::pipeline::Sink for BlobSink<'_> {
         Ok(())
     }
 
+    fn finish_one(&mut self, name: &'static str, file: Self::Writer) -> Result<()> {
+        let hash = file.commit()?;
+        let name = self.result_name(name);
+        self.results.push((name, hash));
+        Ok(())
+    }
+
     fn put(&mut self, file: crate::encode::OutFile) -> Result<()> {
         let hash = self.blobs.put(&file.bytes)?;
         let name = self.result_name(file.name);

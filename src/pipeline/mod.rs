@@ -52,6 +52,11 @@ pub trait Sink {
     /// # Errors
     /// The sink's failure.
     fn put(&mut self, file: OutFile) -> Result<()>;
+    /// Keeps one streamed file, written completely (a spooled `angles.tif`).
+    ///
+    /// # Errors
+    /// The sink's failure.
+    fn finish_one(&mut self, name: &'static str, file: Self::Writer) -> Result<()>;
 }
 
 /// What [`produce`] made.
@@ -143,8 +148,18 @@ pub fn produce<S: Sink>(
         let o = params.outputs;
         let sole = !(o.horizon || o.fourier || o.surface() || o.sun());
         let heights = sole.then(|| map.take_scaled(params.height_scale));
-        let (files, r, products) = terrain_files(&map, heights, params, progress)?;
+        let (files, spooled, r, products) =
+            terrain::terrain_parts(&map, heights, params, progress)?;
         let bake_ms = ms(t);
+        if let Some(s) = spooled {
+            // The streamed angles first, where the whole file used to come.
+            let t = Instant::now();
+            let name = s.name;
+            let w = s.write_to(sink.writer(name)?)?;
+            sink.finish_one(name, w)?;
+            names.push(name);
+            store_ms += ms(t);
+        }
         store_ms += keep(sink, files, &mut names)?;
         terrain = Some((r, products, bake_ms));
     }

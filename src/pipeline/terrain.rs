@@ -18,37 +18,97 @@ pub fn terrain_files(
     params: &BakeParams,
     progress: &Progress,
 ) -> Result<(Vec<OutFile>, ResolvedRadius, serde_json::Value)> {
+    let (mut files, spooled, radius, info) = terrain_parts(map, heights, params, progress)?;
+    if let Some(s) = spooled {
+        let name = s.name;
+        files.insert(0, OutFile { name, bytes: s.write_to(Vec::new())? });
+    }
+    Ok((files, radius, info))
+}
+
+/// A GeoTIFF made band by band as the bake went (`sweep`'s `angles`), its tiles in a
+/// temporary file: [`SpooledTiff::write_to`] writes the file.
+pub struct SpooledTiff {
+    pub name: &'static str,
+    spool: crate::encode::geotiff::Spool,
+    descriptions: Vec<String>,
+    georef: Option<crate::heightmap::georef::Georef>,
+}
+
+impl SpooledTiff {
+    /// Writes the whole file into `out` and hands it back.
+    ///
+    /// # Errors
+    /// The spool's and `out`'s I/O errors.
+    pub fn write_to<W: std::io::Write>(self, out: W) -> Result<W> {
+        let names: Vec<&str> = self.descriptions.iter().map(String::as_str).collect();
+        self.spool.finish(out, &names, self.georef.as_ref())
+    }
+}
+
+/// [`terrain_files`], with `angles.tif` spooled rather than in memory where the bake streams
+/// its bands ([`bake::streams_angles`]: one plane per bin in flight, so any bins fit at any
+/// size); the caller writes it ([`SpooledTiff::write_to`]).
+///
+/// # Errors
+/// As [`terrain_files`]; [`Error::Io`] when no temporary file can be made in the progress's
+/// scratch directory.
+pub fn terrain_parts(
+    map: &HeightMap,
+    heights: Option<Vec<f32>>,
+    params: &BakeParams,
+    progress: &Progress,
+) -> Result<(Vec<OutFile>, Option<SpooledTiff>, ResolvedRadius, serde_json::Value)> {
     use crate::encode::geotiff;
-    let (p, radius) = match heights {
-        Some(heights) => bake::bake_terrain_from(map, heights, params, progress)?,
-        None => bake::bake_terrain(map, params, progress)?,
+    let georef = map.terrain.georef.as_ref();
+    let (p, radius, spool) = if bake::streams_angles(map, params) {
+        let nodata = map.terrain.nodata.map_or(f32::NAN, |v| v as f32);
+        let (w, h, nb) = (map.width, map.height, params.bins as usize);
+        let mut spool = geotiff::Spool::new(&progress.scratch_dir(), w, h, nb, nodata)?;
+        let heights = heights.unwrap_or_else(|| map.scaled(params.height_scale));
+        let put: bake::AngleBands<'_> = &mut |band, row| spool.put(band, row);
+        let (p, r) = bake::bake_terrain_streamed(map, heights, params, progress, put)?;
+        (p, r, Some(spool))
+    } else {
+        let (p, r) = match heights {
+            Some(heights) => bake::bake_terrain_from(map, heights, params, progress)?,
+            None => bake::bake_terrain(map, params, progress)?,
+        };
+        (p, r, None)
     };
     progress.start(Stage::Encode, 1);
-    let georef = map.terrain.georef.as_ref();
     let plane = p.width * p.height;
     let mut files = Vec::new();
+    let mut spooled = None;
     let mut info = serde_json::Map::new();
     let nodata = serde_json::json!(geotiff::nodata_text(p.nodata));
     let true_north = p.north.as_ref().is_some_and(|n| n.reference == "true");
     let north = serde_json::to_value(&p.north).unwrap_or_default();
-    if let Some(a) = &p.angles {
+    if p.angles.is_some() || spool.is_some() {
         let (from, unit) = (azimuth_from_name(params), angle_unit_name(params));
         let azimuths: Vec<f64> =
             (0..p.bins).map(|n| crate::terrain::angles::band_azimuth_deg(n, p.bins)).collect();
-        let bands: Vec<geotiff::Band<'_>> = a
-            .chunks_exact(plane)
-            .zip(angle_descriptions(params, p.bins, true_north))
-            .map(|(plane, description)| geotiff::Band { plane, description })
-            .collect();
+        let descriptions = angle_descriptions(params, p.bins, true_north);
         if progress.is_canceled() {
             return Err(Error::Canceled);
         }
-        let bytes = geotiff::encode(p.width, p.height, &bands, georef, p.nodata)?;
-        files.push(OutFile { name: "angles.tif", bytes });
+        if let Some(a) = &p.angles {
+            let bands: Vec<geotiff::Band<'_>> = a
+                .chunks_exact(plane)
+                .zip(descriptions.iter().cloned())
+                .map(|(plane, description)| geotiff::Band { plane, description })
+                .collect();
+            let bytes = geotiff::encode(p.width, p.height, &bands, georef, p.nodata)?;
+            files.push(OutFile { name: "angles.tif", bytes });
+        } else if let Some(spool) = spool {
+            let georef = georef.cloned();
+            let descriptions = descriptions.clone();
+            spooled = Some(SpooledTiff { name: "angles.tif", spool, descriptions, georef });
+        }
         info.insert(
             "angles.tif".into(),
             serde_json::json!({
-                "bands": bands.iter().map(|b| b.description.clone()).collect::<Vec<_>>(),
+                "bands": descriptions,
                 "azimuths_deg": azimuths,
                 "azimuth_from": from,
                 "north": north_of(params, true_north),
@@ -178,7 +238,7 @@ pub fn terrain_files(
             }),
         );
     }
-    Ok((files, radius, serde_json::Value::Object(info)))
+    Ok((files, spooled, radius, serde_json::Value::Object(info)))
 }
 
 /// The band description of `openness_{sign}.tif`.

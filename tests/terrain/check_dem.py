@@ -212,6 +212,57 @@ code, err = run("bake", UTM, "-o", os.path.join(WORK, "utm_b36"), "--format", "g
                 "--outputs", "angles", "--bins", "36")
 check(code == 0, f"a DEM without --method takes --bins 36 for angles (exit {code} {err[:200]})")
 
+# --- issue 41 item 2: `sweep` streams `angles` band by band, so 720 bins fit at a size whose
+# W*H*bins passes the 2^28 values a file held whole takes (`exact` still refuses there) ---
+FINE = os.path.join(WORK, "elev_utm_90.tif")
+with rasterio.open(SRC) as s:
+    trf, wf, hf = calculate_default_transform(s.crs, "EPSG:32632", s.width, s.height, *s.bounds,
+                                             resolution=90.0)
+    fine = np.full((hf, wf), -9999.0, dtype=np.float32)
+    reproject(src_arr.astype(np.float32), fine, src_transform=s.transform, src_crs=s.crs,
+              src_nodata=-32768, dst_transform=trf, dst_crs="EPSG:32632", dst_nodata=-9999,
+              resampling=Resampling.bilinear)
+write(FINE, fine, crs="EPSG:32632", transform=trf, nodata=-9999)
+fine_holes = fine == -9999
+check(wf * hf * 720 > 1 << 28, f"the 90 m DEM ({wf}x{hf}) at 720 bins passes 2^28 values")
+code, err = run("bake", FINE, "-o", os.path.join(WORK, "a720"), "--format", "geotiff",
+                "--outputs", "angles", "--method", "sweep", "--bins", "720")
+check(code == 0, f"sweep bakes 720 angle bands of {wf}x{hf} (exit {code} {err[:200]})")
+code16, err16 = run("bake", FINE, "-o", os.path.join(WORK, "a16"), "--format", "geotiff",
+                    "--outputs", "angles", "--method", "sweep", "--bins", "16")
+if code == 0 and code16 == 0:
+    with rasterio.open(os.path.join(WORK, "a720", "angles.tif")) as a, \
+            rasterio.open(os.path.join(WORK, "a16", "angles.tif")) as b:
+        check(a.count == 720 and a.crs == b.crs and a.transform.almost_equals(trf, 1e-9)
+              and a.nodata == -9999, f"GDAL reads 720 bands with the DEM's CRS and nodata "
+                                     f"({a.count}, {a.crs}, {a.nodata})")
+        worst, holes_ok = 0.0, True
+        for k in range(16):
+            x, y = a.read(k * 45 + 1).astype(np.float64), b.read(k + 1).astype(np.float64)
+            holes_ok &= bool(np.all(x[fine_holes] == -9999) and np.all(x[~fine_holes] >= 0))
+            worst = max(worst, float(np.abs(x - y).max()))
+    # The same azimuths, up to the last bit of n * 2pi / bins.
+    check(worst < 1e-4, f"every 45th of 720 bands is the 16-bin bake's band (max |d| {worst:.2e} deg)")
+    check(holes_ok, "the 720-bin bands are nodata exactly at the holes")
+code, err = run("bake", FINE, "-o", os.path.join(WORK, "a720x"), "--format", "geotiff",
+                "--outputs", "angles", "--method", "exact", "--bins", "720")
+check(code == 2 and "bins" in err and "limit" in err,
+      f"exact, which holds the file whole, refuses 720 bins there naming bins ({err[:160]})")
+# Bands streamed out of their order: compass bands of grid north (a plain TIFF with --cell-size)
+# come bin after bin, band n from bin (bins/4 - n) mod bins; GDAL reads them where the IFD says.
+PLAIN = write(os.path.join(WORK, "plain_90.tif"), np.where(fine_holes, -9999.0, fine).astype(np.float32))
+common = ["--format", "geotiff", "--outputs", "angles", "--method", "sweep", "--bins", "16",
+          "--cell-size", "90", "--height-scale", repr(1 / 90), "--nodata", "-9999",
+          "--edge", "none", "--radius", "unlimited"]
+c1, e1 = run("bake", PLAIN, "-o", os.path.join(WORK, "p_east"), *common)
+c2, e2 = run("bake", PLAIN, "-o", os.path.join(WORK, "p_north"), *common, "--azimuth-from", "north_cw")
+check(c1 == 0 and c2 == 0, f"a plain TIFF with --cell-size bakes both ways ({e1[:120]} {e2[:120]})")
+if c1 == 0 and c2 == 0:
+    with rasterio.open(os.path.join(WORK, "p_east", "angles.tif")) as a, \
+            rasterio.open(os.path.join(WORK, "p_north", "angles.tif")) as b:
+        same = all(np.array_equal(b.read(n + 1), a.read((4 - n) % 16 + 1)) for n in range(16))
+    check(same, "north_cw band n is east_ccw band (4 - n) mod 16, bit for bit, as GDAL reads them")
+
 # --- SPEC 2 "Units of a DEM": values that are not heights in the map unit are never baked
 # as if they were: a GDAL band scale, heights in feet over metre cells (a compound CRS), a
 # transform without a CRS. Each is refused naming the fix; the fix given is right. ---

@@ -23,6 +23,15 @@ impl Sweep<'_> {
         matches!(self.far, Far::Deferred)
     }
 
+    /// How many bins [`Sweep::planes`] has in flight at once: its chunks of bins are 0 ..
+    /// this, then the next as many, and so on. Up to 3 planes of W·H f32 per azimuth in
+    /// flight (the plane, and the sweep's sums and its scratch), as for a spilled table, and
+    /// no more than threads.
+    pub fn planes_in_flight(&self) -> usize {
+        let plane = self.grid.width * self.grid.height;
+        (SPILL_SWEEP_BYTES / (3 * plane * 4).max(1)).clamp(1, rayon::current_num_threads().max(1))
+    }
+
     /// Every bin's sin α, plane by plane: `sink(b, n, values)` gets band `b` (rows `b·band ..`,
     /// at most `band` of them) of bin `n`, `rows × W` values row-major, the per-bin values the
     /// bands give ([`HorizonRows::rows`]'s `bins_out`) bit for bit. Calls for one band come one
@@ -38,15 +47,35 @@ impl Sweep<'_> {
     where
         S: Fn(usize, usize, &[f32]) + Sync,
     {
+        self.planes_then(band, progress, sink, |_| Ok(()))
+    }
+
+    /// [`Sweep::planes`], and `done(bins)` once every band of `bins` has been handed to
+    /// `sink`, on the calling thread while no sink call runs (so it may use the pool, e.g. to
+    /// compress those bins' planes): each bin comes in exactly one `done`, in the order 0, 1, ….
+    ///
+    /// # Errors
+    /// As [`Sweep::planes`], and what `done` fails with (nothing more is swept then).
+    pub fn planes_then<S, D>(
+        &self,
+        band: usize,
+        progress: &Progress,
+        sink: S,
+        mut done: D,
+    ) -> Result<()>
+    where
+        S: Fn(usize, usize, &[f32]) + Sync,
+        D: FnMut(&[usize]) -> Result<()>,
+    {
         #[cfg(target_arch = "x86_64")]
         let out = if self.wide {
             // SAFETY: `wide` only where the CPU has AVX-512F (see `Sweep::with_options`).
-            unsafe { self.planes_avx512(band, progress, &sink) }
+            unsafe { self.planes_avx512(band, progress, &sink, &mut done) }
         } else {
-            self.planes_body(band, progress, &sink)
+            self.planes_body(band, progress, &sink, &mut done)
         };
         #[cfg(not(target_arch = "x86_64"))]
-        let out = self.planes_body(band, progress, &sink);
+        let out = self.planes_body(band, progress, &sink, &mut done);
         self.windows.lock().unwrap_or_else(|e| e.into_inner()).clear();
         out
     }
@@ -59,8 +88,9 @@ impl Sweep<'_> {
         band: usize,
         progress: &Progress,
         sink: &(dyn Fn(usize, usize, &[f32]) + Sync),
+        done: &mut dyn FnMut(&[usize]) -> Result<()>,
     ) -> Result<()> {
-        self.planes_body(band, progress, sink)
+        self.planes_body(band, progress, sink, done)
     }
 
     #[inline(always)]
@@ -69,17 +99,15 @@ impl Sweep<'_> {
         band: usize,
         progress: &Progress,
         sink: &(dyn Fn(usize, usize, &[f32]) + Sync),
+        done: &mut dyn FnMut(&[usize]) -> Result<()>,
     ) -> Result<()> {
         let (w, h, nb) = (self.grid.width, self.grid.height, self.bins);
         let canceled =
             || progress.is_canceled() || self.progress.as_ref().is_some_and(Progress::is_canceled);
         let band = band.clamp(1, h.max(1));
         let nbands = h.div_ceil(band);
-        // Up to 3 planes of W·H f32 per azimuth in flight (the plane, and the sweep's missing
-        // weights and transposed sums), as for a spilled table.
         let plane = w * h;
-        let slots = (SPILL_SWEEP_BYTES / (3 * plane * 4).max(1))
-            .clamp(1, rayon::current_num_threads().max(1));
+        let slots = self.planes_in_flight();
         let mut work: Vec<(Vec<f32>, Scratch)> =
             (0..slots).map(|_| (Vec::new(), Scratch::default())).collect();
         // The padded lines of the axes the azimuths in flight sweep along: made when a chunk
@@ -119,6 +147,7 @@ impl Sweep<'_> {
                 if let (true, Some(ml)) = (self.lines_of[n].major_x, &majors[1]) {
                     *out = Vec::new();
                     self.streamed_x(n, ml, sc, band, progress, sink, &canceled)?;
+                    done(chunk)?;
                     continue;
                 }
                 sc.acc = Vec::new();
@@ -146,6 +175,7 @@ impl Sweep<'_> {
                 let far_rows = |k: usize, y0: usize, rows: usize| &far[k][y0 * w..][..rows * w];
                 self.join_groups(chunk, 0..nbands, band, &far_rows, progress, sink, &canceled)?;
             }
+            done(chunk)?;
         }
         Ok(())
     }
