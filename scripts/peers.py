@@ -406,11 +406,14 @@ class TerrainDem:
     no nodata, then that square resampled (GDAL cubic) to size² cells in metres, written as a
     float32 GeoTIFF in a location where every tool's north is the grid's (see docs/peers.md)."""
 
-    def __init__(self, size, work):
+    def __init__(self, size, work, holes=False):
         import numpy as np
         import rasterio
         from rasterio.transform import Affine
         from rasterio.warp import Resampling, calculate_default_transform, reproject
+
+        self.holes = holes
+        self.keep = None  # the texels the errors are taken over (None: every texel)
 
         src_path = elev_tif(work)
         utm = "EPSG:32632"
@@ -422,10 +425,17 @@ class TerrainDem:
             src_crs, src_tr, src_data = s.crs, s.transform, s.read(1)
             src_nodata = s.nodata
             self.src_shape = (s.height, s.width)
-        # one native cell of margin, so the cubic kernel never reaches a hole
-        r, c, k = largest_valid_square(native > -9000.0)
-        r, c, k = r + 1, c + 1, k - 2
         self.native_cell = tr.a
+        if holes:
+            # The whole warped grid, squared, with the nodata collar the warp leaves (every
+            # reprojected DEM has one): bilinear, so no kernel reaches across a hole.
+            r, c, k = 0, 0, max(w, h)
+            resampling = Resampling.bilinear
+        else:
+            # one native cell of margin, so the cubic kernel never reaches a hole
+            r, c, k = largest_valid_square(native > -9000.0)
+            r, c, k = r + 1, c + 1, k - 2
+            resampling = Resampling.cubic
         self.extent = k * tr.a
         self.cell = self.extent / size
         x0, y0 = tr * (c, r)
@@ -433,32 +443,44 @@ class TerrainDem:
         dem = np.full((size, size), np.nan, dtype=np.float64)
         reproject(src_data.astype(np.float64), dem, src_transform=src_tr, src_crs=src_crs,
                   src_nodata=src_nodata, dst_transform=dst_tr, dst_crs=utm,
-                  resampling=Resampling.cubic, dst_nodata=np.nan)
-        if not np.all(np.isfinite(dem)):
-            sys.exit(f"the {size}² crop of elev.tif has {int(np.sum(~np.isfinite(dem)))} holes")
-        self.heights = dem.astype(np.float32)
+                  resampling=resampling, dst_nodata=np.nan)
+        valid = np.isfinite(dem)
+        if holes:
+            self.keep = valid
+            self.nodata_share = float(1.0 - valid.mean())
+            self.heights = np.where(valid, dem, -9999.0).astype(np.float32)
+            self.range = (float(dem[valid].min()), float(dem[valid].max()))
+        else:
+            if not np.all(valid):
+                sys.exit(f"the {size}² crop of elev.tif has {int(np.sum(~valid))} holes")
+            self.heights = dem.astype(np.float32)
+            self.range = (float(dem.min()), float(dem.max()))
         self.size, self.native_side = size, k
         self.src = src_path
         self.sha = hashlib.sha256(open(src_path, "rb").read()).hexdigest()[:16]
-        self.tif = os.path.join(work, f"elev_{size}.tif")
-        write_geotiff_m(self.tif, self.heights, self.cell)
+        self.tif = os.path.join(work, f"elev_{size}{'_holes' if holes else ''}.tif")
+        write_geotiff_m(self.tif, self.heights, self.cell, -9999.0 if holes else None)
 
 
-def write_geotiff_m(path, heights, cell):
+def write_geotiff_m(path, heights, cell, nodata=None):
     """float32 GeoTIFF in metres, cell `cell` m, north up, UTM 16N (EPSG:32616) at easting
     500 000 (its central meridian) and northings 0..H·cell (the equator): grid north is true
-    north there, so GRASS's rays (turned to true north) run along our grid directions."""
+    north there, so GRASS's rays (turned to true north) run along our grid directions. With
+    `nodata`, a GDAL_NODATA tag (42113) every tool reads."""
     import numpy as np
     import tifffile
 
     h, w = heights.shape
     geokeys = [1, 1, 0, 4,
                1024, 0, 1, 1, 1025, 0, 1, 1, 3072, 0, 1, 32616, 3076, 0, 1, 9001]
-    tifffile.imwrite(path, heights.astype(np.float32), extratags=[
+    tags = [
         (33550, "d", 3, (cell, cell, 0.0), False),
         (33922, "d", 6, (0.0, 0.0, 0.0, 500000.0, h * cell, 0.0), False),
         (34735, "H", len(geokeys), geokeys, False),
-    ])
+    ]
+    if nodata is not None:
+        tags.append((42113, "s", 0, f"{nodata:g}", False))
+    tifffile.imwrite(path, heights.astype(np.float32), extratags=tags)
 
 
 class Acc:
@@ -466,16 +488,20 @@ class Acc:
     histogram of 1e-4° bins (exact to 1e-4°), so 2048² × 32 values never sit in memory."""
     STEP, N = 1e-4, 900_001
 
-    def __init__(self):
+    def __init__(self, keep=None):
         import numpy as np
 
         self.hist = np.zeros(self.N, dtype=np.int64)
         self.sum, self.n = 0.0, 0
+        self.keep = keep  # a mask of the texels counted (None: all)
 
     def add(self, d):
         import numpy as np
 
-        d = np.abs(np.asarray(d, dtype=np.float64)).ravel()
+        d = np.asarray(d, dtype=np.float64)
+        if self.keep is not None:
+            d = d[self.keep]
+        d = np.abs(d).ravel()
         self.sum += float(d.sum())
         self.n += d.size
         self.hist += np.bincount(np.minimum((d / self.STEP).astype(np.int64), self.N - 1),
@@ -537,11 +563,12 @@ def read_band(path, k):
 def terrain_section(args, binary, work):
     import numpy as np
 
-    dem = TerrainDem(args.terrain_size, work)
+    dem = TerrainDem(args.terrain_size, work, holes=args.terrain_holes)
     n = dem.size
     log(f"terrain: elev.tif {dem.src_shape} -> UTM 32N, {dem.native_side}² native cells of "
         f"{dem.native_cell:.1f} m -> {n}² at {dem.cell:.3f} m; heights "
-        f"{float(dem.heights.min()):.1f}..{float(dem.heights.max()):.1f} m")
+        f"{dem.range[0]:.1f}..{dem.range[1]:.1f} m"
+        + (f"; {dem.nodata_share:.0%} nodata" if dem.holes else ""))
     dirs = [360.0 * k / DIRECTIONS for k in range(DIRECTIONS)]
     rows = []  # (name, threads, timing, acc or None, svf array or None, note)
 
@@ -553,7 +580,7 @@ def terrain_section(args, binary, work):
 
     def ours_row(name, label, extra, note):
         d, t = run_ours_terrain(binary, dem, work, name, extra)
-        acc = Acc()
+        acc = Acc(dem.keep)
         for k in range(DIRECTIONS):
             acc.add(read_band(os.path.join(d, "angles.tif"), k) - read_band(ref_angles, k))
         svf = read_band(os.path.join(d, "svf.tif"), 0)
@@ -600,7 +627,7 @@ def terrain_section(args, binary, work):
     want = [f"hor_{int(a):03d}_{round(a % 1 * 100):02d}" for a in dirs]
     if listed != want:
         sys.exit(f"unexpected r.horizon map names {listed} (expected {want})")
-    acc, sin_sum = Acc(), np.zeros((n, n))
+    acc, sin_sum = Acc(dem.keep), np.zeros((n, n))
     import tifffile
     for k in range(DIRECTIONS):
         g = tifffile.imread(os.path.join(out, f"az{k:02d}.tif")).astype(np.float64)
@@ -622,7 +649,7 @@ def terrain_section(args, binary, work):
     wdem = wbe.read_raster(dem.tif)
     md = wdem.metadata()
     log("  Whitebox horizon_angle x32")
-    acc, sin_sum, secs, cpu = Acc(), np.zeros((n, n)), 0.0, 0.0
+    acc, sin_sum, secs, cpu = Acc(dem.keep), np.zeros((n, n)), 0.0, 0.0
     for k, phi in enumerate(dirs):
         c0, t0 = time.process_time(), time.perf_counter()
         r = wbe.horizon_angle(wdem, azimuth=(90.0 - phi) % 360.0)
@@ -653,9 +680,9 @@ def terrain_table(dem, rows, ref_svf):
     import numpy as np
 
     n = dem.size
-    out = ["| tool | threads | compute s | wall s | Mtexel/s @32 | mean \\|Δα\\| ° | p99 \\|Δα\\| ° "
-           "| mean \\|Δsvf\\| | p99 \\|Δsvf\\| | note |",
-           "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
+    out = ["| tool | threads | compute s | wall s | CPU s | Mtexel/s @32 | mean \\|Δα\\| ° "
+           "| p99 \\|Δα\\| ° | mean \\|Δsvf\\| | p99 \\|Δsvf\\| | note |",
+           "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
     for name, threads, tm, acc, svf, note in rows:
         mts = n * n / 1e6 / tm["kernel"]
         err = "— | —" if acc is None else f"{acc.mean():.4f} | {acc.p99():.4f}"
@@ -663,9 +690,12 @@ def terrain_table(dem, rows, ref_svf):
             serr = "— | —"
         else:
             d = np.abs(svf - ref_svf)
+            if dem.keep is not None:
+                d = d[dem.keep]
             d = d[np.isfinite(d)]
             serr = f"{float(d.mean()):.5f} | {float(np.percentile(d, 99)):.5f}"
-        out.append(f"| {name} | {threads} | {tm['kernel']:,.1f} | {tm['wall']:,.1f} | {mts:.3f} "
+        out.append(f"| {name} | {threads} | {tm['kernel']:,.1f} | {tm['wall']:,.1f} "
+                   f"| {tm['cpu']:,.1f} | {mts:.3f} "
                    f"| {err} | {serr} | {note} |")
     return "\n".join(out)
 
@@ -693,6 +723,24 @@ time, every row at 32 azimuths (SVF alone for `sky_view_factor`). Compute: ours
 `r.horizon` process, Whitebox its calls on a raster in memory.
 """
 
+TERRAIN_HOLES_HEAD = """## Terrain products on a DEM with nodata (generated)
+
+Generated {date} by `python3 scripts/peers.py --terrain-only --terrain-holes --terrain-size {n}`:
+one run on a **shared, noisy** machine ({nproc} cores, {cpu}); tools: {grass}; {wb}; {ours}{binnote}.
+
+DEM: R `terra`'s `ex/elev.tif` (SRTM-derived, Luxembourg, int16, EPSG:4326, {src_w}×{src_h}
+cells; sha256 `{sha}…`), reprojected to UTM 32N (bilinear) as a whole: the square around the
+warped grid ({side}² native cells of {native:.1f} m) resampled (GDAL bilinear) to **{n}² cells
+of {cell:.3f} m**, with the nodata collar the warp leaves (**{holes:.0%} of the cells**, GDAL_NODATA
+−9999), as every reprojected or clipped DEM has one. Heights {hmin:.1f} to {hmax:.1f} m on the
+valid cells. Every tool reads the same float32 GeoTIFF in metres with its nodata tag.
+
+Reference and columns as in the block above, and *CPU s* (user + system of our process and of
+GRASS's, the Python process's own for Whitebox, which computes in its threads); the errors over
+the valid cells only (each tool writes nodata, or a value we ignore, on the holes; a hole casts
+no horizon for ours, SPEC §2); *Mtexel/s* over every cell, holes included.
+"""
+
 TERRAIN_PROSE = """
 Conventions made equal, so the numbers compare like with like:
 
@@ -718,25 +766,32 @@ Conventions made equal, so the numbers compare like with like:
 
 def write_terrain_report(args, mach, vers, dem, rows, ref_svf, sweep_note):
     now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    body = TERRAIN_HEAD.format(
+    head = TERRAIN_HOLES_HEAD if dem.holes else TERRAIN_HEAD
+    body = head.format(holes=getattr(dem, "nodata_share", 0.0),
         date=now, n=dem.size, nproc=mach["nproc"], cpu=mach["cpu"], grass=vers["grass"],
         wb=vers["whitebox"], ours=vers["ours"],
         binnote=(" (" + args.bin_note + ")") if args.bin_note else "",
         src_h=dem.src_shape[0], src_w=dem.src_shape[1], sha=dem.sha, native=dem.native_cell,
         side=dem.native_side, cell=dem.cell, factor=dem.native_cell / dem.cell,
-        hmin=float(dem.heights.min()), hmax=float(dem.heights.max()))
+        hmin=dem.range[0], hmax=dem.range[1])
     body += "\n" + terrain_table(dem, rows, ref_svf) + "\n"
     if sweep_note:
         body += f"\n`sweep`: not measured, {sweep_note}.\n"
-    body += TERRAIN_PROSE
+    if not dem.holes:
+        body += TERRAIN_PROSE
     old = open(args.out).read() if os.path.exists(args.out) else ""
-    begin, end = "<!-- peers-terrain:begin -->", "<!-- peers-terrain:end -->"
+    tag = "peers-terrain-holes" if dem.holes else "peers-terrain"
+    begin, end = f"<!-- {tag}:begin -->", f"<!-- {tag}:end -->"
     if begin in old and end in old:
         text = old[:old.index(begin) + len(begin)] + "\n" + body + "\n" + old[old.index(end):]
     else:
         block = begin + "\n" + body + "\n" + end + "\n"
         anchor = "<!-- peers:end -->"
-        if anchor in old:
+        if dem.holes and "\n## Reading\n" in old:
+            # After the hole-free block and its reading, before the general reading.
+            i = old.index("\n## Reading\n") + 1
+            text = old[:i] + block + "\n" + old[i:]
+        elif anchor in old:
             i = old.index(anchor) + len(anchor)
             text = old[:i] + "\n\n" + block + old[i:]
         else:
@@ -829,6 +884,8 @@ def main():
                     help="also run the terrain-products comparison (issue 24; see docs/peers.md)")
     ap.add_argument("--terrain-only", action="store_true",
                     help="run only the terrain-products comparison (keeps the other block)")
+    ap.add_argument("--terrain-holes", action="store_true",
+                    help="the terrain comparison on the whole warped DEM, its nodata collar kept")
     ap.add_argument("--terrain-size", type=int, default=2048,
                     help="side of the upsampled DEM of the terrain comparison (default 2048)")
     args = ap.parse_args()
