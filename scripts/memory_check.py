@@ -24,7 +24,6 @@ its nodata mask is the DEM's holes.
 Exit 1 on any failed check. Times are one run on the machine at hand.
 """
 import argparse
-import glob
 import os
 import subprocess
 import sys
@@ -36,17 +35,9 @@ import rasterio
 from rasterio.transform import from_origin
 from rasterio.warp import Resampling, calculate_default_transform, reproject
 
+from holes_bench import elev_tif  # $HB_ELEV_TIF, or terra's elev.tif from its Debian package
+
 NO_TMP = "/proc/horizon-bake-no-spill"
-
-
-def elev_tif(work):
-    if os.environ.get("HB_ELEV_TIF"):
-        return os.environ["HB_ELEV_TIF"]
-    subprocess.run(["apt-get", "download", "r-cran-terra"], cwd=work, check=True,
-                   capture_output=True)
-    deb = glob.glob(os.path.join(work, "r-cran-terra_*.deb"))[0]
-    subprocess.run(["dpkg-deb", "-x", deb, os.path.join(work, "x")], check=True)
-    return glob.glob(os.path.join(work, "**", "ex", "elev.tif"), recursive=True)[0]
 
 
 def fbm_dem(path, n):
@@ -136,10 +127,13 @@ def main():
         # The control: a bake that must spill fails under this TMPDIR.
         half = os.path.join(work, "half.tif")
         fbm_dem(half, a.size // 2)
+        # Bins enough for a table above the 512 MiB kept in memory (32 at 4096²).
+        per_bin = (a.size // 2) ** 2 * 4
+        bins = max(32, -(-((1 << 29) // per_bin + 1) // 16) * 16)
         rc, msg, wall, _, _ = bake(a.bin, half, os.path.join(work, "out_control"),
-                                   ["--svf-model", "tilted"])
+                                   ["--svf-model", "tilted", "--bins", str(bins)])
         caught = rc != 0 and "temporary file" in msg
-        print(f"control: {a.size // 2}² svf_model=tilted (table spilled) "
+        print(f"control: {a.size // 2}² svf_model=tilted at {bins} bins (table spilled) "
               f"{'failed as it must' if caught else 'FAILED: it did not fail on its spill'}"
               f" ({wall:.1f} s)")
         if not caught:
