@@ -518,8 +518,14 @@ impl Spool {
         {
             return Err(Error::Internal("a GeoTIFF band was never written".into()));
         }
-        // The IFD's own size is bounded well within the 1 MiB MAX_CLASSIC keeps for it.
-        let big = self.force_big || 8 + self.at > MAX_CLASSIC;
+        let text = nodata_text(self.nodata);
+        // Classic while the whole file, IFD and its values included, has 32-bit offsets: the
+        // IFD's length does not depend on where it or the tiles are (720 bands of a 65 536²
+        // map carry 94 MB of tile offsets and counts), so it is measured with the tiles' own.
+        let at = IfdAt { ifd: 0, offsets: &self.offsets, counts: &self.counts, big: false };
+        let ifd_len = ifd_bytes(self.width, self.height, &at, descriptions, FLOAT32, georef, &text)
+            .len() as u64;
+        let big = self.force_big || 8 + self.at + 1 + ifd_len > u64::from(u32::MAX);
         let start = header_len(big);
         let end = start + self.at;
         let ifd = end + end % 2;
@@ -532,7 +538,6 @@ impl Spool {
         }
         let offsets: Vec<u64> = self.offsets.iter().map(|o| o + start).collect();
         let at = IfdAt { ifd: ifd as usize, offsets: &offsets, counts: &self.counts, big };
-        let text = nodata_text(self.nodata);
         out.write_all(&ifd_bytes(
             self.width,
             self.height,
