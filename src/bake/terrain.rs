@@ -83,12 +83,16 @@ pub type AngleBands<'a> = &'a mut (dyn for<'p> FnMut(usize, &(dyn Fn(usize) -> &
 /// than in its products: `sweep`'s planes, unless the bands are true-north azimuths turned per
 /// texel (their own rays).
 pub fn streams_angles(map: &HeightMap, params: &BakeParams) -> bool {
-    params.outputs.angles && azimuth_major(params) && !true_bands(map, params)
+    streams(params, &compass_of(map, params).0)
+}
+
+fn streams(params: &BakeParams, compass: &crate::heightmap::north::Compass) -> bool {
+    params.outputs.angles && azimuth_major(params) && !true_bands(params, compass)
 }
 
 /// Compass bands on a projected map are true azimuths, turned per texel: rays of their own.
-fn true_bands(map: &HeightMap, params: &BakeParams) -> bool {
-    params.azimuth_from == AzimuthFrom::NorthCw && compass_of(map, params).0.is_true()
+fn true_bands(params: &BakeParams, compass: &crate::heightmap::north::Compass) -> bool {
+    params.azimuth_from == AzimuthFrom::NorthCw && compass.is_true()
 }
 
 /// [`bake_terrain_from`], with the `angles` handed to `angles` band by band as they are made
@@ -117,7 +121,8 @@ fn terrain_core(
 ) -> Result<(TerrainProducts, ResolvedRadius)> {
     let (w, h) = (map.width, map.height);
     let nb = params.bins as usize;
-    let out = out.filter(|_| streams_angles(map, params));
+    let (compass, north) = compass_of(map, params);
+    let out = out.filter(|_| streams(params, &compass));
     if out.is_none() {
         check_angles(map, params)?;
     }
@@ -152,8 +157,7 @@ fn terrain_core(
     }
     let nodata = map.terrain.nodata.map_or(f32::NAN, |v| v as f32);
     let normals = NormalSource { grid: &grid, holes, row0: 0 };
-    let (compass, north) = compass_of(map, params);
-    let true_bands = true_bands(map, params);
+    let true_bands = true_bands(params, &compass);
     let mut kernel_params = params.clone();
     kernel_params.outputs.angles &= !true_bands;
     let (mut ang, sv) = if kernel_params.outputs.angles || params.outputs.svf {

@@ -637,10 +637,7 @@ pub fn write_geotiff<W: Write>(
         w.flush()?;
     }
     let ifd = (at + at % 2) as usize;
-    let mut head = Vec::with_capacity(8);
-    head.extend_from_slice(b"II*\0");
-    head.extend_from_slice(&(ifd as u32).to_le_bytes());
-    out.write_all(&head)?;
+    out.write_all(&geotiff::header(ifd as u64, false))?;
     tmp.seek(SeekFrom::Start(0))?;
     std::io::copy(&mut tmp, &mut out)?;
     if at % 2 == 1 {
